@@ -1,0 +1,21 @@
+"""torchrefract: a PyTorch renderer of rough transparent objects, built for datasets.
+
+Public API::
+
+    scene = torchrefract.load_scene("configs/demo.yaml")
+    out = torchrefract.render([scene], method="specular")
+    out.radiance   # (B, H, W, 3) float32 linear RGB
+    out.coverage   # (B, H, W)
+    out.passes     # dict of (B, H, W, C)
+"""
+
+from .checks import ConfigError
+from .render import RenderResult, render
+from .scene import Camera, EnvMap, Material, Scene, SphereLight, Transform, load_scene, \
+    scene_from_dict
+
+__version__ = "0.1.0"
+
+__all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "Scene",
+           "SphereLight", "Transform", "load_scene", "render", "scene_from_dict",
+           "__version__"]

@@ -1,0 +1,85 @@
+"""Validation of user input: one place, clear messages naming the field and the value.
+
+Every check raises :class:`ConfigError` (a ``ValueError``) whose message names where the
+value came from (file and key path), what was expected and what was found. Never use a bare
+``assert`` on user input (kornia's ``KORNIA_CHECK`` style).
+"""
+
+from __future__ import annotations
+
+import math
+from numbers import Real
+from typing import Any, Sequence
+
+
+class ConfigError(ValueError):
+    """A scene, config or asset that cannot be rendered as given."""
+
+
+def where(source: str | None, key: str) -> str:
+    """Format a location as ``file: key`` (or just ``key``)."""
+    return f"{source}: {key}" if source else key
+
+
+def check_number(value: Any, key: str, source: str | None = None, *,
+                 minimum: float | None = None, maximum: float | None = None,
+                 min_inclusive: bool = True, integer: bool = False) -> float:
+    """Return ``value`` as float (or int) after checking type, finiteness and range."""
+    loc = where(source, key)
+    if isinstance(value, bool) or not isinstance(value, Real):
+        kind = "an integer" if integer else "a number"
+        raise ConfigError(f"{loc}: expected {kind}, got {value!r} ({type(value).__name__})")
+    if integer and int(value) != value:
+        raise ConfigError(f"{loc}: expected an integer, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ConfigError(f"{loc}: expected a finite number, got {value!r}")
+    if minimum is not None:
+        if min_inclusive and v < minimum:
+            raise ConfigError(f"{loc}: must be >= {minimum}, got {value!r}")
+        if not min_inclusive and v <= minimum:
+            raise ConfigError(f"{loc}: must be > {minimum}, got {value!r}")
+    if maximum is not None and v > maximum:
+        raise ConfigError(f"{loc}: must be <= {maximum}, got {value!r}")
+    return int(value) if integer else v
+
+
+def check_vector(value: Any, key: str, source: str | None = None, *, length: int = 3,
+                 minimum: float | None = None) -> tuple[float, ...]:
+    """Return a tuple of ``length`` finite floats."""
+    loc = where(source, key)
+    if not isinstance(value, Sequence) or isinstance(value, (str, bytes)):
+        raise ConfigError(f"{loc}: expected a list of {length} numbers, got {value!r}")
+    if len(value) != length:
+        raise ConfigError(f"{loc}: expected {length} numbers, got {len(value)}: {value!r}")
+    return tuple(check_number(v, f"{key}[{i}]", source, minimum=minimum)
+                 for i, v in enumerate(value))
+
+
+def check_choice(value: Any, key: str, choices: Sequence[str], source: str | None = None) -> str:
+    loc = where(source, key)
+    if not isinstance(value, str) or value not in choices:
+        raise ConfigError(f"{loc}: expected one of {list(choices)}, got {value!r}")
+    return value
+
+
+def check_keys(mapping: Any, key: str, allowed: Sequence[str], source: str | None = None,
+               required: Sequence[str] = ()) -> dict:
+    """Check that ``mapping`` is a dict with only ``allowed`` keys and all ``required`` ones."""
+    loc = where(source, key or "<top level>")
+    if not isinstance(mapping, dict):
+        raise ConfigError(f"{loc}: expected a mapping, got {mapping!r} ({type(mapping).__name__})")
+    unknown = [k for k in mapping if k not in allowed]
+    if unknown:
+        raise ConfigError(f"{loc}: unknown key {unknown[0]!r} (allowed: {sorted(allowed)})")
+    missing = [k for k in required if k not in mapping]
+    if missing:
+        raise ConfigError(f"{loc}: missing required key {missing[0]!r}")
+    return mapping
+
+
+def check_tensor_shape(t, shape: Sequence[int | None], name: str) -> None:
+    """Check a tensor's shape; ``None`` entries match any size (kornia ``KORNIA_CHECK_SHAPE``)."""
+    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ConfigError(f"{name}: expected shape {want}, got {tuple(t.shape)}")

@@ -1,0 +1,223 @@
+"""Exact G-buffers: triangle ids from the visibility passes, attributes from torch.
+
+For every pixel the rasterizer tells only *which* triangle is seen (front layer: nearest
+front face; back layer: nearest back face). Torch then intersects the pixel's camera ray
+with that triangle (Moller-Trumbore, float64) and interpolates attributes with the exact
+barycentrics, so positions, depths and normals carry no 8-bit or depth-buffer quantization.
+
+Layout: channels-last, ``(B, H, W, C)``, where (H, W) is the *rendered* resolution: the
+camera resolution times ``samples_per_pixel`` (the G-buffer lives on sub-pixel centers).
+Meshes of a batch are concatenated; ``tri`` indexes the concatenation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .camera import pixel_rays, projection_params
+from .mesh import MeshData
+from .raster import visibility_pass
+from .scene import Camera
+
+
+@dataclass(frozen=True)
+class MeshBatch:
+    """Triangles of B meshes concatenated (float32).
+
+    Attributes:
+        tri_vertices: (F, 3, 3) corner positions, F = total faces of the batch.
+        tri_normals: (F, 3, 3) unit corner shading normals.
+        tri_uvs: (F, 3, 2) corner UVs (zeros where a mesh has none).
+        face_offset: (B,) int64 index of each mesh's first face.
+        num_faces: (B,) int64 faces per mesh.
+    """
+
+    tri_vertices: torch.Tensor
+    tri_normals: torch.Tensor
+    tri_uvs: torch.Tensor
+    face_offset: torch.Tensor
+    num_faces: torch.Tensor
+
+    @staticmethod
+    def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
+        tv, tn, tu, counts = [], [], [], []
+        for m in meshes:
+            f = m.faces
+            tv.append(m.vertices[f])  # (F_i, 3, 3)
+            tn.append(m.normals[f])
+            tu.append(m.uvs[f] if m.uvs is not None else torch.zeros(f.shape[0], 3, 2))
+            counts.append(f.shape[0])
+        counts_t = torch.tensor(counts, dtype=torch.int64)
+        offsets = torch.cumsum(counts_t, 0) - counts_t
+        return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t)
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One depth layer (front faces or back faces) of a G-buffer.
+
+    Attributes:
+        mask: (B, H, W) bool, a face is seen.
+        tri: (B, H, W) int64 index into the MeshBatch (-1 where ``mask`` is False).
+        position: (B, H, W, 3) exact world position of the hit.
+        dist: (B, H, W) distance from the eye along the pixel ray.
+        depth: (B, H, W) camera-space depth (along the forward axis).
+        bary: (B, H, W, 3) barycentrics of the hit (may leave [0, 1] by ~1e-6 at edges).
+        geo_normal: (B, H, W, 3) unit geometric normal, outward (by winding).
+        normal: (B, H, W, 3) unit interpolated shading normal, outward.
+        uv: (B, H, W, 2) interpolated UV.
+    Values where ``mask`` is False are zeros.
+    """
+
+    mask: torch.Tensor
+    tri: torch.Tensor
+    position: torch.Tensor
+    dist: torch.Tensor
+    depth: torch.Tensor
+    bary: torch.Tensor
+    geo_normal: torch.Tensor
+    normal: torch.Tensor
+    uv: torch.Tensor
+
+
+@dataclass(frozen=True)
+class GBuffer:
+    """Front and back layers of a batch of B views, plus the rays and cameras.
+
+    Attributes:
+        front: nearest front faces.
+        back: nearest back faces (first exit of a convex object).
+        ray_dir: (B, H, W, 3) unit camera ray per (sub-)pixel center.
+        eye: (B, 3) camera positions.
+        proj: (B, 16) packed cameras for :func:`torchrefract.camera.project`, with width and
+            height of the rendered (supersampled) grid.
+        meshes: the batch's triangles.
+        supersample: n; (H, W) = n * (camera height, camera width).
+    """
+
+    front: Layer
+    back: Layer
+    ray_dir: torch.Tensor
+    eye: torch.Tensor
+    proj: torch.Tensor
+    meshes: MeshBatch
+    supersample: int
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        b, h, w, _ = self.ray_dir.shape
+        return b, h, w
+
+
+def intersect_triangles(origin: torch.Tensor, direction: torch.Tensor,
+                        tri_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ray-plane hit of each ray with its triangle (Moller-Trumbore, no inside test).
+
+    Args:
+        origin: (..., 3) ray origins.
+        direction: (..., 3) ray directions (any length).
+        tri_vertices: (..., 3, 3) the triangle of each ray.
+
+    Returns:
+        t: (...) ray parameter of the hit with the triangle's plane (inf if parallel).
+        bary: (..., 3) barycentrics (w0, w1, w2) of that point.
+    """
+    v0, v1, v2 = tri_vertices.unbind(-2)
+    e1, e2 = v1 - v0, v2 - v0
+    p = torch.cross(direction, e2, dim=-1)
+    det = (e1 * p).sum(-1)
+    ok = det.abs() > 1e-30
+    inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)),
+                      torch.zeros_like(det))
+    s = origin - v0
+    u = (s * p).sum(-1) * inv
+    q = torch.cross(s, e1, dim=-1)
+    v = (direction * q).sum(-1) * inv
+    t = (e2 * q).sum(-1) * inv
+    t = torch.where(ok, t, torch.full_like(t, float("inf")))
+    return t, torch.stack([1.0 - u - v, u, v], -1)
+
+
+def interpolate(bary: torch.Tensor, corner_values: torch.Tensor) -> torch.Tensor:
+    """Interpolate per-corner attributes with barycentrics clamped to the triangle.
+
+    Args:
+        bary: (..., 3) barycentrics (may be slightly outside [0, 1]).
+        corner_values: (..., 3, C).
+
+    Returns:
+        (..., C)
+    """
+    w = bary.clamp(min=0.0)
+    w = w / w.sum(-1, keepdim=True).clamp(min=1e-12)
+    return (w.unsqueeze(-1) * corner_values).sum(-2)
+
+
+def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
+           meshes: MeshBatch) -> Layer:
+    """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3)."""
+    mask = ids >= 0
+    safe = ids.clamp(min=0)
+    tv = meshes.tri_vertices[safe].double()  # (B, H, W, 3, 3)
+    o = eye.double()[:, None, None, :].expand_as(dirs)  # (B, H, W, 3)
+    d = dirs.double()
+    t, bary = intersect_triangles(o, d, tv)
+    t = torch.where(mask & torch.isfinite(t), t, torch.zeros_like(t))
+    pos = o + t[..., None] * d
+    gn = torch.cross(tv[..., 1, :] - tv[..., 0, :], tv[..., 2, :] - tv[..., 0, :], dim=-1)
+    gn = gn / gn.norm(dim=-1, keepdim=True).clamp(min=1e-300)
+    n = interpolate(bary, meshes.tri_normals[safe].double())
+    n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
+    uv = interpolate(bary, meshes.tri_uvs[safe].double())
+    depth = t * (d * forward.double()[:, None, None, :]).sum(-1)
+    m3 = mask[..., None]
+    z = torch.zeros((), dtype=torch.float32)
+    return Layer(
+        mask=mask,
+        tri=torch.where(mask, ids, torch.full_like(ids, -1)),
+        position=torch.where(m3, pos.float(), z),
+        dist=torch.where(mask, t.float(), z),
+        depth=torch.where(mask, depth.float(), z),
+        bary=torch.where(m3, bary.float(), z),
+        geo_normal=torch.where(m3, gn.float(), z),
+        normal=torch.where(m3, n.float(), z),
+        uv=torch.where(m3, uv.float(), z),
+    )
+
+
+def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
+    """Render both visibility passes for each view and build the exact G-buffer.
+
+    Args:
+        meshes: B world-space meshes.
+        cameras: B cameras with equal width, height and samples_per_pixel.
+
+    Returns:
+        GBuffer with (H, W) = samples_per_pixel * (height, width).
+    """
+    if len(meshes) != len(cameras) or not meshes:
+        raise ValueError("build_gbuffer needs one camera per mesh and at least one view")
+    n = cameras[0].samples_per_pixel
+    batch = MeshBatch.from_meshes(meshes)
+    front_ids, back_ids, dirs, eyes, fwd, proj = [], [], [], [], [], []
+    for b, (mesh, cam) in enumerate(zip(meshes, cameras)):
+        off = int(batch.face_offset[b])
+        for back, out in ((False, front_ids), (True, back_ids)):
+            ids = visibility_pass(mesh, cam, n, back=back)
+            out.append(torch.where(ids >= 0, ids + off, ids))
+        dirs.append(pixel_rays(cam, n))
+        eyes.append(torch.tensor(cam.eye, dtype=torch.float32))
+        f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
+        fwd.append(torch.from_numpy(f / np.linalg.norm(f)).float())
+        p = projection_params(cam)
+        p[14:16] *= n
+        proj.append(p)
+    dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
+    return GBuffer(
+        front=_layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch),
+        back=_layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch),
+        ray_dir=dirs_t, eye=eye_t, proj=torch.stack(proj), meshes=batch, supersample=n,
+    )

@@ -1,0 +1,146 @@
+"""Meshes: load with trimesh, apply the scene transform, shading normals, UVs.
+
+Shading normals follow SCENE_SPEC.md: the file's own vertex normals when it has them
+(rotated with the object), otherwise trimesh's ``vertex_normals`` computed after the
+transform. Degenerate triangles are dropped; a mesh that is not watertight loads with a
+warning (the two-layer methods assume closed objects).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from .checks import ConfigError
+from .scene import Transform
+
+
+@dataclass(frozen=True)
+class MeshData:
+    """A triangle mesh in world space (float32, CPU).
+
+    Attributes:
+        vertices: (V, 3) world positions.
+        faces: (F, 3) int64 vertex indices, counter-clockwise seen from outside.
+        normals: (V, 3) unit shading normals.
+        uvs: (V, 2) texture coordinates (OpenGL convention) or None.
+        watertight: whether every edge is shared by exactly two faces.
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    normals: torch.Tensor
+    uvs: torch.Tensor | None
+    watertight: bool
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        """Center (3,) and radius of the axis-aligned box's circumscribed sphere."""
+        v = self.vertices.numpy().astype(np.float64)
+        lo, hi = v.min(0), v.max(0)
+        c = 0.5 * (lo + hi)
+        return c, float(np.linalg.norm(v - c, axis=1).max())
+
+
+def rotation_matrix(rotate_deg: tuple[float, float, float]) -> np.ndarray:
+    """R = Rz @ Ry @ Rx for degrees about world X, Y, Z (right-handed), float64 (3, 3)."""
+    ax, ay, az = (math.radians(a) for a in rotate_deg)
+    cx, sx, cy, sy, cz, sz = (math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay),
+                              math.cos(az), math.sin(az))
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def transform_matrix(t: Transform) -> np.ndarray:
+    """4x4 object-to-world matrix: translate @ rotate @ scale (float64)."""
+    m = np.eye(4)
+    m[:3, :3] = rotation_matrix(t.rotate_deg) * t.scale
+    m[:3, 3] = t.translate
+    return m
+
+
+def _load_trimesh(path: str) -> trimesh.Trimesh:
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for broken files
+        raise ConfigError(f"mesh {path!r}: cannot be loaded ({type(exc).__name__}: {exc})") \
+            from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ConfigError(f"mesh {path!r}: contains no triangles")
+    return loaded
+
+
+@functools.lru_cache(maxsize=16)
+def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
+    """Load a mesh file and place it in world space (cached per path and transform).
+
+    Args:
+        path: any file trimesh loads.
+        transform: the scene's object transform (scale -> rotate -> translate).
+
+    Returns:
+        MeshData in world space.
+
+    Raises:
+        ConfigError: unreadable file, no triangles, NaN/Inf vertices, all faces degenerate.
+    """
+    tm = _load_trimesh(path)
+    verts = np.asarray(tm.vertices, dtype=np.float64)
+    faces = np.asarray(tm.faces, dtype=np.int64)
+    if not np.isfinite(verts).all():
+        raise ConfigError(f"mesh {path!r}: vertex positions contain NaN or Inf")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise ConfigError(f"mesh {path!r}: face indices out of range")
+    has_normals = "vertex_normals" in tm._cache  # normals stored in the file itself
+    file_normals = np.asarray(tm.vertex_normals, dtype=np.float64) if has_normals else None
+    uv = getattr(tm.visual, "uv", None)
+    uvs = None if uv is None or len(uv) != len(verts) else np.asarray(uv, dtype=np.float64)
+
+    m = transform_matrix(transform)
+    verts = verts @ m[:3, :3].T + m[:3, 3]
+
+    # Drop degenerate triangles (repeated indices or zero area): they have no normal and
+    # would give the visibility pass ids that no exact intersection can reproduce.
+    tri = verts[faces]  # (F, 3, 3)
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    scale = max(np.abs(verts).max(), 1e-30)
+    keep = (area2 > 1e-12 * scale * scale) & (faces[:, 0] != faces[:, 1]) \
+        & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    if not keep.any():
+        raise ConfigError(f"mesh {path!r}: every triangle is degenerate (zero area)")
+    if not keep.all():
+        warnings.warn(f"mesh {path!r}: dropped {int((~keep).sum())} degenerate triangles",
+                      stacklevel=2)
+    faces = faces[keep]
+
+    world = trimesh.Trimesh(verts, faces, process=False)
+    if file_normals is not None:
+        normals = file_normals @ rotation_matrix(transform.rotate_deg).T
+    else:
+        normals = np.asarray(world.vertex_normals, dtype=np.float64)
+    n = np.linalg.norm(normals, axis=1, keepdims=True)
+    # Vertices used by no kept face (or with a zero normal in the file) get any unit vector;
+    # they are never interpolated.
+    normals = np.where(n > 1e-12, normals / np.maximum(n, 1e-30), np.array([0.0, 0.0, 1.0]))
+    watertight = bool(world.is_watertight)
+    if not watertight:
+        warnings.warn(f"mesh {path!r} is not watertight: methods that assume a closed object "
+                      "may show holes or wrong exits", stacklevel=2)
+    return MeshData(
+        vertices=torch.from_numpy(verts.astype(np.float32)),
+        faces=torch.from_numpy(faces),
+        normals=torch.from_numpy(normals.astype(np.float32)),
+        uvs=None if uvs is None else torch.from_numpy(uvs.astype(np.float32)),
+        watertight=watertight,
+    )

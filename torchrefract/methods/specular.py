@@ -1,0 +1,133 @@
+"""Method ``specular``: two-sided image-space refraction (Wyman 2005), done exactly.
+
+Per covered pixel: refract the camera ray at the front hit (Snell, shading normal), march the
+refracted ray through the back-face buffer to its exit (Oliveira and Brauwers 2007; exact
+triangle hit, see :mod:`torchrefract.march`), refract again with the IOR ratio inverted, and
+look the environment up. The front surface's Fresnel reflection is added:
+
+    L = F1 L_env(reflect(d)) + (1 - F1) (1 - F2) exp(-sigma s) L_env(T2)
+
+with exact unpolarized dielectric Fresnel terms F1 (entry) and F2 (exit), s the path length
+inside and sigma the absorption. Under total internal reflection at the exit, ``tir: clamp``
+(default, as the seeds do) sends the transmitted light out along the critical-angle
+direction with weight (1 - F1), standing in for the light that escapes after further
+bounces; ``tir: reflect`` reflects it once and looks the environment up in that direction.
+Rays whose exit is not found (they leave the frame, miss the back layer) fall back to the
+refracted direction T1, never to garbage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+
+from ..checks import ConfigError, check_choice, check_number
+from ..gbuffer import GBuffer
+from ..lighting import Lighting, hit_lights, incident_radiance
+from ..march import march_back
+from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
+
+
+@dataclass(frozen=True)
+class SpecularOptions:
+    """Settings of ``specular`` (``method_options`` in a scene)."""
+
+    tir: str = "clamp"
+    """Total internal reflection at the exit: ``clamp`` (critical angle) or ``reflect``."""
+    march_steps: int = 64
+    """Coarse samples along the refracted ray (over the bounding sphere's chord)."""
+    refine_steps: int = 10
+    """Bisection iterations after the coarse search."""
+
+    @staticmethod
+    def from_dict(d: dict, source: str | None = None) -> "SpecularOptions":
+        allowed = [f.name for f in fields(SpecularOptions)]
+        for k in d:
+            if k not in allowed:
+                raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown "
+                                  f"key {k!r} for method 'specular' (allowed: {allowed})")
+        return SpecularOptions(
+            tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
+                             ("clamp", "reflect"), source),
+            march_steps=check_number(d.get("march_steps", 64), "method_options.march_steps",
+                                     source, minimum=1, maximum=4096, integer=True),
+            refine_steps=check_number(d.get("refine_steps", 10),
+                                      "method_options.refine_steps", source, minimum=0,
+                                      maximum=64, integer=True),
+        )
+
+
+def render_specular(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
+                    absorption: torch.Tensor, options: SpecularOptions = SpecularOptions()
+                    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Shade a G-buffer with two-sided specular refraction.
+
+    Args:
+        g: G-buffer of B views at (H, W) (sub-)pixels.
+        lighting: environment maps and lights of the B scenes.
+        ior: (B,) index of refraction inside.
+        absorption: (B, 3) Beer-Lambert coefficients per unit length.
+        options: method settings.
+
+    Returns:
+        radiance: (B, H, W, 3) float32, background included.
+        passes: ``exit_found`` and ``tir`` (B, H, W, 1) floats (1 where true, object pixels).
+    """
+    b, h, w = g.shape
+    d_all = g.ray_dir.reshape(-1, 3)  # (B*H*W, 3)
+    batch_all = torch.arange(b).repeat_interleave(h * w)  # (B*H*W,)
+    eye_all = g.eye[batch_all]
+    front_mask = g.front.mask.reshape(-1)
+    # Camera rays: environment, or a light in front of the object.
+    max_dist = torch.where(front_mask, g.front.dist.reshape(-1),
+                           torch.full_like(d_all[:, 0], float("inf")))
+    radiance = incident_radiance(lighting, batch_all, eye_all, d_all, max_dist)
+
+    idx = front_mask.nonzero(as_tuple=True)[0]  # compact: object pixels only
+    exit_found = torch.zeros(b * h * w)
+    tir_pass = torch.zeros(b * h * w)
+    if idx.numel() > 0:
+        bi = batch_all[idx]
+        d = d_all[idx]  # (N, 3)
+        p1 = g.front.position.reshape(-1, 3)[idx]
+        n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
+        eta = ior[bi]  # (N,)
+        # A light between the eye and the object hides it.
+        hidden = _light_in_front(lighting, bi, eye_all[idx], d, g.front.dist.reshape(-1)[idx])
+        cos1 = -dot(d, n1)
+        f1 = fresnel_dielectric(cos1, 1.0 / eta)
+        l_refl = incident_radiance(lighting, bi, p1, reflect(d, n1))
+        t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
+        ex = march_back(g, bi, p1, t1, steps=options.march_steps, refine=options.refine_steps)
+        n2 = face_forward(ex.normal, t1)  # against the ray: points into the object
+        cos2 = -dot(t1, n2)
+        f2 = fresnel_dielectric(cos2, eta)
+        t2, tir2 = refract(t1, n2, eta)
+        tir2 = tir2 & ex.found
+        if options.tir == "reflect":
+            t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
+        w2 = torch.where(tir2, torch.ones_like(f2), 1.0 - f2)
+        # Fallback where no exit was found: leave along the refracted direction.
+        t2 = torch.where(ex.found[:, None], t2, t1)
+        w2 = torch.where(ex.found, w2, torch.ones_like(w2))
+        p2 = torch.where(ex.found[:, None], ex.position, p1)
+        path = torch.where(ex.found, ex.dist, (g.back.dist - g.front.dist).reshape(-1)[idx]
+                           .clamp(min=0.0))
+        att = torch.exp(-absorption[bi] * path[:, None])  # (N, 3)
+        l_trans = incident_radiance(lighting, bi, p2, t2)
+        l_obj = f1[:, None] * l_refl + ((1.0 - f1) * w2)[:, None] * att * l_trans
+        radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj)
+        exit_found[idx] = ex.found.float()
+        tir_pass[idx] = (tir2 | tir1).float()
+    passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir_pass.view(b, h, w, 1)}
+    return radiance.view(b, h, w, 3), passes
+
+
+def _light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,
+                    dist: torch.Tensor) -> torch.Tensor:
+    if lighting.light_pos.shape[1] == 0:
+        return torch.zeros_like(dist, dtype=torch.bool)
+    t, _ = hit_lights(o, d, lighting.light_pos[bi], lighting.light_radius[bi],
+                      lighting.light_radiance[bi])
+    return t < dist

@@ -1,0 +1,154 @@
+"""The one data flow: scenes -> G-buffer (pyrender) -> method (torch) -> radiance and passes.
+
+Example:
+    >>> import torchrefract as tr
+    >>> scenes = [tr.load_scene("configs/demo.yaml")]            # doctest: +SKIP
+    >>> out = tr.render(scenes, method="specular")               # doctest: +SKIP
+    >>> out.radiance.shape, out.coverage.shape                   # doctest: +SKIP
+    (torch.Size([1, 256, 256, 3]), torch.Size([1, 256, 256]))
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from .checks import ConfigError
+from .gbuffer import GBuffer, build_gbuffer
+from .lighting import Lighting
+from .mesh import load_mesh
+from .methods import METHODS
+from .scene import Scene
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """Output of :func:`render` for B scenes at (H, W) pixels.
+
+    Attributes:
+        radiance: (B, H, W, 3) float32 linear RGB, background included, always finite.
+        coverage: (B, H, W) float32 object coverage in [0, 1] (the EXR's A channel).
+        passes: name -> (B, H, W, C) float32: ``depth_front``, ``depth_back`` (camera-space
+            depth), ``normal_front``, ``normal_back`` (world, unit before filtering),
+            ``thickness`` (distance between the layers along the view ray), and the method's
+            own buffers. Passes are averaged over the covered sub-pixels; 0 where uncovered.
+        scenes: the B scenes, as rendered.
+        timings: seconds per stage for the whole batch (``gbuffer``, ``shading``, ``total``).
+    """
+
+    radiance: torch.Tensor
+    coverage: torch.Tensor
+    passes: dict[str, torch.Tensor]
+    scenes: tuple[Scene, ...]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _box(x: torch.Tensor, n: int) -> torch.Tensor:
+    """Average n x n blocks of a (B, H, W, C) tensor -> (B, H/n, W/n, C)."""
+    if n == 1:
+        return x
+    return F.avg_pool2d(x.permute(0, 3, 1, 2), n).permute(0, 2, 3, 1).contiguous()
+
+
+def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int) -> torch.Tensor:
+    """Average of x over the covered sub-pixels of each pixel (0 where none is covered)."""
+    m = mask[..., None].to(x.dtype)
+    num, den = _box(x * m, n), _box(m, n)
+    return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
+
+
+def _geometry_passes(g: GBuffer) -> dict[str, torch.Tensor]:
+    n = g.supersample
+    thick = (g.back.dist - g.front.dist).clamp(min=0.0)
+    both = g.front.mask & g.back.mask
+    return {
+        "depth_front": _masked_box(g.front.depth[..., None], g.front.mask, n),
+        "depth_back": _masked_box(g.back.depth[..., None], g.back.mask, n),
+        "normal_front": _masked_box(g.front.normal, g.front.mask, n),
+        "normal_back": _masked_box(g.back.normal, g.back.mask, n),
+        "thickness": _masked_box(thick[..., None], both, n),
+    }
+
+
+def _check_batch(scenes: list[Scene], method: str) -> None:
+    c0 = scenes[0].camera
+    for i, s in enumerate(scenes[1:], 1):
+        c = s.camera
+        if (c.width, c.height, c.samples_per_pixel) != (c0.width, c0.height,
+                                                        c0.samples_per_pixel):
+            raise ConfigError(
+                f"render: scenes in one batch need the same camera.width, camera.height and "
+                f"camera.samples_per_pixel; scene 0 ({scenes[0].name}) has "
+                f"{c0.width}x{c0.height}@{c0.samples_per_pixel}, scene {i} ({s.name}) has "
+                f"{c.width}x{c.height}@{c.samples_per_pixel}")
+        if s.method_options != scenes[0].method_options:
+            raise ConfigError(f"render: scenes in one batch need the same method_options; "
+                              f"scene {i} ({s.name}) differs from scene 0")
+    if method not in METHODS:
+        raise ConfigError(f"render: unknown method {method!r} (available: {sorted(METHODS)})")
+
+
+def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResult:
+    """Render scenes of one resolution in one batched tensor pass.
+
+    Args:
+        scenes: one Scene or a list of B scenes with equal camera width, height and
+            samples_per_pixel, and equal ``method_options``.
+        method: overrides every scene's ``method`` (default: the scenes' own, which must
+            agree).
+
+    Returns:
+        RenderResult with (B, H, W, ...) tensors.
+
+    Raises:
+        ConfigError: mixed resolutions, methods or options; unknown method or option; a
+            broken mesh or environment map (file and problem named).
+    """
+    if isinstance(scenes, Scene):
+        scenes = [scenes]
+    scenes = list(scenes)
+    if not scenes:
+        raise ConfigError("render: no scenes given")
+    if method is None:
+        methods = {s.method for s in scenes}
+        if len(methods) > 1:
+            raise ConfigError(f"render: scenes ask for different methods {sorted(methods)}; "
+                              "pass method=... or render them separately")
+        method = methods.pop()
+    _check_batch(scenes, method)
+    parse_options, shade = METHODS[method]
+    options = parse_options(scenes[0].method_options, scenes[0].name)
+
+    t0 = time.perf_counter()
+    meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
+    lighting = Lighting.from_scenes(scenes)
+    t1 = time.perf_counter()
+    g = build_gbuffer(meshes, [s.camera for s in scenes])
+    t2 = time.perf_counter()
+    ior = torch.tensor([s.material.ior for s in scenes], dtype=torch.float32)
+    absorption = torch.tensor([s.material.absorption for s in scenes], dtype=torch.float32)
+    radiance, method_passes = shade(g, lighting, ior, absorption, options)
+    t3 = time.perf_counter()
+
+    n = g.supersample
+    bad = ~torch.isfinite(radiance)
+    if bad.any():  # never let NaN/Inf out, and never hide that it happened
+        count = int(bad.any(-1).sum())
+        warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and were "
+                      "set to 0; please report the scene", RuntimeWarning, stacklevel=2)
+        radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
+    passes = _geometry_passes(g)
+    for k, v in method_passes.items():
+        passes[k] = _masked_box(v, g.front.mask, n)
+    return RenderResult(
+        radiance=_box(radiance, n).float(),
+        coverage=_box(g.front.mask[..., None].float(), n)[..., 0],
+        passes=passes,
+        scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
+        timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
+                 "total": time.perf_counter() - t0},
+    )
