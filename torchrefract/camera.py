@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 import torch
-from kornia.utils import create_meshgrid
+from kornia.geometry import create_meshgrid
 
 from .scene import Camera
 

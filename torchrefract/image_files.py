@@ -14,12 +14,16 @@ import numpy as np
 
 from .checks import ConfigError
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 def _atomic_target(path: Path):
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
                                dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; use the usual permissions
     return Path(tmp)
 
 

@@ -1,0 +1,45 @@
+"""Shared test fixtures: repository paths, small synthetic assets."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import trimesh  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+ASSETS = ROOT / "assets"
+
+
+@pytest.fixture(scope="session")
+def sphere_ply(tmp_path_factory) -> Path:
+    """A unit icosphere (subdivision 6, 81,920 faces, radius 1) as PLY, no stored normals."""
+    path = tmp_path_factory.mktemp("meshes") / "sphere6.ply"
+    trimesh.creation.icosphere(subdivisions=6, radius=1.0).export(path)
+    return path
+
+
+def smooth_env_texels(h: int = 64, w: int = 128) -> np.ndarray:
+    """A smooth positive environment: an affine function of the direction per channel."""
+    v = (np.arange(h) / (h - 1)) * np.pi
+    u = (np.arange(w) + 0.5) / w * 2 * np.pi
+    vv, uu = np.meshgrid(v, u, indexing="ij")
+    # Spec: u = atan2(x, -z) / 2pi, v = acos(y) / pi.
+    x, y, z = np.sin(vv) * np.sin(uu), np.cos(vv), -np.sin(vv) * np.cos(uu)
+    img = np.stack([1.0 + 0.6 * x + 0.2 * y, 1.0 + 0.5 * y - 0.3 * z, 1.0 + 0.7 * z + 0.1 * x],
+                   -1)
+    return img.astype(np.float32)
+
+
+@pytest.fixture(scope="session")
+def smooth_env_exr(tmp_path_factory) -> Path:
+    from torchrefract.image_files import write_exr
+
+    img = smooth_env_texels()
+    path = tmp_path_factory.mktemp("env") / "smooth.exr"
+    write_exr(path, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})
+    return path
