@@ -4,6 +4,8 @@ For every pixel the rasterizer tells only *which* triangle is seen (front layer:
 front face; back layer: nearest back face). Torch then intersects the pixel's camera ray
 with that triangle (Moller-Trumbore, float64) and interpolates attributes with the exact
 barycentrics, so positions, depths and normals carry no 8-bit or depth-buffer quantization.
+Where the exact hit falls outside the rasterized triangle (pixel centers on edges, edge-on
+triangles), the 3x3 neighbourhood's triangles are tested and the true hit kept.
 
 Layout: channels-last, ``(B, H, W, C)``, where (H, W) is the *rendered* resolution: the
 camera resolution times ``samples_per_pixel`` (the G-buffer lives on sub-pixel centers).
@@ -33,6 +35,7 @@ class MeshBatch:
         tri_uvs: (F, 3, 2) corner UVs (zeros where a mesh has none).
         face_offset: (B,) int64 index of each mesh's first face.
         num_faces: (B,) int64 faces per mesh.
+        tri_neighbors: (F, 3) int64 edge-adjacent faces (batch indices, -1 where none).
     """
 
     tri_vertices: torch.Tensor
@@ -40,19 +43,24 @@ class MeshBatch:
     tri_uvs: torch.Tensor
     face_offset: torch.Tensor
     num_faces: torch.Tensor
+    tri_neighbors: torch.Tensor
 
     @staticmethod
     def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
-        tv, tn, tu, counts = [], [], [], []
+        tv, tn, tu, nb, counts = [], [], [], [], []
+        offset = 0
         for m in meshes:
             f = m.faces
             tv.append(m.vertices[f])  # (F_i, 3, 3)
             tn.append(m.normals[f])
             tu.append(m.uvs[f] if m.uvs is not None else torch.zeros(f.shape[0], 3, 2))
+            nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
             counts.append(f.shape[0])
+            offset += f.shape[0]
         counts_t = torch.tensor(counts, dtype=torch.int64)
         offsets = torch.cumsum(counts_t, 0) - counts_t
-        return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t)
+        return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t,
+                         torch.cat(nb))
 
 
 @dataclass(frozen=True)
@@ -156,9 +164,60 @@ def interpolate(bary: torch.Tensor, corner_values: torch.Tensor) -> torch.Tensor
     return (w.unsqueeze(-1) * corner_values).sum(-2)
 
 
+def _repair_edge_ids(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
+                     meshes: MeshBatch, back: bool, tol: float = 1e-7,
+                     keep_tol: float = 1e-3) -> torch.Tensor:
+    """Re-pick the triangle where the exact ray misses the rasterized one.
+
+    The rasterizer snaps vertices to a sub-pixel grid, so a pixel center within ~1/256 pixel
+    of an edge may get the triangle on the other side; at silhouettes it may cover a pixel
+    whose ray misses the object. For those pixels only (exact barycentrics outside the
+    rasterized triangle), the ray is tested against the triangles seen in the 3x3 pixel
+    neighbourhood and the rasterized triangle's edge neighbours and their edge neighbours,
+    and the nearest one really hit, facing the right way for the layer, is kept. If none is
+    hit, the rasterized id stays when the miss is tiny (barycentric > -keep_tol: its plane
+    is an excellent stand-in) and the pixel becomes empty otherwise (a silhouette miss).
+    """
+    b, h, w = ids.shape
+    mask = ids >= 0
+    tv = meshes.tri_vertices[ids.clamp(min=0)].double()  # (B, H, W, 3, 3)
+    o = eye.double()[:, None, None, :].expand_as(dirs)
+    _, bary = intersect_triangles(o, dirs.double(), tv)
+    own_min = bary.min(-1).values
+    suspect = mask & (own_min < -tol)
+    if not suspect.any():
+        return ids
+    pb, py, px = suspect.nonzero(as_tuple=True)  # (S,)
+    padded = torch.nn.functional.pad(ids, (1, 1, 1, 1), value=-1)  # (B, H+2, W+2)
+    dy, dx = torch.meshgrid(torch.arange(3), torch.arange(3), indexing="ij")
+    pix = padded[pb[:, None], py[:, None] + dy.reshape(1, 9), px[:, None] + dx.reshape(1, 9)]
+    own = ids[pb, py, px]  # (S,)
+    ring1 = meshes.tri_neighbors[own]  # (S, 3)
+    ring2 = meshes.tri_neighbors[ring1.clamp(min=0)]  # (S, 3, 3)
+    ring2 = torch.where(ring1[..., None] >= 0, ring2, torch.full_like(ring2, -1))
+    cand = torch.cat([pix, ring1, ring2.reshape(-1, 9)], 1)  # (S, 21)
+    k = cand.shape[1]
+    ds = dirs.double()[pb, py, px][:, None, :].expand(-1, k, 3)  # (S, k, 3)
+    os_ = eye.double()[pb][:, None, :].expand(-1, k, 3)
+    ctv = meshes.tri_vertices[cand.clamp(min=0)].double()  # (S, k, 3, 3)
+    t, cb = intersect_triangles(os_, ds, ctv)
+    gn = torch.cross(ctv[..., 1, :] - ctv[..., 0, :], ctv[..., 2, :] - ctv[..., 0, :], dim=-1)
+    facing = (gn * ds).sum(-1)
+    facing_ok = facing > 0 if back else facing < 0
+    ok = (cand >= 0) & (cb.min(-1).values >= -tol) & (t > 0) & torch.isfinite(t) & facing_ok
+    t = torch.where(ok, t, torch.full_like(t, float("inf")))
+    best_t, best = t.min(-1)  # (S,)
+    chosen = torch.gather(cand, 1, best[:, None])[:, 0]
+    fallback = torch.where(own_min[pb, py, px] > -keep_tol, own, torch.full_like(own, -1))
+    new = ids.clone()
+    new[pb, py, px] = torch.where(torch.isfinite(best_t), chosen, fallback)
+    return new
+
+
 def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
-           meshes: MeshBatch) -> Layer:
+           meshes: MeshBatch, back: bool) -> Layer:
     """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3)."""
+    ids = _repair_edge_ids(ids, eye, dirs, meshes, back)
     mask = ids >= 0
     safe = ids.clamp(min=0)
     tv = meshes.tri_vertices[safe].double()  # (B, H, W, 3, 3)
@@ -217,7 +276,7 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
         proj.append(p)
     dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
     return GBuffer(
-        front=_layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch),
-        back=_layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch),
+        front=_layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch, back=False),
+        back=_layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch, back=True),
         ray_dir=dirs_t, eye=eye_t, proj=torch.stack(proj), meshes=batch, supersample=n,
     )

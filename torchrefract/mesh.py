@@ -31,6 +31,7 @@ class MeshData:
         normals: (V, 3) unit shading normals.
         uvs: (V, 2) texture coordinates (OpenGL convention) or None.
         watertight: whether every edge is shared by exactly two faces.
+        neighbors: (F, 3) int64 faces sharing an edge with each face (-1 where none).
     """
 
     vertices: torch.Tensor
@@ -38,6 +39,7 @@ class MeshData:
     normals: torch.Tensor
     uvs: torch.Tensor | None
     watertight: bool
+    neighbors: torch.Tensor
 
     @property
     def num_faces(self) -> int:
@@ -137,10 +139,18 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
     if not watertight:
         warnings.warn(f"mesh {path!r} is not watertight: methods that assume a closed object "
                       "may show holes or wrong exits", stacklevel=2)
+    neighbors = np.full((len(faces), 3), -1, dtype=np.int64)
+    fill = np.zeros(len(faces), dtype=np.int64)
+    for a, b in np.asarray(world.face_adjacency, dtype=np.int64):
+        for f, g in ((a, b), (b, a)):
+            if fill[f] < 3:  # non-manifold edges may list more; three are plenty
+                neighbors[f, fill[f]] = g
+                fill[f] += 1
     return MeshData(
         vertices=torch.from_numpy(verts.astype(np.float32)),
         faces=torch.from_numpy(faces),
         normals=torch.from_numpy(normals.astype(np.float32)),
         uvs=None if uvs is None else torch.from_numpy(uvs.astype(np.float32)),
         watertight=watertight,
+        neighbors=torch.from_numpy(neighbors),
     )

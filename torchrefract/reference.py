@@ -34,7 +34,6 @@ Example:
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 from typing import Any
@@ -255,6 +254,13 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Path-trace a scene with Mitsuba 3 (ground truth when converged).
 
+    Two Mitsuba renders: the radiance of :func:`to_mitsuba_dict`, and a coverage pass. With
+    a visible environment map Mitsuba's film alpha is 1 on every pixel (every camera ray
+    "hits" the environment), so the object coverage comes from a second, cheap render of the
+    glass mesh alone (one bounce, emitters hidden, same sensor, spp and seed), whose alpha is
+    the fraction of the pixel's samples that hit the mesh: SCENE_SPEC.md's A channel
+    (lights excluded, as in :func:`torchrefract.render`).
+
     Args:
         scene: the scene (SCENE_SPEC.md).
         spp: samples per pixel (independent random samples, box filter).
@@ -264,7 +270,7 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
 
     Returns:
         radiance: (H, W, 3) float32 linear RGB, background included.
-        alpha: (H, W) float32 object (and light) coverage in [0, 1].
+        alpha: (H, W) float32 object coverage in [0, 1].
 
     Raises:
         ImportError: Mitsuba is not installed.
@@ -273,7 +279,18 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
     mi = mitsuba()
     mscene = mi.load_dict(to_mitsuba_dict(scene, spp=spp, seed=seed, max_depth=max_depth))
     img = np.array(mi.render(mscene), dtype=np.float32)  # (H, W, 4)
-    return np.ascontiguousarray(img[..., :3]), np.ascontiguousarray(img[..., 3])
+    cov = np.array(mi.render(mi.load_dict(_coverage_dict(scene, spp, seed))),
+                   dtype=np.float32)  # (H, W, 4)
+    return np.ascontiguousarray(img[..., :3]), np.ascontiguousarray(cov[..., 3])
+
+
+def _coverage_dict(scene: Scene, spp: int, seed: int) -> dict:
+    """Sensor and glass mesh only; alpha of a one-bounce render = mesh coverage."""
+    d = to_mitsuba_dict(scene, spp=spp, seed=seed, max_depth=1)
+    keep = ("type", "sensor", "glass")
+    d = {k: v for k, v in d.items() if k in keep}
+    d["integrator"] = {"type": "path", "max_depth": 1, "hide_emitters": True}
+    return d
 
 
 def eval_envmap_at_pixel_centers(scene: Scene) -> np.ndarray:
