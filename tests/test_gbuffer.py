@@ -6,9 +6,10 @@ is the nearest hit whose face normal faces the camera, the back layer the neares
 face normal faces away.
 
 Rasterization snaps vertices to a sub-pixel grid (Mesa llvmpipe: 1/256 px), so a pixel
-center closer than that to a triangle edge may be given the neighbouring triangle. Every
-disagreement must be such an edge pixel (``EDGE_TOL_PX``); the raw agreement rates are
-asserted too and printed (run with ``-s`` to see them).
+center closer than that to a triangle edge may be given the neighbouring triangle; the
+G-buffer repairs those ids with exact ray tests. Every remaining disagreement must be such
+an edge pixel (``EDGE_TOL_PX``). Agreement rates, of the G-buffer and of the raw
+rasterizer ids, are asserted and printed (run with ``-s`` to see them).
 """
 
 from __future__ import annotations
@@ -272,14 +273,19 @@ def test_gbuffer_matches_ray_casting(mesh_paths, name, cam_index):
                            cam, spec_rays(cam))
     stats = compare_layers(g, 0, mesh, cam, 1, ref, f"{name}/cam{cam_index}")
     for layer, s in stats.items():
+        # The rasterizer's own ids, before the G-buffer's exact edge repair.
+        raw = raster.visibility_pass(mesh, cam, back=(layer == "back")).numpy().reshape(-1)
+        ref_ids = ref[layer][0]
+        either = (raw >= 0) | (ref_ids >= 0)
+        raw_rate = float((either & (raw == ref_ids)).sum() / either.sum())
         print(f"\n{name} cam{cam_index} {layer}: {s['pixels']} px, id agreement "
-              f"{100 * s['agree']:.3f}% ({s['disagree']} edge px, worst "
-              f"{s['worst_edge_px']:.5f} px from the edge), position error "
-              f"{s['pos_err']:.2e} x radius")
+              f"{100 * s['agree']:.3f}% (raw raster {100 * raw_rate:.3f}%; {s['disagree']} "
+              f"edge px left, worst {s['worst_edge_px']:.5f} px from the edge), position "
+              f"error {s['pos_err']:.2e} x radius")
         assert s["pixels"] > 300  # the object is really in view
-        # Raw agreement: every disagreement is an edge pixel (checked above); how many
-        # there are depends on the triangles per pixel (spot/suzanne: ~2-4 at 96x72).
-        assert s["agree"] >= (0.999 if name == "icosphere" else 0.99)
+        assert s["agree"] >= 0.999
+        assert raw_rate >= 0.98  # the rasterizer alone: off on edge pixels (1e-2 at most)
+        assert s["agree"] >= raw_rate  # the edge repair never makes it worse
 
 
 def test_supersampling_renders_subpixel_centers(mesh_paths):
@@ -310,7 +316,7 @@ def test_supersampling_renders_subpixel_centers(mesh_paths):
     ref = reference_layers(mesh.vertices.numpy().astype(np.float64), mesh.faces.numpy(),
                            small, rays)
     stats = compare_layers(g, 0, mesh, small, 2, ref, "spot spp2")
-    assert min(s["agree"] for s in stats.values()) >= 0.99
+    assert min(s["agree"] for s in stats.values()) >= 0.999
     # and the very same G-buffer as a 96 x 72 camera without supersampling
     full = build_gbuffer([mesh], [base])
     for name in ("front", "back"):
@@ -329,6 +335,17 @@ def test_batch_of_two_meshes_indexes_concatenation(mesh_paths):
     assert g.meshes.face_offset.tolist() == [0, spot.num_faces]
     assert g.meshes.num_faces.tolist() == [spot.num_faces, suz.num_faces]
     assert g.meshes.tri_vertices.shape == (spot.num_faces + suz.num_faces, 3, 3)
+    # edge neighbours are batch indices too: within the same mesh, sharing two corners
+    nb = g.meshes.tri_neighbors
+    for b, mesh in enumerate((spot, suz)):
+        off = int(g.meshes.face_offset[b])
+        own = nb[off:off + mesh.num_faces]
+        assert ((own == -1) | ((own >= off) & (own < off + mesh.num_faces))).all()
+        f_idx, k = torch.nonzero(own >= 0, as_tuple=True)
+        a = mesh.faces[f_idx]
+        c = mesh.faces[own[f_idx, k] - off]
+        shared = (a[:, :, None] == c[:, None, :]).any(-1).sum(-1)
+        assert (shared == 2).all()
     singles = [build_gbuffer([spot], [cams_spot[0]]), build_gbuffer([suz], [cams_suz[0]])]
     for b, (mesh, single) in enumerate(zip((spot, suz), singles)):
         off = int(g.meshes.face_offset[b])
@@ -350,7 +367,7 @@ def test_batch_of_two_meshes_indexes_concatenation(mesh_paths):
     ref = reference_layers(suz.vertices.numpy().astype(np.float64), suz.faces.numpy(),
                            cams_suz[0], spec_rays(cams_suz[0]))
     stats = compare_layers(g, 1, suz, cams_suz[0], 1, ref, "batch[1]")
-    assert min(s["agree"] for s in stats.values()) >= 0.99
+    assert min(s["agree"] for s in stats.values()) >= 0.999
 
 
 def test_build_gbuffer_rejects_mismatched_lists(mesh_paths):

@@ -160,3 +160,33 @@ def test_fallback_without_back_layer_uses_refracted_direction(tmp_path, smooth_e
     tex = load_envmap(smooth_env_exr)
     want = f1 * lookup(tex, reflect(d, n)) + (1 - f1) * lookup(tex, t1)
     assert torch.allclose(out.radiance[0][cov], want[cov], rtol=1e-4, atol=1e-5)
+
+
+def test_sphere_lights_seen_directly_and_through_glass(sphere_ply, smooth_env_exr):
+    from torchrefract.camera import pixel_rays
+
+    bright = (50.0, 40.0, 30.0)
+    lights = (tr.SphereLight(position=(1.6, 0.0, 0.0), radius=0.25, radiance=bright),  # beside
+              tr.SphereLight(position=(0.0, 0.0, -3.0), radius=0.6, radiance=bright))  # behind
+    scene = tr.Scene(mesh=str(sphere_ply), envmap=tr.EnvMap(path=str(smooth_env_exr)),
+                     material=tr.Material(roughness=0.0), lights=lights,
+                     camera=tr.Camera(eye=(0.0, 0.0, 4.0), yfov_deg=50.0, width=64, height=64))
+    out = tr.render([scene])
+    img, cov = out.radiance[0], out.coverage[0]
+    want = torch.tensor(bright)
+    # Seen directly: the light beside the sphere covers background pixels with its radiance.
+    d = pixel_rays(scene.camera)
+    from torchrefract.lighting import hit_lights
+    t, _ = hit_lights(torch.tensor([scene.camera.eye]).expand(64 * 64, 3), d.reshape(-1, 3),
+                      torch.tensor([l.position for l in lights])[None].expand(64 * 64, 2, 3),
+                      torch.tensor([l.radius for l in lights])[None].expand(64 * 64, 2),
+                      torch.tensor([l.radiance for l in lights])[None].expand(64 * 64, 2, 3))
+    direct = torch.isfinite(t).view(64, 64) & (cov == 0)
+    assert direct.sum() > 10
+    assert torch.allclose(img[direct], want.expand_as(img[direct]))
+    # Seen through the glass: the light behind the sphere (hidden from the eye by it) lights
+    # up the center of the sphere, where the env alone is ~1.
+    center = img[28:36, 28:36]
+    assert (center.mean((0, 1)) > 0.5 * want).all()
+    without = tr.render([scene.replace(lights=())]).radiance[0]
+    assert without[28:36, 28:36].max() < 3.0

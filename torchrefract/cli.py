@@ -74,7 +74,7 @@ def _render_cmd(args: argparse.Namespace) -> int:
             batch = group[k:k + args.batch_size]
             try:
                 result = render(batch)
-            except ConfigError as exc:
+            except (ConfigError, NotImplementedError) as exc:
                 failed.extend((s.name, str(exc)) for s in batch)
                 bar.update(len(batch))
                 continue

@@ -259,7 +259,13 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     """
     if len(meshes) != len(cameras) or not meshes:
         raise ValueError("build_gbuffer needs one camera per mesh and at least one view")
-    n = cameras[0].samples_per_pixel
+    c0 = cameras[0]
+    for c in cameras[1:]:
+        if (c.width, c.height, c.samples_per_pixel) != (c0.width, c0.height,
+                                                        c0.samples_per_pixel):
+            raise ValueError("build_gbuffer: all cameras need the same width, height and "
+                             f"samples_per_pixel; got {c0} and {c}")
+    n = c0.samples_per_pixel
     batch = MeshBatch.from_meshes(meshes)
     front_ids, back_ids, dirs, eyes, fwd, proj = [], [], [], [], [], []
     for b, (mesh, cam) in enumerate(zip(meshes, cameras)):

@@ -95,13 +95,18 @@ def read_hdr(path: str | Path) -> np.ndarray:
                 for c in range(4):
                     x = 0
                     while x < w:
-                        n = int(buf[pos])
+                        code = int(buf[pos])
                         pos += 1
-                        if n > 128:  # a run
-                            n -= 128
+                        run = code > 128  # a run of one value, else a literal dump
+                        n = code - 128 if run else code
+                        if n == 0 or x + n > w:
+                            raise ValueError(f"scanline {y}: bad run length {n} at x={x}")
+                        if run:
                             out[y, x:x + n, c] = buf[pos]
                             pos += 1
                         else:
+                            if pos + n > len(buf):
+                                raise ValueError(f"scanline {y}: data ends early")
                             out[y, x:x + n, c] = buf[pos:pos + n]
                             pos += n
                         x += n

@@ -12,6 +12,7 @@ import functools
 import math
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -74,7 +75,10 @@ def transform_matrix(t: Transform) -> np.ndarray:
 
 def _load_trimesh(path: str) -> trimesh.Trimesh:
     try:
-        loaded = trimesh.load(path, process=False, force="mesh")
+        # Not force="mesh": trimesh's concatenation there drops the file's own normals.
+        loaded = trimesh.load(path, process=False)
+        if isinstance(loaded, trimesh.Scene):
+            loaded = loaded.to_mesh() if loaded.geometry else None
     except Exception as exc:  # trimesh raises many types for broken files
         raise ConfigError(f"mesh {path!r}: cannot be loaded ({type(exc).__name__}: {exc})") \
             from None
@@ -83,7 +87,6 @@ def _load_trimesh(path: str) -> trimesh.Trimesh:
     return loaded
 
 
-@functools.lru_cache(maxsize=16)
 def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
     """Load a mesh file and place it in world space (cached per path and transform).
 
@@ -97,6 +100,17 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
     Raises:
         ConfigError: unreadable file, no triangles, NaN/Inf vertices, all faces degenerate.
     """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        raise ConfigError(f"mesh {path!r}: file not found") from None
+    # Cached per file version: a file rewritten in place is read again.
+    return _load_mesh_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, transform)
+
+
+@functools.lru_cache(maxsize=16)
+def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) -> MeshData:
     tm = _load_trimesh(path)
     verts = np.asarray(tm.vertices, dtype=np.float64)
     faces = np.asarray(tm.faces, dtype=np.int64)
@@ -104,7 +118,9 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
         raise ConfigError(f"mesh {path!r}: vertex positions contain NaN or Inf")
     if faces.min() < 0 or faces.max() >= len(verts):
         raise ConfigError(f"mesh {path!r}: face indices out of range")
-    has_normals = "vertex_normals" in tm._cache  # normals stored in the file itself
+    # trimesh keeps normals read from the file in its cache (it has no public flag for it);
+    # computed normals would only appear there after an access, which has not happened yet.
+    has_normals = "vertex_normals" in tm._cache
     file_normals = np.asarray(tm.vertex_normals, dtype=np.float64) if has_normals else None
     uv = getattr(tm.visual, "uv", None)
     uvs = None if uv is None or len(uv) != len(verts) else np.asarray(uv, dtype=np.float64)
@@ -114,10 +130,13 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
 
     # Drop degenerate triangles (repeated indices or zero area): they have no normal and
     # would give the visibility pass ids that no exact intersection can reproduce.
+    # The test is relative to each triangle's longest edge, so a float32-rounded collinear
+    # triangle (a sliver with no defined normal) is caught at any scale.
     tri = verts[faces]  # (F, 3, 3)
     area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    scale = max(np.abs(verts).max(), 1e-30)
-    keep = (area2 > 1e-12 * scale * scale) & (faces[:, 0] != faces[:, 1]) \
+    edge2 = np.max(np.stack([((tri[:, i] - tri[:, (i + 1) % 3]) ** 2).sum(-1)
+                             for i in range(3)], -1), -1)
+    keep = (area2 > 1e-7 * edge2) & (edge2 > 0) & (faces[:, 0] != faces[:, 1]) \
         & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     if not keep.any():
         raise ConfigError(f"mesh {path!r}: every triangle is degenerate (zero area)")

@@ -52,6 +52,7 @@ _INSTALL_HINT = ("the Mitsuba 3 reference renderer needs the optional dependenci
                  "pip install 'torchrefract[reference]'")
 
 _mi: Any = None  # the mitsuba module once a variant is set
+_variant: str = ""  # the variant this module set
 
 
 def choose_variant() -> str:
@@ -77,10 +78,15 @@ def mitsuba():
         ImportError: Mitsuba is not installed (with the pip command that installs it), or the
             variant is not available in the installed build.
     """
-    global _mi
+    global _mi, _variant
     if _mi is not None:
+        if _mi.variant() != _variant:  # someone else switched the (process-global) variant
+            _mi.set_variant(_variant)
         return _mi
     variant = choose_variant()
+    if not variant.endswith("_rgb"):
+        raise ImportError(f"TORCHREFRACT_MI_VARIANT={variant!r}: torchrefract's reference "
+                          "needs an RGB variant (llvm_ad_rgb, scalar_rgb, cuda_ad_rgb)")
     if variant.startswith("llvm") and not os.environ.get("DRJIT_LIBLLVM_PATH"):
         lib = next((p for p in LIBLLVM19_CANDIDATES if Path(p).is_file()), None)
         if lib is not None:  # must happen before drjit initializes its LLVM backend
@@ -93,7 +99,7 @@ def mitsuba():
         raise ImportError(f"Mitsuba variant {variant!r} (TORCHREFRACT_MI_VARIANT) is not in "
                           f"this build; available: {mi.variants()}")
     mi.set_variant(variant)
-    _mi = mi
+    _mi, _variant = mi, variant
     return mi
 
 
@@ -200,11 +206,15 @@ def to_mitsuba_dict(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int =
     interior = None
     if absorption.max() > 0.0:
         # sigma_t as an RGB "reflectance" must lie in [0, 1]: store absorption / max and put
-        # the max into the medium's scale. Albedo 0: pure Beer-Lambert absorption.
+        # the max into the medium's scale. Albedo 0: pure Beer-Lambert absorption. A channel
+        # of exactly 0 makes volpath return NaN (free-flight sampling in that channel never
+        # ends; measured with Mitsuba 3.9.1), so channels are floored at 1e-7 of the largest:
+        # a transmittance error of at most 1e-7 * max(absorption) * path length.
         amax = float(absorption.max())
+        rel = np.maximum(absorption / amax, 1e-7)
         interior = mi.load_dict({
             "type": "homogeneous",
-            "sigma_t": {"type": "rgb", "value": (absorption / amax).tolist()},
+            "sigma_t": {"type": "rgb", "value": rel.tolist()},
             "scale": amax,
             "albedo": 0.0,
         })
@@ -257,7 +267,7 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
     Two Mitsuba renders: the radiance of :func:`to_mitsuba_dict`, and a coverage pass. With
     a visible environment map Mitsuba's film alpha is 1 on every pixel (every camera ray
     "hits" the environment), so the object coverage comes from a second, cheap render of the
-    glass mesh alone (one bounce, emitters hidden, same sensor, spp and seed), whose alpha is
+    glass mesh alone (no emitters, two bounces, same sensor, spp and seed), whose alpha is
     the fraction of the pixel's samples that hit the mesh: SCENE_SPEC.md's A channel
     (lights excluded, as in :func:`torchrefract.render`).
 
@@ -285,11 +295,13 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
 
 
 def _coverage_dict(scene: Scene, spp: int, seed: int) -> dict:
-    """Sensor and glass mesh only; alpha of a one-bounce render = mesh coverage."""
+    """Sensor and glass mesh only, emitters hidden: the render's alpha is mesh coverage."""
     d = to_mitsuba_dict(scene, spp=spp, seed=seed, max_depth=1)
     keep = ("type", "sensor", "glass")
     d = {k: v for k, v in d.items() if k in keep}
-    d["integrator"] = {"type": "path", "max_depth": 1, "hide_emitters": True}
+    # max_depth 2, not 1: scalar_rgb's path integrator stops at depth 1 before it marks the
+    # ray as valid (alpha 0 everywhere); llvm_ad_rgb gives the same alpha either way.
+    d["integrator"] = {"type": "path", "max_depth": 2, "hide_emitters": True}
     return d
 
 

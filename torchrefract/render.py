@@ -22,6 +22,7 @@ from .gbuffer import GBuffer, build_gbuffer
 from .lighting import Lighting
 from .mesh import load_mesh
 from .methods import METHODS
+from .scene import METHODS as PLANNED
 from .scene import Scene
 
 
@@ -89,6 +90,10 @@ def _check_batch(scenes: list[Scene], method: str) -> None:
             raise ConfigError(f"render: scenes in one batch need the same method_options; "
                               f"scene {i} ({s.name}) differs from scene 0")
     if method not in METHODS:
+        if method in PLANNED:
+            raise NotImplementedError(
+                f"method {method!r} is not implemented yet (implemented: {sorted(METHODS)}); "
+                f"render with method='specular' (CLI: --method specular) meanwhile")
         raise ConfigError(f"render: unknown method {method!r} (available: {sorted(METHODS)})")
 
 
@@ -107,12 +112,18 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     Raises:
         ConfigError: mixed resolutions, methods or options; unknown method or option; a
             broken mesh or environment map (file and problem named).
+        NotImplementedError: a method of the design that is not implemented yet.
     """
     if isinstance(scenes, Scene):
         scenes = [scenes]
     scenes = list(scenes)
     if not scenes:
         raise ConfigError("render: no scenes given")
+    for s in scenes:
+        if not isinstance(s, Scene):
+            raise ConfigError(f"render: expected Scene objects, got {type(s).__name__}")
+    # Scenes built in Python get the same checks as loaded files (cheap: no file reads).
+    scenes = [s.validated() for s in scenes]
     if method is None:
         methods = {s.method for s in scenes}
         if len(methods) > 1:

@@ -24,7 +24,9 @@ import yaml
 from .checks import (ConfigError, check_choice, check_keys, check_number, check_vector,
                      where)
 
-METHODS = ("specular",)  # methods implemented so far (see torchrefract.methods)
+# Every method name a scene may ask for (DESIGN.md). Which of them are implemented is
+# torchrefract.methods.METHODS; asking for a planned one raises NotImplementedError at render.
+METHODS = ("specular", "prefiltered", "rousiers", "lean", "gsr", "sh", "reference", "auto")
 
 
 @dataclass(frozen=True)
@@ -122,6 +124,14 @@ class Scene:
     def replace(self, **changes: Any) -> "Scene":
         return dataclasses.replace(self, **changes)
 
+    def validated(self) -> "Scene":
+        """This scene checked like a loaded file (for scenes built in Python).
+
+        Raises:
+            ConfigError: naming the scene and the key, as for a YAML file.
+        """
+        return scene_from_dict(self.to_dict(), source=f"scene {self.name!r}", name=self.name)
+
 
 # --------------------------------------------------------------------------------------
 # Loading
@@ -159,7 +169,7 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
     check_keys(data, "", _TOP_KEYS, source, required=("mesh", "envmap"))
     mesh = _resolve_path(data["mesh"], "mesh", base, source)
 
-    t = data.get("transform") or {}
+    t = {} if data.get("transform") is None else data["transform"]
     check_keys(t, "transform", ("scale", "rotate_deg", "translate"), source)
     transform = Transform(
         scale=check_number(t.get("scale", 1.0), "transform.scale", source, minimum=0.0,
@@ -168,7 +178,7 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
         translate=check_vector(t.get("translate", [0, 0, 0]), "transform.translate", source),
     )
 
-    m = data.get("material") or {}
+    m = {} if data.get("material") is None else data["material"]
     check_keys(m, "material", ("ior", "roughness", "distribution", "roughness_map",
                                "roughness_range", "absorption"), source)
     rmap = m.get("roughness_map")
@@ -201,7 +211,7 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
         rotate_deg=check_number(e.get("rotate_deg", 0.0), "envmap.rotate_deg", source),
     )
 
-    lights_data = data.get("lights") or []
+    lights_data = [] if data.get("lights") is None else data["lights"]
     if not isinstance(lights_data, list):
         raise ConfigError(f"{where(source, 'lights')}: expected a list, got {lights_data!r}")
     lights = []
@@ -216,7 +226,7 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
             radiance=check_vector(ld["radiance"], f"{k}.radiance", source, minimum=0.0),
         ))
 
-    c = data.get("camera") or {}
+    c = {} if data.get("camera") is None else data["camera"]
     check_keys(c, "camera", ("eye", "target", "up", "yfov_deg", "width", "height",
                              "samples_per_pixel"), source)
     camera = Camera(
@@ -236,12 +246,16 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
     _check_camera_geometry(camera, source)
 
     method = check_choice(data.get("method", "specular"), "method", METHODS, source)
-    opts = data.get("method_options") or {}
+    opts = {} if data.get("method_options") is None else data["method_options"]
     check_keys(opts, "method_options", list(opts.keys()) if isinstance(opts, dict) else [],
                source)
+    from .methods import METHODS as IMPLEMENTED  # noqa: PLC0415 (methods import this module)
+
+    if method in IMPLEMENTED:
+        IMPLEMENTED[method][0](opts, source)  # raises ConfigError naming the bad option
     exposure = check_number(data.get("exposure", 0.0), "exposure", source)
-    nm = name if name is not None else data.get("name", "scene")
-    if not isinstance(nm, str) or not nm or "/" in nm:
+    nm = data.get("name", name if name is not None else "scene")
+    if not isinstance(nm, str) or not nm or "/" in nm or nm.startswith("."):
         raise ConfigError(f"{where(source, 'name')}: expected a file stem, got {nm!r}")
     return Scene(mesh=mesh, envmap=envmap, transform=transform, material=material,
                  lights=tuple(lights), camera=camera, method=method,
@@ -265,7 +279,7 @@ def load_scene(path: str | Path) -> Scene:
     """Load and validate one scene YAML file (SCENE_SPEC.md form).
 
     Relative paths inside the file are resolved against the file's directory; the scene's
-    ``name`` (output stem) is the file's stem.
+    ``name`` (output stem) is the file's stem unless the file sets ``name``.
 
     Raises:
         ConfigError: on a missing file, bad YAML or any invalid value (file and key named).

@@ -1,0 +1,88 @@
+"""Benchmark: milliseconds per frame by method, resolution and batch size, per stage.
+
+Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians, measured
+with the machine quiet; the thread count is recorded.
+
+    .venv/bin/python scripts/bench.py [--methods specular] [--sizes 256 512] [--batches 1 8]
+                                      [--repeats 5] [--threads N] [--out outputs/bench]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+import torchrefract as tr
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) -> dict:
+    cam = base.camera
+    scene = base.replace(camera=tr.Camera(eye=cam.eye, target=cam.target, up=cam.up,
+                                          yfov_deg=cam.yfov_deg, width=size, height=size,
+                                          samples_per_pixel=1))
+    # Vary the view a little per batch item so the batch is not one image repeated.
+    scenes = [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
+                                             rotate_deg=scene.envmap.rotate_deg + 10 * i))
+              for i in range(batch)]
+    tr.render(scenes, method=method)  # warm-up (context, caches)
+    totals, stages = [], {}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = tr.render(scenes, method=method)
+        totals.append(time.perf_counter() - t0)
+        for k, v in out.timings.items():
+            stages.setdefault(k, []).append(v)
+    return {
+        "method": method, "size": size, "batch": batch, "repeats": repeats,
+        "ms_per_frame": 1000 * statistics.median(totals) / batch,
+        "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
+                               for k, v in stages.items()},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(ROOT / "configs" / "demo.yaml"))
+    ap.add_argument("--methods", nargs="+", default=["specular"])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512])
+    ap.add_argument("--batches", nargs="+", type=int, default=[1, 8])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench"))
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    base = tr.load_scene(args.scene)
+    rows = []
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}")
+    print(f"{'method':<12}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
+          f"{'peakMB':>8}")
+    for method in args.methods:
+        for size in args.sizes:
+            for batch in args.batches:
+                r = bench_one(base, method, size, batch, args.repeats)
+                rows.append(r)
+                st = r["ms_per_frame_stage"]
+                print(f"{method:<12}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
+                      f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{r['peak_rss_mb']:>8.0f}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "machine": platform.platform(),
+            "scene": args.scene, "results": rows}
+    (out / "bench.json").write_text(json.dumps(meta, indent=2) + "\n")
+    print(f"saved {out / 'bench.json'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,423 @@
+"""The strict scene loader: the shipped demo, and every kind of bad input named precisely.
+
+Each error must be a ConfigError whose message names the YAML file, the key and the value.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+import torchrefract as tr
+from torchrefract import ConfigError, EnvMap, Scene, load_scene, scene_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+MESH = ROOT / "assets" / "meshes" / "spot.ply"
+ENV = ROOT / "assets" / "envmaps" / "studio_small_03.exr"
+
+
+def base(tmp_path: Path) -> dict:
+    """A valid scene whose asset paths are relative to a YAML file in tmp_path."""
+    return {
+        "mesh": os.path.relpath(MESH, tmp_path),
+        "envmap": {"path": os.path.relpath(ENV, tmp_path), "scale": 1.0, "rotate_deg": 0},
+        "material": {"ior": 1.5, "roughness": 0.1},
+        "camera": {"eye": [0, 0, 4], "target": [0, 0, 0], "up": [0, 1, 0], "width": 32,
+                   "height": 24},
+        "method": "specular",
+    }
+
+
+def write(tmp_path: Path, data, name: str = "scene.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(data if isinstance(data, str) else yaml.safe_dump(data))
+    return p
+
+
+def expect_error(path: Path, *fragments: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        load_scene(path)
+    msg = str(info.value)
+    for frag in (str(path),) + fragments:
+        assert frag in msg, f"{frag!r} not in error message {msg!r}"
+    return msg
+
+
+# --------------------------------------------------------------------------------------
+# Valid scenes
+# --------------------------------------------------------------------------------------
+
+def test_demo_yaml_loads_with_resolved_paths_and_values():
+    path = ROOT / "configs" / "demo.yaml"
+    s = load_scene(path)
+    assert s.name == "demo"
+    assert s.mesh == str(MESH.resolve())
+    assert s.envmap.path == str(ENV.resolve())
+    assert Path(s.mesh).is_file() and Path(s.envmap.path).is_file()
+    assert s.transform.rotate_deg == (0.0, -35.0, 0.0)
+    assert s.transform.scale == 1.0 and s.transform.translate == (0.0, 0.0, 0.0)
+    assert s.material.ior == 1.5 and s.material.roughness == 0.0
+    assert s.material.distribution == "beckmann"
+    assert s.material.absorption == (0.05, 0.02, 0.0)
+    assert s.envmap.rotate_deg == 90.0 and s.envmap.scale == 1.0
+    assert s.lights == ()
+    c = s.camera
+    assert (c.eye, c.target, c.up) == ((0.0, 0.4, 3.2), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    assert (c.yfov_deg, c.width, c.height, c.samples_per_pixel) == (40.0, 256, 256, 2)
+    assert isinstance(c.width, int) and isinstance(c.samples_per_pixel, int)
+    assert s.method == "specular" and s.method_options == {}
+    # the resolved scene is plain data that loads back to the same scene
+    d = s.to_dict()
+    yaml.safe_dump(d)  # plain types only
+    assert scene_from_dict(d, base_dir="/", name="demo") == s
+
+
+def test_paths_are_relative_to_the_yaml_file_not_the_cwd(tmp_path, monkeypatch):
+    sub = tmp_path / "scenes" / "deep"
+    (sub / "assets").mkdir(parents=True)
+    (sub / "assets" / "m.ply").write_bytes(MESH.read_bytes())
+    (tmp_path / "env.exr").write_bytes(ENV.read_bytes())
+    data = base(tmp_path)
+    data["mesh"] = "assets/m.ply"
+    data["envmap"] = "../../env.exr"  # shorthand form: envmap: PATH
+    p = write(sub, data, "my_scene.yaml")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    s = load_scene(p)
+    assert s.mesh == str((sub / "assets" / "m.ply").resolve())
+    assert s.envmap.path == str((tmp_path / "env.exr").resolve())
+    assert s.name == "my_scene"
+    # absolute paths work as given
+    data["mesh"] = str(MESH)
+    s2 = load_scene(write(sub, data, "abs.yaml"))
+    assert s2.mesh == str(MESH.resolve())
+    # and the same relative path from a file elsewhere is not found
+    data["mesh"] = "assets/m.ply"
+    expect_error(write(tmp_path, data, "wrong_dir.yaml"), "mesh", "'assets/m.ply'",
+                 "file not found")
+
+
+def test_minimal_yaml_equals_dataclass_defaults(tmp_path):
+    p = write(tmp_path, {"mesh": str(MESH), "envmap": str(ENV)}, "minimal.yaml")
+    loaded = load_scene(p)
+    built = Scene(mesh=str(MESH.resolve()), envmap=EnvMap(path=str(ENV.resolve())),
+                  name="minimal")
+    assert loaded == built
+    # defaults of SCENE_SPEC.md
+    assert built.material == tr.Material(ior=1.5, roughness=0.1, distribution="beckmann",
+                                         roughness_map=None, roughness_range=(0.02, 0.5),
+                                         absorption=(0.0, 0.0, 0.0))
+    assert built.transform == tr.Transform(1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    assert built.camera == tr.Camera(eye=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0),
+                                     up=(0.0, 1.0, 0.0), yfov_deg=40.0, width=256,
+                                     height=256, samples_per_pixel=1)
+    assert (built.envmap.scale, built.envmap.rotate_deg) == (1.0, 0.0)
+
+
+def test_scene_dataclass_constructor():
+    s = Scene(mesh=str(MESH), envmap=EnvMap(path=str(ENV), rotate_deg=30.0),
+              material=tr.Material(ior=1.33, roughness=0.2, distribution="ggx"),
+              lights=(tr.SphereLight(position=(1.0, 2.0, 3.0), radius=0.5,
+                                     radiance=(4.0, 4.0, 4.0)),),
+              camera=tr.Camera(width=40, height=30), method_options={"tir": "reflect"})
+    assert s.envmap.rotate_deg == 30.0 and s.material.distribution == "ggx"
+    assert s.camera.width == 40 and s.camera.yfov_deg == 40.0  # others default
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.mesh = "other.ply"  # type: ignore[misc]
+    s2 = s.replace(material=tr.Material(ior=2.0))
+    assert s2.material.ior == 2.0 and s.material.ior == 1.33
+    assert s2.camera is s.camera
+    with pytest.raises(TypeError):
+        Scene(mesh=str(MESH))  # envmap is required
+    d = s.to_dict()
+    assert d["lights"] == [{"position": (1.0, 2.0, 3.0), "radius": 0.5,
+                            "radiance": (4.0, 4.0, 4.0)}]
+    assert d["camera"]["width"] == 40 and d["envmap"]["path"] == str(ENV)
+    # to_dict -> scene_from_dict validates and reproduces the scene (paths are absolute)
+    assert scene_from_dict(d, name="scene") == s.replace(
+        mesh=str(MESH.resolve()), envmap=dataclasses.replace(s.envmap,
+                                                             path=str(ENV.resolve())))
+
+
+def test_lights_and_method_options_load(tmp_path):
+    data = base(tmp_path)
+    data["lights"] = [{"position": [1, 2, 3], "radius": 0.25, "radiance": [5, 4, 3]}]
+    data["method_options"] = {"tir": "reflect", "march_steps": 32}
+    s = load_scene(write(tmp_path, data))
+    assert s.lights == (tr.SphereLight((1.0, 2.0, 3.0), 0.25, (5.0, 4.0, 3.0)),)
+    assert s.method_options == {"tir": "reflect", "march_steps": 32}
+
+
+# --------------------------------------------------------------------------------------
+# Errors: file, key and value named
+# --------------------------------------------------------------------------------------
+
+def _set(data: dict, dotted: str, value):
+    d = data
+    *parents, last = dotted.split(".")
+    for k in parents:
+        d = d.setdefault(k, {})
+    d[last] = value
+    return data
+
+
+BAD_VALUES = [
+    # (key, value, fragments expected in the message besides the file)
+    ("camera.width", "big", ("camera.width", "'big'", "integer")),
+    ("camera.width", 2.5, ("camera.width", "2.5", "integer")),
+    ("camera.height", 0, ("camera.height", ">= 1", "0")),
+    ("camera.samples_per_pixel", True, ("camera.samples_per_pixel", "True")),
+    ("camera.yfov_deg", 180, ("camera.yfov_deg", "180")),
+    ("camera.eye", [0, 1], ("camera.eye", "3 numbers", "[0, 1]")),
+    ("camera.eye", "origin", ("camera.eye", "'origin'")),
+    ("material.roughness", -0.1, ("material.roughness", ">= 0", "-0.1")),
+    ("material.ior", -1.5, ("material.ior", "> 0", "-1.5")),
+    ("material.ior", 0, ("material.ior", "> 0", "got 0")),
+    ("material.distribution", "phong", ("material.distribution", "'phong'", "beckmann")),
+    ("material.roughness_range", [0.5, 0.1], ("material.roughness_range", "0.5", "0.1")),
+    ("material.absorption", [0, -1, 0], ("material.absorption[1]", "-1")),
+    ("transform.scale", 0, ("transform.scale", "> 0", "got 0")),
+    ("transform.rotate_deg", [0, "x", 0], ("transform.rotate_deg[1]", "'x'")),
+    ("envmap.scale", -2, ("envmap.scale", "-2")),
+    ("method", "magic", ("method", "'magic'", "specular")),
+    ("exposure", "bright", ("exposure", "'bright'")),
+]
+
+
+@pytest.mark.parametrize("key,value,fragments", BAD_VALUES,
+                         ids=[f"{k}={v!r}" for k, v, _ in BAD_VALUES])
+def test_bad_value_is_named(tmp_path, key, value, fragments):
+    p = write(tmp_path, _set(base(tmp_path), key, value))
+    expect_error(p, *fragments)
+
+
+NAN_CASES = [
+    # (key to set, literal YAML, key named in the message, value shown)
+    ("material.ior", ".nan", "material.ior", "nan"),
+    ("material.roughness", ".inf", "material.roughness", "inf"),
+    ("camera.eye.1", ".nan", "camera.eye[1]", "nan"),
+    ("envmap.rotate_deg", "-.inf", "envmap.rotate_deg", "-inf"),
+    ("lights.0.radius", ".NaN", "lights[0].radius", "nan"),
+    ("exposure", ".nan", "exposure", "nan"),
+]
+SENTINEL = 12345.678  # written by yaml.safe_dump as 12345.678, then replaced in the text
+
+
+@pytest.mark.parametrize("key,literal,named,shown", NAN_CASES,
+                         ids=[f"{c[0]}={c[1]}" for c in NAN_CASES])
+def test_nan_and_inf_in_yaml_are_rejected(tmp_path, key, literal, named, shown):
+    data = base(tmp_path)
+    data["lights"] = [{"position": [1, 1, 1], "radius": 0.1, "radiance": [1, 1, 1]}]
+    *parents, last = key.split(".")
+    d = data
+    for k in parents:
+        d = d[int(k)] if k.isdigit() else d.setdefault(k, {})
+    if last.isdigit():
+        d[int(last)] = SENTINEL
+    else:
+        d[last] = SENTINEL
+    text = yaml.safe_dump(data)
+    assert text.count(str(SENTINEL)) == 1
+    p = write(tmp_path, text.replace(str(SENTINEL), literal))
+    expect_error(p, named, shown, "finite")
+
+
+def test_unknown_top_level_key(tmp_path):
+    data = base(tmp_path)
+    data["meshh"] = "typo.ply"
+    expect_error(write(tmp_path, data), "unknown key", "'meshh'")
+
+
+def test_unknown_nested_key(tmp_path):
+    data = base(tmp_path)
+    data["camera"]["fov"] = 45
+    msg = expect_error(write(tmp_path, data), "camera", "unknown key", "'fov'")
+    assert "yfov_deg" in msg  # the allowed keys are listed
+
+
+def test_unknown_key_in_material_and_light(tmp_path):
+    data = base(tmp_path)
+    data["material"]["roughnes"] = 0.2
+    expect_error(write(tmp_path, data), "material", "'roughnes'")
+    data = base(tmp_path)
+    data["lights"] = [{"position": [0, 2, 0], "radius": 0.1, "radiance": [1, 1, 1],
+                       "color": [1, 0, 0]}]
+    expect_error(write(tmp_path, data), "lights[0]", "'color'")
+
+
+def test_missing_mesh_file(tmp_path):
+    data = base(tmp_path)
+    data["mesh"] = "meshes/nope.ply"
+    msg = expect_error(write(tmp_path, data), "mesh", "'meshes/nope.ply'", "not found")
+    assert str(tmp_path / "meshes" / "nope.ply") in msg  # where it looked
+
+
+def test_missing_envmap_file(tmp_path):
+    data = base(tmp_path)
+    data["envmap"]["path"] = "missing.exr"
+    msg = expect_error(write(tmp_path, data), "envmap.path", "'missing.exr'", "not found")
+    assert str(tmp_path / "missing.exr") in msg
+
+
+def test_missing_required_keys(tmp_path):
+    data = base(tmp_path)
+    del data["envmap"]
+    expect_error(write(tmp_path, data), "missing required key", "'envmap'")
+    data = base(tmp_path)
+    del data["envmap"]["path"]
+    expect_error(write(tmp_path, data), "envmap", "missing required key", "'path'")
+
+
+def test_camera_eye_equals_target(tmp_path):
+    data = base(tmp_path)
+    data["camera"]["eye"] = [1, 2, 3]
+    data["camera"]["target"] = [1, 2, 3]
+    expect_error(write(tmp_path, data), "camera.target", "camera.eye", "[1.0, 2.0, 3.0]")
+
+
+@pytest.mark.parametrize("up", [[0, 0, 1], [0, 0, -2.5], [0, 0, 0]])
+def test_camera_up_parallel_to_view(tmp_path, up):
+    data = base(tmp_path)  # eye (0, 0, 4) looking at the origin: view along -Z
+    data["camera"]["up"] = up
+    expect_error(write(tmp_path, data), "camera.up", str([float(x) for x in up]), "parallel")
+
+
+def test_camera_up_slightly_off_view_is_accepted(tmp_path):
+    data = base(tmp_path)
+    data["camera"]["up"] = [0, 1e-3, 1]
+    assert load_scene(write(tmp_path, data)).camera.up == (0.0, 1e-3, 1.0)
+
+
+@pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n"])
+def test_empty_yaml_file(tmp_path, text):
+    expect_error(write(tmp_path, text), "empty")
+
+
+def test_yaml_that_is_not_a_mapping(tmp_path):
+    expect_error(write(tmp_path, "- mesh.ply\n- env.exr\n"), "expected a mapping",
+                 "['mesh.ply', 'env.exr']")
+
+
+def test_invalid_yaml(tmp_path):
+    msg = expect_error(write(tmp_path, "mesh: [unclosed\ncamera: {width: 3\n"),
+                       "not valid YAML")
+    assert "line" in msg  # the parser's position is kept
+
+
+def test_missing_scene_file(tmp_path):
+    p = tmp_path / "absent.yaml"
+    with pytest.raises(ConfigError, match="absent.yaml"):
+        load_scene(p)
+
+
+def test_light_missing_radius(tmp_path):
+    data = base(tmp_path)
+    data["lights"] = [{"position": [0, 2, 0], "radiance": [1, 1, 1]}]
+    expect_error(write(tmp_path, data), "lights[0]", "missing required key", "'radius'")
+    data["lights"] = [{"position": [0, 2, 0], "radius": 0, "radiance": [1, 1, 1]}]
+    expect_error(write(tmp_path, data), "lights[0].radius", "> 0", "got 0")
+    data["lights"] = {"position": [0, 2, 0]}
+    expect_error(write(tmp_path, data), "lights", "expected a list")
+
+
+def test_config_error_is_a_value_error():
+    assert issubclass(ConfigError, ValueError)
+
+
+# --------------------------------------------------------------------------------------
+# Method and method_options (validated by torchrefract.render before any work is done)
+# --------------------------------------------------------------------------------------
+
+def test_render_rejects_unknown_method(tmp_path):
+    s = load_scene(write(tmp_path, base(tmp_path), "meth.yaml"))
+    with pytest.raises(ConfigError, match=r"unknown method 'magic'.*specular"):
+        tr.render([s], method="magic")
+
+
+def test_unknown_method_option_is_rejected_naming_the_file(tmp_path):
+    data = base(tmp_path)
+    data["method_options"] = {"bounces": 3}
+    path = write(tmp_path, data, "opts_scene.yaml")
+    with pytest.raises(ConfigError) as info:
+        load_scene(path)
+    msg = str(info.value)
+    # the message names the file, the key, the method and the allowed keys
+    for frag in (str(path), "method_options", "'bounces'", "specular", "tir"):
+        assert frag in msg, (frag, msg)
+    # A scene built in Python is checked the same way when rendered.
+    s = load_scene(write(tmp_path, base(tmp_path), "ok.yaml")).replace(
+        method_options={"bounces": 3})
+    with pytest.raises(ConfigError, match="'bounces'"):
+        tr.render([s])
+
+
+@pytest.mark.parametrize("opts,fragments", [
+    ({"tir": "bounce"}, ("method_options.tir", "'bounce'", "clamp")),
+    ({"march_steps": 0}, ("method_options.march_steps", ">= 1", "0")),
+    ({"refine_steps": 2.5}, ("method_options.refine_steps", "2.5")),
+])
+def test_bad_method_option_values_are_rejected(tmp_path, opts, fragments):
+    data = base(tmp_path)
+    data["method_options"] = opts
+    with pytest.raises(ConfigError) as info:
+        load_scene(write(tmp_path, data, "bad_opts.yaml"))
+    for frag in ("bad_opts.yaml",) + fragments:
+        assert frag in str(info.value), (frag, str(info.value))
+
+
+def test_specular_options_parse_valid_values():
+    from torchrefract.methods.specular import SpecularOptions
+
+    o = SpecularOptions.from_dict({"tir": "reflect", "march_steps": 16}, "x.yaml")
+    assert o == SpecularOptions(tir="reflect", march_steps=16, refine_steps=10)
+    assert SpecularOptions.from_dict({}) == SpecularOptions()
+    with pytest.raises(ConfigError, match=r"x\.yaml: method_options: unknown key 'foo'"):
+        SpecularOptions.from_dict({"foo": 1}, "x.yaml")
+
+
+def test_scene_from_dict_names_source_and_does_not_touch_input(tmp_path):
+    data = base(tmp_path)
+    frozen = copy.deepcopy(data)
+    s = scene_from_dict(data, base_dir=tmp_path, source="inline.yaml", name="inl")
+    assert data == frozen and s.name == "inl"
+    data["camera"]["width"] = -4
+    with pytest.raises(ConfigError, match=r"^inline\.yaml: camera\.width: .*-4"):
+        scene_from_dict(data, base_dir=tmp_path, source="inline.yaml")
+
+
+def test_scenes_built_in_python_are_validated_on_render(tmp_path):
+    s = load_scene(write(tmp_path, base(tmp_path)))
+    bad = s.replace(material=tr.Material(ior=-1.0))
+    with pytest.raises(ConfigError, match=r"material\.ior.*-1\.0"):
+        tr.render([bad])
+    cam = tr.Camera(eye=(1.0, 2.0, 3.0), target=(1.0, 2.0, 3.0))
+    with pytest.raises(ConfigError, match="camera.target"):
+        tr.render([s.replace(camera=cam)])
+
+
+def test_name_key_sets_the_output_stem_and_is_checked(tmp_path):
+    data = base(tmp_path)
+    data["name"] = "custom"
+    assert load_scene(write(tmp_path, data)).name == "custom"
+    data["name"] = 5
+    expect_error(write(tmp_path, data, "n.yaml"), "name", "5")
+    data.pop("name")
+    data["transform"] = []
+    expect_error(write(tmp_path, data, "t.yaml"), "transform", "[]")
+
+
+def test_build_gbuffer_rejects_mismatched_cameras(tmp_path):
+    from torchrefract.gbuffer import build_gbuffer
+    from torchrefract.mesh import load_mesh
+
+    s = load_scene(write(tmp_path, base(tmp_path)))
+    m = load_mesh(s.mesh, s.transform)
+    with pytest.raises(ValueError, match="samples_per_pixel"):
+        build_gbuffer([m, m], [tr.Camera(width=8, height=8),
+                               tr.Camera(width=8, height=8, samples_per_pixel=2)])
