@@ -35,8 +35,8 @@ class RenderResult:
         coverage: (B, H, W) float32 object coverage in [0, 1] (the EXR's A channel).
         passes: name -> (B, H, W, C) float32: ``depth_front``, ``depth_back`` (camera-space
             depth), ``normal_front``, ``normal_back`` (world, unit before filtering),
-            ``thickness`` (distance between the layers along the view ray), and the method's
-            own buffers. Passes are averaged over the covered sub-pixels; 0 where uncovered.
+            ``thickness`` (distance between the layers along the view ray), ``roughness`` and
+            ``ior`` (the material on object pixels), and the method's own buffers. Passes are averaged over the covered sub-pixels; 0 where uncovered.
         scenes: the B scenes, as rendered.
         timings: seconds per stage for the whole batch (``gbuffer``, ``shading``, ``total``).
     """
@@ -153,6 +153,11 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
                       "set to 0; please report the scene", RuntimeWarning, stacklevel=2)
         radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
     passes = _geometry_passes(g)
+    # Material passes (per object pixel): what a model trained on the data may regress.
+    fm = g.front.mask[..., None].float()  # (B, H, W, 1)
+    rough = torch.tensor([s.material.roughness for s in scenes], dtype=torch.float32)
+    passes["roughness"] = _masked_box(fm * rough[:, None, None, None], g.front.mask, n)
+    passes["ior"] = _masked_box(fm * ior[:, None, None, None], g.front.mask, n)
     for k, v in method_passes.items():
         passes[k] = _masked_box(v, g.front.mask, n)
     return RenderResult(
