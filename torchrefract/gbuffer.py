@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from .camera import pixel_rays, projection_params
 from .mesh import MeshData
@@ -164,9 +165,10 @@ def interpolate(bary: torch.Tensor, corner_values: torch.Tensor) -> torch.Tensor
     return (w.unsqueeze(-1) * corner_values).sum(-2)
 
 
-def _repair_edge_ids(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
-                     meshes: MeshBatch, back: bool, tol: float = 1e-7,
-                     keep_tol: float = 1e-3) -> torch.Tensor:
+def _repair_edge_ids(cand_ids: torch.Tensor, ids: torch.Tensor, pb: torch.Tensor,
+                     py: torch.Tensor, px: torch.Tensor, own_min: torch.Tensor,
+                     eye: torch.Tensor, dirs: torch.Tensor, meshes: MeshBatch, back: bool,
+                     tol: float, keep_tol: float = 1e-3) -> torch.Tensor:
     """Re-pick the triangle where the exact ray misses the rasterized one.
 
     The rasterizer snaps vertices to a sub-pixel grid, so a pixel center within ~1/256 pixel
@@ -177,22 +179,19 @@ def _repair_edge_ids(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
     and the nearest one really hit, facing the right way for the layer, is kept. If none is
     hit, the rasterized id stays when the miss is tiny (barycentric > -keep_tol: its plane
     is an excellent stand-in) and the pixel becomes empty otherwise (a silhouette miss).
+
+    Args:
+        cand_ids: (B, H, W) rasterized ids (neighbourhood source).
+        ids: (S,) rasterized ids of the suspect pixels at (pb, py, px); own_min (S,) their
+            smallest exact barycentric.
+
+    Returns:
+        (S,) repaired ids (-1 for a miss).
     """
-    b, h, w = ids.shape
-    mask = ids >= 0
-    tv = meshes.tri_vertices[ids.clamp(min=0)].double()  # (B, H, W, 3, 3)
-    o = eye.double()[:, None, None, :].expand_as(dirs)
-    _, bary = intersect_triangles(o, dirs.double(), tv)
-    own_min = bary.min(-1).values
-    suspect = mask & (own_min < -tol)
-    if not suspect.any():
-        return ids
-    pb, py, px = suspect.nonzero(as_tuple=True)  # (S,)
-    padded = torch.nn.functional.pad(ids, (1, 1, 1, 1), value=-1)  # (B, H+2, W+2)
+    padded = F.pad(cand_ids, (1, 1, 1, 1), value=-1)  # (B, H+2, W+2)
     dy, dx = torch.meshgrid(torch.arange(3), torch.arange(3), indexing="ij")
     pix = padded[pb[:, None], py[:, None] + dy.reshape(1, 9), px[:, None] + dx.reshape(1, 9)]
-    own = ids[pb, py, px]  # (S,)
-    ring1 = meshes.tri_neighbors[own]  # (S, 3)
+    ring1 = meshes.tri_neighbors[ids]  # (S, 3)
     ring2 = meshes.tri_neighbors[ring1.clamp(min=0)]  # (S, 3, 3)
     ring2 = torch.where(ring1[..., None] >= 0, ring2, torch.full_like(ring2, -1))
     cand = torch.cat([pix, ring1, ring2.reshape(-1, 9)], 1)  # (S, 21)
@@ -208,42 +207,57 @@ def _repair_edge_ids(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
     t = torch.where(ok, t, torch.full_like(t, float("inf")))
     best_t, best = t.min(-1)  # (S,)
     chosen = torch.gather(cand, 1, best[:, None])[:, 0]
-    fallback = torch.where(own_min[pb, py, px] > -keep_tol, own, torch.full_like(own, -1))
-    new = ids.clone()
-    new[pb, py, px] = torch.where(torch.isfinite(best_t), chosen, fallback)
-    return new
+    fallback = torch.where(own_min > -keep_tol, ids, torch.full_like(ids, -1))
+    return torch.where(torch.isfinite(best_t), chosen, fallback)
 
 
 def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
-           meshes: MeshBatch, back: bool) -> Layer:
-    """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3)."""
-    ids = _repair_edge_ids(ids, eye, dirs, meshes, back)
-    mask = ids >= 0
-    safe = ids.clamp(min=0)
-    tv = meshes.tri_vertices[safe].double()  # (B, H, W, 3, 3)
-    o = eye.double()[:, None, None, :].expand_as(dirs)  # (B, H, W, 3)
-    d = dirs.double()
-    t, bary = intersect_triangles(o, d, tv)
-    t = torch.where(mask & torch.isfinite(t), t, torch.zeros_like(t))
-    pos = o + t[..., None] * d
-    gn = torch.cross(tv[..., 1, :] - tv[..., 0, :], tv[..., 2, :] - tv[..., 0, :], dim=-1)
+           meshes: MeshBatch, back: bool, tol: float = 1e-7) -> Layer:
+    """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3).
+
+    Work happens on the covered pixels only (compacted), in float64.
+    """
+    b, h, w = ids.shape
+    pb, py, px = (ids >= 0).nonzero(as_tuple=True)  # (N,) covered pixels
+    tri = ids[pb, py, px]
+    o = eye.double()[pb]  # (N, 3)
+    d = dirs.double()[pb, py, px]  # (N, 3)
+    t, bary = intersect_triangles(o, d, meshes.tri_vertices[tri].double())
+    own_min = bary.min(-1).values
+    sus = (own_min < -tol).nonzero(as_tuple=True)[0]
+    if sus.numel() > 0:
+        fixed = _repair_edge_ids(ids, tri[sus], pb[sus], py[sus], px[sus], own_min[sus], eye,
+                                 dirs, meshes, back, tol)
+        tri = tri.clone()
+        tri[sus] = fixed
+        keep = tri >= 0
+        pb, py, px, tri, o, d = pb[keep], py[keep], px[keep], tri[keep], o[keep], d[keep]
+        t, bary = intersect_triangles(o, d, meshes.tri_vertices[tri].double())
+    tv = meshes.tri_vertices[tri].double()  # (N, 3, 3)
+    pos = o + t[:, None] * d
+    gn = torch.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0], dim=-1)
     gn = gn / gn.norm(dim=-1, keepdim=True).clamp(min=1e-300)
-    n = interpolate(bary, meshes.tri_normals[safe].double())
+    n = interpolate(bary, meshes.tri_normals[tri].double())
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
-    uv = interpolate(bary, meshes.tri_uvs[safe].double())
-    depth = t * (d * forward.double()[:, None, None, :]).sum(-1)
-    m3 = mask[..., None]
-    z = torch.zeros((), dtype=torch.float32)
+    uv = interpolate(bary, meshes.tri_uvs[tri].double())
+    depth = t * (d * forward.double()[pb]).sum(-1)
+
+    def scatter(v: torch.Tensor, c: int | None, fill=0.0, dtype=torch.float32):
+        shape = (b, h, w) if c is None else (b, h, w, c)
+        out = torch.full(shape, fill, dtype=dtype)
+        out[pb, py, px] = v.to(dtype)
+        return out
+
     return Layer(
-        mask=mask,
-        tri=torch.where(mask, ids, torch.full_like(ids, -1)),
-        position=torch.where(m3, pos.float(), z),
-        dist=torch.where(mask, t.float(), z),
-        depth=torch.where(mask, depth.float(), z),
-        bary=torch.where(m3, bary.float(), z),
-        geo_normal=torch.where(m3, gn.float(), z),
-        normal=torch.where(m3, n.float(), z),
-        uv=torch.where(m3, uv.float(), z),
+        mask=scatter(torch.ones_like(tri, dtype=torch.bool), None, False, torch.bool),
+        tri=scatter(tri, None, -1, torch.int64),
+        position=scatter(pos, 3),
+        dist=scatter(t, None),
+        depth=scatter(depth, None),
+        bary=scatter(bary, 3),
+        geo_normal=scatter(gn, 3),
+        normal=scatter(n, 3),
+        uv=scatter(uv, 2),
     )
 
 

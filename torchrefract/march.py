@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import torch
 
-from .camera import project
 from .gbuffer import GBuffer, interpolate, intersect_triangles
 
 
@@ -50,23 +49,38 @@ def back_planes(g: GBuffer) -> torch.Tensor:
     return torch.cat([n, c], -1)
 
 
-def _lookup_pixels(g: GBuffer, batch: torch.Tensor, x: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat pixel index (N,) of points x (N, 3) and whether it is inside the frame."""
-    _, h, w = g.shape
-    xy, z = project(x[:, None, :], g.proj[batch])  # (N, 1, 2), (N, 1)
-    xy, z = xy[:, 0], z[:, 0]
-    px = torch.floor(xy[:, 0])
-    py = torch.floor(xy[:, 1])
-    inside = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-    pxi = px.clamp(0, w - 1).long()
-    pyi = py.clamp(0, h - 1).long()
-    return batch * (h * w) + pyi * w + pxi, inside
+class _Projector:
+    """Pixel lookups of points p1 + s t along rays, linear in s (precomputed per ray)."""
+
+    def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor):
+        _, self.h, self.w = g.shape
+        p = g.proj[batch]  # (N, 16)
+        eye, r, u, f = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
+        rel = p1 - eye
+        basis = torch.stack([r, u, f], 1)  # (N, 3, 3) rows: right, up, forward
+        self.c0 = (basis * rel[:, None, :]).sum(-1)  # (N, 3) camera coords of p1
+        self.ct = (basis * t[:, None, :]).sum(-1)  # (N, 3) per unit s
+        # pixel x = (cx / (cz ta) + 1) w / 2, y = (1 - cy / (cz t)) h / 2
+        self.sx = 0.5 * self.w / p[:, 12]
+        self.sy = 0.5 * self.h / p[:, 13]
+        self.base = batch * (self.h * self.w)
+
+    def pixels(self, idx: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat pixel index and in-frame flag of rays ``idx`` at parameters ``s``."""
+        c = self.c0[idx] + s[:, None] * self.ct[idx]  # (M, 3)
+        z = c[:, 2]
+        zs = torch.where(z > 1e-12, z, torch.full_like(z, 1e-12))
+        px = torch.floor(c[:, 0] / zs * self.sx[idx] + 0.5 * self.w)
+        py = torch.floor(0.5 * self.h - c[:, 1] / zs * self.sy[idx])
+        inside = (z > 1e-12) & (px >= 0) & (px < self.w) & (py >= 0) & (py < self.h)
+        flat = self.base[idx] + py.clamp(0, self.h - 1).long() * self.w \
+            + px.clamp(0, self.w - 1).long()
+        return flat, inside
 
 
 def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
              planes: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    pl = planes[flat]  # (N, 4)
+    pl = planes[flat]  # (M, 4)
     beyond = (pl[:, :3] * x).sum(-1) - pl[:, 3] > 0
     return ~inside | ~valid[flat] | beyond
 
@@ -101,26 +115,27 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     bq = (oc * t).sum(-1)
     cq = (oc * oc).sum(-1) - radius * radius
     s_max = (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
+    proj = _Projector(g, batch, p1, t)
 
     n = p1.shape[0]
     lo = torch.zeros(n, dtype=p1.dtype)
     hi = s_max.clone()
-    done = torch.zeros(n, dtype=torch.bool)
+    active = torch.arange(n)  # rays whose crossing is not bracketed yet
     for k in range(1, steps + 1):
-        s = s_max * (k / steps)
-        x = p1 + s[:, None] * t
-        flat, inside = _lookup_pixels(g, batch, x)
-        crossed = _crossed(x, flat, inside, planes, valid)
-        newly = crossed & ~done
-        hi = torch.where(newly, s, hi)
-        lo = torch.where(~done & ~crossed, s, lo)
-        done = done | crossed
-        if bool(done.all()):
+        if active.numel() == 0:
             break
+        s = s_max[active] * (k / steps)
+        x = p1[active] + s[:, None] * t[active]
+        flat, inside = proj.pixels(active, s)
+        crossed = _crossed(x, flat, inside, planes, valid)
+        hi[active[crossed]] = s[crossed]
+        lo[active[~crossed]] = s[~crossed]
+        active = active[~crossed]
+    every = torch.arange(n)
     for _ in range(refine):
         mid = 0.5 * (lo + hi)
         x = p1 + mid[:, None] * t
-        flat, inside = _lookup_pixels(g, batch, x)
+        flat, inside = proj.pixels(every, mid)
         crossed = _crossed(x, flat, inside, planes, valid)
         hi = torch.where(crossed, mid, hi)
         lo = torch.where(crossed, lo, mid)
@@ -132,7 +147,7 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     tri = torch.full((n,), -1, dtype=torch.int64)
     bary = torch.zeros(n, 3, dtype=p1.dtype)
     for s_try in (hi, lo):
-        flat, inside = _lookup_pixels(g, batch, p1 + s_try[:, None] * t)
+        flat, inside = proj.pixels(every, s_try)
         cand = torch.where(inside & valid[flat], tri_map[flat], torch.full_like(flat, -1))
         st, bt = intersect_triangles(p1, t, tv[cand.clamp(min=0)])
         ok = ~found & (cand >= 0) & torch.isfinite(st) & (st > 0) & (st <= s_max * 1.5)
