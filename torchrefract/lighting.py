@@ -21,6 +21,7 @@ class Lighting:
 
     Attributes:
         texels: B lat-long maps, each (H_b, W_b, 3) (maps may differ in size).
+        paths: B map files (for the cached SG pyramids of the rough methods).
         rotate_deg: (B,) map rotation about +Y.
         scale: (B,) radiance multipliers.
         light_pos: (B, L, 3) sphere light centers (L = most lights of any scene; padding has
@@ -30,6 +31,7 @@ class Lighting:
     """
 
     texels: tuple[torch.Tensor, ...]
+    paths: tuple[str, ...]
     rotate_deg: torch.Tensor
     scale: torch.Tensor
     light_pos: torch.Tensor
@@ -47,9 +49,17 @@ class Lighting:
                 le[i, j] = torch.tensor(l.radiance)
         return Lighting(
             texels=tuple(envmap.load_envmap(s.envmap.path) for s in scenes),
+            paths=tuple(s.envmap.path for s in scenes),
             rotate_deg=torch.tensor([s.envmap.rotate_deg for s in scenes], dtype=torch.float32),
             scale=torch.tensor([s.envmap.scale for s in scenes], dtype=torch.float32),
             light_pos=pos, light_radius=rad, light_radiance=le)
+
+
+    def pyramid(self, b: int):
+        """The SG-pre-convolved pyramid of scene ``b``'s map (built once per file, cached)."""
+        from .sgenv import sg_pyramid_for  # noqa: PLC0415
+
+        return sg_pyramid_for(self.paths[b])
 
 
 def hit_lights(origin: torch.Tensor, direction: torch.Tensor, pos: torch.Tensor,
@@ -113,4 +123,33 @@ def incident_radiance(lighting: Lighting, batch: torch.Tensor, origin: torch.Ten
         if max_dist is not None:
             hit = hit & (t < max_dist)
         out = torch.where(hit[:, None], le.to(out.dtype), out)
+    return out
+
+
+def incident_radiance_sg(lighting: Lighting, batch: torch.Tensor, origin: torch.Tensor,
+                         direction: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
+    """Environment radiance convolved with a normalized SG lobe around each direction.
+
+    Args:
+        lighting: the batch's lighting.
+        batch: (N,) scene index; origin (N, 3); direction (N, 3); sharpness (N,) SG
+            sharpness (inf = a plain lookup).
+
+    Returns:
+        (N, 3) radiance. Sphere lights are seen where the lobe's axis hits them (a sharp
+        approximation: lights are not blurred by the lobe).
+    """
+    from .sgenv import sg_lookup_env  # noqa: PLC0415
+
+    out = torch.zeros_like(direction)
+    for b in range(len(lighting.texels)):
+        sel = (batch == b).nonzero(as_tuple=True)[0]
+        if sel.numel() == 0:
+            continue
+        out[sel] = sg_lookup_env(lighting.pyramid(b), direction[sel], sharpness[sel],
+                                 lighting.rotate_deg[b], lighting.scale[b]).to(out.dtype)
+    if lighting.light_pos.shape[1] > 0:
+        t, le = hit_lights(origin, direction, lighting.light_pos[batch],
+                           lighting.light_radius[batch], lighting.light_radiance[batch])
+        out = torch.where(torch.isfinite(t)[:, None], le.to(out.dtype), out)
     return out

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from .checks import ConfigError
 from .gbuffer import GBuffer, build_gbuffer
 from .lighting import Lighting
+from .materials import MaterialBatch
 from .mesh import load_mesh
 from .methods import METHODS
 from .scene import METHODS as PLANNED
@@ -140,9 +141,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     t1 = time.perf_counter()
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     t2 = time.perf_counter()
-    ior = torch.tensor([s.material.ior for s in scenes], dtype=torch.float32)
-    absorption = torch.tensor([s.material.absorption for s in scenes], dtype=torch.float32)
-    radiance, method_passes = shade(g, lighting, ior, absorption, options)
+    materials = MaterialBatch.from_scenes(scenes)
+    radiance, method_passes = shade(g, lighting, materials, options)
     t3 = time.perf_counter()
 
     n = g.supersample
@@ -157,7 +157,7 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     fm = g.front.mask[..., None].float()  # (B, H, W, 1)
     rough = torch.tensor([s.material.roughness for s in scenes], dtype=torch.float32)
     passes["roughness"] = _masked_box(fm * rough[:, None, None, None], g.front.mask, n)
-    passes["ior"] = _masked_box(fm * ior[:, None, None, None], g.front.mask, n)
+    passes["ior"] = _masked_box(fm * materials.ior[:, None, None, None], g.front.mask, n)
     for k, v in method_passes.items():
         passes[k] = _masked_box(v, g.front.mask, n)
     return RenderResult(

@@ -25,6 +25,7 @@ import torch
 from ..checks import ConfigError, check_choice, check_number
 from ..gbuffer import GBuffer
 from ..lighting import Lighting, hit_lights, incident_radiance
+from ..materials import MaterialBatch
 from ..march import march_back
 from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
 
@@ -40,14 +41,16 @@ class SpecularOptions:
     refine_steps: int = 10
     """Bisection iterations after the coarse search."""
 
-    @staticmethod
-    def from_dict(d: dict, source: str | None = None) -> "SpecularOptions":
-        allowed = [f.name for f in fields(SpecularOptions)]
+    METHOD = "specular"
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str | None = None) -> "SpecularOptions":
+        allowed = [f.name for f in fields(cls)]
         for k in d:
             if k not in allowed:
                 raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown "
-                                  f"key {k!r} for method 'specular' (allowed: {allowed})")
-        return SpecularOptions(
+                                  f"key {k!r} for method {cls.METHOD!r} (allowed: {allowed})")
+        return cls(
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
                              ("clamp", "reflect"), source),
             march_steps=check_number(d.get("march_steps", 64), "method_options.march_steps",
@@ -58,16 +61,99 @@ class SpecularOptions:
         )
 
 
-def render_specular(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
-                    absorption: torch.Tensor, options: SpecularOptions = SpecularOptions()
+@dataclass(frozen=True)
+class Paths:
+    """One refracted path per object pixel (compacted to the N covered (sub-)pixels).
+
+    Attributes:
+        idx: (N,) flat index into (B*H*W) of each object pixel; batch: (N,) its view.
+        d: (N, 3) camera ray; p1: (N, 3) entry point; n1: (N, 3) entry normal facing the eye.
+        f1: (N,) Fresnel reflectance at entry; refl: (N, 3) mirror direction.
+        t1: (N, 3) refracted direction inside; found: (N,) exit found by the march.
+        p2: (N, 3) exit point (p1 where not found); t2: (N, 3) direction leaving the object.
+        w2: (N,) exit transmittance (1 - F2; 1 under TIR and in the fallback).
+        path: (N,) length travelled inside; tir: (N,) total internal reflection somewhere.
+        hidden: (N,) a sphere light between the eye and the object hides it.
+    """
+
+    idx: torch.Tensor
+    batch: torch.Tensor
+    d: torch.Tensor
+    p1: torch.Tensor
+    n1: torch.Tensor
+    f1: torch.Tensor
+    refl: torch.Tensor
+    t1: torch.Tensor
+    found: torch.Tensor
+    p2: torch.Tensor
+    t2: torch.Tensor
+    w2: torch.Tensor
+    path: torch.Tensor
+    tir: torch.Tensor
+    hidden: torch.Tensor
+
+
+def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
+    """(B*H*W, 3) radiance of the camera rays without the object: environment or a light
+    (a light in front of the object included, one behind it excluded)."""
+    b, h, w = g.shape
+    d_all = g.ray_dir.reshape(-1, 3)
+    batch_all = torch.arange(b).repeat_interleave(h * w)
+    max_dist = torch.where(g.front.mask.reshape(-1), g.front.dist.reshape(-1),
+                           torch.full_like(d_all[:, 0], float("inf")))
+    return incident_radiance(lighting, batch_all, g.eye[batch_all], d_all, max_dist)
+
+
+def trace_paths(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
+                options: SpecularOptions) -> Paths:
+    """Refract every object pixel's camera ray in, march to the exit, refract out."""
+    b, h, w = g.shape
+    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]  # compact: object pixels only
+    bi = idx // (h * w)
+    d = g.ray_dir.reshape(-1, 3)[idx]  # (N, 3)
+    p1 = g.front.position.reshape(-1, 3)[idx]
+    n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
+    eta = ior[bi]  # (N,)
+    hidden = _light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
+    f1 = fresnel_dielectric(-dot(d, n1), 1.0 / eta)
+    t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
+    ex = march_back(g, bi, p1, t1, steps=options.march_steps, refine=options.refine_steps)
+    n2 = face_forward(ex.normal, t1)  # against the ray: points into the object
+    f2 = fresnel_dielectric(-dot(t1, n2), eta)
+    t2, tir2 = refract(t1, n2, eta)
+    tir2 = tir2 & ex.found
+    if options.tir == "reflect":
+        t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
+    w2 = torch.where(tir2, torch.ones_like(f2), 1.0 - f2)
+    # Fallback where no exit was found: leave along the refracted direction.
+    t2 = torch.where(ex.found[:, None], t2, t1)
+    w2 = torch.where(ex.found, w2, torch.ones_like(w2))
+    p2 = torch.where(ex.found[:, None], ex.position, p1)
+    path = torch.where(ex.found, ex.dist,
+                       (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
+    return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=f1, refl=reflect(d, n1), t1=t1,
+                 found=ex.found, p2=p2, t2=t2, w2=w2, path=path, tir=tir1 | tir2,
+                 hidden=hidden)
+
+
+def path_passes(g: GBuffer, paths: Paths) -> dict[str, torch.Tensor]:
+    b, h, w = g.shape
+    exit_found = torch.zeros(b * h * w)
+    tir = torch.zeros(b * h * w)
+    exit_found[paths.idx] = paths.found.float()
+    tir[paths.idx] = paths.tir.float()
+    return {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
+
+
+def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
+                    options: SpecularOptions = SpecularOptions()
                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Shade a G-buffer with two-sided specular refraction.
 
     Args:
         g: G-buffer of B views at (H, W) (sub-)pixels.
         lighting: environment maps and lights of the B scenes.
-        ior: (B,) index of refraction inside.
-        absorption: (B, 3) Beer-Lambert coefficients per unit length.
+        materials: IOR and absorption per scene (roughness is ignored: smooth surfaces).
         options: method settings.
 
     Returns:
@@ -75,53 +161,17 @@ def render_specular(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
         passes: ``exit_found`` and ``tir`` (B, H, W, 1) floats (1 where true, object pixels).
     """
     b, h, w = g.shape
-    d_all = g.ray_dir.reshape(-1, 3)  # (B*H*W, 3)
-    batch_all = torch.arange(b).repeat_interleave(h * w)  # (B*H*W,)
-    eye_all = g.eye[batch_all]
-    front_mask = g.front.mask.reshape(-1)
-    # Camera rays: environment, or a light in front of the object.
-    max_dist = torch.where(front_mask, g.front.dist.reshape(-1),
-                           torch.full_like(d_all[:, 0], float("inf")))
-    radiance = incident_radiance(lighting, batch_all, eye_all, d_all, max_dist)
-
-    idx = front_mask.nonzero(as_tuple=True)[0]  # compact: object pixels only
-    exit_found = torch.zeros(b * h * w)
-    tir_pass = torch.zeros(b * h * w)
-    if idx.numel() > 0:
-        bi = batch_all[idx]
-        d = d_all[idx]  # (N, 3)
-        p1 = g.front.position.reshape(-1, 3)[idx]
-        n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
-        eta = ior[bi]  # (N,)
-        # A light between the eye and the object hides it.
-        hidden = _light_in_front(lighting, bi, eye_all[idx], d, g.front.dist.reshape(-1)[idx])
-        cos1 = -dot(d, n1)
-        f1 = fresnel_dielectric(cos1, 1.0 / eta)
-        l_refl = incident_radiance(lighting, bi, p1, reflect(d, n1))
-        t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
-        ex = march_back(g, bi, p1, t1, steps=options.march_steps, refine=options.refine_steps)
-        n2 = face_forward(ex.normal, t1)  # against the ray: points into the object
-        cos2 = -dot(t1, n2)
-        f2 = fresnel_dielectric(cos2, eta)
-        t2, tir2 = refract(t1, n2, eta)
-        tir2 = tir2 & ex.found
-        if options.tir == "reflect":
-            t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
-        w2 = torch.where(tir2, torch.ones_like(f2), 1.0 - f2)
-        # Fallback where no exit was found: leave along the refracted direction.
-        t2 = torch.where(ex.found[:, None], t2, t1)
-        w2 = torch.where(ex.found, w2, torch.ones_like(w2))
-        p2 = torch.where(ex.found[:, None], ex.position, p1)
-        path = torch.where(ex.found, ex.dist, (g.back.dist - g.front.dist).reshape(-1)[idx]
-                           .clamp(min=0.0))
-        att = torch.exp(-absorption[bi] * path[:, None])  # (N, 3)
-        l_trans = incident_radiance(lighting, bi, p2, t2)
-        l_obj = f1[:, None] * l_refl + ((1.0 - f1) * w2)[:, None] * att * l_trans
-        radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj)
-        exit_found[idx] = ex.found.float()
-        tir_pass[idx] = (tir2 | tir1).float()
-    passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir_pass.view(b, h, w, 1)}
-    return radiance.view(b, h, w, 3), passes
+    radiance = background(g, lighting)
+    paths = trace_paths(g, lighting, materials.ior, options)
+    if paths.idx.numel() > 0:
+        bi = paths.batch
+        l_refl = incident_radiance(lighting, bi, paths.p1, paths.refl)
+        l_trans = incident_radiance(lighting, bi, paths.p2, paths.t2)
+        att = torch.exp(-materials.absorption[bi] * paths.path[:, None])  # (N, 3)
+        f1 = paths.f1[:, None]
+        l_obj = f1 * l_refl + (1.0 - f1) * paths.w2[:, None] * att * l_trans
+        radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
+    return radiance.view(b, h, w, 3), path_passes(g, paths)
 
 
 def _light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,

@@ -1,0 +1,74 @@
+"""Method ``prefiltered``: limits and monotonic behaviour (truth comparisons: pareto suite)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchrefract as tr
+from torchrefract.camera import pixel_rays
+from torchrefract.envmap import load_envmap, lookup
+from torchrefract.methods.prefiltered import blur_sharpness
+
+from conftest import ASSETS
+
+ENV = str(ASSETS / "envmaps" / "studio_small_03.exr")
+
+
+def _scene(sphere_ply, **material):
+    return tr.Scene(mesh=str(sphere_ply), envmap=tr.EnvMap(path=ENV, rotate_deg=30.0),
+                    material=tr.Material(**material),
+                    camera=tr.Camera(eye=(0.2, 0.4, 3.5), width=48, height=40),
+                    method="prefiltered")
+
+
+def test_smooth_limit_equals_specular(sphere_ply):
+    s = _scene(sphere_ply, ior=1.5, roughness=0.0)
+    a = tr.render([s]).radiance
+    b = tr.render([s], method="specular").radiance
+    rel = (a - b).abs() / b.abs().clamp(min=1e-2)
+    assert rel.max() < 2e-3, rel.max()
+
+
+def test_ior_one_is_invisible_at_any_roughness(sphere_ply):
+    for r in (0.05, 0.5, 1.0):
+        s = _scene(sphere_ply, ior=1.0, roughness=r)
+        out = tr.render([s])
+        bg = lookup(load_envmap(ENV), pixel_rays(s.camera), 30.0)
+        rel = (out.radiance[0] - bg).abs() / bg.abs().clamp(min=1e-3)
+        assert out.coverage[0].mean() > 0.1
+        assert rel.max() < 1e-3, (r, rel.max())
+
+
+def test_blur_grows_with_roughness_and_stays_bounded(sphere_ply):
+    env_max = load_envmap(ENV).max()
+    stds = []
+    for r in (0.0, 0.1, 0.3, 1.0):
+        out = tr.render([_scene(sphere_ply, ior=1.5, roughness=r)])
+        obj = out.coverage[0] == 1
+        assert torch.isfinite(out.radiance).all()
+        assert out.radiance.max() <= env_max * 1.01
+        stds.append(out.radiance[0][obj].std().item())
+    assert stds == sorted(stds, reverse=True), stds
+
+
+def test_blur_sharpness_model():
+    a = torch.tensor([0.0, 0.1, 0.3])
+    kt, kr = blur_sharpness(a, torch.tensor(1.5))
+    assert kt[0] == kr[0] == float("inf")
+    # small-slope: variance alpha^2/2 ((1 - 1/eta)^2 + (eta - 1)^2) per axis
+    var = 0.01 / 2 * ((1 - 1 / 1.5) ** 2 + 0.25)
+    assert kt[1].item() == pytest.approx(1 / var, rel=1e-5)
+    assert kr[2].item() == pytest.approx(1 / (2 * 0.09), rel=1e-5)
+    # IOR 1: refraction does not deviate, only reflection blurs
+    kt1, _ = blur_sharpness(torch.tensor(0.5), torch.tensor(1.0))
+    assert kt1.item() == float("inf")
+
+
+def test_passes_are_finite_for_smooth_and_rough(sphere_ply):
+    for r in (0.0, 0.4):
+        out = tr.render([_scene(sphere_ply, ior=1.5, roughness=r)])
+        for k, v in out.passes.items():
+            assert torch.isfinite(v).all(), k
+        sig = out.passes["blur_sigma"][0, ..., 0][out.coverage[0] == 1]
+        assert (sig == 0).all() if r == 0 else (sig > 0.05).all()
