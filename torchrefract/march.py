@@ -85,24 +85,9 @@ def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
     return ~inside | ~valid[flat] | beyond
 
 
-def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
-               steps: int = 64, refine: int = 10) -> Exit:
-    """March rays from entry points to their exit through the back-face layer.
-
-    Args:
-        g: the G-buffer (its back layer is marched).
-        batch: (N,) int64 scene index per ray.
-        p1: (N, 3) entry points; t: (N, 3) unit directions inside the object.
-        steps: coarse samples along the chord of the bounding sphere.
-        refine: bisection iterations on the bracketing interval.
-
-    Returns:
-        Exit of each ray.
-    """
-    planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
-    valid = g.back.mask.reshape(-1)
-    tri_map = g.back.tri.reshape(-1)
-    # Travel range: to where the ray leaves the mesh's bounding sphere.
+def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor
+                    ) -> torch.Tensor:
+    """(N,) distance along each ray to where it leaves its mesh's bounding sphere (+1%)."""
     tv = g.meshes.tri_vertices
     centers, radii = [], []
     for off, cnt in zip(g.meshes.face_offset.tolist(), g.meshes.num_faces.tolist()):
@@ -114,29 +99,95 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     oc = p1 - center
     bq = (oc * t).sum(-1)
     cq = (oc * oc).sum(-1) - radius * radius
-    s_max = (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
-    proj = _Projector(g, batch, p1, t)
+    return (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
 
+
+def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
+               steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
+               tile: int = 8, fine_steps: int = 8) -> Exit:
+    """March rays from entry points to their exit through the back-face layer.
+
+    Without ``depth_min``: ``steps`` uniform samples over the bounding-sphere chord bracket
+    the first crossing, then ``refine`` bisections. With ``depth_min`` (the min back-face
+    depth of ``tile`` x ``tile`` pixel tiles, from :func:`torchrefract.ndf.build_ndf_mips`),
+    empty space is skipped: a coarse sample whose camera depth lies in front of every back
+    face of its tile cannot have crossed, so only coarse intervals that may contain the
+    crossing are searched with ``fine_steps`` exact plane tests (Oliveira and Brauwers
+    2007's min/max acceleration). Either way the exit is then the exact hit with the
+    back-face triangle found there.
+
+    Args:
+        g: the G-buffer (its back layer is marched).
+        batch: (N,) int64 scene index per ray.
+        p1: (N, 3) entry points; t: (N, 3) unit directions inside the object.
+        steps: coarse samples along the chord of the bounding sphere.
+        refine: bisection iterations on the bracketing interval.
+        depth_min: optional (B, ceil(H/tile), ceil(W/tile), 1) min back depth per tile
+            (+inf where a tile is empty).
+        tile: the tile size of ``depth_min`` in pixels (a power of two).
+        fine_steps: exact samples inside a coarse interval that may hold the crossing.
+
+    Returns:
+        Exit of each ray.
+    """
+    planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
+    valid = g.back.mask.reshape(-1)
+    tri_map = g.back.tri.reshape(-1)
+    tv = g.meshes.tri_vertices
+    s_max = _bounding_chord(g, batch, p1, t)
+    proj = _Projector(g, batch, p1, t)
     n = p1.shape[0]
     lo = torch.zeros(n, dtype=p1.dtype)
     hi = s_max.clone()
-    active = torch.arange(n)  # rays whose crossing is not bracketed yet
-    for k in range(1, steps + 1):
-        if active.numel() == 0:
-            break
-        s = s_max[active] * (k / steps)
-        x = p1[active] + s[:, None] * t[active]
-        flat, inside = proj.pixels(active, s)
-        crossed = _crossed(x, flat, inside, planes, valid)
-        hi[active[crossed]] = s[crossed]
-        lo[active[~crossed]] = s[~crossed]
-        active = active[~crossed]
     every = torch.arange(n)
+
+    def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        flat, inside = proj.pixels(idx, s)
+        return _crossed(p1[idx] + s[:, None] * t[idx], flat, inside, planes, valid)
+
+    active = every  # rays whose crossing is not bracketed yet
+    if depth_min is None:
+        for k in range(1, steps + 1):
+            if active.numel() == 0:
+                break
+            s = s_max[active] * (k / steps)
+            crossed = exact_crossed(active, s)
+            hi[active[crossed]] = s[crossed]
+            lo[active[~crossed]] = s[~crossed]
+            active = active[~crossed]
+    else:
+        _, h, w = g.shape
+        th, tw = depth_min.shape[1:3]
+        dmin = depth_min.reshape(-1)
+        for k in range(1, steps + 1):
+            if active.numel() == 0:
+                break
+            s0 = s_max[active] * ((k - 1) / steps)
+            s1 = s_max[active] * (k / steps)
+            # Coarse test at the interval's end: can the ray have crossed by s1?
+            c = proj.c0[active] + s1[:, None] * proj.ct[active]  # camera coords
+            flat, inside = proj.pixels(active, s1)
+            px = flat % w
+            py = (flat // w) % h
+            tflat = batch[active] * (th * tw) + (py // tile) * tw + (px // tile)
+            maybe = ~inside | (c[:, 2] >= dmin[tflat] * (1.0 - 1e-6))
+            # Exact search inside the intervals that may hold the crossing.
+            idx = active[maybe]
+            a, b = s0[maybe], s1[maybe]
+            found = torch.zeros(idx.numel(), dtype=torch.bool)
+            for j in range(1, fine_steps + 1):
+                sj = a + (b - a) * (j / fine_steps)
+                cj = exact_crossed(idx, sj) & ~found
+                hi[idx[cj]] = sj[cj]
+                found = found | cj
+                lo[idx[~found]] = sj[~found]
+            lo[active[~maybe]] = s1[~maybe]
+            done = torch.zeros(n, dtype=torch.bool)
+            done[idx[found]] = True
+            active = active[~done[active]]
     for _ in range(refine):
         mid = 0.5 * (lo + hi)
-        x = p1 + mid[:, None] * t
-        flat, inside = proj.pixels(every, mid)
-        crossed = _crossed(x, flat, inside, planes, valid)
+        crossed = exact_crossed(every, mid)
         hi = torch.where(crossed, mid, hi)
         lo = torch.where(crossed, lo, mid)
 
