@@ -6,12 +6,14 @@ Registry: name -> (options parser, render function). ``torchrefract.render`` dis
 from __future__ import annotations
 
 from .prefiltered import PrefilteredOptions, render_prefiltered
+from .rousiers import RousiersOptions, render_rousiers
 from .specular import SpecularOptions, render_specular
 
 METHODS = {
     "specular": (SpecularOptions.from_dict, render_specular),
     "prefiltered": (PrefilteredOptions.from_dict, render_prefiltered),
+    "rousiers": (RousiersOptions.from_dict, render_rousiers),
 }
 
-__all__ = ["METHODS", "PrefilteredOptions", "SpecularOptions", "render_prefiltered",
-           "render_specular"]
+__all__ = ["METHODS", "PrefilteredOptions", "RousiersOptions", "SpecularOptions",
+           "render_prefiltered", "render_rousiers", "render_specular"]

@@ -1,0 +1,288 @@
+"""Method ``rousiers``: de Rousiers et al. 2012, Real-Time Rendering of Rough Refraction.
+
+Per object pixel (all pixels of the batch at once, compacted):
+
+1. Front interface: the SG fit of the Walter BTDF and BRDF (``sgfit``, eqs. 8-9) gives the
+   transmitted lobe (energy E_t1, sharpness k_t1, axis p_t1) and the reflected lobe
+   (E_r, k_r, p_r) for the view angle, the IOR and the local roughness.
+2. Cone tracing (sec. 4.3): four rays at theta_b = acos(0.25^(1 / (k_t1 + 1))) (eq. 12)
+   around p_t1 bound 75% of the lobe; they and the axis are marched through the back-face
+   buffer (``march``). The screen positions of the four exits give the footprint.
+3. Geometry filtering (sec. 4.2): the back-face NDF mip (Toksvig, ``ndf``) is read at the
+   footprint's scale: the mip level comes from the footprint's minor extent and four taps
+   spread along its major extent average the anisotropic part (a box-filtered stand-in for
+   the paper's anisotropic ``textureGrad``). Its spread gives kappa_G (eq. 11), which is
+   convolved with the exit roughness's Blinn-Phong exponent (eq. 10).
+4. Exit interface: the mean back normal is the proxy surface; the SG table for leaving the
+   glass (eta = 1 / ior) at the angle between p_t1 and that normal, with the convolved
+   roughness, gives the exit lobe (E_t2, k_t2, p_t2).
+5. The environment is read from the SG-pre-convolved pyramid (``sgenv``, sec. 4.1) around
+   p_t2 with the lobe's sharpness; the front reflection likewise around p_r.
+
+    L = E_r L_env(p_r, k_r) + E_t1 E_t2 exp(-sigma s) L_env(p_t2, k)
+
+Beyond the paper (``front_spread``, default on): the paper assumes all rays reach the exit
+parallel, so the front lobe's own angular spread is dropped unless the back surface is
+curved under the footprint; on a flat slab the image would then show only the exit
+roughness. We keep it: the front lobe's angular variance 1/k_t1, magnified by the exit
+refraction (d theta_out / d theta_in = ior cos(theta_in) / cos(theta_out)), adds to the exit
+lobe's, k = 1 / (1/k_t2 + m^2 / k_t1) (SG convolution of two narrow lobes).
+
+Total internal reflection at the exit (``tir: clamp``, the paper's and Wyman's choice): the
+incident angle is clamped to the critical angle and all the transmitted light leaves with
+that lobe (weight 1, as ``specular`` does, so the smooth limit matches it); ``tir: reflect``
+reads the environment with the table's internal reflection lobe instead.
+Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+
+from .. import microfacet as mf
+from ..camera import project
+from ..checks import ConfigError, check_choice, check_number
+from ..gbuffer import GBuffer
+from ..lighting import Lighting, hit_lights, incident_radiance_sg
+from ..march import march_back
+from ..materials import MaterialBatch
+from ..ndf import KAPPA_MAX, build_ndf_mips, combine_exponents, kappa_from_length, \
+    sample_mips
+from ..optics import dot, face_forward, normalize
+from ..sgfit import lobe_axis, load_sg_table, sg_lookup
+from .specular import background
+
+_DIST = {"beckmann": 0, "ggx": 1}
+
+
+@dataclass(frozen=True)
+class RousiersOptions:
+    """Settings of ``rousiers`` (``method_options`` in a scene)."""
+
+    tir: str = "clamp"
+    """Total internal reflection at the exit: ``clamp`` (critical angle) or ``reflect``."""
+    cone_rays: str = "march"
+    """Footprint rays: ``march`` (the paper: march the four bounding rays) or ``plane``
+    (intersect them with the exit point's tangent plane: 5x fewer march steps)."""
+    front_spread: bool = True
+    """Carry the front lobe's angular spread through the exit (see module docstring)."""
+    march_steps: int = 48
+    """Coarse samples of the central ray's march."""
+    cone_march_steps: int = 16
+    """Coarse samples of each bounding ray's march (only the footprint needs them)."""
+    refine_steps: int = 10
+    """Bisection iterations after the coarse search."""
+
+    METHOD = "rousiers"
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str | None = None) -> "RousiersOptions":
+        allowed = [f.name for f in fields(cls)]
+        for k in d:
+            if k not in allowed:
+                raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown "
+                                  f"key {k!r} for method {cls.METHOD!r} (allowed: {allowed})")
+        fs = d.get("front_spread", True)
+        if not isinstance(fs, bool):
+            raise ConfigError(f"{source + ': ' if source else ''}method_options.front_spread: "
+                              f"expected true or false, got {fs!r}")
+        return cls(
+            tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
+                             ("clamp", "reflect"), source),
+            cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
+                                   ("march", "plane"), source),
+            front_spread=fs,
+            march_steps=check_number(d.get("march_steps", 48), "method_options.march_steps",
+                                     source, minimum=1, maximum=4096, integer=True),
+            cone_march_steps=check_number(d.get("cone_march_steps", 16),
+                                          "method_options.cone_march_steps", source,
+                                          minimum=1, maximum=4096, integer=True),
+            refine_steps=check_number(d.get("refine_steps", 10),
+                                      "method_options.refine_steps", source, minimum=0,
+                                      maximum=64, integer=True),
+        )
+
+
+def bounding_angle(k: torch.Tensor) -> torch.Tensor:
+    """theta_b = acos(0.25^(1 / (k + 1))), the cone holding 75% of an SG lobe (eq. 12)."""
+    return torch.acos(torch.pow(torch.tensor(0.25, dtype=k.dtype), 1.0 / (k + 1.0)))
+
+
+def _tangent_frame(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors orthogonal to unit p (N, 3) and to each other."""
+    helper = torch.where((p[:, :1].abs() < 0.9), torch.tensor([1.0, 0.0, 0.0]),
+                         torch.tensor([0.0, 1.0, 0.0]))
+    u = normalize(torch.cross(p, helper, dim=-1))
+    return u, torch.cross(p, u, dim=-1)
+
+
+def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
+                    options: RousiersOptions = RousiersOptions()
+                    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Shade a G-buffer with de Rousiers' rough refraction (see the module docstring).
+
+    Args:
+        g: G-buffer of B views at (H, W) (sub-)pixels.
+        lighting: environment maps (SG pyramids built once per file) and lights.
+        materials: IOR, roughness, distribution and absorption per scene.
+        options: method settings.
+
+    Returns:
+        radiance: (B, H, W, 3) float32, background included.
+        passes: ``exit_found``, ``tir`` (0/1), ``lobe_sigma`` (per-axis angular spread of
+            the final transmitted lobe, radians), ``footprint`` (pixels, major extent).
+    """
+    b, h, w = g.shape
+    radiance = background(g, lighting)
+    hw = h * w
+    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
+    passes = {k: torch.zeros(b * hw) for k in ("exit_found", "tir", "lobe_sigma", "footprint")}
+    if idx.numel() == 0:
+        return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in passes.items()}
+    table = load_sg_table()
+    bi = idx // hw
+    d = g.ray_dir.reshape(-1, 3)[idx]  # (N, 3)
+    p1 = g.front.position.reshape(-1, 3)[idx]
+    n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)  # view side
+    ior = materials.ior[bi]
+    alpha = materials.roughness[bi].clamp(min=mf.ALPHA_MIN)
+    dist = torch.tensor([_DIST[x] for x in materials.distribution])[bi]
+    view = -d
+    cos1 = dot(view, n1).clamp(0.0, 1.0)
+
+    # 1. Front interface lobes (eqs. 8-9).
+    _, k_r, t_r, e_r = sg_lookup(table, cos1, ior, alpha, dist, "reflect")
+    axis_r = lobe_axis(view, n1, t_r, "reflect")
+    _, k_t1, t_t1, e_t1 = sg_lookup(table, cos1, ior, alpha, dist, "transmit")
+    p_t1 = normalize(lobe_axis(view, n1, t_t1, "transmit"))
+
+    # 2. Cone tracing: the axis and four bounding rays (eq. 12).
+    ex = march_back(g, bi, p1, p_t1, steps=options.march_steps, refine=options.refine_steps)
+    theta_b = bounding_angle(k_t1)[:, None]
+    u, v = _tangent_frame(p_t1)
+    dirs = torch.stack([torch.cos(theta_b) * p_t1 + torch.sin(theta_b) * s * a
+                        for a in (u, v) for s in (1.0, -1.0)], 1)  # (N, 4, 3)
+    n = idx.numel()
+    if options.cone_rays == "march":
+        ex4 = march_back(g, bi.repeat_interleave(4), p1.repeat_interleave(4, 0),
+                         dirs.reshape(-1, 3), steps=options.cone_march_steps,
+                         refine=options.refine_steps)
+        q = ex4.position.view(n, 4, 3)
+        ok4 = ex4.found.view(n, 4)
+    else:  # intersect with the tangent plane at the central exit
+        pn = torch.where(ex.found[:, None], ex.normal, p_t1)
+        denom = (dirs * pn[:, None, :]).sum(-1)
+        s = ((ex.position - p1) * pn).sum(-1, keepdim=True) / denom.clamp(min=1e-6)
+        q = p1[:, None, :] + s[..., None] * dirs
+        ok4 = (denom > 1e-6) & ex.found[:, None]
+    # Footprint in pixels: screen bounding box of the four exits.
+    proj = g.proj[bi]
+    xy, _ = project(q, proj)  # (N, 4, 2)
+    xy_c, _ = project(ex.position[:, None, :], proj)
+    xy_c = xy_c[:, 0]
+    xy = torch.where(ok4[..., None], xy, xy_c[:, None, :])
+    ext_raw = xy.max(1).values - xy.min(1).values  # (N, 2)
+    ext = ext_raw.clamp(min=1.0)
+    major = ext.max(-1).values
+    minor = ext.min(-1).values
+    level = torch.log2(minor)
+    # A footprint smaller than a pixel sees less of the surface than the finest NDF texel:
+    # its normal spread shrinks with its area (variance ~ extent^2), down to the exact exit
+    # normal of a specular ray. Without this a smooth object would be blurred by the
+    # pixel grid itself.
+    sub = ext_raw.min(-1).values.clamp(0.0, 1.0)  # (N,) 1 once the footprint spans a pixel
+    # 3. NDF of the back layer over the footprint: 4 taps along the major axis.
+    mips = build_ndf_mips(g.back.normal, g.back.mask, g.back.depth)
+    along_x = (ext[:, 0] >= ext[:, 1])[:, None]
+    offsets = torch.tensor([-0.375, -0.125, 0.125, 0.375])
+    vec = torch.zeros(n, 3)
+    cov = torch.zeros(n)
+    for o in offsets:
+        shift = torch.where(along_x, torch.stack([o * major, torch.zeros_like(major)], -1),
+                            torch.stack([torch.zeros_like(major), o * major], -1))
+        nd, nl, nc = sample_mips(mips, bi, xy_c + shift, level)
+        vec = vec + nd * (nl * nc)[:, None]
+        cov = cov + nc
+    mean = vec / cov.clamp(min=1e-12)[:, None]
+    length = mean.norm(dim=-1)
+    have_ndf = ex.found & (cov > 1e-6) & (length > 1e-6)
+    exact_n = torch.where(ex.found[:, None], ex.normal, p_t1)
+    ndf_n = mean / length.clamp(min=1e-12)[:, None]
+    # Proxy direction: over a footprint of a few pixels the exact exit normal (its center)
+    # is a better estimate of the mean normal than bilinear taps of pixel-sized texels
+    # (the footprint is symmetric, so curvature changes the mean only to second order);
+    # from 4 pixels on, the mip's mean over the footprint takes over (non-convex shapes).
+    w_ndf = (torch.log2(minor) / 2.0).clamp(0.0, 1.0)[:, None]
+    n_bar = torch.where(have_ndf[:, None],
+                        normalize(w_ndf * ndf_n + (1.0 - w_ndf) * exact_n), exact_n)
+    kappa_g = torch.where(have_ndf, kappa_from_length(length) / (sub * sub).clamp(min=1e-12),
+                          torch.full_like(length, KAPPA_MAX)).clamp(max=KAPPA_MAX)
+    kappa_d = mf.blinn_phong_from_alpha(alpha).clamp(min=0.0)
+    alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))  # eq. 10
+
+    # 4. Exit interface: view side is inside (looking back along p_t1).
+    n_in = face_forward(-n_bar, p_t1)  # inward, facing against p_t1
+    view2 = -p_t1
+    cos2 = dot(view2, n_in).clamp(0.0, 1.0)
+    cos_crit = torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
+    tir = (cos2 < cos_crit) & ex.found
+    weight2 = torch.ones_like(cos2)
+    if options.tir == "clamp":
+        cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
+        _, k_t2, t_t2, e_t2 = sg_lookup(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
+        p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+        weight2 = torch.where(tir, torch.ones_like(e_t2), e_t2)
+    else:
+        _, k_t2, t_t2, e_t2 = sg_lookup(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
+        _, k_ti, t_ti, e_ti = sg_lookup(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
+        p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+        p_ti = normalize(lobe_axis(view2, n_in, t_ti, "reflect"))
+        p_t2 = torch.where(tir[:, None], p_ti, p_t2)
+        k_t2 = torch.where(tir, k_ti, k_t2)
+        weight2 = torch.where(tir, e_ti, e_t2)
+    # Final lobe sharpness (front spread carried through the exit refraction).
+    if options.front_spread:
+        sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
+        cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
+        mag2 = (ior * cos2 / cos_out) ** 2
+        k = 1.0 / (1.0 / k_t2 + mag2 / k_t1)
+    else:
+        k = k_t2
+    # Fallback where the exit is not found: leave with the front lobe.
+    p_out = torch.where(ex.found[:, None], p_t2, p_t1)
+    k = torch.where(ex.found, k, k_t1)
+    weight2 = torch.where(ex.found, weight2, torch.ones_like(weight2))
+    p2 = torch.where(ex.found[:, None], ex.position, p1)
+    path = torch.where(ex.found, ex.dist,
+                       (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
+    att = torch.exp(-materials.absorption[bi] * path[:, None])
+
+    # 5. Pre-convolved environment lookups.
+    l_refl = incident_radiance_sg(lighting, bi, p1, axis_r, k_r)
+    l_trans = incident_radiance_sg(lighting, bi, p2, p_out, k)
+    # An index-matched object (IOR exactly 1) has no interface at all: it is invisible.
+    # (The microfacet model would still lose the masking-shadowing energy there.)
+    matched = ior == 1.0
+    e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
+    e_t = torch.where(matched, torch.ones_like(e_t1), e_t1 * weight2)
+    l_trans = torch.where(matched[:, None],
+                          incident_radiance_sg(lighting, bi, p1, d,
+                                               torch.full_like(k, float("inf"))),
+                          l_trans)
+    l_obj = e_r[:, None] * l_refl + e_t[:, None] * att * l_trans
+    hidden = torch.zeros(n, dtype=torch.bool)
+    if lighting.light_pos.shape[1] > 0:
+        tl, _ = hit_lights(g.eye[bi], d, lighting.light_pos[bi], lighting.light_radius[bi],
+                           lighting.light_radiance[bi])
+        hidden = tl < g.front.dist.reshape(-1)[idx]
+    radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj.to(radiance.dtype))
+    passes["exit_found"][idx] = ex.found.float()
+    passes["tir"][idx] = tir.float()
+    passes["lobe_sigma"][idx] = torch.rsqrt(k.clamp(min=1e-12)).float()
+    passes["footprint"][idx] = torch.where(ex.found, major, torch.zeros_like(major)).float()
+    return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in passes.items()}
+
+
+__all__ = ["RousiersOptions", "bounding_angle", "render_rousiers"]
