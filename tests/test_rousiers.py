@@ -75,22 +75,23 @@ def test_options_and_cone_variants(sphere_ply):
     s = _scene(sphere_ply, ior=1.5, roughness=0.2)
     a = tr.render([s]).radiance
     b = tr.render([s.replace(method_options={"cone_rays": "plane"})]).radiance
-    c_out = tr.render([s.replace(method_options={"front_spread": False})])
+    c_out = tr.render([s.replace(method_options={"spread": "paper"})])
     c = c_out.radiance
     full = tr.render([s])
     cov = full.coverage[0] == 1
     # On a sphere the plane approximation of the footprint is close to marching it.
     assert ((a - b).abs()[0][cov]).mean() < 0.05 * a[0][cov].mean()
-    # Without the front lobe's spread the final lobe is narrower everywhere it exits.
+    # Adding the front lobe's spread to the paper's model widens the lobe everywhere.
+    pf = tr.render([s.replace(method_options={"spread": "paper+front"})])
     found = (full.passes["exit_found"][0, ..., 0] == 1) & cov
-    s_full = full.passes["lobe_sigma"][0, ..., 0][found]
-    s_front = c_out.passes["lobe_sigma"][0, ..., 0][found]
-    assert (s_front <= s_full + 1e-6).all() and (s_front < 0.9 * s_full).float().mean() > 0.5
+    s_paper = c_out.passes["lobe_sigma"][0, ..., 0][found]
+    s_front = pf.passes["lobe_sigma"][0, ..., 0][found]
+    assert (s_paper <= s_front + 1e-6).all() and (s_paper < 0.9 * s_front).float().mean() > 0.5
     assert not torch.allclose(a, c)
     with pytest.raises(tr.ConfigError, match="cone_rays"):
         RousiersOptions.from_dict({"cone_rays": "cone"})
-    with pytest.raises(tr.ConfigError, match="front_spread"):
-        RousiersOptions.from_dict({"front_spread": "yes"})
+    with pytest.raises(tr.ConfigError, match="spread"):
+        RousiersOptions.from_dict({"spread": "wide"})
 
 
 def test_bounding_angle_holds_75_percent_of_the_lobe():

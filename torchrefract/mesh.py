@@ -154,7 +154,11 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
     # Vertices used by no kept face (or with a zero normal in the file) get any unit vector;
     # they are never interpolated.
     normals = np.where(n > 1e-12, normals / np.maximum(n, 1e-30), np.array([0.0, 0.0, 1.0]))
-    watertight = bool(world.is_watertight)
+    # Watertight as a surface: vertices split only to carry normals or UVs (a flat-shaded
+    # box) still close the volume, so check on a copy with coincident vertices merged.
+    closed = trimesh.Trimesh(verts, faces, process=False)
+    closed.merge_vertices(merge_tex=True, merge_norm=True)
+    watertight = bool(closed.is_watertight)
     if not watertight:
         warnings.warn(f"mesh {path!r} is not watertight: methods that assume a closed object "
                       "may show holes or wrong exits", stacklevel=2)

@@ -21,12 +21,18 @@ Per object pixel (all pixels of the batch at once, compacted):
 
     L = E_r L_env(p_r, k_r) + E_t1 E_t2 exp(-sigma s) L_env(p_t2, k)
 
-Beyond the paper (``front_spread``, default on): the paper assumes all rays reach the exit
-parallel, so the front lobe's own angular spread is dropped unless the back surface is
-curved under the footprint; on a flat slab the image would then show only the exit
-roughness. We keep it: the front lobe's angular variance 1/k_t1, magnified by the exit
-refraction (d theta_out / d theta_in = ior cos(theta_in) / cos(theta_out)), adds to the exit
-lobe's, k = 1 / (1/k_t2 + m^2 / k_t1) (SG convolution of two narrow lobes).
+How wide the exit lobe is (``spread``). The paper (``paper``) assumes all rays reach the
+exit parallel: the front lobe's own angular spread only enters through the NDF of the
+footprint, convolved with the exit roughness as if it were roughness (eq. 10). That drops
+the spread on a flat slab (the image would show only the exit roughness) and overstates it
+on convex shapes: inside a ball lens a ray tilted by delta meets a normal tilted by
+2 delta, so it leaves tilted by (2 - eta) delta, not sqrt(eta^2 + 4 (eta - 1)^2) delta.
+``paper+front`` adds the front lobe's variance 1/k_t1 magnified by the exit refraction
+(d theta_out / d theta_in = ior cos(theta_in) / cos(theta_out)). ``rays`` (default, ours)
+measures the mapping directly: the four marched bounding rays are refracted out at their
+own exit normals, and their angles to the central exit direction give the geometric part
+of the lobe's variance, added to the exit roughness's lobe (which then uses the exact exit
+normal, not the NDF). It costs nothing extra: the rays are marched anyway.
 
 Total internal reflection at the exit (``tir: clamp``, the paper's and Wyman's choice): the
 incident angle is clamped to the critical angle and all the transmitted light leaves with
@@ -37,6 +43,7 @@ Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import torch
@@ -50,7 +57,7 @@ from ..march import march_back
 from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_ndf_mips, combine_exponents, kappa_from_length, \
     sample_mips
-from ..optics import dot, face_forward, normalize
+from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, sg_lookup
 from .specular import background
 
@@ -66,8 +73,11 @@ class RousiersOptions:
     cone_rays: str = "march"
     """Footprint rays: ``march`` (the paper: march the four bounding rays) or ``plane``
     (intersect them with the exit point's tangent plane: 5x fewer march steps)."""
-    front_spread: bool = True
-    """Carry the front lobe's angular spread through the exit (see module docstring)."""
+    spread: str = "rays"
+    """How the exit lobe gets its width beyond the exit roughness (module docstring):
+    ``paper`` (footprint NDF convolved with the BTDF, eq. 10), ``paper+front`` (that, plus
+    the front lobe's spread magnified by the exit refraction) or ``rays`` (the four marched
+    bounding rays refracted at their own exit normals)."""
     march_steps: int = 48
     """Coarse samples of the central ray's march."""
     cone_march_steps: int = 16
@@ -84,16 +94,13 @@ class RousiersOptions:
             if k not in allowed:
                 raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown "
                                   f"key {k!r} for method {cls.METHOD!r} (allowed: {allowed})")
-        fs = d.get("front_spread", True)
-        if not isinstance(fs, bool):
-            raise ConfigError(f"{source + ': ' if source else ''}method_options.front_spread: "
-                              f"expected true or false, got {fs!r}")
         return cls(
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
                              ("clamp", "reflect"), source),
             cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
                                    ("march", "plane"), source),
-            front_spread=fs,
+            spread=check_choice(d.get("spread", "rays"), "method_options.spread",
+                                ("paper", "paper+front", "rays"), source),
             march_steps=check_number(d.get("march_steps", 48), "method_options.march_steps",
                                      source, minimum=1, maximum=4096, integer=True),
             cone_march_steps=check_number(d.get("cone_march_steps", 16),
@@ -171,12 +178,14 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                          refine=options.refine_steps)
         q = ex4.position.view(n, 4, 3)
         ok4 = ex4.found.view(n, 4)
+        n4 = ex4.normal.view(n, 4, 3)
     else:  # intersect with the tangent plane at the central exit
         pn = torch.where(ex.found[:, None], ex.normal, p_t1)
         denom = (dirs * pn[:, None, :]).sum(-1)
         s = ((ex.position - p1) * pn).sum(-1, keepdim=True) / denom.clamp(min=1e-6)
         q = p1[:, None, :] + s[..., None] * dirs
         ok4 = (denom > 1e-6) & ex.found[:, None]
+        n4 = None  # read from the back layer below, at the exits' pixels
     # Footprint in pixels: screen bounding box of the four exits.
     proj = g.proj[bi]
     xy, _ = project(q, proj)  # (N, 4, 2)
@@ -220,7 +229,13 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     kappa_g = torch.where(have_ndf, kappa_from_length(length) / (sub * sub).clamp(min=1e-12),
                           torch.full_like(length, KAPPA_MAX)).clamp(max=KAPPA_MAX)
     kappa_d = mf.blinn_phong_from_alpha(alpha).clamp(min=0.0)
-    alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))  # eq. 10
+    if options.spread == "rays":
+        # Ours: the exit roughness alone widens the table's lobe; the geometry's part comes
+        # from the bounding rays themselves (below), at the exact exit normal.
+        alpha2 = alpha
+        n_bar = exact_n
+    else:
+        alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))  # eq. 10
 
     # 4. Exit interface: view side is inside (looking back along p_t1).
     n_in = face_forward(-n_bar, p_t1)  # inward, facing against p_t1
@@ -242,12 +257,36 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         p_t2 = torch.where(tir[:, None], p_ti, p_t2)
         k_t2 = torch.where(tir, k_ti, k_t2)
         weight2 = torch.where(tir, e_ti, e_t2)
-    # Final lobe sharpness (front spread carried through the exit refraction).
-    if options.front_spread:
+    # Final lobe sharpness.
+    if options.spread == "paper+front":  # front spread carried through the exit refraction
         sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
         cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
         mag2 = (ior * cos2 / cos_out) ** 2
         k = 1.0 / (1.0 / k_t2 + mag2 / k_t1)
+    elif options.spread == "rays":
+        # The bounding rays (75% of the front lobe, eq. 12) refracted out at their own exit
+        # normals: their angles to the central exit direction measure how the front lobe
+        # maps through the object (a flat slab magnifies it by the exit refraction, a ball
+        # lens focuses it). For an SG, 1 - exp(-k (1 - cos theta_b)) = 0.75 gives
+        # theta_b^2 ~ 2 ln 4 / k, so a ray leaving at angle a adds a^2 / (2 ln 4) to the
+        # per-axis variance 1/k.
+        if n4 is None:
+            flat = bi[:, None] * hw + (xy[..., 1].floor().clamp(0, h - 1).long() * w
+                                        + xy[..., 0].floor().clamp(0, w - 1).long())
+            n4 = g.back.normal.reshape(-1, 3)[flat]  # (N, 4, 3)
+            ok4 = ok4 & g.back.mask.reshape(-1)[flat]
+        t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
+        t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
+        cos_k = (t_k * t_c[:, None, :]).sum(-1).clamp(-1.0, 1.0)
+        ang2 = torch.where(ok4, torch.acos(cos_k) ** 2, torch.zeros_like(cos_k))
+        cnt = ok4.sum(-1)
+        var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
+        # No bounding ray found its exit: fall back to the front lobe's magnified spread.
+        sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
+        cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
+        var_front = (ior * cos2 / cos_out) ** 2 / k_t1
+        var_geo = torch.where(cnt > 0, var_geo, var_front)
+        k = 1.0 / (1.0 / k_t2 + var_geo).clamp(min=1e-12)
     else:
         k = k_t2
     # Fallback where the exit is not found: leave with the front lobe.
