@@ -98,8 +98,8 @@ def test_api_rejects_mixed_resolutions_and_unknown_method(tmp_path):
         tr.render([s, other])
     with pytest.raises(tr.ConfigError, match="unknown method 'nope'"):
         tr.render([s], method="nope")
-    with pytest.raises(NotImplementedError, match="'rousiers' is not implemented yet"):
-        tr.render([s], method="rousiers")
+    with pytest.raises(NotImplementedError, match="'lean' is not implemented yet"):
+        tr.render([s], method="lean")
     with pytest.raises(tr.ConfigError, match="march_stepz"):
         tr.render([s.replace(method_options={"march_stepz": 3})])
 
