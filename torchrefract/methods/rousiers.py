@@ -113,8 +113,13 @@ class RousiersOptions:
 
 
 def bounding_angle(k: torch.Tensor) -> torch.Tensor:
-    """theta_b = acos(0.25^(1 / (k + 1))), the cone holding 75% of an SG lobe (eq. 12)."""
-    return torch.acos(torch.pow(torch.tensor(0.25, dtype=k.dtype), 1.0 / (k + 1.0)))
+    """theta_b = acos(0.25^(1 / (k + 1))), the cone holding 75% of an SG lobe (eq. 12).
+
+    Computed as 2 asin(sqrt((1 - x) / 2)) with 1 - x = -expm1(-ln 4 / (k + 1)): the same
+    angle, accurate and with a finite gradient for sharp lobes (acos' diverges at 1).
+    """
+    one_minus = -torch.expm1(-math.log(4.0) / (k + 1.0))
+    return 2.0 * torch.asin(torch.sqrt(0.5 * one_minus))
 
 
 def _tangent_frame(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -277,8 +282,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             ok4 = ok4 & g.back.mask.reshape(-1)[flat]
         t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
         t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
-        cos_k = (t_k * t_c[:, None, :]).sum(-1).clamp(-1.0, 1.0)
-        ang2 = torch.where(ok4, torch.acos(cos_k) ** 2, torch.zeros_like(cos_k))
+        # squared chord |t_k - t_c|^2 = 2 (1 - cos a) ~ a^2: smooth (acos' diverges at 0)
+        chord2 = ((t_k - t_c[:, None, :]) ** 2).sum(-1)
+        ang2 = torch.where(ok4, chord2, torch.zeros_like(chord2))
         cnt = ok4.sum(-1)
         var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
         # No bounding ray found its exit: fall back to the front lobe's magnified spread.
