@@ -102,3 +102,12 @@ def test_bounding_angle_holds_75_percent_of_the_lobe():
         tb = bounding_angle(torch.tensor(k, dtype=torch.float64))
         mass = (1 - torch.exp(-k * (1 - torch.cos(tb)))) / (1 - torch.exp(torch.tensor(-2 * k)))
         assert 0.72 < mass.item() < 0.78
+
+
+def test_ggx_renders_and_differs_from_beckmann(sphere_ply):
+    s = _scene(sphere_ply, ior=1.5, roughness=0.2)
+    beck = tr.render([s]).radiance
+    ggx = tr.render([s.replace(material=tr.Material(ior=1.5, roughness=0.2,
+                                                    distribution="ggx"))]).radiance
+    assert torch.isfinite(ggx).all()
+    assert (beck - ggx).abs().mean() > 1e-3

@@ -130,6 +130,22 @@ def _tangent_frame(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return u, torch.cross(p, u, dim=-1)
 
 
+def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
+    """SG table lookup; GGX pixels use the L2-optimal sharpness.
+
+    Moment matching (the paper's fit) is dominated by GGX's heavy tails: its peak comes out
+    2-5x too low. The table also stores, for each entry, the sharpness minimizing the L2
+    distance to the true lobe at the same energy and axis; Beckmann's two agree within a
+    few percent, so Beckmann keeps the paper's moments.
+    """
+    out = sg_lookup(table, cos_theta, eta, alpha, dist, lobe, sharpness="moment")
+    ggx = dist == 1
+    if bool(ggx.any()):
+        l2 = sg_lookup(table, cos_theta, eta, alpha, dist, lobe, sharpness="l2")
+        out = tuple(torch.where(ggx, b, a) for a, b in zip(out, l2))
+    return out
+
+
 def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                     options: RousiersOptions = RousiersOptions()
                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -165,9 +181,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     cos1 = dot(view, n1).clamp(0.0, 1.0)
 
     # 1. Front interface lobes (eqs. 8-9).
-    _, k_r, t_r, e_r = sg_lookup(table, cos1, ior, alpha, dist, "reflect")
+    _, k_r, t_r, e_r = _lobe(table, cos1, ior, alpha, dist, "reflect")
     axis_r = lobe_axis(view, n1, t_r, "reflect")
-    _, k_t1, t_t1, e_t1 = sg_lookup(table, cos1, ior, alpha, dist, "transmit")
+    _, k_t1, t_t1, e_t1 = _lobe(table, cos1, ior, alpha, dist, "transmit")
     p_t1 = normalize(lobe_axis(view, n1, t_t1, "transmit"))
 
     # 2. Cone tracing: the axis and four bounding rays (eq. 12).
@@ -251,12 +267,12 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     weight2 = torch.ones_like(cos2)
     if options.tir == "clamp":
         cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
-        _, k_t2, t_t2, e_t2 = sg_lookup(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
+        _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
         p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
         weight2 = torch.where(tir, torch.ones_like(e_t2), e_t2)
     else:
-        _, k_t2, t_t2, e_t2 = sg_lookup(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
-        _, k_ti, t_ti, e_ti = sg_lookup(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
+        _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
+        _, k_ti, t_ti, e_ti = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
         p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
         p_ti = normalize(lobe_axis(view2, n_in, t_ti, "reflect"))
         p_t2 = torch.where(tir[:, None], p_ti, p_t2)
