@@ -3,8 +3,10 @@
 Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians, measured
 with the machine quiet; the thread count is recorded.
 
-    .venv/bin/python scripts/bench.py [--methods specular] [--sizes 256 512] [--batches 1 8]
-                                      [--repeats 5] [--threads N] [--out outputs/bench]
+    .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
+        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--out outputs/bench]
+
+A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,13 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) -> dict:
+    options = {}
+    if ":" in method:  # e.g. rousiers:cone_rays=plane,march_steps=24
+        method, spec = method.split(":", 1)
+        for kv in spec.split(","):
+            k, v = kv.split("=")
+            options[k] = int(v) if v.isdigit() else v
+    base = base.replace(method_options=options)
     cam = base.camera
     scene = base.replace(camera=tr.Camera(eye=cam.eye, target=cam.target, up=cam.up,
                                           yfov_deg=cam.yfov_deg, width=size, height=size,
@@ -42,7 +51,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
         for k, v in out.timings.items():
             stages.setdefault(k, []).append(v)
     return {
-        "method": method, "size": size, "batch": batch, "repeats": repeats,
+        "method": method, "options": options, "size": size, "batch": batch, "repeats": repeats,
         "ms_per_frame": 1000 * statistics.median(totals) / batch,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
@@ -65,7 +74,7 @@ def main() -> None:
     base = tr.load_scene(args.scene)
     rows = []
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}")
-    print(f"{'method':<12}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
+    print(f"{'method':<28}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
           f"{'peakMB':>8}")
     for method in args.methods:
         for size in args.sizes:
@@ -73,7 +82,7 @@ def main() -> None:
                 r = bench_one(base, method, size, batch, args.repeats)
                 rows.append(r)
                 st = r["ms_per_frame_stage"]
-                print(f"{method:<12}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
+                print(f"{method[:28]:<28}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
                       f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{r['peak_rss_mb']:>8.0f}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

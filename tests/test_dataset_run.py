@@ -1,0 +1,326 @@
+"""The dataset runner: files, manifest, determinism, resume after kill -9, failures, shards,
+local worker processes and Ray."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import torchrefract as tr
+from torchrefract.checks import ConfigError
+from torchrefract.cli import main
+from torchrefract.dataset_run import _Lock, read_manifest, run_sweep
+from torchrefract.export import exr_channels
+from torchrefract.image_files import read_exr, write_exr
+from torchrefract.sweep import load_sweep
+
+from conftest import ROOT
+from sweep_fixtures import SPOT, small_sweep, write_config
+
+CHANNELS = ("R", "G", "B", "A", "depth_front", "depth_back", "normal_front.X",
+            "normal_front.Y", "normal_front.Z", "normal_back.X", "normal_back.Z", "thickness",
+            "roughness", "ior")
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir())
+            if p.suffix in (".exr", ".png", ".tar")}
+
+
+def _manifest(out: Path) -> list[dict]:
+    return [json.loads(ln) for ln in (out / "manifest.jsonl").read_text().splitlines()]
+
+
+def _no_temporaries(out: Path) -> bool:
+    return not [p for p in out.iterdir() if ".tmp" in p.name]
+
+
+@pytest.fixture(scope="module")
+def cfg_path(tmp_path_factory) -> Path:
+    return write_config(tmp_path_factory.mktemp("cfg") / "small.yaml", small_sweep())
+
+
+@pytest.fixture(scope="module")
+def reference(cfg_path, tmp_path_factory) -> Path:
+    """The small sweep rendered serially, batch size 3."""
+    out = tmp_path_factory.mktemp("ref")
+    s = run_sweep(cfg_path, out, batch_size=3, quiet=True)
+    assert (s.ok, s.failed, s.skipped) == (8, 0, 0)
+    return out
+
+
+# ---------------------------------------------------------------------------- folder output
+
+def test_folder_run_writes_all_passes_and_a_complete_manifest(reference, cfg_path):
+    cfg = load_sweep(cfg_path)
+    lines = _manifest(reference)
+    assert [e["sample_id"] for e in lines] == [f"{i:06d}" for i in range(8)]
+    assert _no_temporaries(reference)
+    for e in lines:
+        assert e["status"] == "ok" and e["reason"] is None
+        assert e["config_hash"] == cfg.config_hash and e["seed"] == 3
+        assert e["torchrefract_version"] == tr.__version__
+        assert e["sample_seed"] == [3, e["index"]] and e["method"] == "specular"
+        assert set(e["params"]) >= {"material.ior", "material.roughness", "envmap.path",
+                                    "envmap.rotate_deg", "camera.orbit.azimuth_deg",
+                                    "camera.eye", "camera.target", "transform.rotate_deg"}
+        cam = e["camera"]
+        assert cam["convention"].startswith("opencv")
+        assert set(cam["intrinsics"]) == {"fx", "fy", "cx", "cy"}
+        assert np.array(cam["world_to_camera"]).shape == (4, 4)
+        assert e["timings"]["render_s"] > 0 and e["timings"]["encode_s"] > 0
+        for kind in ("exr", "png"):
+            data = (reference / e["files"][kind]).read_bytes()
+            assert hashlib.sha256(data).hexdigest() == e["sha256"][kind]
+            assert len(data) == e["bytes"][kind]
+        ch = read_exr(reference / e["files"]["exr"])
+        for c in CHANNELS:
+            assert ch[c].shape == (32, 32) and np.isfinite(ch[c]).all(), c
+        assert 0.05 < ch["A"].mean() < 0.95
+        assert np.allclose(ch["ior"][ch["A"] == 1], e["scene"]["material"]["ior"])
+    # The EXR is exactly what the API renders for the recorded scene, written as
+    # `torchrefract render` writes it.
+    e = lines[5]
+    scene = tr.scene_from_dict(e["scene"], name=e["sample_id"])
+    assert scene == cfg.sample(5).scene
+    direct = reference / "direct.exr.out"
+    write_exr(direct, exr_channels(tr.render([scene]), 0))
+    assert direct.read_bytes() == (reference / "000005.exr").read_bytes()
+    direct.unlink()
+    assert json.loads((reference / "sweep.json").read_text())["config_hash"] == cfg.config_hash
+
+
+def test_same_config_and_seed_give_byte_identical_files(reference, cfg_path, tmp_path):
+    # Another batch size (and one-by-one rendering) must not change a single byte.
+    s = run_sweep(cfg_path, tmp_path, batch_size=1, quiet=True)
+    assert s.ok == 8
+    assert _files(tmp_path) == _files(reference) and len(_files(reference)) == 16
+
+
+def test_second_run_skips_complete_samples_and_redoes_missing_ones(reference, cfg_path,
+                                                                    tmp_path):
+    out = tmp_path / "o"
+    run_sweep(cfg_path, out, batch_size=4, quiet=True, limit=5)
+    assert len(_manifest(out)) == 5
+    (out / "000002.png").unlink()  # a lost file: that sample is rendered again
+    s = run_sweep(cfg_path, out, batch_size=4, quiet=True)
+    assert (s.skipped, s.ok) == (4, 4)
+    assert [e["sample_id"] for e in _manifest(out)] == [f"{i:06d}" for i in range(8)]
+    assert _files(out) == _files(reference)
+    s = run_sweep(cfg_path, out, quiet=True)
+    assert (s.skipped, s.ok, s.failed) == (8, 0, 0)
+
+
+def test_truncated_manifest_line_is_repaired(reference, cfg_path, tmp_path):
+    out = tmp_path / "o"
+    run_sweep(cfg_path, out, quiet=True, limit=3)
+    raw = (out / "manifest.jsonl").read_bytes()
+    (out / "manifest.jsonl").write_bytes(raw[:-40])  # the third line cut short
+    (out / ".000007.exr.abc123.tmp").write_bytes(b"half a file")  # a killed write
+    with pytest.warns(UserWarning, match="dropped 1 incomplete"):
+        s = run_sweep(cfg_path, out, quiet=True)
+    assert (s.skipped, s.ok) == (2, 6)
+    assert len(_manifest(out)) == 8 and _no_temporaries(out)
+    assert _files(out) == _files(reference)
+
+
+def test_another_sweep_or_a_running_run_is_refused(reference, cfg_path, tmp_path):
+    d = small_sweep()
+    d["sampling"]["seed"] = 99
+    other = write_config(tmp_path / "other.yaml", d)
+    with pytest.raises(ConfigError, match="holds a different sweep"):
+        run_sweep(other, reference, quiet=True)
+    with pytest.raises(ConfigError, match="was written with --format folder"):
+        run_sweep(cfg_path, reference, fmt="webdataset", quiet=True)
+    lock = _Lock(tmp_path)
+    try:
+        with pytest.raises(ConfigError, match="another run is writing"):
+            run_sweep(cfg_path, tmp_path, quiet=True)
+    finally:
+        lock.release()
+
+
+# ---------------------------------------------------------------------------- kill -9
+
+def _kill_mid_run(cmd: list[str], out: Path, after_lines: int) -> None:
+    """Start ``cmd``, kill -9 it once the manifest has ``after_lines`` lines."""
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    manifest = out / "manifest.jsonl"
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if manifest.exists() and manifest.read_bytes().count(b"\n") >= after_lines:
+                break
+            time.sleep(0.005)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL, ("the run ended before it was killed",
+                                                proc.stderr.read().decode()[-2000:])
+
+
+def _sweep_cmd(cfg: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "torchrefract.cli", "sweep", str(cfg), "--out", str(out),
+            "--batch-size", "1", "--quiet", *extra]
+
+
+def test_resume_after_kill_9_completes_without_duplicates(tmp_path):
+    d = small_sweep()
+    d["sampling"]["repeats"] = 3  # 24 samples, so the kill lands mid-run
+    cfg = write_config(tmp_path / "c.yaml", d)
+    out = tmp_path / "out"
+    _kill_mid_run(_sweep_cmd(cfg, out), out, after_lines=3)
+    # Whatever is there now is whole: every EXR under its final name reads.
+    entries = read_manifest(out / "manifest.jsonl", repair=False)
+    assert 3 <= len(entries) < 24
+    for p in out.glob("*.exr"):
+        read_exr(p)
+    # The resumed run is killed too.
+    _kill_mid_run(_sweep_cmd(cfg, out), out, after_lines=len(entries) + 3)
+    r = subprocess.run(_sweep_cmd(cfg, out), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = _manifest(out)
+    assert [e["sample_id"] for e in lines] == [f"{i:06d}" for i in range(24)]
+    assert all(e["status"] == "ok" for e in lines)
+    assert _no_temporaries(out)
+    files = _files(out)
+    assert len(files) == 48
+    for e in lines:  # every file is whole: it is what the manifest recorded
+        for kind in ("exr", "png"):
+            assert hashlib.sha256(files[e["files"][kind]]).hexdigest() == e["sha256"][kind]
+    # ... and what an uninterrupted render of the sample gives, byte for byte.
+    sweep = load_sweep(cfg)
+    for i in (0, 23):
+        direct = tmp_path / f"direct{i}.exr"
+        write_exr(direct, exr_channels(tr.render([sweep.sample(i).scene]), 0))
+        assert direct.read_bytes() == files[f"{i:06d}.exr"]
+
+
+def test_resume_after_kill_9_with_shards(tmp_path, reference):
+    cfg = write_config(tmp_path / "c.yaml", small_sweep())
+    out = tmp_path / "out"
+    _kill_mid_run(_sweep_cmd(cfg, out, "--format", "webdataset", "--shard-size", "2"), out,
+                  after_lines=2)
+    r = subprocess.run(_sweep_cmd(cfg, out, "--format", "webdataset", "--shard-size", "2"),
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert _no_temporaries(out)
+    keys = []
+    for shard in sorted(out.glob("shard-*.tar")):
+        with tarfile.open(shard) as t:
+            names = t.getnames()
+            keys += [n[:-4] for n in names if n.endswith(".exr")]
+            for n in names:  # every sample's EXR equals the serial folder run's
+                if n.endswith(".exr"):
+                    assert t.extractfile(n).read() == (reference / n).read_bytes()
+    assert sorted(keys) == [f"{i:06d}" for i in range(8)]  # each sample exactly once
+
+
+def test_orphan_shard_is_replaced_not_duplicated(tmp_path, reference, cfg_path):
+    """A kill after a shard's rename but before its manifest lines: the shard is dropped."""
+    out = tmp_path / "o"
+    run_sweep(cfg_path, out, fmt="webdataset", shard_size=3, quiet=True, limit=6)
+    assert sorted(p.name for p in out.glob("shard-*.tar")) == ["shard-000000.tar",
+                                                              "shard-000001.tar"]
+    lines = (out / "manifest.jsonl").read_text().splitlines()
+    (out / "manifest.jsonl").write_text("\n".join(lines[:4]) + "\n")  # shard 1 half-recorded
+    s = run_sweep(cfg_path, out, fmt="webdataset", shard_size=3, quiet=True)
+    assert (s.skipped, s.ok) == (3, 5)
+    assert not (out / "shard-000001.tar").exists()
+    members = []
+    for shard in sorted(out.glob("shard-*.tar")):
+        with tarfile.open(shard) as t:
+            members += t.getnames()
+    assert sorted(members) == sorted(f"{i:06d}.{x}" for i in range(8)
+                                     for x in ("exr", "png", "json"))
+
+
+# ---------------------------------------------------------------------------- failures
+
+def test_broken_mesh_and_envmap_fail_only_their_samples(tmp_path, capsys):
+    broken_mesh = tmp_path / "broken.ply"
+    broken_mesh.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
+    broken_env = tmp_path / "broken.exr"
+    broken_env.write_bytes(b"not an exr at all")
+    d = small_sweep()
+    d["sweep"]["mesh"]["path"] = [SPOT, str(broken_mesh)]
+    d["sweep"]["envmap"]["path"] = [d["sweep"]["envmap"]["path"][0], str(broken_env)]
+    d["sweep"]["camera"]["orbit"]["azimuth_deg"] = [0]
+    cfg = write_config(tmp_path / "c.yaml", d)  # 2 meshes x 2 IOR x 2 env maps = 8
+    out = tmp_path / "out"
+    assert main(["sweep", str(cfg), "--out", str(out), "--batch-size", "8", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "6 sample(s) FAILED" in err
+    lines = {e["sample_id"]: e for e in _manifest(out)}
+    assert len(lines) == 8
+    for e in lines.values():
+        bad_mesh = e["scene"]["mesh"] == str(broken_mesh)
+        bad_env = e["scene"]["envmap"]["path"] == str(broken_env)
+        if not (bad_mesh or bad_env):  # batch-mates of broken samples still render
+            assert e["status"] == "ok" and (out / f"{e['sample_id']}.exr").is_file()
+            continue
+        assert e["status"] == "failed" and not (out / f"{e['sample_id']}.exr").exists()
+        assert ("broken.ply" if bad_mesh else "broken.exr") in e["reason"]
+    # Running again retries the failed samples only; the manifest keeps one line each.
+    s = run_sweep(cfg, out, batch_size=8, quiet=True)
+    assert (s.skipped, s.ok, s.failed) == (2, 0, 6)
+    assert len(_manifest(out)) == 8
+
+
+# ---------------------------------------------------------------------------- executors
+
+def test_shards_are_deterministic(reference, cfg_path, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    run_sweep(cfg_path, a, fmt="webdataset", shard_size=3, batch_size=2, quiet=True)
+    run_sweep(cfg_path, b, fmt="webdataset", shard_size=3, batch_size=8, quiet=True)
+    assert _files(a) == _files(b) and len(_files(a)) == 3
+
+
+def test_local_worker_processes_give_the_serial_files(reference, cfg_path, tmp_path):
+    s = run_sweep(cfg_path, tmp_path, workers=2, batch_size=2, quiet=True)
+    assert s.ok == 8
+    pids = {e["worker"]["pid"] for e in _manifest(tmp_path)}
+    assert os.getpid() not in pids and len(pids) >= 1
+    assert _files(tmp_path) == _files(reference)
+
+
+@pytest.mark.slow
+def test_ray_local_cluster_gives_the_serial_files(reference, cfg_path, tmp_path):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'torchrefract[data]')")
+    s = run_sweep(cfg_path, tmp_path, executor="ray", workers=2, batch_size=2, quiet=True)
+    assert (s.ok, s.failed) == (8, 0)
+    assert os.getpid() not in {e["worker"]["pid"] for e in _manifest(tmp_path)}
+    assert _files(tmp_path) == _files(reference)
+
+
+def test_an_invalid_sample_fails_alone_at_planning(tmp_path):
+    """A camera whose up vector is parallel to the view at one orbit position."""
+    d = small_sweep()
+    d["base"]["camera"].update(eye=[4, 0, 0], up=[0, 0, 1])
+    d["sweep"] = {"camera": {"orbit": {"azimuth_deg": [0, 90], "elevation_deg": 0}}}
+    cfg = write_config(tmp_path / "c.yaml", d)
+    s = run_sweep(cfg, tmp_path / "o", quiet=True)
+    assert (s.ok, s.failed, s.failed_ids) == (1, 1, ["000000"])
+    bad = _manifest(tmp_path / "o")[0]
+    assert bad["status"] == "failed" and "sample 000000: camera.up" in bad["reason"]
+
+
+def test_shipped_demo_sweep_renders(tmp_path):
+    """configs/sweep_demo.yaml (method rousiers) renders; two samples keep the test short."""
+    s = run_sweep(ROOT / "configs" / "sweep_demo.yaml", tmp_path, quiet=True, limit=2)
+    assert (s.ok, s.failed) == (2, 0)
+    e = _manifest(tmp_path)[0]
+    assert e["method"] == "rousiers" and e["camera"]["width"] == 64
+    ch = read_exr(tmp_path / "000000.exr")
+    assert np.allclose(ch["roughness"][ch["A"] == 1], 0.05)
