@@ -21,7 +21,7 @@ from .checks import ConfigError
 from .image_files import read_exr, read_hdr
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=1)
 def _load_cached(path: str) -> torch.Tensor:
     p = Path(path)
     suffix = p.suffix.lower()
@@ -61,12 +61,23 @@ def validate_texels(img: np.ndarray, name: str) -> None:
 def load_envmap(path: str | Path) -> torch.Tensor:
     """Load a lat-long map (OpenEXR or Radiance .hdr) as (H, W, 3) float32 linear RGB.
 
-    Cached per path; the returned tensor must not be modified in place.
+    Cached per path and file version; the returned tensor must not be modified in place.
 
     Raises:
         ConfigError: unreadable file, wrong channels, empty image, NaN/Inf or negative texels.
     """
-    return _load_cached(str(Path(path).resolve()))
+    p = Path(path).resolve()
+    try:
+        st = p.stat()
+    except OSError:
+        raise ConfigError(f"envmap {str(path)!r}: file not found") from None
+    # Cached per file version: a map rewritten in place is read again.
+    return _load_versioned(str(p), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_versioned(path: str, _mtime: int, _size: int) -> torch.Tensor:
+    return _load_cached.__wrapped__(path)
 
 
 def rotate_y(d: torch.Tensor, angle_deg: torch.Tensor | float) -> torch.Tensor:
