@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from numbers import Real
+from pathlib import Path
 from typing import Any, Sequence
 
 
@@ -83,3 +84,24 @@ def check_tensor_shape(t, shape: Sequence[int | None], name: str) -> None:
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ConfigError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
+
+
+def check_file(value: Any, key: str, base_dir: Path, source: str | None = None) -> str:
+    """Resolve a file path (relative to ``base_dir``) and check that the file exists."""
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where(source, key)}: expected a file path, got {value!r}")
+    p = Path(value).expanduser()
+    if not p.is_absolute():
+        p = Path(base_dir) / p
+    if not p.is_file():
+        raise ConfigError(f"{where(source, key)}: file not found: {value!r} (looked at {p})")
+    return str(p.resolve())
+
+
+def check_option_keys(options: dict, allowed: Sequence[str], method: str,
+                      source: str | None = None) -> None:
+    """Reject ``method_options`` keys a method does not know, naming the key and the method."""
+    for k in options:
+        if k not in allowed:
+            raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown key "
+                              f"{k!r} for method {method!r} (allowed: {list(allowed)})")

@@ -21,8 +21,8 @@ from typing import Any
 
 import yaml
 
-from .checks import (ConfigError, check_choice, check_keys, check_number, check_vector,
-                     where)
+from .checks import (ConfigError, check_choice, check_file, check_keys, check_number,
+                     check_vector, where)
 
 # Every method name a scene may ask for (DESIGN.md). Which of them are implemented is
 # torchrefract.methods.METHODS; asking for a planned one raises NotImplementedError at render.
@@ -142,14 +142,7 @@ _TOP_KEYS = ("mesh", "transform", "material", "envmap", "lights", "camera", "met
 
 
 def _resolve_path(value: Any, key: str, base_dir: Path, source: str | None) -> str:
-    if not isinstance(value, str) or not value:
-        raise ConfigError(f"{where(source, key)}: expected a file path, got {value!r}")
-    p = Path(value).expanduser()
-    if not p.is_absolute():
-        p = base_dir / p
-    if not p.is_file():
-        raise ConfigError(f"{where(source, key)}: file not found: {value!r} (looked at {p})")
-    return str(p.resolve())
+    return check_file(value, key, base_dir, source)
 
 
 def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = None,

@@ -72,7 +72,7 @@ from typing import Any, Iterator, NamedTuple
 import numpy as np
 import yaml
 
-from .checks import ConfigError, check_choice, check_keys, check_number, where
+from .checks import ConfigError, check_choice, check_file, check_keys, check_number, where
 from .scene import METHODS, Scene, scene_from_dict
 
 SAMPLING_MODES = ("grid", "list", "random")
@@ -441,14 +441,7 @@ def _parse_spec(d: Any, base_dir: Path, source: str | None) -> SweepSpec:
 
 
 def _resolve_file(value: Any, key: str, base_dir: Path, source: str | None) -> str:
-    if not isinstance(value, str) or not value:
-        raise ConfigError(f"{where(source, key)}: expected a file path, got {value!r}")
-    p = Path(value).expanduser()
-    if not p.is_absolute():
-        p = base_dir / p
-    if not p.is_file():
-        raise ConfigError(f"{where(source, key)}: file not found: {value!r} (looked at {p})")
-    return str(p.resolve())
+    return check_file(value, key, base_dir, source)
 
 
 def _resolution(v: Any, key: str, source: str | None) -> tuple[int, int]:

@@ -50,7 +50,7 @@ import torch
 
 from .. import microfacet as mf
 from ..camera import project
-from ..checks import ConfigError, check_choice, check_number
+from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer
 from ..lighting import Lighting, hit_lights, incident_radiance_sg
 from ..march import march_back
@@ -89,11 +89,7 @@ class RousiersOptions:
 
     @classmethod
     def from_dict(cls, d: dict, source: str | None = None) -> "RousiersOptions":
-        allowed = [f.name for f in fields(cls)]
-        for k in d:
-            if k not in allowed:
-                raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown "
-                                  f"key {k!r} for method {cls.METHOD!r} (allowed: {allowed})")
+        check_option_keys(d, [f.name for f in fields(cls)], cls.METHOD, source)
         return cls(
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
                              ("clamp", "reflect"), source),
