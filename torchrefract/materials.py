@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from .scene import Scene
+from .textures import load_roughness_map
 
 
 @dataclass(frozen=True)
@@ -18,12 +19,34 @@ class MaterialBatch:
         roughness: (B,) microfacet alpha (clamped to >= 1e-4 where a method needs it).
         absorption: (B, 3) Beer-Lambert coefficients per unit world length.
         distribution: B names, ``beckmann`` or ``ggx``.
+        roughness_maps: B (H, W) maps in [0, 1] over the UVs, or None (uniform roughness).
+        roughness_range: (B, 2) a map value v means alpha = lo + v (hi - lo).
     """
 
     ior: torch.Tensor
     roughness: torch.Tensor
     absorption: torch.Tensor
     distribution: tuple[str, ...]
+    roughness_maps: tuple[torch.Tensor | None, ...] = ()
+    roughness_range: torch.Tensor | None = None
+
+    @property
+    def has_maps(self) -> bool:
+        return any(m is not None for m in self.roughness_maps)
+
+    def roughness_at(self, batch: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """Per-point roughness (N,) of points on scene ``batch`` (N,) at UVs (N, 2)."""
+        from .textures import sample_uv  # noqa: PLC0415
+
+        alpha = self.roughness[batch].clone()
+        for b, tex in enumerate(self.roughness_maps):
+            if tex is None:
+                continue
+            sel = (batch == b).nonzero(as_tuple=True)[0]
+            if sel.numel():
+                lo, hi = self.roughness_range[b]
+                alpha[sel] = lo + sample_uv(tex, uv[sel]) * (hi - lo)
+        return alpha
 
     @staticmethod
     def from_scenes(scenes: list[Scene]) -> "MaterialBatch":
@@ -33,4 +56,9 @@ class MaterialBatch:
             absorption=torch.tensor([s.material.absorption for s in scenes],
                                     dtype=torch.float32),
             distribution=tuple(s.material.distribution for s in scenes),
+            roughness_maps=tuple(None if s.material.roughness_map is None
+                                 else load_roughness_map(s.material.roughness_map)
+                                 for s in scenes),
+            roughness_range=torch.tensor([s.material.roughness_range for s in scenes],
+                                         dtype=torch.float32),
         )

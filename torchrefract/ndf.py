@@ -174,3 +174,41 @@ def _gather_bilinear(img: torch.Tensor, batch: torch.Tensor, grid: torch.Tensor)
                           align_corners=False)  # (1, C, 1, S)
         out[sel] = v[0, :, 0].transpose(0, 1)
     return out
+
+
+def build_box_mips(x: torch.Tensor, max_levels: int = 16) -> tuple[torch.Tensor, ...]:
+    """Box-filtered mips of any per-pixel quantity (B, H, W, C): level l averages 2^l x 2^l
+    pixels (empty pixels count as 0, e.g. for coverage ratios of roughness levels)."""
+    out = [x]
+    acc = x
+    level = 0
+    while level + 1 < max_levels and (acc.shape[1] > 1 or acc.shape[2] > 1):
+        acc = _sum2x2(acc)
+        level += 1
+        out.append(acc / (4.0 ** level))
+    return tuple(out)
+
+
+def sample_box_mips(mips: tuple[torch.Tensor, ...], batch: torch.Tensor, xy: torch.Tensor,
+                    level: torch.Tensor) -> torch.Tensor:
+    """Trilinear lookup of :func:`build_box_mips` at level-0 pixel coordinates xy (N, 2) and
+    fractional levels (N,) -> (N, C)."""
+    n_levels = len(mips)
+    lv = level.clamp(0.0, n_levels - 1.0)
+    l0 = torch.floor(lv).long()
+    frac = lv - l0.to(lv.dtype)
+    l1 = (l0 + 1).clamp(max=n_levels - 1)
+    out = torch.zeros(xy.shape[0], mips[0].shape[-1], dtype=xy.dtype)
+    for lvl in range(n_levels):
+        w = torch.where(l0 == lvl, 1.0 - frac, torch.zeros_like(frac)) \
+            + torch.where(l1 == lvl, frac, torch.zeros_like(frac))
+        sel = (w > 0).nonzero(as_tuple=True)[0]
+        if sel.numel() == 0:
+            continue
+        img = mips[lvl].permute(0, 3, 1, 2)  # (B, C, h, w)
+        h, wd = img.shape[-2:]
+        scale = 2.0 ** lvl
+        grid = torch.stack([(xy[sel, 0] / scale) / wd * 2.0 - 1.0,
+                            (xy[sel, 1] / scale) / h * 2.0 - 1.0], -1)
+        out[sel] += w[sel, None] * _gather_bilinear(img, batch[sel], grid)
+    return out

@@ -155,8 +155,10 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     passes = _geometry_passes(g)
     # Material passes (per object pixel): what a model trained on the data may regress.
     fm = g.front.mask[..., None].float()  # (B, H, W, 1)
-    rough = torch.tensor([s.material.roughness for s in scenes], dtype=torch.float32)
-    passes["roughness"] = _masked_box(fm * rough[:, None, None, None], g.front.mask, n)
+    b_, h_, w_ = g.shape
+    flat_b = torch.arange(b_).repeat_interleave(h_ * w_)
+    rough = materials.roughness_at(flat_b, g.front.uv.reshape(-1, 2)).view(b_, h_, w_, 1)
+    passes["roughness"] = _masked_box(fm * rough, g.front.mask, n)
     passes["ior"] = _masked_box(fm * materials.ior[:, None, None, None], g.front.mask, n)
     for k, v in method_passes.items():
         passes[k] = _masked_box(v, g.front.mask, n)

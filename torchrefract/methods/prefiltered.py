@@ -73,7 +73,9 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     k_pass = torch.zeros(b * h * w)
     if paths.idx.numel() > 0:
         bi = paths.batch
-        k_t, k_r = blur_sharpness(materials.roughness[bi], materials.ior[bi])
+        # The roughness at the front hit (the map at its UV when there is one).
+        alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[paths.idx])
+        k_t, k_r = blur_sharpness(alpha, materials.ior[bi])
         l_refl = incident_radiance_sg(lighting, bi, paths.p1, paths.refl, k_r)
         l_trans = incident_radiance_sg(lighting, bi, paths.p2, paths.t2, k_t)
         att = torch.exp(-materials.absorption[bi] * paths.path[:, None])

@@ -55,8 +55,8 @@ from ..gbuffer import GBuffer
 from ..lighting import Lighting, hit_lights, incident_radiance_sg
 from ..march import march_back
 from ..materials import MaterialBatch
-from ..ndf import KAPPA_MAX, build_ndf_mips, combine_exponents, kappa_from_length, \
-    sample_mips
+from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
+    kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, sg_lookup
 from .specular import background
@@ -84,6 +84,9 @@ class RousiersOptions:
     """Coarse samples of each bounding ray's march (only the footprint needs them)."""
     refine_steps: int = 10
     """Bisection iterations after the coarse search."""
+    roughness_levels: int = 4
+    """With a roughness map: how many roughness levels the exit interface is split into
+    (coverage ratios, sec. 5.1)."""
 
     METHOD = "rousiers"
 
@@ -105,6 +108,9 @@ class RousiersOptions:
             refine_steps=check_number(d.get("refine_steps", 10),
                                       "method_options.refine_steps", source, minimum=0,
                                       maximum=64, integer=True),
+            roughness_levels=check_number(d.get("roughness_levels", 4),
+                                          "method_options.roughness_levels", source,
+                                          minimum=2, maximum=16, integer=True),
         )
 
 
@@ -142,6 +148,29 @@ def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
     return out
 
 
+def _level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
+    """(B, n) roughness levels spanning each scene's roughness_range (or its uniform value)."""
+    t = torch.linspace(0.0, 1.0, n)
+    lo, hi = materials.roughness_range.unbind(-1)  # (B,)
+    vals = lo[:, None] + t[None, :] * (hi - lo)[:, None]
+    uniform = torch.tensor([m is None for m in materials.roughness_maps])
+    return torch.where(uniform[:, None], materials.roughness[:, None].expand_as(vals), vals)
+
+
+def _level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor:
+    """(B, H, W, n) per back-layer pixel: its roughness as hat weights on the n levels
+    (linear between the two nearest), zero where the back layer is empty."""
+    b, h, w = g.shape
+    flat_b = torch.arange(b).repeat_interleave(h * w)
+    alpha = materials.roughness_at(flat_b, g.back.uv.reshape(-1, 2))  # (B*H*W,)
+    lo, hi = materials.roughness_range[flat_b].unbind(-1)
+    pos = ((alpha - lo) / (hi - lo).clamp(min=1e-12)).clamp(0.0, 1.0) * (n - 1)
+    idx = torch.arange(n, dtype=pos.dtype)
+    wts = (1.0 - (pos[:, None] - idx[None, :]).abs()).clamp(min=0.0)  # (B*H*W, n)
+    wts = wts * g.back.mask.reshape(-1, 1).to(wts.dtype)
+    return wts.view(b, h, w, n)
+
+
 def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                     options: RousiersOptions = RousiersOptions()
                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -171,7 +200,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     p1 = g.front.position.reshape(-1, 3)[idx]
     n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)  # view side
     ior = materials.ior[bi]
-    alpha = materials.roughness[bi].clamp(min=mf.ALPHA_MIN)
+    # Front roughness: the map at the front hit's UV (sec. 5.1), else the uniform value.
+    alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx]).clamp(min=mf.ALPHA_MIN)
     dist = torch.tensor([_DIST[x] for x in materials.distribution])[bi]
     view = -d
     cos1 = dot(view, n1).clamp(0.0, 1.0)
@@ -245,14 +275,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                         normalize(w_ndf * ndf_n + (1.0 - w_ndf) * exact_n), exact_n)
     kappa_g = torch.where(have_ndf, kappa_from_length(length) / (sub * sub).clamp(min=1e-12),
                           torch.full_like(length, KAPPA_MAX)).clamp(max=KAPPA_MAX)
-    kappa_d = mf.blinn_phong_from_alpha(alpha).clamp(min=0.0)
     if options.spread == "rays":
-        # Ours: the exit roughness alone widens the table's lobe; the geometry's part comes
-        # from the bounding rays themselves (below), at the exact exit normal.
-        alpha2 = alpha
-        n_bar = exact_n
-    else:
-        alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))  # eq. 10
+        n_bar = exact_n  # the geometry's part of the lobe comes from the bounding rays
 
     # 4. Exit interface: view side is inside (looking back along p_t1).
     n_in = face_forward(-n_bar, p_t1)  # inward, facing against p_t1
@@ -260,27 +284,11 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     cos2 = dot(view2, n_in).clamp(0.0, 1.0)
     cos_crit = torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
     tir = (cos2 < cos_crit) & ex.found
-    weight2 = torch.ones_like(cos2)
-    if options.tir == "clamp":
-        cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
-        _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
-        p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
-        weight2 = torch.where(tir, torch.ones_like(e_t2), e_t2)
-    else:
-        _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
-        _, k_ti, t_ti, e_ti = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
-        p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
-        p_ti = normalize(lobe_axis(view2, n_in, t_ti, "reflect"))
-        p_t2 = torch.where(tir[:, None], p_ti, p_t2)
-        k_t2 = torch.where(tir, k_ti, k_t2)
-        weight2 = torch.where(tir, e_ti, e_t2)
-    # Final lobe sharpness.
-    if options.spread == "paper+front":  # front spread carried through the exit refraction
-        sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
-        cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
-        mag2 = (ior * cos2 / cos_out) ** 2
-        k = 1.0 / (1.0 / k_t2 + mag2 / k_t1)
-    elif options.spread == "rays":
+    sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
+    cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
+    mag2 = (ior * cos2 / cos_out) ** 2  # (d theta_out / d theta_in)^2 at the exit
+    var_geo = None
+    if options.spread == "rays":
         # The bounding rays (75% of the front lobe, eq. 12) refracted out at their own exit
         # normals: their angles to the central exit direction measure how the front lobe
         # maps through the object (a flat slab magnifies it by the exit refraction, a ball
@@ -300,30 +308,76 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         cnt = ok4.sum(-1)
         var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
         # No bounding ray found its exit: fall back to the front lobe's magnified spread.
-        sin2 = (1.0 - cos2 * cos2).clamp(min=0.0)
-        cos_out = torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))
-        var_front = (ior * cos2 / cos_out) ** 2 / k_t1
-        var_geo = torch.where(cnt > 0, var_geo, var_front)
-        k = 1.0 / (1.0 / k_t2 + var_geo).clamp(min=1e-12)
-    else:
-        k = k_t2
-    # Fallback where the exit is not found: leave with the front lobe.
-    p_out = torch.where(ex.found[:, None], p_t2, p_t1)
-    k = torch.where(ex.found, k, k_t1)
-    weight2 = torch.where(ex.found, weight2, torch.ones_like(weight2))
+        var_geo = torch.where(cnt > 0, var_geo, mag2 / k_t1)
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
                        (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
     att = torch.exp(-materials.absorption[bi] * path[:, None])
 
+    def exit_lobe(alpha_exit: torch.Tensor):
+        """Direction, sharpness and weight of the light leaving through an exit interface
+        of roughness ``alpha_exit`` (N,)."""
+        if options.spread == "rays":
+            alpha2 = alpha_exit
+        else:  # eq. 10: the footprint's NDF convolved with the BTDF's
+            kappa_d = mf.blinn_phong_from_alpha(alpha_exit).clamp(min=0.0)
+            alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))
+        if options.tir == "clamp":
+            cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
+            _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
+            p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            weight2 = torch.where(tir, torch.ones_like(e_t2), e_t2)
+        else:
+            _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
+            _, k_ti, t_ti, e_ti = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
+            p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            p_ti = normalize(lobe_axis(view2, n_in, t_ti, "reflect"))
+            p_t2 = torch.where(tir[:, None], p_ti, p_t2)
+            k_t2 = torch.where(tir, k_ti, k_t2)
+            weight2 = torch.where(tir, e_ti, e_t2)
+        if options.spread == "paper+front":  # front spread carried through the exit
+            k = 1.0 / (1.0 / k_t2 + mag2 / k_t1)
+        elif options.spread == "rays":
+            k = 1.0 / (1.0 / k_t2 + var_geo).clamp(min=1e-12)
+        else:
+            k = k_t2
+        # Fallback where the exit is not found: leave with the front lobe.
+        p_out = torch.where(ex.found[:, None], p_t2, p_t1)
+        k = torch.where(ex.found, k, k_t1)
+        weight2 = torch.where(ex.found, weight2, torch.ones_like(weight2))
+        return p_out, k, weight2
+
     # 5. Pre-convolved environment lookups.
     l_refl = incident_radiance_sg(lighting, bi, p1, axis_r, k_r)
-    l_trans = incident_radiance_sg(lighting, bi, p2, p_out, k)
+    if not materials.has_maps:
+        p_out, k, weight2 = exit_lobe(alpha)
+        l_trans = incident_radiance_sg(lighting, bi, p2, p_out, k) * weight2[:, None]
+    else:
+        # Spatially varying roughness at the exit (sec. 5.1): coverage ratios of a few
+        # roughness levels, carried through the mips like the NDF and read at the same
+        # footprint; one exit lobe per level, summed with those ratios.
+        cover = _level_coverage(g, materials, options.roughness_levels)  # (B, H, W, L)
+        levels = _level_values(materials, options.roughness_levels)  # (B, L)
+        c = sample_box_mips(build_box_mips(cover), bi, xy_c, level)  # (N, L)
+        c = c / c.sum(-1, keepdim=True).clamp(min=1e-12)
+        no_cov = c.sum(-1) < 0.5  # nothing covered: use the front roughness
+        l_trans = torch.zeros_like(p1)
+        k = torch.zeros_like(alpha)
+        weight2 = torch.zeros_like(alpha)
+        for li in range(levels.shape[1]):
+            a_l = torch.where(no_cov, alpha, levels[bi, li].clamp(min=mf.ALPHA_MIN))
+            w_l = torch.where(no_cov, torch.full_like(alpha, 1.0 / levels.shape[1]), c[:, li])
+            p_l, k_l, wt_l = exit_lobe(a_l)
+            l_trans = l_trans + (w_l * wt_l)[:, None] * incident_radiance_sg(
+                lighting, bi, p2, p_l, k_l)
+            k = k + w_l / k_l.clamp(min=1e-12)  # coverage-weighted variance (for the pass)
+            weight2 = weight2 + w_l * wt_l
+        k = 1.0 / k.clamp(min=1e-12)
     # An index-matched object (IOR exactly 1) has no interface at all: it is invisible.
     # (The microfacet model would still lose the masking-shadowing energy there.)
     matched = ior == 1.0
     e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
-    e_t = torch.where(matched, torch.ones_like(e_t1), e_t1 * weight2)
+    e_t = torch.where(matched, torch.ones_like(e_t1), e_t1)
     l_trans = torch.where(matched[:, None],
                           incident_radiance_sg(lighting, bi, p1, d,
                                                torch.full_like(k, float("inf"))),
