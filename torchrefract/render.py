@@ -10,6 +10,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from .gbuffer import GBuffer, build_gbuffer
 from .lighting import Lighting
 from .materials import MaterialBatch
 from .mesh import load_mesh
-from .methods import METHODS
+from .methods import METHODS, NEEDS_SCENES
 from .scene import METHODS as PLANNED
 from .scene import Scene
 
@@ -142,6 +143,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     t2 = time.perf_counter()
     materials = MaterialBatch.from_scenes(scenes)
+    if method in NEEDS_SCENES:
+        shade = functools.partial(shade, scenes=tuple(scenes))
     radiance, method_passes = shade(g, lighting, materials, options)
     t3 = time.perf_counter()
 

@@ -6,6 +6,7 @@ Registry: name -> (options parser, render function). ``torchrefract.render`` dis
 from __future__ import annotations
 
 from .prefiltered import PrefilteredOptions, render_prefiltered
+from .reference import ReferenceOptions, render_reference_method
 from .rousiers import RousiersOptions, render_rousiers
 from .specular import SpecularOptions, render_specular
 
@@ -13,7 +14,11 @@ METHODS = {
     "specular": (SpecularOptions.from_dict, render_specular),
     "prefiltered": (PrefilteredOptions.from_dict, render_prefiltered),
     "rousiers": (RousiersOptions.from_dict, render_rousiers),
+    "reference": (ReferenceOptions.from_dict, render_reference_method),
 }
 
-__all__ = ["METHODS", "PrefilteredOptions", "RousiersOptions", "SpecularOptions",
+# Methods that need the Scene objects themselves (not only the tensors).
+NEEDS_SCENES = ("reference",)
+
+__all__ = ["METHODS", "NEEDS_SCENES", "ReferenceOptions", "render_reference_method", "PrefilteredOptions", "RousiersOptions", "SpecularOptions",
            "render_prefiltered", "render_rousiers", "render_specular"]
