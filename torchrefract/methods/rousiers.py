@@ -78,11 +78,12 @@ class RousiersOptions:
     ``paper`` (footprint NDF convolved with the BTDF, eq. 10), ``paper+front`` (that, plus
     the front lobe's spread magnified by the exit refraction) or ``rays`` (the four marched
     bounding rays refracted at their own exit normals)."""
-    march_steps: int = 48
-    """Coarse samples of the central ray's march."""
-    cone_march_steps: int = 16
+    march_steps: int = 24
+    """Coarse samples of the central ray's march (fewer change nothing measurable on the
+    suite: bisection refines the hit, then the exact triangle is intersected)."""
+    cone_march_steps: int = 8
     """Coarse samples of each bounding ray's march (only the footprint needs them)."""
-    refine_steps: int = 10
+    refine_steps: int = 8
     """Bisection iterations after the coarse search."""
     roughness_levels: int = 4
     """With a roughness map: how many roughness levels the exit interface is split into
@@ -100,12 +101,12 @@ class RousiersOptions:
                                    ("march", "plane"), source),
             spread=check_choice(d.get("spread", "rays"), "method_options.spread",
                                 ("paper", "paper+front", "rays"), source),
-            march_steps=check_number(d.get("march_steps", 48), "method_options.march_steps",
+            march_steps=check_number(d.get("march_steps", 24), "method_options.march_steps",
                                      source, minimum=1, maximum=4096, integer=True),
-            cone_march_steps=check_number(d.get("cone_march_steps", 16),
+            cone_march_steps=check_number(d.get("cone_march_steps", 8),
                                           "method_options.cone_march_steps", source,
                                           minimum=1, maximum=4096, integer=True),
-            refine_steps=check_number(d.get("refine_steps", 10),
+            refine_steps=check_number(d.get("refine_steps", 8),
                                       "method_options.refine_steps", source, minimum=0,
                                       maximum=64, integer=True),
             roughness_levels=check_number(d.get("roughness_levels", 4),
