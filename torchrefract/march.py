@@ -65,15 +65,19 @@ class _Projector:
         self.sy = 0.5 * self.h / p[:, 13]
         self.base = batch * (self.h * self.w)
 
-    def pixels(self, idx: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Flat pixel index and in-frame flag of rays ``idx`` at parameters ``s``."""
-        c = self.c0[idx] + s[:, None] * self.ct[idx]  # (M, 3)
+    def pixels(self, idx: torch.Tensor | None, s: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat pixel index and in-frame flag of rays ``idx`` (None: all) at parameters ``s``."""
+        def sel(x):
+            return x if idx is None else x[idx]
+
+        c = sel(self.c0) + s[:, None] * sel(self.ct)  # (M, 3)
         z = c[:, 2]
-        zs = torch.where(z > 1e-12, z, torch.full_like(z, 1e-12))
-        px = torch.floor(c[:, 0] / zs * self.sx[idx] + 0.5 * self.w)
-        py = torch.floor(0.5 * self.h - c[:, 1] / zs * self.sy[idx])
+        zs = z.clamp(min=1e-12)
+        px = torch.floor(c[:, 0] / zs * sel(self.sx) + 0.5 * self.w)
+        py = torch.floor(0.5 * self.h - c[:, 1] / zs * sel(self.sy))
         inside = (z > 1e-12) & (px >= 0) & (px < self.w) & (py >= 0) & (py < self.h)
-        flat = self.base[idx] + py.clamp(0, self.h - 1).long() * self.w \
+        flat = sel(self.base) + py.clamp(0, self.h - 1).long() * self.w \
             + px.clamp(0, self.w - 1).long()
         return flat, inside
 
@@ -141,20 +145,45 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     hi = s_max.clone()
     every = torch.arange(n)
 
-    def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    def exact_crossed(idx: torch.Tensor | None, s: torch.Tensor) -> torch.Tensor:
         flat, inside = proj.pixels(idx, s)
-        return _crossed(p1[idx] + s[:, None] * t[idx], flat, inside, planes, valid)
+        x = p1 + s[:, None] * t if idx is None else p1[idx] + s[:, None] * t[idx]
+        return _crossed(x, flat, inside, planes, valid)
 
     active = every  # rays whose crossing is not bracketed yet
     if depth_min is None:
+        # Compacted state: every per-ray quantity the step needs, packed so that dropping
+        # the rays that crossed is one gather (instead of gathering each array every step).
+        _, h, w = g.shape
+        state = torch.cat([proj.c0, proj.ct, p1, t, s_max[:, None], proj.sx[:, None],
+                           proj.sy[:, None]], 1)  # (N, 15)
+        base = proj.base
+        ids = every
+        last = torch.zeros(n, dtype=p1.dtype)  # the last s still inside, per active ray
         for k in range(1, steps + 1):
-            if active.numel() == 0:
+            if ids.numel() == 0:
                 break
-            s = s_max[active] * (k / steps)
-            crossed = exact_crossed(active, s)
-            hi[active[crossed]] = s[crossed]
-            lo[active[~crossed]] = s[~crossed]
-            active = active[~crossed]
+            c0, ct, pp, tt = state[:, 0:3], state[:, 3:6], state[:, 6:9], state[:, 9:12]
+            s = state[:, 12] * (k / steps)
+            c = c0 + s[:, None] * ct
+            z = c[:, 2]
+            zs = z.clamp(min=1e-12)
+            px = torch.floor(c[:, 0] / zs * state[:, 13] + 0.5 * w)
+            py = torch.floor(0.5 * h - c[:, 1] / zs * state[:, 14])
+            inside = (z > 1e-12) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+            flat = base + py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
+            crossed = _crossed(pp + s[:, None] * tt, flat, inside, planes, valid)
+            if bool(crossed.any()):
+                done = crossed.nonzero(as_tuple=True)[0]
+                hi[ids[done]] = s[done]
+                lo[ids[done]] = last[done]
+                keep = (~crossed).nonzero(as_tuple=True)[0]
+                state, base, ids = state[keep], base[keep], ids[keep]
+                last = s[keep]
+            else:
+                last = s
+        if ids.numel():
+            lo[ids] = last
     else:
         _, h, w = g.shape
         th, tw = depth_min.shape[1:3]
@@ -187,7 +216,7 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
             active = active[~done[active]]
     for _ in range(refine):
         mid = 0.5 * (lo + hi)
-        crossed = exact_crossed(every, mid)
+        crossed = exact_crossed(None, mid)
         hi = torch.where(crossed, mid, hi)
         lo = torch.where(crossed, lo, mid)
 
@@ -198,7 +227,7 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     tri = torch.full((n,), -1, dtype=torch.int64)
     bary = torch.zeros(n, 3, dtype=p1.dtype)
     for s_try in (hi, lo):
-        flat, inside = proj.pixels(every, s_try)
+        flat, inside = proj.pixels(None, s_try)
         cand = torch.where(inside & valid[flat], tri_map[flat], torch.full_like(flat, -1))
         st, bt = intersect_triangles(p1, t, tv[cand.clamp(min=0)])
         ok = ~found & (cand >= 0) & torch.isfinite(st) & (st > 0) & (st <= s_max * 1.5)
