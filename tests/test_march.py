@@ -1,0 +1,58 @@
+"""The back-face march: exits against exact ray casting, with and without tile skipping."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import trimesh
+
+import torchrefract as tr
+from torchrefract.gbuffer import build_gbuffer
+from torchrefract.march import march_back
+from torchrefract.mesh import load_mesh
+from torchrefract.ndf import build_ndf_mips
+from torchrefract.optics import face_forward, refract
+
+from conftest import ASSETS
+
+
+def _setup(mesh="spot.ply", size=96):
+    s = tr.Scene(mesh=str(ASSETS / "meshes" / mesh),
+                 envmap=tr.EnvMap(path=str(ASSETS / "envmaps" / "lebombo.exr")),
+                 transform=tr.Transform(rotate_deg=(0.0, -35.0, 0.0)),
+                 camera=tr.Camera(eye=(0.0, 0.4, 3.2), width=size, height=size))
+    m = load_mesh(s.mesh, s.transform)
+    g = build_gbuffer([m], [s.camera])
+    idx = g.front.mask.reshape(-1).nonzero()[:, 0]
+    d = g.ray_dir.reshape(-1, 3)[idx]
+    n = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
+    t1, _ = refract(d, n, torch.tensor(1 / 1.5))
+    p1 = g.front.position.reshape(-1, 3)[idx]
+    return m, g, p1, t1, torch.zeros(len(idx), dtype=torch.long)
+
+
+def test_exits_match_exact_ray_casting_on_a_convex_mesh():
+    m, g, p1, t1, b = _setup("sphere.ply")
+    ex = march_back(g, b, p1, t1, steps=24, refine=8)
+    assert ex.found.float().mean() > 0.995
+    tm = trimesh.Trimesh(m.vertices.numpy(), m.faces.numpy(), process=False)
+    o = (p1 + 1e-4 * t1).double().numpy()
+    loc, ray, _ = tm.ray.intersects_location(o, t1.double().numpy(), multiple_hits=False)
+    truth = np.full((len(o), 3), np.nan)
+    truth[ray] = loc
+    ok = ex.found.numpy() & ~np.isnan(truth[:, 0])
+    err = np.linalg.norm(ex.position.numpy()[ok] - truth[ok], axis=1)
+    # Exits are exact on the triangle found at the crossing pixel; where the ray really
+    # leaves through a neighbour, that triangle's plane is extrapolated: an error of order
+    # curvature x edge^2 (edges ~0.05 here, radius 1), measured 5.6e-4 at the 99th pct.
+    assert ok.mean() > 0.99 and np.median(err) < 1e-4 and np.quantile(err, 0.99) < 2e-3
+
+
+def test_tile_skipping_finds_the_same_exits():
+    _, g, p1, t1, b = _setup("spot.ply")
+    plain = march_back(g, b, p1, t1, steps=32, refine=8)
+    mips = build_ndf_mips(g.back.normal, g.back.mask, g.back.depth)
+    skip = march_back(g, b, p1, t1, steps=32, refine=8, depth_min=mips.depth_min[3], tile=8)
+    both = plain.found & skip.found
+    assert both.float().mean() > 0.99
+    assert (plain.tri == skip.tri)[both].float().mean() > 0.98
