@@ -55,6 +55,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--methods", nargs="+", default=["specular", "prefiltered", "rousiers"])
     ap.add_argument("--repeats", type=int, default=3, help="timing repeats (median)")
+    ap.add_argument("--mitsuba-spp", type=int, nargs="*", default=[1, 4, 16, 64],
+                    help="Mitsuba (raw) renders to put on the same time/error axes")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "accuracy"))
     args = ap.parse_args()
     out = Path(args.out)
@@ -95,6 +97,19 @@ def main() -> None:
             row["methods"][m] = met
             panels.append(img)
             print(f"{scene.name:<14}{m:<13}{met['relmse_object']:>9.4f}"
+                  f"{met['flip_object']:>8.3f}{met['ms_per_frame']:>9.0f}")
+        from torchrefract.reference import render_reference  # noqa: PLC0415
+
+        render_reference(scene, spp=1, seed=7)  # warm-up (JIT compilation)
+        row["mitsuba"] = {}
+        for spp in args.mitsuba_spp:
+            t0 = time.perf_counter()
+            img, _ = render_reference(scene, spp=spp, seed=11)
+            dt = time.perf_counter() - t0
+            met = compare(img, full, alpha)
+            met["ms_per_frame"] = 1000 * dt
+            row["mitsuba"][spp] = met
+            print(f"{scene.name:<14}{'mitsuba ' + str(spp):<13}{met['relmse_object']:>9.4f}"
                   f"{met['flip_object']:>8.3f}{met['ms_per_frame']:>9.0f}")
         results.append(row)
         write_png(out / f"{scene.name}.png", np.concatenate(panels, 1))
