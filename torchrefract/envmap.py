@@ -21,8 +21,8 @@ from .checks import ConfigError
 from .image_files import read_exr, read_hdr
 
 
-@functools.lru_cache(maxsize=1)
-def _load_cached(path: str) -> torch.Tensor:
+def _read_envmap(path: str) -> torch.Tensor:
+    """Read and validate a map file (uncached; :func:`load_envmap` caches it)."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix == ".exr":
@@ -77,7 +77,7 @@ def load_envmap(path: str | Path) -> torch.Tensor:
 
 @functools.lru_cache(maxsize=8)
 def _load_versioned(path: str, _mtime: int, _size: int) -> torch.Tensor:
-    return _load_cached.__wrapped__(path)
+    return _read_envmap(path)
 
 
 def rotate_y(d: torch.Tensor, angle_deg: torch.Tensor | float) -> torch.Tensor:

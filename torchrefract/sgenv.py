@@ -646,7 +646,7 @@ def _pyramid_cached(path: str, _mtime: int, _size: int, params: tuple,
                 return pyr
     # Not envmap.load_envmap: its cache is keyed by the path alone and would hand back the
     # old texels of a file rewritten since; this function is already cached per version.
-    texels = envmap._load_cached.__wrapped__(path)
+    texels = envmap._read_envmap(path)
     with torch.no_grad():
         pyr = build_sg_pyramid(texels, **kwargs)
     if disk is not None:

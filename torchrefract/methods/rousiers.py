@@ -52,14 +52,14 @@ from .. import microfacet as mf
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer
-from ..lighting import Lighting, hit_lights, incident_radiance_sg
+from ..lighting import Lighting, incident_radiance_sg
 from ..march import march_back
 from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, sg_lookup
-from .specular import background
+from .specular import light_in_front, background
 
 _DIST = {"beckmann": 0, "ggx": 1}
 
@@ -384,11 +384,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                                                torch.full_like(k, float("inf"))),
                           l_trans)
     l_obj = e_r[:, None] * l_refl + e_t[:, None] * att * l_trans
-    hidden = torch.zeros(n, dtype=torch.bool)
-    if lighting.light_pos.shape[1] > 0:
-        tl, _ = hit_lights(g.eye[bi], d, lighting.light_pos[bi], lighting.light_radius[bi],
-                           lighting.light_radiance[bi])
-        hidden = tl < g.front.dist.reshape(-1)[idx]
+    hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
     radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj.to(radiance.dtype))
     passes["exit_found"][idx] = ex.found.float()
     passes["tir"][idx] = tir.float()

@@ -110,7 +110,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
     p1 = g.front.position.reshape(-1, 3)[idx]
     n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
     eta = ior[bi]  # (N,)
-    hidden = _light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
+    hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
     f1 = fresnel_dielectric(-dot(d, n1), 1.0 / eta)
     t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
     ex = march_back(g, bi, p1, t1, steps=options.march_steps, refine=options.refine_steps)
@@ -170,8 +170,9 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     return radiance.view(b, h, w, 3), path_passes(g, paths)
 
 
-def _light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,
-                    dist: torch.Tensor) -> torch.Tensor:
+def light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,
+                   dist: torch.Tensor) -> torch.Tensor:
+    """(N,) whether a sphere light lies between each camera ray's origin and the object."""
     if lighting.light_pos.shape[1] == 0:
         return torch.zeros_like(dist, dtype=torch.bool)
     t, _ = hit_lights(o, d, lighting.light_pos[bi], lighting.light_radius[bi],
