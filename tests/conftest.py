@@ -15,6 +15,22 @@ ROOT = Path(__file__).resolve().parent.parent
 ASSETS = ROOT / "assets"
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """Run a module's many small tensor ops on one thread.
+
+    Measured on the shared 2-core machine: with 2 intra-op threads and the other core busy,
+    every op on >= 32k elements waited ~10 ms for the second thread (eval of 39k directions:
+    2.8 s with 2 threads, 0.025 s with 1).
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="session")
 def sphere_ply(tmp_path_factory) -> Path:
     """A unit icosphere (subdivision 6, 81,920 faces, radius 1) as PLY, no stored normals."""

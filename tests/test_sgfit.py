@@ -16,17 +16,9 @@ F64 = torch.float64
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Run this module's many small tensor ops on one thread.
-
-    Measured on the shared 2-core machine: with 2 intra-op threads and the other core busy,
-    every op on >= 32k elements waited ~10 ms for the second thread (eval of 39k directions:
-    2.8 s with 2 threads, 0.025 s with 1).
-    """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(one_thread):
+    """One intra-op thread for this module (see conftest.one_thread)."""
     yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

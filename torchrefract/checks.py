@@ -105,3 +105,19 @@ def check_option_keys(options: dict, allowed: Sequence[str], method: str,
         if k not in allowed:
             raise ConfigError(f"{source + ': ' if source else ''}method_options: unknown key "
                               f"{k!r} for method {method!r} (allowed: {list(allowed)})")
+
+
+def load_yaml_file(path: str | Path, what: str) -> Any:
+    """Parse a YAML file with ``yaml.safe_load``; missing, invalid or empty is a ConfigError."""
+    import yaml  # noqa: PLC0415
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{what} file not found: {str(path)!r}")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+    if data is None:
+        raise ConfigError(f"{p}: the file is empty")
+    return data

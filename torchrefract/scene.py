@@ -19,10 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from .checks import (ConfigError, check_choice, check_file, check_keys, check_number,
-                     check_vector, where)
+                     check_vector, load_yaml_file, where)
 
 # Every method name a scene may ask for (DESIGN.md). Which of them are implemented is
 # torchrefract.methods.METHODS; asking for a planned one raises NotImplementedError at render.
@@ -278,12 +276,5 @@ def load_scene(path: str | Path) -> Scene:
         ConfigError: on a missing file, bad YAML or any invalid value (file and key named).
     """
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"scene file not found: {str(path)!r}")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
-    if data is None:
-        raise ConfigError(f"{p}: the file is empty")
+    data = load_yaml_file(p, "scene")
     return scene_from_dict(data, base_dir=p.parent, source=str(p), name=p.stem)

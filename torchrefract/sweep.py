@@ -70,9 +70,9 @@ from pathlib import Path
 from typing import Any, Iterator, NamedTuple
 
 import numpy as np
-import yaml
 
-from .checks import ConfigError, check_choice, check_file, check_keys, check_number, where
+from .checks import (ConfigError, check_choice, check_file, check_keys, check_number,
+                     load_yaml_file, where)
 from .scene import METHODS, Scene, scene_from_dict
 
 SAMPLING_MODES = ("grid", "list", "random")
@@ -288,14 +288,7 @@ def load_sweep(path: str | Path) -> SweepConfig:
             naming the file and the key.
     """
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"sweep file not found: {str(path)!r}")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
-    if data is None:
-        raise ConfigError(f"{p}: the file is empty")
+    data = load_yaml_file(p, "sweep")
     return sweep_from_dict(data, base_dir=p.parent, source=str(p))
 
 
@@ -325,10 +318,7 @@ def sweep_from_dict(data: Any, base_dir: str | Path = ".",
     hashed: dict[str, Any] = {"config": data}
     if isinstance(base_raw, str):
         base_path = _resolve_file(base_raw, "base", base_dir, source)
-        try:
-            base_data = yaml.safe_load(Path(base_path).read_text())
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{base_path}: not valid YAML: {exc}") from None
+        base_data = load_yaml_file(base_path, "base scene")
         scene_dir, scene_src = Path(base_path).parent, base_path
         hashed["base_file"] = base_data
     elif isinstance(base_raw, dict):

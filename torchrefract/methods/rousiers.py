@@ -59,7 +59,7 @@ from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, 
     kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, sg_lookup
-from .specular import light_in_front, background
+from .specular import background, light_in_front
 
 _DIST = {"beckmann": 0, "ggx": 1}
 
