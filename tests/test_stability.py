@@ -87,3 +87,26 @@ def test_broken_meshes_and_a_bright_sun(method, tmp_path):
     out = tr.render([_scene(mesh=SPHERE, env=str(sun_path), ior=1.5, roughness=0.3)],
                     method=method)
     _check(out, 1e5)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_white_furnace(method, tmp_path):
+    """Uniform environment of radiance 1: no pixel of any roughness exceeds 1.05 (a lossless
+    interface cannot create light) and smooth glass keeps a mean >= 0.9 on object pixels.
+
+    Not asserted yet (tracked in the issues): single pixels of smooth glass drop to ~0.64
+    near the silhouette, because a two-interface method loses the light reflected inside at
+    the exit (F2 (1 - F1), up to ~25% and more on tessellated normals) until internal
+    bounces exist; and rough surfaces should match Mitsuba's furnace value within 0.05.
+    """
+    white = np.ones((16, 32, 3), np.float32)
+    path = tmp_path / "white.exr"
+    write_exr(path, {"R": white[..., 0], "G": white[..., 1], "B": white[..., 2]})
+    for r in (0.0, 0.3, 1.0):
+        out = tr.render([_scene(mesh=SPHERE, env=str(path), ior=1.5, roughness=r)],
+                        method=method)
+        obj = out.coverage[0] > 0.99
+        vals = out.radiance[0][obj]
+        assert vals.max() <= 1.05, (r, vals.max())
+        if r == 0.0:
+            assert vals.mean() >= 0.9, vals.mean()
