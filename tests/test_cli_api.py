@@ -115,3 +115,25 @@ def test_supersampling_box_filters_edges(tmp_path):
     assert ((c1 == 0) | (c1 == 1)).all()
     # Interior pixels agree closely, the mean coverage agrees within the edge band.
     assert abs(c1.mean() - c4.mean()) < frac
+
+
+def test_cli_compare_prints_metrics_and_writes_error_map(tmp_path, capsys):
+    import json as _json
+
+    scene = _small_scene_yaml(tmp_path)
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["render", str(scene), "--out", str(a), "--quiet"]) == 0
+    assert main(["render", str(scene), "--out", str(b), "--quiet", "--method",
+                 "prefiltered"]) == 0
+    capsys.readouterr()
+    assert main(["compare", str(a / "small.exr"), str(a / "small.exr")]) == 0
+    same = capsys.readouterr().out
+    assert "relmse_object  0\n" in same and "flip_object    0\n" in same and "inf" in same
+    err = tmp_path / "err.png"
+    js = tmp_path / "m.json"
+    assert main(["compare", str(b / "small.exr"), str(a / "small.exr"), "--error-map",
+                 str(err), "--json", str(js)]) == 0
+    m = _json.loads(js.read_text())
+    assert m["flip_object"] > 0 and m["relmse_object"] > 0 and m["flip"] <= m["flip_object"]
+    assert np.asarray(Image.open(err)).shape == (32, 40, 3)
+    assert main(["compare", str(tmp_path / "missing.exr"), str(a / "small.exr")]) == 2

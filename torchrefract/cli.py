@@ -31,6 +31,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="scenes rendered together in one tensor pass (default 8)")
     r.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
+    c.add_argument("test", help="the image to score (EXR with R, G, B)")
+    c.add_argument("reference", help="the reference (EXR; its A channel selects object "
+                                     "pixels, else the test's, else all)")
+    c.add_argument("--error-map", default=None, help="write the FLIP error map (PNG)")
+    c.add_argument("--exposure", type=float, default=0.0, help="preview exposure (stops)")
+    c.add_argument("--json", default=None, help="also write the metrics as JSON")
     w = sub.add_parser("sweep", help="render a sweep config into a dataset (docs/datasets.md)")
     w.add_argument("config", help="sweep YAML file (configs/sweep_*.yaml)")
     w.add_argument("--out", required=True,
@@ -138,10 +145,49 @@ def _render_cmd(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _compare_cmd(args: argparse.Namespace) -> int:
+    import json  # noqa: PLC0415
+
+    import numpy as np  # noqa: PLC0415
+    from PIL import Image  # noqa: PLC0415
+
+    from .image_files import read_exr  # noqa: PLC0415
+    from .metrics import compare, flip_magma  # noqa: PLC0415
+
+    try:
+        test, ref = read_exr(args.test), read_exr(args.reference)
+    except ConfigError as exc:
+        print(f"torchrefract: {exc}", file=sys.stderr)
+        return 2
+    for name, ch in ((args.test, test), (args.reference, ref)):
+        if not all(c in ch for c in "RGB"):
+            print(f"torchrefract: {name}: no R, G, B channels (found {sorted(ch)})",
+                  file=sys.stderr)
+            return 2
+    x = np.stack([test[c] for c in "RGB"], -1)
+    r = np.stack([ref[c] for c in "RGB"], -1)
+    if x.shape != r.shape:
+        print(f"torchrefract: image sizes differ: {x.shape[:2]} vs {r.shape[:2]}",
+              file=sys.stderr)
+        return 2
+    cov = ref.get("A", test.get("A", np.ones(r.shape[:2], np.float32)))
+    metrics = compare(x, r, cov, args.exposure)
+    for k, v in metrics.items():
+        print(f"{k:<14} {v:.6g}")
+    if args.error_map:
+        Image.fromarray(flip_magma(x, r, args.exposure)).save(args.error_map)
+        print(f"error map: {args.error_map}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(metrics, indent=2) + "\n")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "render":
         return _render_cmd(args)
+    if args.command == "compare":
+        return _compare_cmd(args)
     if args.command == "sweep":
         return _sweep_cmd(args)
     return 2  # pragma: no cover

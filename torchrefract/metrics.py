@@ -50,3 +50,14 @@ def compare(x: np.ndarray, ref: np.ndarray, coverage: np.ndarray, exposure: floa
         "flip": float(fm.mean()), "flip_object": float(fm[obj].mean()) if obj.any() else 0.0,
         "psnr": psnr(x, ref, None, exposure), "psnr_object": psnr(x, ref, obj, exposure),
     }
+
+
+def flip_magma(x: np.ndarray, ref: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """(H, W, 3) uint8 error-map image: LDR-FLIP of the sRGB previews in the magma map."""
+    import flip_evaluator  # noqa: PLC0415
+
+    def srgb01(img):
+        return np.ascontiguousarray(linear_to_srgb8(img, exposure).astype(np.float32) / 255.0)
+
+    err, _, _ = flip_evaluator.evaluate(srgb01(ref), srgb01(x), "LDR", applyMagma=True)
+    return np.clip(np.asarray(err) * 255.0 + 0.5, 0, 255).astype(np.uint8)
