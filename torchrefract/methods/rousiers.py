@@ -250,34 +250,39 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     # normal of a specular ray. Without this a smooth object would be blurred by the
     # pixel grid itself.
     sub = ext_raw.min(-1).values.clamp(0.0, 1.0)  # (N,) 1 once the footprint spans a pixel
-    # 3. NDF of the back layer over the footprint: 4 taps along the major axis.
-    mips = build_ndf_mips(g.back.normal, g.back.mask, g.back.depth)
-    along_x = (ext[:, 0] >= ext[:, 1])[:, None]
-    offsets = torch.tensor([-0.375, -0.125, 0.125, 0.375])
-    vec = torch.zeros(n, 3)
-    cov = torch.zeros(n)
-    for o in offsets:
-        shift = torch.where(along_x, torch.stack([o * major, torch.zeros_like(major)], -1),
-                            torch.stack([torch.zeros_like(major), o * major], -1))
-        nd, nl, nc = sample_mips(mips, bi, xy_c + shift, level)
-        vec = vec + nd * (nl * nc)[:, None]
-        cov = cov + nc
-    mean = vec / cov.clamp(min=1e-12)[:, None]
-    length = mean.norm(dim=-1)
-    have_ndf = ex.found & (cov > 1e-6) & (length > 1e-6)
     exact_n = torch.where(ex.found[:, None], ex.normal, p_t1)
-    ndf_n = mean / length.clamp(min=1e-12)[:, None]
-    # Proxy direction: over a footprint of a few pixels the exact exit normal (its center)
-    # is a better estimate of the mean normal than bilinear taps of pixel-sized texels
-    # (the footprint is symmetric, so curvature changes the mean only to second order);
-    # from 4 pixels on, the mip's mean over the footprint takes over (non-convex shapes).
-    w_ndf = (torch.log2(minor) / 2.0).clamp(0.0, 1.0)[:, None]
-    n_bar = torch.where(have_ndf[:, None],
-                        normalize(w_ndf * ndf_n + (1.0 - w_ndf) * exact_n), exact_n)
-    kappa_g = torch.where(have_ndf, kappa_from_length(length) / (sub * sub).clamp(min=1e-12),
-                          torch.full_like(length, KAPPA_MAX)).clamp(max=KAPPA_MAX)
+    kappa_g = None
     if options.spread == "rays":
-        n_bar = exact_n  # the geometry's part of the lobe comes from the bounding rays
+        # The geometry's part of the lobe comes from the bounding rays (below), at the exact
+        # exit normal: the footprint's NDF is not needed.
+        n_bar = exact_n
+    else:
+        # 3. NDF of the back layer over the footprint: 4 taps along the major axis.
+        mips = build_ndf_mips(g.back.normal, g.back.mask, g.back.depth)
+        along_x = (ext[:, 0] >= ext[:, 1])[:, None]
+        offsets = torch.tensor([-0.375, -0.125, 0.125, 0.375])
+        vec = torch.zeros(n, 3)
+        cov = torch.zeros(n)
+        for o in offsets:
+            shift = torch.where(along_x, torch.stack([o * major, torch.zeros_like(major)], -1),
+                                torch.stack([torch.zeros_like(major), o * major], -1))
+            nd, nl, nc = sample_mips(mips, bi, xy_c + shift, level)
+            vec = vec + nd * (nl * nc)[:, None]
+            cov = cov + nc
+        mean = vec / cov.clamp(min=1e-12)[:, None]
+        length = mean.norm(dim=-1)
+        have_ndf = ex.found & (cov > 1e-6) & (length > 1e-6)
+        ndf_n = mean / length.clamp(min=1e-12)[:, None]
+        # Proxy direction: over a footprint of a few pixels the exact exit normal (its
+        # center) is a better estimate of the mean normal than bilinear taps of pixel-sized
+        # texels (the footprint is symmetric, so curvature changes the mean only to second
+        # order); from 4 pixels on, the mip's mean over the footprint takes over.
+        w_ndf = (torch.log2(minor) / 2.0).clamp(0.0, 1.0)[:, None]
+        n_bar = torch.where(have_ndf[:, None],
+                            normalize(w_ndf * ndf_n + (1.0 - w_ndf) * exact_n), exact_n)
+        kappa_g = torch.where(have_ndf,
+                              kappa_from_length(length) / (sub * sub).clamp(min=1e-12),
+                              torch.full_like(length, KAPPA_MAX)).clamp(max=KAPPA_MAX)
 
     # 4. Exit interface: view side is inside (looking back along p_t1).
     n_in = face_forward(-n_bar, p_t1)  # inward, facing against p_t1
