@@ -121,3 +121,14 @@ def load_yaml_file(path: str | Path, what: str) -> Any:
     if data is None:
         raise ConfigError(f"{p}: the file is empty")
     return data
+
+
+def file_version(path: str | Path, what: str) -> tuple[str, int, int]:
+    """(resolved path, mtime in ns, size) of an existing file: the key of the per-file caches,
+    so a file rewritten in place is read again. Missing file: ConfigError naming ``what``."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        raise ConfigError(f"{what} {str(path)!r}: file not found") from None
+    return str(p.resolve()), st.st_mtime_ns, st.st_size

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .checks import ConfigError
+from .checks import ConfigError, file_version
 from .image_files import read_exr, read_hdr
 
 
@@ -66,13 +66,7 @@ def load_envmap(path: str | Path) -> torch.Tensor:
     Raises:
         ConfigError: unreadable file, wrong channels, empty image, NaN/Inf or negative texels.
     """
-    p = Path(path).resolve()
-    try:
-        st = p.stat()
-    except OSError:
-        raise ConfigError(f"envmap {str(path)!r}: file not found") from None
-    # Cached per file version: a map rewritten in place is read again.
-    return _load_versioned(str(p), st.st_mtime_ns, st.st_size)
+    return _load_versioned(*file_version(path, "envmap"))
 
 
 @functools.lru_cache(maxsize=8)

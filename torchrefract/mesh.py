@@ -12,13 +12,12 @@ import functools
 import math
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
 
-from .checks import ConfigError
+from .checks import ConfigError, file_version
 from .scene import Transform
 
 
@@ -100,13 +99,7 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
     Raises:
         ConfigError: unreadable file, no triangles, NaN/Inf vertices, all faces degenerate.
     """
-    p = Path(path)
-    try:
-        st = p.stat()
-    except OSError:
-        raise ConfigError(f"mesh {path!r}: file not found") from None
-    # Cached per file version: a file rewritten in place is read again.
-    return _load_mesh_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, transform)
+    return _load_mesh_cached(*file_version(path, "mesh"), transform)
 
 
 @functools.lru_cache(maxsize=16)

@@ -62,7 +62,7 @@ import torch
 import torch.nn.functional as F
 
 from . import envmap
-from .checks import ConfigError, check_tensor_shape
+from .checks import ConfigError, check_tensor_shape, file_version
 from .envmap import direction_to_uv, rotate_y
 
 # Bump when the pyramid's contents change for the same parameters (disk cache key).
@@ -674,16 +674,12 @@ def sg_pyramid_for(path: str | Path, *, cache_dir: str | Path | bool | None = No
     Returns:
         The pyramid (float32, CPU; must not be modified in place).
     """
-    p = Path(path)
-    try:
-        st = p.stat()
-    except OSError:
-        raise ConfigError(f"envmap {str(path)!r}: file not found") from None
+    version = file_version(path, "envmap")
     if "sharpness_levels" in params and params["sharpness_levels"] is not None:
         params["sharpness_levels"] = tuple(float(k) for k in params["sharpness_levels"])
     key = tuple(sorted(params.items()))
     cd = _cache_dir(cache_dir)
-    return _pyramid_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, key,
+    return _pyramid_cached(*version, key,
                            None if cd is None else str(cd))
 
 

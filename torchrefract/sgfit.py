@@ -788,7 +788,6 @@ def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tens
     c, e, a, d_idx = (t.expand(shape) for t in (c, e, a, d_idx))
 
     spec = table.spec
-    T, E, A = spec.n_theta, spec.n_eta, spec.n_alpha
     # grid_sample coordinates in [-1, 1] (align_corners: -1 and 1 are the end nodes):
     # x = log alpha, y = log eta, z = theta_o; clamped to the table (zero gradient outside)
     theta = _safe_acos01(c)

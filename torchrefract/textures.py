@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .checks import ConfigError
+from .checks import ConfigError, file_version
 
 
 @functools.lru_cache(maxsize=16)
@@ -47,12 +47,7 @@ def _load(path: str, _mtime: int, _size: int) -> torch.Tensor:
 
 def load_roughness_map(path: str | Path) -> torch.Tensor:
     """(H, W) float32 values in [0, 1] of a grayscale/RGB image (cached per file version)."""
-    p = Path(path).resolve()
-    try:
-        st = p.stat()
-    except OSError:
-        raise ConfigError(f"roughness_map {str(path)!r}: file not found") from None
-    return _load(str(p), st.st_mtime_ns, st.st_size)
+    return _load(*file_version(path, "roughness_map"))
 
 
 def sample_uv(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
