@@ -5,6 +5,17 @@ variant when it works on the machine, else ``scalar_rgb``); the G-buffer passes 
 our own visibility passes as for every method, so a reference render has the same channels.
 With ``samples_per_pixel = n`` Mitsuba renders the n x n sub-pixel grid (``spp`` samples
 each), which the renderer box-filters like any other method.
+
+``denoise: true`` runs Intel Open Image Denoise (PyPI ``pyoidn``, ``RT`` filter, ``hdr``,
+quality ``high``) on the Mitsuba image at the output resolution: the sub-pixel grid is
+box-filtered first, denoised, and repeated back onto the grid, so the renderer's own box
+filter returns exactly the denoised pixels (what a user denoising a Mitsuba render at
+``samples_per_pixel**2 * spp`` samples per pixel gets). Color only, no albedo or normal
+buffers: OIDN wants auxiliary images with the same pixel filter as the color (our G-buffer
+is one point sample per sub-pixel, Mitsuba's color is box-filtered random samples, and OIDN
+warns that aliased auxiliaries put artifacts on edges), and the albedo of a rough glass
+object over a visible environment map has no clean definition (OIDN's guidance of 1 for
+glass plus the environment behind it would need a second, noisy Mitsuba pass).
 Needs the ``reference`` extra: ``pip install 'torchrefract[reference]'``.
 """
 
@@ -14,8 +25,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from ..checks import check_number, check_option_keys
+from ..checks import ConfigError, check_number, check_option_keys, where
 from ..gbuffer import GBuffer
 from ..lighting import Lighting
 from ..materials import MaterialBatch
@@ -32,6 +44,8 @@ class ReferenceOptions:
     """Sampler seed."""
     max_depth: int = 64
     """Longest path: 64 is the spec's truth; 3 is what a two-interface method models."""
+    denoise: bool = False
+    """Denoise the image with Intel Open Image Denoise (``pyoidn``; HDR color only)."""
 
     METHOD = "reference"
 
@@ -45,7 +59,53 @@ class ReferenceOptions:
                               integer=True),
             max_depth=check_number(d.get("max_depth", 64), "method_options.max_depth",
                                    source, minimum=1, maximum=1024, integer=True),
+            denoise=_check_bool(d.get("denoise", False), "method_options.denoise", source),
         )
+
+
+def _check_bool(value, key: str, source: str | None) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where(source, key)}: expected true or false, got {value!r}")
+    return value
+
+
+_PYOIDN_HINT = ("method 'reference' with denoise: true needs Intel Open Image Denoise (PyPI "
+                "'pyoidn'): pip install 'torchrefract[reference]'")
+
+
+def _pyoidn():
+    """Import ``pyoidn`` or raise an ImportError that says how to install it."""
+    try:
+        import pyoidn  # noqa: PLC0415 (optional dependency)
+    except ImportError as exc:
+        raise ImportError(f"{_PYOIDN_HINT} ({exc})") from exc
+    return pyoidn
+
+
+def denoise_oidn(rgb: torch.Tensor, n: int = 1) -> torch.Tensor:
+    """Denoise a linear HDR image with OIDN at pixel resolution.
+
+    Args:
+        rgb: (H*n, W*n, 3) linear radiance on an n x n sub-pixel grid.
+        n: sub-pixels per pixel side.
+
+    Returns:
+        (H*n, W*n, 3) float32: the denoised (H, W) image repeated n x n times, so that a box
+        filter of it gives the denoised pixels exactly.
+
+    Example:
+        >>> denoise_oidn(torch.rand(64, 64, 3)).shape    # doctest: +SKIP
+        torch.Size([64, 64, 3])
+    """
+    oidn = _pyoidn()
+    x = torch.nan_to_num(rgb.float(), nan=0.0, posinf=0.0).clamp(min=0.0)  # OIDN: >= 0
+    if n > 1:
+        x = F.avg_pool2d(x.permute(2, 0, 1)[None], n)[0].permute(1, 2, 0)  # (H, W, 3)
+    out = oidn.denoise(np.ascontiguousarray(x.numpy()), hdr=True, quality="high")
+    y = torch.from_numpy(np.asarray(out, dtype=np.float32)).clamp(min=0.0)  # (H, W, 3)
+    if n > 1:
+        y = y.repeat_interleave(n, 0).repeat_interleave(n, 1)  # (H*n, W*n, 3)
+    return y.contiguous()
 
 
 def render_reference_method(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
@@ -59,6 +119,8 @@ def render_reference_method(g: GBuffer, lighting: Lighting, materials: MaterialB
     """
     from ..reference import render_reference  # noqa: PLC0415 (optional dependency)
 
+    if options.denoise:
+        _pyoidn()  # fail before minutes of path tracing, not after
     n = g.supersample
     out = []
     for s in scenes:
@@ -68,5 +130,6 @@ def render_reference_method(g: GBuffer, lighting: Lighting, materials: MaterialB
                                       height=c.height * n, samples_per_pixel=1))
         rgb, _ = render_reference(sub, spp=options.spp, seed=options.seed,
                                   max_depth=options.max_depth)
-        out.append(torch.from_numpy(np.ascontiguousarray(rgb)))
+        img = torch.from_numpy(np.ascontiguousarray(rgb))  # (H*n, W*n, 3)
+        out.append(denoise_oidn(img, n) if options.denoise else img)
     return torch.stack(out).float(), {}
