@@ -7,6 +7,11 @@ uniform coarse search over the chord of the bounding sphere brackets the first c
 bisection narrows it, and the exit is the exact intersection of the ray with the back-face
 triangle found there (so the exit normal is the triangle's interpolated normal, not a
 buffer texel). Vectorized over all rays of a batch; no per-pixel Python.
+
+:func:`march_inside` marches a ray that travels *inside* between the two layers (an
+internal reflection, from either surface): X is inside while it lies behind the front-face
+plane and in front of the back-face plane at its pixel; the exit is the exact hit with the
+triangle of whichever layer was crossed.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ class Exit:
         normal: (N, 3) unit outward shading normal at the exit (zeros where not found).
         tri: (N,) int64 exit triangle (-1 where not found).
         dist: (N,) distance travelled inside.
+        layer: (N,) int64 layer left through: 0 front, 1 back, -1 where not found.
+        bary: (N, 3) barycentrics of the exit in ``tri``.
     """
 
     found: torch.Tensor
@@ -35,6 +42,16 @@ class Exit:
     normal: torch.Tensor
     tri: torch.Tensor
     dist: torch.Tensor
+    layer: torch.Tensor
+    bary: torch.Tensor
+
+
+def _planes(layer, eye: torch.Tensor, away_from_eye: bool) -> torch.Tensor:
+    n = layer.geo_normal
+    away = ((layer.position - eye[:, None, None, :]) * n).sum(-1, keepdim=True)
+    n = torch.where((away < 0) if away_from_eye else (away > 0), -n, n)
+    c = (n * layer.position).sum(-1, keepdim=True)
+    return torch.cat([n, c], -1)
 
 
 def back_planes(g: GBuffer) -> torch.Tensor:
@@ -42,11 +59,14 @@ def back_planes(g: GBuffer) -> torch.Tensor:
 
     A point X is beyond the back surface at that pixel when ``dot(n, X) - c > 0``.
     """
-    n = g.back.geo_normal
-    away = ((g.back.position - g.eye[:, None, None, :]) * n).sum(-1, keepdim=True)
-    n = torch.where(away < 0, -n, n)
-    c = (n * g.back.position).sum(-1, keepdim=True)
-    return torch.cat([n, c], -1)
+    return _planes(g.back, g.eye, away_from_eye=True)
+
+
+def slab_planes(g: GBuffer) -> torch.Tensor:
+    """(B, H, W, 8): the back-face plane (as :func:`back_planes`) and the front-face plane
+    with its normal facing the eye; X has left the slab between them when either
+    ``dot(n, X) - c > 0``."""
+    return torch.cat([back_planes(g), _planes(g.front, g.eye, away_from_eye=False)], -1)
 
 
 class _Projector:
@@ -84,8 +104,10 @@ class _Projector:
 
 def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
              planes: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    pl = planes[flat]  # (M, 4)
+    pl = planes[flat]  # (M, 4) or (M, 8)
     beyond = (pl[:, :3] * x).sum(-1) - pl[:, 3] > 0
+    if pl.shape[1] == 8:  # two layers: also in front of the front face
+        beyond = beyond | ((pl[:, 4:7] * x).sum(-1) - pl[:, 7] > 0)
     return ~inside | ~valid[flat] | beyond
 
 
@@ -134,9 +156,37 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     Returns:
         Exit of each ray.
     """
-    planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
-    valid = g.back.mask.reshape(-1)
-    tri_map = g.back.tri.reshape(-1)
+    return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False)
+
+
+def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor,
+                 steps: int = 32, refine: int = 10) -> Exit:
+    """March rays that travel inside the object from a point on its surface (an internal
+    reflection at the back or the front surface) to where they meet either layer.
+
+    X is inside while it lies behind the front-face plane and in front of the back-face
+    plane of its pixel (the slab between the two layers; where either layer is empty, or
+    outside the frame, the ray is lost: ``found`` False). The exit is the exact hit with the
+    triangle of the layer whose plane was crossed (``Exit.layer``); hits closer than 1e-4 of
+    the chord are ignored (the start's own triangle).
+
+    Args:
+        g: the G-buffer; batch: (N,) scene per ray; p: (N, 3) start points on the surface;
+        t: (N, 3) unit directions pointing into the object; steps, refine: as
+        :func:`march_back`.
+    """
+    return _march(g, batch, p, t, steps, refine, None, 8, 8, both=True)
+
+
+def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, steps: int,
+           refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
+           both: bool) -> Exit:
+    if both:
+        planes = slab_planes(g).reshape(-1, 8)  # (B*H*W, 8)
+        valid = (g.back.mask & g.front.mask).reshape(-1)
+    else:
+        planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
+        valid = g.back.mask.reshape(-1)
     tv = g.meshes.tri_vertices
     s_max = _bounding_chord(g, batch, p1, t)
     proj = _Projector(g, batch, p1, t)
@@ -220,23 +270,44 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
         hi = torch.where(crossed, mid, hi)
         lo = torch.where(crossed, lo, mid)
 
-    # Exact exit: intersect the ray with the back triangle at the crossing (first choice:
-    # the pixel just beyond the crossing; second: the last pixel still inside).
+    # Exact exit: intersect the ray with the crossed layer's triangle at the crossing (first
+    # choice: the pixel just beyond the crossing; second: the last pixel still inside). Two
+    # layers: the layer whose plane is crossed farther at ``hi`` first, then the other.
+    tri_maps = (g.front.tri.reshape(-1), g.back.tri.reshape(-1))
+    masks = (g.front.mask.reshape(-1), g.back.mask.reshape(-1))
+    if both:
+        flat, _ = proj.pixels(None, hi)
+        pl, x = planes[flat], p1 + hi[:, None] * t
+        primary_front = ((pl[:, 4:7] * x).sum(-1) - pl[:, 7]) > ((pl[:, :3] * x).sum(-1)
+                                                                  - pl[:, 3])
+        tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
+                 (lo, ~primary_front)]
+        s_min = 1e-4 * s_max
+    else:
+        back = torch.zeros(n, dtype=torch.bool)
+        tries = [(hi, back), (lo, back)]
+        s_min = torch.zeros_like(s_max)
     found = torch.zeros(n, dtype=torch.bool)
     s_exit = torch.zeros(n, dtype=p1.dtype)
     tri = torch.full((n,), -1, dtype=torch.int64)
+    layer = torch.full((n,), -1, dtype=torch.int64)
     bary = torch.zeros(n, 3, dtype=p1.dtype)
-    for s_try in (hi, lo):
+    for s_try, use_front in tries:
         flat, inside = proj.pixels(None, s_try)
-        cand = torch.where(inside & valid[flat], tri_map[flat], torch.full_like(flat, -1))
+        seen = torch.where(use_front, masks[0][flat], masks[1][flat])
+        cand = torch.where(inside & seen,
+                           torch.where(use_front, tri_maps[0][flat], tri_maps[1][flat]),
+                           torch.full_like(flat, -1))
         st, bt = intersect_triangles(p1, t, tv[cand.clamp(min=0)])
-        ok = ~found & (cand >= 0) & torch.isfinite(st) & (st > 0) & (st <= s_max * 1.5)
+        ok = ~found & (cand >= 0) & torch.isfinite(st) & (st > s_min) & (st <= s_max * 1.5)
         s_exit = torch.where(ok, st, s_exit)
         tri = torch.where(ok, cand, tri)
+        layer = torch.where(ok, (~use_front).long(), layer)
         bary = torch.where(ok[:, None], bt, bary)
         found = found | ok
     normal = interpolate(bary, g.meshes.tri_normals[tri.clamp(min=0)])
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-20)
     normal = torch.where(found[:, None], normal, torch.zeros_like(normal))
     pos = p1 + s_exit[:, None] * t
-    return Exit(found=found, position=pos, normal=normal, tri=tri, dist=s_exit)
+    return Exit(found=found, position=pos, normal=normal, tri=tri, dist=s_exit, layer=layer,
+                bary=bary)

@@ -27,11 +27,11 @@ from ..materials import MaterialBatch
 from .specular import SpecularOptions, background, path_passes, trace_paths
 
 
-
 class PrefilteredOptions(SpecularOptions):
     """Settings of ``prefiltered`` (same as ``specular``: TIR mode and march steps)."""
 
     METHOD = "prefiltered"
+    BOUNCES = False  # one refracted ray: no internal reflections
 
 
 def blur_sharpness(alpha: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

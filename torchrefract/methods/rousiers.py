@@ -39,6 +39,16 @@ incident angle is clamped to the critical angle and all the transmitted light le
 that lobe (weight 1, as ``specular`` does, so the smooth limit matches it); ``tir: reflect``
 reads the environment with the table's internal reflection lobe instead.
 Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
+
+``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`; ours, beyond the
+paper): at the exit the table's internal reflection lobe (E_ri, k_ri, p_ri: leaving the
+glass, eta = 1 / ior) carries E_ri of the light back inside; its axis is marched to the next
+interface (front or back layer), where the table again splits it into a transmitted lobe
+(read from the pyramid) and a reflected one, K times. A lobe's angular variance is carried
+along: the front lobe's 1/k_t1, plus 1/k_r at each reflection (a reflection keeps angular
+spread; the curvature of the reflecting surface is not modelled), magnified by the exit
+refraction (d theta_out / d theta_in)^2 where it leaves. The ``tir`` rule applies at the
+last interface only.
 """
 
 from __future__ import annotations
@@ -49,9 +59,10 @@ from dataclasses import dataclass, fields
 import torch
 
 from .. import microfacet as mf
+from ..bounces import Arrival, BounceSettings, Shading, follow
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
-from ..gbuffer import GBuffer
+from ..gbuffer import GBuffer, interpolate
 from ..lighting import Lighting, incident_radiance_sg
 from ..march import march_back
 from ..materials import MaterialBatch
@@ -59,7 +70,7 @@ from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, 
     kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, sg_lookup
-from .specular import background, light_in_front
+from .specular import background, bounce_passes, light_in_front
 
 _DIST = {"beckmann": 0, "ggx": 1}
 
@@ -88,13 +99,18 @@ class RousiersOptions:
     roughness_levels: int = 4
     """With a roughness map: how many roughness levels the exit interface is split into
     (coverage ratios, sec. 5.1)."""
+    bounces: BounceSettings = BounceSettings()
+    """Internal reflections (keys ``internal_bounces``, ``bounce_tolerance``,
+    ``max_internal_bounces``, ``bounce_march_steps``)."""
 
     METHOD = "rousiers"
 
     @classmethod
     def from_dict(cls, d: dict, source: str | None = None) -> "RousiersOptions":
-        check_option_keys(d, [f.name for f in fields(cls)], cls.METHOD, source)
+        keys = [f.name for f in fields(cls) if f.name != "bounces"] + list(BounceSettings.FIELDS)
+        check_option_keys(d, keys, cls.METHOD, source)
         return cls(
+            bounces=BounceSettings.from_dict(d, source),
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
                              ("clamp", "reflect"), source),
             cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
@@ -320,6 +336,11 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                        (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
     att = torch.exp(-materials.absorption[bi] * path[:, None])
 
+    bounce = options.bounces.enabled
+    # With internal bounces the first exit is not the last interface: the table's own split
+    # between the transmitted and the internally reflected lobe applies (no TIR rule).
+    exit_mode = "split" if bounce else options.tir
+
     def exit_lobe(alpha_exit: torch.Tensor):
         """Direction, sharpness and weight of the light leaving through an exit interface
         of roughness ``alpha_exit`` (N,)."""
@@ -328,7 +349,10 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         else:  # eq. 10: the footprint's NDF convolved with the BTDF's
             kappa_d = mf.blinn_phong_from_alpha(alpha_exit).clamp(min=0.0)
             alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))
-        if options.tir == "clamp":
+        if exit_mode == "split":
+            _, k_t2, t_t2, weight2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
+            p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+        elif exit_mode == "clamp":
             cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
@@ -388,14 +412,94 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                           incident_radiance_sg(lighting, bi, p1, d,
                                                torch.full_like(k, float("inf"))),
                           l_trans)
-    l_obj = e_r[:, None] * l_refl + e_t[:, None] * att * l_trans
+    if bounce:
+        # The light the exit reflects back inside, followed bounce by bounce. The exit's
+        # internal reflection lobe uses the roughness at the exit point.
+        n_pix = idx.numel()
+        uv_x = interpolate(ex.bary, g.meshes.tri_uvs[ex.tri.clamp(min=0)])
+        alpha_x = torch.where(ex.found, materials.roughness_at(bi, uv_x), alpha)
+        _, k_ri, t_ri, e_ri = _lobe(table, cos2, 1.0 / ior, alpha_x.clamp(min=mf.ALPHA_MIN),
+                                    dist, "reflect")
+        p_ri = normalize(lobe_axis(view2, n_in, t_ri, "reflect"))
+        w1 = e_t1[:, None] * att
+        first = Shading(radiance=w1 * l_trans, direction=p_ri,
+                        reflectance=torch.where(ex.found & ~matched, e_ri,
+                                                torch.zeros_like(e_ri)),
+                        var=1.0 / k_t1.clamp(min=1e-12) + 1.0 / k_ri.clamp(min=1e-12))
+        arrive = Arrival(pix=torch.arange(n_pix), batch=bi, p=p2, t=p_t1, normal=ex.normal,
+                         uv=uv_x, found=ex.found, w=w1, var=1.0 / k_t1.clamp(min=1e-12))
+        shade = _interface(table, lighting, materials, options.tir, first)
+        res = follow(g, arrive, shade, materials.absorption, options.bounces, n_pix,
+                     options.refine_steps)
+        l_through = torch.where(matched[:, None], att * l_trans, res.radiance)
+        l_obj = e_r[:, None] * l_refl + l_through
+    else:
+        l_obj = e_r[:, None] * l_refl + e_t[:, None] * att * l_trans
     hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
     radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj.to(radiance.dtype))
     passes["exit_found"][idx] = ex.found.float()
     passes["tir"][idx] = tir.float()
     passes["lobe_sigma"][idx] = torch.rsqrt(k.clamp(min=1e-12)).float()
     passes["footprint"][idx] = torch.where(ex.found, major, torch.zeros_like(major)).float()
-    return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in passes.items()}
+    out = {k: v.view(b, h, w, 1) for k, v in passes.items()}
+    if bounce:
+        out.update(bounce_passes(g, idx, res))
+    return radiance.view(b, h, w, 3), out
+
+
+def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: str,
+               first: Shading):
+    """The rough interface seen from inside (internal bounces; module docstring): the
+    table's transmitted lobe leaves, its reflected lobe goes on. ``first``: the shading of
+    the first exit, computed by the cone-traced path above."""
+    dist_b = torch.tensor([_DIST[x] for x in materials.distribution])
+
+    def shade(a: Arrival, k: int, last: bool) -> Shading:
+        if k == 0:
+            return first
+        bi = a.batch
+        ior = materials.ior[bi]
+        dist = dist_b[bi]
+        alpha = materials.roughness_at(bi, a.uv).clamp(min=mf.ALPHA_MIN)
+        n_view = face_forward(a.normal, a.t)  # inside, facing the arriving ray
+        view = -a.t
+        cos = dot(view, n_view).clamp(0.0, 1.0)
+        cos_crit = torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
+        tir = cos < cos_crit
+        one = torch.ones_like(cos)
+        cos_t = torch.where(tir, cos_crit + 1e-4, cos) if last and tir_mode == "clamp" \
+            else cos
+        _, k_t, t_t, e_t = _lobe(table, cos_t, 1.0 / ior, alpha, dist, "transmit")
+        _, k_r, t_r, e_r = _lobe(table, cos, 1.0 / ior, alpha, dist, "reflect")
+        p_t = normalize(lobe_axis(view, n_view, t_t, "transmit"))
+        p_r = normalize(lobe_axis(view, n_view, t_r, "reflect"))
+        sin2 = (1.0 - cos_t * cos_t).clamp(min=0.0)
+        mag2 = (ior * cos_t / torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))) ** 2
+        k_out = 1.0 / (1.0 / k_t.clamp(min=1e-12) + mag2 * a.var)
+        w_out, refl = e_t, e_r
+        if last:
+            refl_part = e_r
+            if tir_mode == "clamp":  # TIR light leaves at the critical angle: all that
+                # this interface keeps at the true angle (the model loses some to masking)
+                e_keep = _lobe(table, cos, 1.0 / ior, alpha, dist, "transmit")[3] + e_r
+                w_out = torch.where(tir, e_keep.clamp(max=1.0), e_t)
+                refl_part = torch.where(tir, torch.zeros_like(e_r), e_r)
+            else:  # reflect: under TIR the internal reflection lobe is read instead
+                p_t = torch.where(tir[:, None], p_r, p_t)
+                k_out = torch.where(tir, 1.0 / (1.0 / k_r.clamp(min=1e-12) + a.var), k_out)
+                w_out = torch.where(tir, e_r, e_t)
+                refl_part = torch.where(tir, torch.zeros_like(e_r), e_r)
+            refl = refl_part  # not followed: recorded as residual by the loop
+        # Lost rays leave along their current direction with the lobe they carry.
+        p_t = torch.where(a.found[:, None], p_t, a.t)
+        k_out = torch.where(a.found, k_out, 1.0 / a.var.clamp(min=1e-12))
+        w_out = torch.where(a.found, w_out, one)
+        refl = torch.where(a.found, refl, torch.zeros_like(refl))
+        l_out = incident_radiance_sg(lighting, bi, a.p, p_t, k_out)
+        return Shading(radiance=a.w * w_out[:, None] * l_out, direction=p_r, reflectance=refl,
+                       var=a.var + 1.0 / k_r.clamp(min=1e-12))
+
+    return shade
 
 
 __all__ = ["RousiersOptions", "bounding_angle", "render_rousiers"]

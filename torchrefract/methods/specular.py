@@ -14,6 +14,11 @@ direction with weight (1 - F1), standing in for the light that escapes after fur
 bounces; ``tir: reflect`` reflects it once and looks the environment up in that direction.
 Rays whose exit is not found (they leave the frame, miss the back layer) fall back to the
 refracted direction T1, never to garbage.
+
+``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`): the exit interface
+reflects F2 of the light back inside (all of it under TIR); that part is marched to the next
+interface, where (1 - F) leaves along the refracted ray and F is reflected again, K times;
+the ``tir`` rule then applies at the last interface.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from ..bounces import Arrival, BounceSettings, Shading, follow
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer
 from ..lighting import Lighting, hit_lights, incident_radiance
@@ -40,13 +46,21 @@ class SpecularOptions:
     """Coarse samples along the refracted ray (over the bounding sphere's chord)."""
     refine_steps: int = 10
     """Bisection iterations after the coarse search."""
+    bounces: BounceSettings = BounceSettings()
+    """Internal reflections (keys ``internal_bounces``, ``bounce_tolerance``,
+    ``max_internal_bounces``, ``bounce_march_steps``)."""
 
     METHOD = "specular"
+    BOUNCES = True  # whether the method follows internal reflections
 
     @classmethod
     def from_dict(cls, d: dict, source: str | None = None) -> "SpecularOptions":
-        check_option_keys(d, [f.name for f in fields(cls)], cls.METHOD, source)
+        keys = [f.name for f in fields(cls) if f.name != "bounces"]
+        if cls.BOUNCES:
+            keys += list(BounceSettings.FIELDS)
+        check_option_keys(d, keys, cls.METHOD, source)
         return cls(
+            bounces=BounceSettings.from_dict(d, source),
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
                              ("clamp", "reflect"), source),
             march_steps=check_number(d.get("march_steps", 64), "method_options.march_steps",
@@ -67,6 +81,7 @@ class Paths:
         f1: (N,) Fresnel reflectance at entry; refl: (N, 3) mirror direction.
         t1: (N, 3) refracted direction inside; found: (N,) exit found by the march.
         p2: (N, 3) exit point (p1 where not found); t2: (N, 3) direction leaving the object.
+        n2: (N, 3) outward shading normal at the exit (zeros where not found).
         w2: (N,) exit transmittance (1 - F2; 1 under TIR and in the fallback).
         path: (N,) length travelled inside; tir: (N,) total internal reflection somewhere.
         hidden: (N,) a sphere light between the eye and the object hides it.
@@ -82,6 +97,7 @@ class Paths:
     t1: torch.Tensor
     found: torch.Tensor
     p2: torch.Tensor
+    n2: torch.Tensor
     t2: torch.Tensor
     w2: torch.Tensor
     path: torch.Tensor
@@ -128,7 +144,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
     path = torch.where(ex.found, ex.dist,
                        (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
     return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=f1, refl=reflect(d, n1), t1=t1,
-                 found=ex.found, p2=p2, t2=t2, w2=w2, path=path, tir=tir1 | tir2,
+                 found=ex.found, p2=p2, n2=ex.normal, t2=t2, w2=w2, path=path, tir=tir1 | tir2,
                  hidden=hidden)
 
 
@@ -162,12 +178,64 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if paths.idx.numel() > 0:
         bi = paths.batch
         l_refl = incident_radiance(lighting, bi, paths.p1, paths.refl)
-        l_trans = incident_radiance(lighting, bi, paths.p2, paths.t2)
         att = torch.exp(-materials.absorption[bi] * paths.path[:, None])  # (N, 3)
         f1 = paths.f1[:, None]
-        l_obj = f1 * l_refl + (1.0 - f1) * paths.w2[:, None] * att * l_trans
+        if options.bounces.enabled:
+            n = paths.idx.numel()
+            first = Arrival(pix=torch.arange(n), batch=bi, p=paths.p2, t=paths.t1,
+                            normal=paths.n2, uv=torch.zeros(n, 2), found=paths.found,
+                            w=(1.0 - f1) * att, var=torch.zeros(n))
+            res = follow(g, first, _interface(lighting, materials.ior, options.tir),
+                         materials.absorption, options.bounces, n, options.refine_steps)
+            l_obj = f1 * l_refl + res.radiance
+        else:
+            l_trans = incident_radiance(lighting, bi, paths.p2, paths.t2)
+            l_obj = f1 * l_refl + (1.0 - f1) * paths.w2[:, None] * att * l_trans
         radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
-    return radiance.view(b, h, w, 3), path_passes(g, paths)
+    passes = path_passes(g, paths)
+    if options.bounces.enabled:
+        passes.update(bounce_passes(g, paths.idx, res if paths.idx.numel() else None))
+    return radiance.view(b, h, w, 3), passes
+
+
+def bounce_passes(g: GBuffer, idx: torch.Tensor, res) -> dict[str, torch.Tensor]:
+    """``bounces`` (internal reflections followed) and ``bounce_residual`` (throughput left
+    inside, mean over RGB) per pixel, (B, H, W, 1)."""
+    b, h, w = g.shape
+    out = {k: torch.zeros(b * h * w) for k in ("bounces", "bounce_residual")}
+    if res is not None:
+        out["bounces"][idx] = res.bounces.float()
+        out["bounce_residual"][idx] = res.residual.float()
+    return {k: v.view(b, h, w, 1) for k, v in out.items()}
+
+
+def _interface(lighting: Lighting, ior: torch.Tensor, tir_mode: str):
+    """The smooth interface seen from inside: (1 - F) leaves along the refracted ray, F is
+    mirrored back inside; at the last interface the ``tir`` rule lets TIR light leave
+    (``clamp``: critical angle; ``reflect``: the mirror direction), as without bounces."""
+
+    def shade(a: Arrival, k: int, last: bool) -> Shading:
+        eta = ior[a.batch]
+        n_view = face_forward(a.normal, a.t)
+        f = fresnel_dielectric(-dot(a.t, n_view), eta)
+        t_out, tir = refract(a.t, n_view, eta)
+        r = reflect(a.t, n_view)
+        one, zero = torch.ones_like(f), torch.zeros_like(f)
+        if last:
+            if tir_mode == "reflect":
+                t_out = torch.where(tir[:, None], r, t_out)
+            w_out, refl = torch.where(tir, one, 1.0 - f), torch.where(tir, zero, f)
+        else:
+            w_out, refl = torch.where(tir, zero, 1.0 - f), torch.where(tir, one, f)
+        # Lost rays (no interface found) leave along their current direction.
+        t_out = torch.where(a.found[:, None], t_out, a.t)
+        w_out = torch.where(a.found, w_out, one)
+        refl = torch.where(a.found, refl, zero)
+        l_out = incident_radiance(lighting, a.batch, a.p, t_out)
+        return Shading(radiance=a.w * w_out[:, None] * l_out, direction=r, reflectance=refl,
+                       var=torch.zeros_like(f))
+
+    return shade
 
 
 def light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,
