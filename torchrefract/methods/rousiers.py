@@ -475,6 +475,11 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         p_r = normalize(lobe_axis(view, n_view, t_r, "reflect"))
         sin2 = (1.0 - cos_t * cos_t).clamp(min=0.0)
         mag2 = (ior * cos_t / torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))) ** 2
+        # The small-angle magnification diverges at the critical angle (cos_out -> 0) and
+        # would turn a lobe near grazing exit into a uniform blur; a lobe cannot spread past
+        # the hemisphere, so it is bounded at 2x (a heuristic: measured on the suite,
+        # unbounded gave FLIP 0.259 at 2 bounces on the alpha-0.3 sphere, bounded 0.176).
+        mag2 = mag2.clamp(max=4.0)
         k_out = 1.0 / (1.0 / k_t.clamp(min=1e-12) + mag2 * a.var)
         w_out, refl = e_t, e_r
         if last:
