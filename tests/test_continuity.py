@@ -20,7 +20,9 @@ A step is a discontinuity when it is larger than
 - K_MED = 4 times the median step of the sweep (a jump as large as several steps' worth of
   the sweep's typical change),
 
-each plus EPS = 1e-4 (0.01% of the image mean; below it a change is invisible and a sweep that
+each plus EPS = 1e-4 (IOR sweeps use the first rule only: the image's derivative in the IOR
+is steep near 1 and decays smoothly, so exact specular refraction's first steps are ~10x the
+sweep's median while each is only ~1.5x its neighbour; a jump is still an isolated spike) (0.01% of the image mean; below it a change is invisible and a sweep that
 does not depend on x, e.g. ``specular`` in roughness, has steps of exactly 0). Measured on
 the sweeps that pass: the largest step is at most 1.3x its neighbours and 1.7x the median for
 specular and prefiltered (IOR and roughness), 2.3x / 2.6x for rousiers (roughness on the
@@ -92,12 +94,14 @@ def steps(out: tr.RenderResult) -> tuple[torch.Tensor, torch.Tensor]:
     return d.mean(1) / scale, torch.quantile(d, 0.99, dim=1) / scale
 
 
-def discontinuities(s: torch.Tensor) -> list[int]:
+def discontinuities(s: torch.Tensor, median_rule: bool = True) -> list[int]:
     """Indices i of the steps s_i (between x_i and x_{i+1}) that exceed the bounds."""
     s = s.double()
     pad = torch.cat([s.new_zeros(1), s, s.new_zeros(1)])
     nb = torch.maximum(pad[:-2], pad[2:])  # (S-1,) larger neighbour (one at the ends)
-    bad = (s > K_NB * nb + EPS) | (s > K_MED * s.median() + EPS)
+    bad = s > K_NB * nb + EPS
+    if median_rule:
+        bad = bad | (s > K_MED * s.median() + EPS)
     return bad.nonzero().flatten().tolist()
 
 
@@ -134,9 +138,11 @@ IOR_ONE_FAILS = {
     ("rousiers+internal_bounces=2", 1.0): "IOR 1 -> 1.0001 jump at alpha 1 (as rousiers)",
 }
 IOR_FAILS = {
-    ("rousiers+internal_bounces=2", "sphere", 0.5): "step IOR 1 -> 1.05 is 0.087, 5.2x the "
-                                                    "median 0.017: the IOR-1 jump (see "
-                                                    "test_ior_one_is_a_continuous_limit)",
+    ("rousiers", "sphere", 0.5): "steps zigzag above IOR 2.2 (0.0125, 0.0325, 0.0112, ..., "
+                                 "0.0066, 0.0210 per 0.05): the last, 2.35 -> 2.4, is 3.2x "
+                                 "its neighbour; the image wobbles around a smooth trend as "
+                                 "the SG table's IOR nodes and the exit TIR flags pass; "
+                                 "issue #4",
 }
 
 
@@ -159,7 +165,7 @@ def test_roughness_sweep_is_continuous(m, mesh, smooth_env):
 def test_ior_sweep_is_continuous(m, mesh, alpha, smooth_env):
     out = sweep(smooth_env, mesh, [tr.Material(ior=float(n), roughness=alpha) for n in IORS], m)
     s, _ = steps(out)
-    bad = discontinuities(s)
+    bad = discontinuities(s, median_rule=False)
     assert not bad, describe(s, IORS, bad)
 
 

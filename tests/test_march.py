@@ -56,3 +56,23 @@ def test_tile_skipping_finds_the_same_exits():
     both = plain.found & skip.found
     assert both.float().mean() > 0.99
     assert (plain.tri == skip.tri)[both].float().mean() > 0.98
+
+
+def test_exit_lies_in_its_triangle_when_triangles_are_smaller_than_pixels():
+    """At 48x48 an icosphere-5 has ~6 back triangles per pixel: the triangle seen at the
+    crossing pixel's center is usually not the one the ray meets. The exit must be walked
+    to the containing triangle (before the fix: 90% of exits outside by up to -1.5 in
+    barycentrics, normals off by up to 2.8 degrees)."""
+    g = build_gbuffer([load_mesh(str(ASSETS / "meshes" / "sphere.ply"), tr.Transform())],
+                      [tr.Camera(eye=(0, 0, 4), width=48, height=48)])
+    i = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
+    d = g.ray_dir.reshape(-1, 3)[i]
+    t1, _ = refract(d, face_forward(g.front.normal.reshape(-1, 3)[i], d),
+                    torch.full((len(i),), 1 / 1.5))
+    ex = march_back(g, torch.zeros_like(i), g.front.position.reshape(-1, 3)[i], t1,
+                    steps=64, refine=10)
+    assert ex.found.float().mean() > 0.99
+    assert ex.bary[ex.found].min() > -1e-4
+    radial = ex.position[ex.found] / ex.position[ex.found].norm(dim=-1, keepdim=True)
+    cos = (radial * ex.normal[ex.found]).sum(-1)
+    assert torch.rad2deg(torch.acos(cos.clamp(max=1.0))).max() < 0.3

@@ -128,6 +128,45 @@ def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.
     return (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
 
 
+def _walk_to_containing(p1, t, tv, neighbors, found, tri, s_exit, bary, s_min, s_max,
+                        max_steps: int = 16):
+    """Move each exit to the triangle that contains it.
+
+    The triangle read at the crossing pixel is the one seen at the pixel's *center*; where
+    triangles are smaller than pixels (or the crossing is near an edge) the ray meets that
+    triangle's plane outside it (barycentrics < 0), and its normal would be extrapolated
+    (measured on a 48x48 sphere: 90% of exits, normals off by up to 2.8 degrees). Walk
+    across the edge opposite the most negative barycentric to the adjacent triangle, until
+    the hit is inside; keep the most-inside hit seen. Only the rays that need it are walked.
+    """
+    eps = -1e-6
+    cur_tri, cur_bary = tri.clone(), bary.clone()
+    active = found & (bary.min(-1).values < eps)
+    for _ in range(max_steps):
+        if not bool(active.any()):
+            break
+        sel = active.nonzero(as_tuple=True)[0]
+        worst = cur_bary[sel].argmin(-1)  # the vertex opposite the edge to cross
+        rows = torch.arange(sel.numel())
+        v_opp = tv[cur_tri[sel], worst]  # (M, 3)
+        nb = neighbors[cur_tri[sel]]  # (M, 3)
+        nbv = tv[nb.clamp(min=0)]  # (M, 3, 3, 3)
+        shares = ((nbv - v_opp[:, None, None, :]).abs().amax(-1) < 1e-6).any(-1)  # (M, 3)
+        across = (nb >= 0) & ~shares
+        has = across.any(-1)
+        nxt = nb[rows, across.float().argmax(-1)]
+        st, bt = intersect_triangles(p1[sel], t[sel], tv[nxt.clamp(min=0)])
+        ok = has & torch.isfinite(st) & (st > s_min[sel]) & (st <= 1.5 * s_max[sel])
+        cur_tri[sel] = torch.where(ok, nxt, cur_tri[sel])
+        cur_bary[sel] = torch.where(ok[:, None], bt, cur_bary[sel])
+        score = bt.min(-1).values
+        better = ok & (score > bary[sel].min(-1).values)
+        upd = sel[better]
+        tri[upd], s_exit[upd], bary[upd] = nxt[better], st[better], bt[better]
+        active[sel] = ok & (score < eps)
+    return tri, s_exit, bary
+
+
 def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
                steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
                tile: int = 8, fine_steps: int = 8) -> Exit:
@@ -305,6 +344,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         layer = torch.where(ok, (~use_front).long(), layer)
         bary = torch.where(ok[:, None], bt, bary)
         found = found | ok
+    tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_neighbors, found, tri,
+                                            s_exit, bary, s_min, s_max)
     normal = interpolate(bary, g.meshes.tri_normals[tri.clamp(min=0)])
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-20)
     normal = torch.where(found[:, None], normal, torch.zeros_like(normal))
