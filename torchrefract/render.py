@@ -135,6 +135,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     _check_batch(scenes, method)
     parse_options, shade = METHODS[method]
     options = parse_options(scenes[0].method_options, scenes[0].name)
+    if method == "auto":
+        return _render_auto(scenes, options)
 
     t0 = time.perf_counter()
     meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
@@ -173,3 +175,44 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
         timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
                  "total": time.perf_counter() - t0},
     )
+
+
+def _render_auto(scenes: list[Scene], options) -> RenderResult:
+    """``auto``: pick a method per scene (:func:`torchrefract.methods.auto.choose`), render
+    the scenes that share a choice together, and put the batch back in order. The result's
+    scenes carry the chosen method and options."""
+    import json  # noqa: PLC0415
+
+    from .methods.auto import choose  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    picked = [choose(s, options) for s in scenes]
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, c in enumerate(picked):
+        groups.setdefault((c.method, json.dumps(c.options, sort_keys=True)), []).append(i)
+    parts = {}
+    for (method, opts), idx in groups.items():
+        sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
+        parts[method, opts] = (idx, render(sub))
+    b = len(scenes)
+    first = next(iter(parts.values()))[1]
+    radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype)
+    coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype)
+    passes: dict[str, torch.Tensor] = {}
+    out_scenes: list[Scene | None] = [None] * b
+    timings: dict[str, float] = {}
+    for idx, res in parts.values():
+        sel = torch.tensor(idx)
+        radiance[sel] = res.radiance
+        coverage[sel] = res.coverage
+        for k, v in res.passes.items():
+            if k not in passes:  # a pass only some methods have: zeros elsewhere
+                passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype)
+            passes[k][sel] = v
+        for j, i in enumerate(idx):
+            out_scenes[i] = res.scenes[j]
+        for k, v in res.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+    timings["total"] = time.perf_counter() - t0
+    return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
+                        scenes=tuple(out_scenes), timings=timings)

@@ -5,6 +5,7 @@ Registry: name -> (options parser, render function). ``torchrefract.render`` dis
 
 from __future__ import annotations
 
+from .auto import AutoOptions, render_auto
 from .prefiltered import PrefilteredOptions, render_prefiltered
 from .reference import ReferenceOptions, render_reference_method
 from .rousiers import RousiersOptions, render_rousiers
@@ -15,10 +16,12 @@ METHODS = {
     "prefiltered": (PrefilteredOptions.from_dict, render_prefiltered),
     "rousiers": (RousiersOptions.from_dict, render_rousiers),
     "reference": (ReferenceOptions.from_dict, render_reference_method),
+    "auto": (AutoOptions.from_dict, render_auto),  # resolved per scene by render()
 }
 
 # Methods that need the Scene objects themselves (not only the tensors).
 NEEDS_SCENES = ("reference",)
 
-__all__ = ["METHODS", "NEEDS_SCENES", "ReferenceOptions", "render_reference_method", "PrefilteredOptions", "RousiersOptions", "SpecularOptions",
-           "render_prefiltered", "render_rousiers", "render_specular"]
+__all__ = ["METHODS", "NEEDS_SCENES", "AutoOptions", "PrefilteredOptions", "ReferenceOptions",
+           "RousiersOptions", "SpecularOptions", "render_prefiltered", "render_reference_method",
+           "render_rousiers", "render_specular"]

@@ -1,0 +1,103 @@
+"""Method ``auto`` (issue #4, part 6): per-scene choice from the chart's measurements."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+import torchrefract as tr
+from torchrefract.checks import ConfigError
+from torchrefract.methods.auto import AutoOptions, choose, features
+
+from conftest import ASSETS
+
+SPHERE = str(ASSETS / "meshes" / "sphere.ply")
+SLAB = str(ASSETS / "meshes" / "slab.ply")
+ENV = str(ASSETS / "envmaps" / "lebombo.exr")
+
+
+def _scene(mesh=SPHERE, roughness=0.1, **opts):
+    return tr.Scene(mesh=mesh, envmap=tr.EnvMap(path=ENV),
+                    material=tr.Material(ior=1.5, roughness=roughness),
+                    camera=tr.Camera(eye=(0.4, 0.3, 3.0), width=24, height=24),
+                    method="auto", method_options=opts)
+
+
+def _table(tmp_path):
+    """Two measured scenes: on the smooth sphere specular is as good as rousiers and faster;
+    on the rough slab only rousiers is accurate."""
+    sphere_f = features(_scene(roughness=0.0))
+    slab_f = features(_scene(mesh=SLAB, roughness=0.3))
+    t = {"version": 1, "scenes": [
+        {"name": "smooth_sphere", "features": sphere_f, "variants": [
+            {"method": "specular", "options": {}, "ms": 50, "flip": 0.10},
+            {"method": "prefiltered", "options": {}, "ms": 60, "flip": 0.12},
+            {"method": "rousiers", "options": {"internal_bounces": 1}, "ms": 120, "flip": 0.085},
+            {"method": "rousiers", "options": {}, "ms": 100, "flip": 0.09}]},
+        {"name": "rough_slab", "features": slab_f, "variants": [
+            {"method": "specular", "options": {}, "ms": 40, "flip": 0.40},
+            {"method": "prefiltered", "options": {}, "ms": 45, "flip": 0.25},
+            {"method": "rousiers", "options": {"internal_bounces": 1}, "ms": 90, "flip": 0.08},
+            {"method": "rousiers", "options": {}, "ms": 80, "flip": 0.15}]}]}
+    path = tmp_path / "auto.json"
+    path.write_text(json.dumps(t))
+    return str(path)
+
+
+def test_features_tell_a_slab_from_a_sphere():
+    f_sphere, f_slab = features(_scene()), features(_scene(mesh=SLAB))
+    assert f_sphere["thin"] > 0.9 and f_slab["thin"] < 0.2
+
+
+def test_choice_follows_the_measurements_and_the_tolerance(tmp_path):
+    table = _table(tmp_path)
+    # Smooth sphere: specular is within 0.05 of the best and the cheapest.
+    c = choose(_scene(roughness=0.0), AutoOptions(auto_table=table))
+    assert (c.method, c.options) == ("specular", {})
+    # Rough slab, tight tolerance: the most accurate (rousiers + 1 bounce).
+    c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=0.0,
+                                                             auto_table=table))
+    assert (c.method, c.options) == ("rousiers", {"internal_bounces": 1})
+    # Loose tolerance: the fastest variant measured on both neighbours.
+    c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=1.0,
+                                                             auto_table=table))
+    assert c.method == "specular"
+
+
+def test_render_auto_groups_and_records_the_choice(tmp_path):
+    table = _table(tmp_path)
+    scenes = [_scene(roughness=0.0, auto_table=table),
+              _scene(mesh=SLAB, roughness=0.3, auto_table=table, auto_tolerance=0.0)]
+    # one batch needs equal options: render the two apart, then a mixed batch of one kind
+    a = tr.render([scenes[0], scenes[0]])
+    assert [s.method for s in a.scenes] == ["specular", "specular"]
+    direct = tr.render([scenes[0].replace(method="specular", method_options={})])
+    assert torch.allclose(a.radiance[0], direct.radiance[0])
+    b = tr.render([scenes[1]])
+    assert b.scenes[0].method == "rousiers"
+    assert b.scenes[0].method_options == {"internal_bounces": 1}
+    assert "bounces" in b.passes
+
+
+def test_mixed_choices_in_one_batch_keep_their_order(tmp_path):
+    table = _table(tmp_path)
+    smooth = _scene(roughness=0.0, auto_table=table)
+    rough = smooth.replace(mesh=SLAB, material=tr.Material(ior=1.5, roughness=0.3))
+    out = tr.render([rough, smooth, rough])
+    assert [s.method for s in out.scenes] == ["rousiers", "specular", "rousiers"]
+    alone = tr.render([smooth.replace(method="specular", method_options={})])
+    assert torch.allclose(out.radiance[1], alone.radiance[0])
+    assert out.passes["lobe_sigma"][1].abs().sum() == 0  # a rousiers-only pass: zeros
+
+
+def test_bad_auto_options_are_named(tmp_path):
+    with pytest.raises(ConfigError, match="auto_tolerance"):
+        tr.render([_scene(auto_tolerance=-1)])
+    with pytest.raises(ConfigError, match="auto_table"):
+        tr.render([_scene(auto_table=str(tmp_path / "missing.json"))])
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(ConfigError, match="auto table"):
+        tr.render([_scene(auto_table=str(bad))])
