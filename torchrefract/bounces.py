@@ -51,7 +51,7 @@ class BounceSettings:
     """``auto``: a ray stops once its reflected throughput (max over RGB) is at most this."""
     max_internal_bounces: int = 16
     """``auto``: the most internal reflections followed."""
-    bounce_march_steps: int = 32
+    bounce_march_steps: int = 16
     """Coarse samples of each internal segment's march."""
 
     FIELDS = ("internal_bounces", "bounce_tolerance", "max_internal_bounces",
@@ -74,7 +74,7 @@ class BounceSettings:
             max_internal_bounces=check_number(d.get("max_internal_bounces", 16),
                                               "method_options.max_internal_bounces", source,
                                               minimum=1, maximum=64, integer=True),
-            bounce_march_steps=check_number(d.get("bounce_march_steps", 32),
+            bounce_march_steps=check_number(d.get("bounce_march_steps", 16),
                                             "method_options.bounce_march_steps", source,
                                             minimum=1, maximum=4096, integer=True),
         )

@@ -112,7 +112,7 @@ class RousiersOptions:
         return cls(
             bounces=BounceSettings.from_dict(d, source),
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
-                             ("clamp", "reflect"), source),
+                             ("clamp", "reflect", "conserve"), source),
             cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
                                    ("march", "plane"), source),
             spread=check_choice(d.get("spread", "rays"), "method_options.spread",
@@ -357,6 +357,16 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
             weight2 = torch.where(tir, torch.ones_like(e_t2), e_t2)
+        elif exit_mode == "conserve":
+            # The paper's clamp, made continuous: what the exit reflects inside (all of it
+            # under TIR) leaves here too, with the transmitted lobe (clamped at the critical
+            # angle); the weight is the interface's total kept energy at the true angle.
+            cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
+            _, k_t2, t_t2, _ = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
+            p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            e_keep = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")[3] \
+                + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3]
+            weight2 = e_keep.clamp(max=1.0)
         else:
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
             _, k_ti, t_ti, e_ti = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
@@ -467,8 +477,8 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         cos_crit = torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
         tir = cos < cos_crit
         one = torch.ones_like(cos)
-        cos_t = torch.where(tir, cos_crit + 1e-4, cos) if last and tir_mode == "clamp" \
-            else cos
+        cos_t = torch.where(tir, cos_crit + 1e-4, cos) \
+            if last and tir_mode in ("clamp", "conserve") else cos
         _, k_t, t_t, e_t = _lobe(table, cos_t, 1.0 / ior, alpha, dist, "transmit")
         _, k_r, t_r, e_r = _lobe(table, cos, 1.0 / ior, alpha, dist, "reflect")
         p_t = normalize(lobe_axis(view, n_view, t_t, "transmit"))
@@ -484,11 +494,14 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         w_out, refl = e_t, e_r
         if last:
             refl_part = e_r
-            if tir_mode == "clamp":  # TIR light leaves at the critical angle: all that
-                # this interface keeps at the true angle (the model loses some to masking)
-                e_keep = _lobe(table, cos, 1.0 / ior, alpha, dist, "transmit")[3] + e_r
-                w_out = torch.where(tir, e_keep.clamp(max=1.0), e_t)
-                refl_part = torch.where(tir, torch.zeros_like(e_r), e_r)
+            if tir_mode in ("clamp", "conserve"):  # TIR light leaves at the critical
+                # angle: all that this interface keeps at the true angle (the model loses
+                # some to masking); ``conserve``: the reflected part leaves too, always
+                e_keep = (_lobe(table, cos, 1.0 / ior, alpha, dist, "transmit")[3]
+                          + e_r).clamp(max=1.0)
+                leave_all = tir | (tir_mode == "conserve")
+                w_out = torch.where(leave_all, e_keep, e_t)
+                refl_part = torch.where(leave_all, torch.zeros_like(e_r), e_r)
             else:  # reflect: under TIR the internal reflection lobe is read instead
                 p_t = torch.where(tir[:, None], p_r, p_t)
                 k_out = torch.where(tir, 1.0 / (1.0 / k_r.clamp(min=1e-12) + a.var), k_out)

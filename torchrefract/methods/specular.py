@@ -62,7 +62,7 @@ class SpecularOptions:
         return cls(
             bounces=BounceSettings.from_dict(d, source),
             tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
-                             ("clamp", "reflect"), source),
+                             ("clamp", "reflect", "conserve"), source),
             march_steps=check_number(d.get("march_steps", 64), "method_options.march_steps",
                                      source, minimum=1, maximum=4096, integer=True),
             refine_steps=check_number(d.get("refine_steps", 10),
@@ -137,6 +137,8 @@ def trace_paths(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
     if options.tir == "reflect":
         t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
     w2 = torch.where(tir2, torch.ones_like(f2), 1.0 - f2)
+    if options.tir == "conserve":  # the reflected part leaves here too: continuous at TIR
+        w2 = torch.ones_like(f2)
     # Fallback where no exit was found: leave along the refracted direction.
     t2 = torch.where(ex.found[:, None], t2, t1)
     w2 = torch.where(ex.found, w2, torch.ones_like(w2))
@@ -224,7 +226,8 @@ def _interface(lighting: Lighting, ior: torch.Tensor, tir_mode: str):
         if last:
             if tir_mode == "reflect":
                 t_out = torch.where(tir[:, None], r, t_out)
-            w_out, refl = torch.where(tir, one, 1.0 - f), torch.where(tir, zero, f)
+            leave_all = tir | (tir_mode == "conserve")
+            w_out, refl = torch.where(leave_all, one, 1.0 - f), torch.where(leave_all, zero, f)
         else:
             w_out, refl = torch.where(tir, zero, 1.0 - f), torch.where(tir, one, f)
         # Lost rays (no interface found) leave along their current direction.
