@@ -332,18 +332,23 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     layer = torch.full((n,), -1, dtype=torch.int64)
     bary = torch.zeros(n, 3, dtype=p1.dtype)
     for s_try, use_front in tries:
-        flat, inside = proj.pixels(None, s_try)
-        seen = torch.where(use_front, masks[0][flat], masks[1][flat])
-        cand = torch.where(inside & seen,
-                           torch.where(use_front, tri_maps[0][flat], tri_maps[1][flat]),
+        todo = (~found).nonzero(as_tuple=True)[0]  # only the rays still without an exit
+        if todo.numel() == 0:
+            break
+        flat, inside = proj.pixels(todo, s_try[todo])
+        uf = use_front[todo]
+        seen = torch.where(uf, masks[0][flat], masks[1][flat])
+        cand = torch.where(inside & seen, torch.where(uf, tri_maps[0][flat], tri_maps[1][flat]),
                            torch.full_like(flat, -1))
-        st, bt = intersect_triangles(p1, t, tv[cand.clamp(min=0)])
-        ok = ~found & (cand >= 0) & torch.isfinite(st) & (st > s_min) & (st <= s_max * 1.5)
-        s_exit = torch.where(ok, st, s_exit)
-        tri = torch.where(ok, cand, tri)
-        layer = torch.where(ok, (~use_front).long(), layer)
-        bary = torch.where(ok[:, None], bt, bary)
-        found = found | ok
+        st, bt = intersect_triangles(p1[todo], t[todo], tv[cand.clamp(min=0)])
+        ok = (cand >= 0) & torch.isfinite(st) & (st > s_min[todo]) \
+            & (st <= s_max[todo] * 1.5)
+        hit = todo[ok]
+        s_exit[hit] = st[ok]
+        tri[hit] = cand[ok]
+        layer[hit] = (~uf[ok]).long()
+        bary[hit] = bt[ok]
+        found[hit] = True
     tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_neighbors, found, tri,
                                             s_exit, bary, s_min, s_max)
     normal = interpolate(bary, g.meshes.tri_normals[tri.clamp(min=0)])
