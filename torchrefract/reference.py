@@ -149,6 +149,9 @@ def _bsdf_dict(scene: Scene) -> dict:
             "torchrefract.reference: material.roughness_map is not supported by the Mitsuba "
             "reference yet (it would need a bitmap alpha texture over the mesh UVs); render "
             "this scene with a constant material.roughness instead")
+    if m.ior == 1.0:  # index-matched: no interface at all (Mitsuba's dielectrics reject
+        # equal indices); a null BSDF still bounds the interior medium (absorption)
+        return {"type": "null"}
     if m.roughness == 0.0:
         return {"type": "dielectric", "int_ior": float(m.ior), "ext_ior": 1.0}
     return {"type": "roughdielectric", "distribution": m.distribution,
