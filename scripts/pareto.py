@@ -1,0 +1,457 @@
+"""Speed against accuracy: every suite scene x every method variant, one run, one machine.
+
+For each scene (``configs/suite/*.yaml``, globbed) the cached Mitsuba truth is loaded or
+rendered once (``scripts/accuracy.py``'s ``truth``: full truth at ``max_depth`` 64 with two
+seeds, and the floors, converged Mitsuba at ``max_depth`` 3, 4 and 5); then every variant of
+:data:`VARIANTS` is rendered, timed (median of ``--repeats`` after one warm-up render; batch
+> 1 is amortized per frame) and scored against full truth (FLIP of the sRGB previews,
+HDR-FLIP, relMSE, PSNR; whole image and object pixels, ``torchrefract.metrics.compare``).
+
+    .venv/bin/python scripts/pareto.py                  # all suite scenes at their size
+    .venv/bin/python scripts/pareto.py --scenes sphere_a03 slab_a02 --size 128
+    .venv/bin/python scripts/pareto.py --quick --scenes sphere_a03 --out /tmp/pareto
+
+Writes under ``--out`` (default outputs/pareto):
+- ``results.csv``: one row per scene x variant (columns: :data:`COLUMNS`); the rows with
+  method ``truth`` (second seed: the truth's own noise) and ``floor`` (``max_depth`` 3/4/5)
+  have no time;
+- ``pareto.png``: time per frame (log) vs ``--metric`` (default ``flip_object``), one panel
+  per scene and an aggregate panel (means over the scenes), Pareto front, floors and truth
+  noise as horizontal lines;
+- ``gallery.png``: per scene, truth, the main variants and their FLIP error maps;
+- ``meta.json``: arguments, versions, threads, machine, skipped variants.
+
+Measure with the machine quiet; times are of ``torchrefract.render`` (mesh cache warm,
+G-buffer included). Mitsuba variants render at the output resolution with ``spp`` samples
+per pixel (its own box-filtered pixel sampling replaces the scene's sub-pixel grid) and
+include the coverage pass of ``torchrefract.reference``; ``denoise`` adds Intel Open Image
+Denoise. A variant whose options the renderer rejects (``ConfigError``, e.g. an option not
+implemented yet) is skipped with a warning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torchrefract as tr
+from torchrefract.checks import ConfigError
+from torchrefract.metrics import compare, flip_magma
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from accuracy import truth as cached_truth  # noqa: E402  (the one truth renderer and cache)
+
+# --------------------------------------------------------------------------------------
+# The variants: (name, method, method_options, batch, main). ``main`` ones go to the gallery.
+# Options replace the scene's own method_options. Batch B renders the scene and B - 1 copies
+# with the environment turned by 10 degrees each (distinct images, same cost); the error is
+# the first one's and the time is per frame.
+# --------------------------------------------------------------------------------------
+STEPS_FEWER = {"march_steps": 12, "cone_march_steps": 4, "refine_steps": 6}
+STEPS_MORE = {"march_steps": 64, "cone_march_steps": 16, "refine_steps": 12}
+VARIANTS: list[tuple[str, str, dict, int, bool]] = [
+    ("specular", "specular", {}, 1, True),
+    ("specular b8", "specular", {}, 8, False),
+    ("prefiltered", "prefiltered", {}, 1, True),
+    ("prefiltered b8", "prefiltered", {}, 8, False),
+    ("rousiers", "rousiers", {}, 1, True),
+    ("rousiers b8", "rousiers", {}, 8, False),
+    ("rousiers plane", "rousiers", {"cone_rays": "plane"}, 1, False),
+    ("rousiers plane b8", "rousiers", {"cone_rays": "plane"}, 8, False),
+    ("rousiers steps 12/4/6", "rousiers", STEPS_FEWER, 1, False),
+    ("rousiers steps 64/16/12", "rousiers", STEPS_MORE, 1, False),
+    ("specular ib0", "specular", {"internal_bounces": 0}, 1, False),
+    ("specular ib1", "specular", {"internal_bounces": 1}, 1, False),
+    ("specular ib2", "specular", {"internal_bounces": 2}, 1, False),
+    ("rousiers ib0", "rousiers", {"internal_bounces": 0}, 1, False),
+    ("rousiers ib1", "rousiers", {"internal_bounces": 1}, 1, False),
+    ("rousiers ib2", "rousiers", {"internal_bounces": 2}, 1, True),
+    *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
+       {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
+      for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
+]
+# --quick: a smoke test of every code path (tiny sizes, few variants, batch 2).
+QUICK_VARIANTS: list[tuple[str, str, dict, int, bool]] = [
+    ("specular", "specular", {}, 1, True),
+    ("prefiltered", "prefiltered", {}, 1, True),
+    ("rousiers", "rousiers", {}, 1, True),
+    ("rousiers b2", "rousiers", {}, 2, False),
+    ("rousiers ib1", "rousiers", {"internal_bounces": 1}, 1, False),
+    ("mitsuba 1spp", "reference", {"spp": 1, "seed": 11, "denoise": False}, 1, False),
+    ("mitsuba 4spp", "reference", {"spp": 4, "seed": 11, "denoise": False}, 1, False),
+    ("mitsuba 1spp oidn", "reference", {"spp": 1, "seed": 11, "denoise": True}, 1, False),
+    ("mitsuba 4spp oidn", "reference", {"spp": 4, "seed": 11, "denoise": True}, 1, True),
+]
+FLOOR_DEPTHS = (3, 4, 5)
+METRICS = ("flip", "flip_object", "hdrflip", "hdrflip_object", "relmse", "relmse_object",
+           "psnr", "psnr_object")
+COLUMNS = ("scene", "method", "variant", "options", "batch", "width", "height",
+           "samples_per_pixel", "ms_per_frame", *METRICS, "repeats", "truth_spp", "threads",
+           "machine", "torch", "torchrefract", "mitsuba_variant")
+
+
+def machine() -> str:
+    """CPU model and core count (and the GPU when torch sees one)."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    s = f"{model}, {os.cpu_count()} cores"
+    if torch.cuda.is_available():
+        s += f", {torch.cuda.get_device_name(0)}"
+    return s
+
+
+def suite_paths(names: list[str] | None) -> list[Path]:
+    """``--scenes``: stems of configs/suite/*.yaml or YAML paths; default: the whole suite."""
+    suite = ROOT / "configs" / "suite"
+    if not names:
+        return sorted(suite.glob("*.yaml"))
+    paths = []
+    for n in names:
+        p = Path(n)
+        if p.suffix not in (".yaml", ".yml"):
+            p = suite / f"{n}.yaml"
+        if not p.is_file():
+            raise SystemExit(f"pareto: no scene {n!r} ({p} does not exist)")
+        paths.append(p)
+    return paths
+
+
+def sized(scene: tr.Scene, size: int | None, samples_per_pixel: int | None = None) -> tr.Scene:
+    c = scene.camera
+    cam = dataclasses.replace(
+        c, width=size or c.width, height=size or c.height,
+        samples_per_pixel=samples_per_pixel or c.samples_per_pixel)
+    return scene.replace(camera=cam)
+
+
+def load_truth(scene: tr.Scene, spp: int, cache: Path) -> dict:
+    """Full truth (seeds 0, 1) and the floors (max_depth 3, 4, 5), cached in ``cache``."""
+    cache.mkdir(parents=True, exist_ok=True)
+    full, alpha, _ = cached_truth(scene, spp, 64, 0, cache)
+    full2, _, _ = cached_truth(scene, spp, 64, 1, cache)
+    floors = {d: cached_truth(scene, spp, d, 0, cache)[0] for d in FLOOR_DEPTHS}
+    return {"full": full, "alpha": alpha, "full2": full2, "floors": floors}
+
+
+def batch_of(scene: tr.Scene, batch: int) -> list[tr.Scene]:
+    e = scene.envmap
+    return [scene if i == 0 else
+            scene.replace(envmap=dataclasses.replace(e, rotate_deg=e.rotate_deg + 10.0 * i))
+            for i in range(batch)]
+
+
+def time_variant(scene: tr.Scene, method: str, options: dict, batch: int, repeats: int
+                 ) -> tuple[np.ndarray, float]:
+    """(H, W, 3) image of the first scene and the median ms per frame after one warm-up.
+
+    Raises:
+        ConfigError: the renderer rejects the method or its options.
+    """
+    scenes = batch_of(scene.replace(method=method, method_options=dict(options)), batch)
+    out = tr.render(scenes)  # warm-up: caches, Mitsuba's JIT kernels; raises ConfigError
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = tr.render(scenes)
+        times.append(time.perf_counter() - t0)
+    return out.radiance[0].numpy(), 1000.0 * statistics.median(times) / batch
+
+
+def pareto_front(ms: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """Indices of the points no other point beats on both time and error, by time."""
+    order = np.lexsort((err, ms))
+    front, best = [], math.inf
+    for i in order:
+        if err[i] < best:
+            front.append(i)
+            best = err[i]
+    return np.asarray(front, dtype=int)
+
+
+def _family(method: str, variant: str) -> str:
+    if method == "reference":
+        return "mitsuba oidn" if "oidn" in variant else "mitsuba"
+    return method
+
+
+STYLE = {"specular": ("tab:blue", "o"), "prefiltered": ("tab:green", "s"),
+         "rousiers": ("tab:red", "D"), "mitsuba": ("0.3", "^"),
+         "mitsuba oidn": ("tab:purple", "v")}
+
+
+# Horizontal lines: converged Mitsuba at a limited depth (the best a method modelling that
+# much light can do) and the truth's own noise (two seeds).
+FLOOR_STYLE = {"max_depth 3": ("tab:orange", "-."), "max_depth 4": ("tab:brown", "--"),
+               "max_depth 5": ("tab:olive", ":"), "truth noise": ("0.55", (0, (1, 2)))}
+
+
+def _panel(ax, rows: list[dict], floors: dict[str, float], metric: str, title: str) -> None:
+    timed = [r for r in rows if r["method"] not in ("truth", "floor")]
+    for fam in STYLE:
+        pts = sorted((r for r in timed if _family(r["method"], r["variant"]) == fam),
+                     key=lambda r: r["ms_per_frame"])
+        if not pts:
+            continue
+        color, marker = STYLE[fam]
+        ms = [r["ms_per_frame"] for r in pts]
+        ys = [r[metric] for r in pts]
+        ax.plot(ms, ys, marker=marker, color=color, ls="-" if fam.startswith("mitsuba") else "",
+                ms=5, label=fam)
+        for r, x, y in zip(pts, ms, ys):
+            short = r["variant"].replace(r["method"], "").replace("mitsuba", "").strip()
+            if short:
+                ax.annotate(short, (x, y), fontsize=5, xytext=(2, 2),
+                            textcoords="offset points", color=color)
+    if timed:
+        ms = np.array([r["ms_per_frame"] for r in timed])
+        err = np.array([r[metric] for r in timed])
+        f = pareto_front(ms, err)
+        ax.step(ms[f], err[f], where="post", color="k", lw=0.8, alpha=0.5, label="Pareto front")
+    for name, y in floors.items():
+        color, ls = FLOOR_STYLE.get(name, ("tab:olive", "--"))
+        ax.axhline(y, color=color, ls=ls, lw=0.9, label=name)
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per frame")
+    ax.set_ylabel(metric)
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, which="both", alpha=0.2)
+
+
+def _floor_lines(rows: list[dict], metric: str) -> dict[str, float]:
+    out = {}
+    for r in rows:
+        if r["method"] == "floor":
+            out[r["variant"]] = r[metric]
+        elif r["method"] == "truth":
+            out["truth noise"] = r[metric]
+    return out
+
+
+def plot_pareto(rows: list[dict], metric: str, path: Path) -> None:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    n = len(scenes) + 1
+    cols = min(n, 4)
+    nrows = math.ceil(n / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.4 * nrows), squeeze=False)
+    for ax, s in zip(axes.flat, scenes):
+        rs = [r for r in rows if r["scene"] == s]
+        _panel(ax, rs, _floor_lines(rs, metric), metric, s)
+    # Aggregate: per variant, mean time and mean error over the scenes that all have it.
+    agg = []
+    for v in dict.fromkeys(r["variant"] for r in rows):
+        rs = [r for r in rows if r["variant"] == v]
+        if len({r["scene"] for r in rs}) < len(scenes):
+            continue
+        a = dict(rs[0])
+        a[metric] = float(np.mean([r[metric] for r in rs]))
+        if a["method"] not in ("truth", "floor"):
+            a["ms_per_frame"] = float(np.mean([r["ms_per_frame"] for r in rs]))
+        agg.append(a)
+    _panel(axes.flat[len(scenes)], agg, _floor_lines(agg, metric), metric,
+           f"mean over {len(scenes)} scenes")
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    handles, labels = axes.flat[len(scenes)].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=7)
+    threads = rows[0]["threads"] if rows else "?"
+    fig.suptitle(f"time per frame vs {metric} against full Mitsuba truth "
+                 f"({threads} threads, {rows[0]['machine'] if rows else ''})", fontsize=9)
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_gallery(gallery: dict[str, dict], path: Path) -> None:
+    """Per scene row: truth, the main variants, then their FLIP error maps."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    from torchrefract.image_files import linear_to_srgb8  # noqa: PLC0415
+
+    if not gallery:
+        return
+    names = list(dict.fromkeys(v for g in gallery.values() for v in g["images"]))
+    cols = 1 + 2 * len(names)
+    fig, axes = plt.subplots(len(gallery), cols, figsize=(1.7 * cols, 1.9 * len(gallery)),
+                             squeeze=False)
+    for row, (scene, g) in zip(axes, gallery.items()):
+        panels = [("truth", linear_to_srgb8(g["truth"]), "")]
+        for v in names:
+            if v in g["images"]:
+                panels.append((v, linear_to_srgb8(g["images"][v]),
+                               f"FLIP {g['flip'][v]:.3f}"))
+        for v in names:
+            if v in g["images"]:
+                panels.append((f"{v}: error", flip_magma(g["images"][v], g["truth"]), ""))
+        for ax in row:
+            ax.axis("off")
+        for ax, (title, img, sub) in zip(row, panels):
+            ax.imshow(img)
+            ax.set_title(f"{title}\n{sub}" if sub else title, fontsize=6)
+        row[0].text(-0.08, 0.5, scene, transform=row[0].transAxes, rotation=90,
+                    va="center", ha="right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="Variants: " + ", ".join(v[0] for v in VARIANTS))
+    ap.add_argument("--scenes", nargs="*", default=None,
+                    help="suite scene names (configs/suite/NAME.yaml) or YAML paths "
+                         "(default: configs/suite/*.yaml)")
+    ap.add_argument("--size", type=int, default=None,
+                    help="width = height override (default: the scenes' own; --quick: 32)")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke test: tiny size, few variants, 1 repeat, truth at 16 spp")
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "pareto"))
+    ap.add_argument("--truth-dir", default=str(ROOT / "outputs" / "truth"),
+                    help="truth cache (scripts/accuracy.py's names; default outputs/truth)")
+    ap.add_argument("--truth-spp", type=int, default=None,
+                    help="truth samples per pixel (default 1024; --quick: 16)")
+    ap.add_argument("--repeats", type=int, default=None,
+                    help="timed renders per variant after the warm-up (default 3; --quick 1)")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    ap.add_argument("--variants", nargs="*", default=None,
+                    help="only these variant names (default: all of the table)")
+    ap.add_argument("--metric", default="flip_object", choices=METRICS,
+                    help="y axis of pareto.png (default flip_object)")
+    args = ap.parse_args(argv)
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    size = args.size or (32 if args.quick else None)
+    truth_spp = args.truth_spp or (16 if args.quick else 1024)
+    repeats = args.repeats or (1 if args.quick else 3)
+    variants = QUICK_VARIANTS if args.quick else VARIANTS
+    if args.variants:
+        known = {v[0]: v for v in VARIANTS + QUICK_VARIANTS}
+        bad = [v for v in args.variants if v not in known]
+        if bad:
+            raise SystemExit(f"pareto: unknown variants {bad}; known: {sorted(known)}")
+        variants = [known[v] for v in args.variants]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cache = Path(args.truth_dir)
+
+    from torchrefract.reference import choose_variant  # noqa: PLC0415
+
+    common = {"truth_spp": truth_spp, "threads": torch.get_num_threads(),
+              "machine": machine(), "torch": torch.__version__,
+              "torchrefract": tr.__version__, "mitsuba_variant": choose_variant(),
+              "repeats": repeats}
+    print(f"torch threads {common['threads']}, {common['machine']}, truth spp {truth_spp}, "
+          f"Mitsuba {common['mitsuba_variant']}, {repeats} repeats")
+    rows: list[dict] = []
+    skipped: list[dict] = []
+    gallery: dict[str, dict] = {}
+    csv_path = out / "results.csv"
+    header = f"{'scene':<18}{'variant':<26}{'ms/frame':>10}{'FLIP obj':>10}{'FLIP':>8}" \
+             f"{'HDR-FLIP':>10}{'relMSE obj':>12}"
+    print(header)
+
+    def emit(row: dict) -> None:
+        rows.append(row)
+        ms = row["ms_per_frame"]
+        print(f"{row['scene']:<18}{row['variant']:<26}"
+              f"{'' if ms is None else f'{ms:.0f}':>10}{row['flip_object']:>10.4f}"
+              f"{row['flip']:>8.4f}{row['hdrflip_object']:>10.4f}{row['relmse_object']:>12.4f}",
+              flush=True)
+        write_csv(csv_path, rows)  # after every row: a long run interrupted keeps its rows
+
+    for path in suite_paths(args.scenes):
+        scene = sized(tr.load_scene(path), size)
+        c = scene.camera
+        base = {"scene": scene.name, "width": c.width, "height": c.height, **common}
+        try:
+            t = load_truth(scene, truth_spp, cache)
+        except (NotImplementedError, ImportError, ConfigError) as exc:
+            warnings.warn(f"pareto: {scene.name}: no Mitsuba truth, scene skipped ({exc})",
+                          stacklevel=1)
+            skipped.append({"scene": scene.name, "variant": "*", "reason": str(exc)})
+            continue
+        full, alpha = t["full"], t["alpha"]
+
+        def scored(img: np.ndarray) -> dict:
+            m = compare(img, full, alpha)
+            return {k: m[k] for k in METRICS}
+
+        emit({**base, "method": "truth", "variant": "truth seed 1", "options": "{}",
+              "batch": 1, "samples_per_pixel": 1, "ms_per_frame": None,
+              **scored(t["full2"])})
+        for d, img in t["floors"].items():
+            emit({**base, "method": "floor", "variant": f"max_depth {d}",
+                  "options": json.dumps({"max_depth": d}), "batch": 1,
+                  "samples_per_pixel": 1, "ms_per_frame": None, **scored(img)})
+        gallery[scene.name] = {"truth": full, "images": {}, "flip": {}}
+        for name, method, options, batch, main_variant in variants:
+            s = scene
+            if method == "reference":  # Mitsuba samples the pixel itself: spp per pixel
+                s = sized(scene, None, 1)
+            try:
+                img, ms = time_variant(s, method, options, batch, repeats)
+            except (ConfigError, NotImplementedError, ImportError) as exc:
+                print(f"warning: {scene.name}: variant {name!r} skipped: {exc}", flush=True)
+                skipped.append({"scene": scene.name, "variant": name, "reason": str(exc)})
+                continue
+            met = scored(img)
+            emit({**base, "method": method, "variant": name,
+                  "options": json.dumps(options, sort_keys=True), "batch": batch,
+                  "samples_per_pixel": s.camera.samples_per_pixel, "ms_per_frame": ms, **met})
+            if main_variant:
+                gallery[scene.name]["images"][name] = img
+                gallery[scene.name]["flip"][name] = met["flip_object"]
+
+    if not rows:
+        print("pareto: nothing measured", file=sys.stderr)
+        return 1
+    plot_pareto(rows, args.metric, out / "pareto.png")
+    plot_gallery(gallery, out / "gallery.png")
+    meta = {"args": vars(args), **common, "size": size, "metric": args.metric,
+            "variants": [{"variant": v[0], "method": v[1], "options": v[2], "batch": v[3]}
+                         for v in variants],
+            "skipped": skipped, "columns": list(COLUMNS)}
+    (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    print(f"saved {csv_path}, {out / 'pareto.png'}, {out / 'gallery.png'}")
+    return 0
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in COLUMNS})
+
+
+if __name__ == "__main__":
+    sys.exit(main())
