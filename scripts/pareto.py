@@ -230,7 +230,12 @@ def _panel(ax, rows: list[dict], floors: dict[str, float], metric: str, title: s
     for name, y in floors.items():
         color, ls = FLOOR_STYLE.get(name, ("tab:olive", "--"))
         ax.axhline(y, color=color, ls=ls, lw=0.9, label=name)
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: PLC0415
+
     ax.set_xscale("log")
+    ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("ms per frame")
     ax.set_ylabel(metric)
     ax.set_title(title, fontsize=9)
@@ -257,7 +262,8 @@ def plot_pareto(rows: list[dict], metric: str, path: Path) -> None:
     n = len(scenes) + 1
     cols = min(n, 4)
     nrows = math.ceil(n / cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.4 * nrows), squeeze=False)
+    height = 3.8 * nrows + 0.8  # + the legend's strip
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.8 * cols, height), squeeze=False)
     for ax, s in zip(axes.flat, scenes):
         rs = [r for r in rows if r["scene"] == s]
         _panel(ax, rs, _floor_lines(rs, metric), metric, s)
@@ -281,7 +287,7 @@ def plot_pareto(rows: list[dict], metric: str, path: Path) -> None:
     threads = rows[0]["threads"] if rows else "?"
     fig.suptitle(f"time per frame vs {metric} against full Mitsuba truth "
                  f"({threads} threads, {rows[0]['machine'] if rows else ''})", fontsize=9)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    fig.tight_layout(rect=(0, 0.8 / height, 1, 1 - 0.3 / height))
     fig.savefig(path, dpi=130)
     plt.close(fig)
 
