@@ -12,7 +12,9 @@ The conversion follows SCENE_SPEC.md exactly, because the spec's conventions *ar
   same world-space vertices, faces and *our* per-vertex shading normals (and UVs), so both
   renderers shade with identical normals;
 - material: ``dielectric`` when ``roughness == 0``, else ``roughdielectric`` (``beckmann`` or
-  ``ggx``, ``alpha = max(roughness, 1e-4)``), ``int_ior = ior``, ``ext_ior = 1``;
+  ``ggx``, ``alpha = max(roughness, 1e-4)``), ``int_ior = ior``, ``ext_ior = 1``; with a
+  ``roughness_map``, ``roughdielectric`` whose ``alpha`` is a raw, bilinear, repeating
+  ``bitmap`` texture of ``lo + v (hi - lo)`` over the mesh UVs (see :func:`_alpha_map`);
 - environment: ``envmap`` with ``filename``, ``scale`` and ``to_world = rotate(+Y, rotate_deg)``;
 - sphere lights: ``sphere`` shapes with an ``area`` emitter of the given radiance and a black
   ``diffuse`` BSDF (they reflect nothing and hide what lies behind them).
@@ -142,16 +144,45 @@ def _mitsuba_mesh(mi, scene: Scene, bsdf, interior=None):
     return mesh
 
 
+def _alpha_map(scene: Scene) -> dict | float:
+    """The roughness map as Mitsuba's ``alpha``: a ``bitmap`` texture of alpha values.
+
+    SCENE_SPEC.md: a map value v (raw, RGB averaged, read by
+    :func:`torchrefract.textures.load_roughness_map`) means alpha = lo + v (hi - lo). The
+    affine map is applied to the texels (it commutes with bilinear filtering), clamped to
+    1e-4 like a constant alpha, and handed over as a one-channel float32 ``mi.Bitmap`` with
+    ``raw`` (no sRGB decoding), bilinear filtering and ``repeat`` wrapping. Mitsuba's bitmap
+    puts v = 0 on the image's top row with texel centers at (c + 0.5) / W, (r + 0.5) / H;
+    :func:`_mitsuba_mesh` hands the mesh's UVs over with v flipped, so each point looks up
+    the same texel as :func:`torchrefract.textures.sample_uv` (verified texel by texel in
+    tests/test_reference_mitsuba.py). A mesh without UVs reads the map at UV (0, 0)
+    everywhere in our methods (the G-buffer's UVs are zero), so it gets that constant alpha
+    here too (Mitsuba would otherwise use its own surface parameterization).
+    """
+    import torch  # noqa: PLC0415
+
+    from .textures import load_roughness_map, sample_uv  # noqa: PLC0415
+
+    m = scene.material
+    lo, hi = (float(x) for x in m.roughness_range)
+    tex = load_roughness_map(m.roughness_map)  # (H, W) raw values in [0, 1]
+    if load_mesh(scene.mesh, scene.transform).uvs is None:
+        v0 = float(sample_uv(tex, torch.zeros(2)))
+        return max(lo + v0 * (hi - lo), 1e-4)
+    alpha = np.maximum(lo + tex.numpy().astype(np.float64) * (hi - lo), 1e-4)  # (H, W)
+    bitmap = mitsuba().Bitmap(np.ascontiguousarray(alpha[..., None], dtype=np.float32))
+    return {"type": "bitmap", "bitmap": bitmap, "raw": True, "filter_type": "bilinear",
+            "wrap_mode": "repeat"}
+
+
 def _bsdf_dict(scene: Scene) -> dict:
     m = scene.material
-    if m.roughness_map is not None:
-        raise NotImplementedError(
-            "torchrefract.reference: material.roughness_map is not supported by the Mitsuba "
-            "reference yet (it would need a bitmap alpha texture over the mesh UVs); render "
-            "this scene with a constant material.roughness instead")
     if m.ior == 1.0:  # index-matched: no interface at all (Mitsuba's dielectrics reject
         # equal indices); a null BSDF still bounds the interior medium (absorption)
         return {"type": "null"}
+    if m.roughness_map is not None:  # SCENE_SPEC.md: the map replaces `roughness`
+        return {"type": "roughdielectric", "distribution": m.distribution,
+                "alpha": _alpha_map(scene), "int_ior": float(m.ior), "ext_ior": 1.0}
     if m.roughness == 0.0:
         return {"type": "dielectric", "int_ior": float(m.ior), "ext_ior": 1.0}
     return {"type": "roughdielectric", "distribution": m.distribution,
@@ -189,7 +220,6 @@ def to_mitsuba_dict(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int =
 
     Raises:
         ImportError: Mitsuba is not installed.
-        NotImplementedError: the material has a roughness map.
 
     Example:
         >>> d = to_mitsuba_dict(scene, spp=16)                     # doctest: +SKIP
@@ -287,7 +317,6 @@ def render_reference(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int 
 
     Raises:
         ImportError: Mitsuba is not installed.
-        NotImplementedError: the material has a roughness map.
     """
     mi = mitsuba()
     mscene = mi.load_dict(to_mitsuba_dict(scene, spp=spp, seed=seed, max_depth=max_depth))
