@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -42,7 +43,12 @@ def truth(scene: tr.Scene, spp: int, max_depth: int, seed: int, cache: Path
     t0 = time.perf_counter()
     rgb, alpha = render_reference(scene, spp=spp, seed=seed, max_depth=max_depth)
     dt = time.perf_counter() - t0
-    write_exr(path, {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": alpha})
+    # Written under a temporary name and renamed: a reader (another script sharing the
+    # cache) never sees a half-written file, and an interrupted run leaves no bad entry.
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.exr")
+    write_exr(tmp, {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": alpha})
+    os.replace(tmp, path)
     return rgb, alpha, dt
 
 
