@@ -49,19 +49,27 @@ def test_roughness_recovered_by_gradient_descent(setup):
     assert abs(r.item() - 0.25) < 0.03, r.item()
 
 
-def test_ior_and_roughness_gradients_match_finite_differences(setup):
-    # Moderate roughness: with wide lobes (alpha ~ 0.5) bounding rays start to miss the
-    # back layer, a discrete event that autograd does not see (finite differences do).
+def test_roughness_gradient_matches_local_finite_differences(setup):
+    """d(mean image)/d(roughness) against the median of eight one-sided differences
+    (h = 1e-3 around the point): within 25%.
+
+    The mean image is piecewise smooth in the roughness: where a bounding ray's exit moves
+    to another triangle or misses the back layer, it steps (measured on this 32x32 sphere at
+    IOR 1.5: steps of +1e-3 to +2e-3, 0.2-0.4% of the mean, every 0.02-0.03 in alpha). A
+    central difference over such a step measures the step, not the slope (h = 1e-2 around
+    0.2 gave -0.015 against a slope of -0.095); the median of the one-sided differences
+    skips the intervals that hold a step.
+    """
     for rough, ior in ((0.2, 1.5), (0.1, 1.33)):
         r = torch.tensor([rough], requires_grad=True)
         _image(setup, r, torch.tensor([ior])).mean().backward()
         assert torch.isfinite(r.grad).all()
-        h = 1e-2
-        fd = (_image(setup, torch.tensor([rough + h]), torch.tensor([ior])).mean()
-              - _image(setup, torch.tensor([rough - h]), torch.tensor([ior])).mean()) / (2 * h)
-        # The SG table is interpolated piecewise linearly (autograd sees one cell's slope,
-        # the difference quotient averages over neighbouring cells): same sign, within 2.5x.
-        assert 0.4 < r.grad.item() / fd.item() < 2.5, (r.grad.item(), fd.item())
+        h = 1e-3
+        vals = [_image(setup, torch.tensor([rough + k * h]), torch.tensor([ior])).double().mean()
+                for k in range(-4, 5)]
+        slopes = torch.stack([(vals[k + 1] - vals[k]) / h for k in range(8)])
+        fd = slopes.median().item()
+        assert abs(r.grad.item() - fd) < 0.25 * abs(fd), (r.grad.item(), fd, slopes.tolist())
 
 
 @pytest.mark.parametrize("method", ["specular", "rousiers"])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -40,16 +42,39 @@ def test_ior_one_is_invisible_at_any_roughness(sphere_ply):
         assert rel.max() < 1e-3, (r, rel.max())
 
 
-def test_blur_grows_with_roughness_and_stays_bounded(sphere_ply):
-    env_max = load_envmap(ENV).max()
+@pytest.fixture(scope="module")
+def checker_env_exr(tmp_path_factory):
+    """A lat-long checkerboard (16 x 32 cells, values 0.2 and 1.8): detail in every
+    direction, so any blur lowers the object's contrast."""
+    from torchrefract.image_files import write_exr
+
+    v = torch.arange(128)[:, None] // 8
+    u = torch.arange(256)[None, :] // 8
+    img = torch.where((u + v) % 2 == 0, 1.8, 0.2).float().numpy()
+    path = tmp_path_factory.mktemp("env") / "checker.exr"
+    write_exr(path, {"R": img, "G": img, "B": img})
+    return path
+
+
+def test_blur_grows_with_roughness_and_stays_bounded(sphere_ply, checker_env_exr):
+    """On a map with detail everywhere, the object's contrast falls with roughness.
+
+    (On a studio map it need not: blurring lamps that no refracted ray sees brings them in;
+    measured on studio_small_03 the object std is 1.20 / 0.91 / 1.30 / 1.52 at alpha
+    0.1 / 0.2 / 0.3 / 1.0.)
+    """
     stds = []
-    for r in (0.0, 0.1, 0.3, 1.0):
-        out = tr.render([_scene(sphere_ply, ior=1.5, roughness=r)])
+    for r in (0.0, 0.05, 0.1, 0.3, 1.0):
+        s = dataclasses.replace(_scene(sphere_ply, ior=1.5, roughness=r),
+                                envmap=tr.EnvMap(path=str(checker_env_exr), rotate_deg=30.0))
+        out = tr.render([s])
         obj = out.coverage[0] == 1
         assert torch.isfinite(out.radiance).all()
-        assert out.radiance.max() <= env_max * 1.01
+        assert out.radiance.max() <= 1.8 * 1.01
         stds.append(out.radiance[0][obj].std().item())
-    assert stds == sorted(stds, reverse=True), stds
+    # alpha 0.3 -> 1: both nearly flat (measured 0.052 and 0.051), so no strict order there
+    assert stds[:4] == sorted(stds[:4], reverse=True), stds
+    assert stds[4] < 1.1 * stds[3], stds
 
 
 def test_blur_sharpness_model():
