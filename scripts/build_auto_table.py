@@ -38,8 +38,13 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
             if not cfg.exists():
                 print(f"skip {name}: {cfg} not found")
                 continue
-            scenes[name] = {"name": name, "features": features(tr.load_scene(cfg)),
-                            "variants": []}
+            scene = tr.load_scene(cfg)
+            scenes[name] = {"name": name, "features": features(scene), "variants": [],
+                            "spp": scene.camera.samples_per_pixel}
+        # auto keeps the user's pixel sampling: rows measured at another n x n grid (the
+        # chart's "1x1" variants) are not choices it can make
+        if int(r["samples_per_pixel"] or 0) != scenes[name]["spp"]:
+            continue
         scenes[name]["variants"].append({
             "method": r["method"], "options": json.loads(r["options"] or "{}"),
             "variant": r["variant"], "ms": float(r["ms_per_frame"]), "flip": float(r[metric])})
@@ -47,7 +52,39 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
     threads = next((r["threads"] for r in rows if r.get("threads")), "")
     return {"version": 1, "metric": metric, "source": str(csv_path), "machine": machine,
             "threads": threads, "built": time.strftime("%Y-%m-%d"),
-            "scenes": sorted(scenes.values(), key=lambda s: s["name"])}
+            "scenes": [{k: v for k, v in s.items() if k != "spp"}
+                       for s in sorted(scenes.values(), key=lambda s: s["name"])]}
+
+
+def leave_one_out(table: dict, tolerance: float = 0.05) -> list[dict]:
+    """For every scene of the table, what ``auto`` picks from a table without that scene,
+    and how the pick measured there against the most accurate and the fastest variant."""
+    from torchrefract.methods.auto import AutoOptions, choose, load_table  # noqa: PLC0415
+
+    out = []
+    for i, row in enumerate(table["scenes"]):
+        rest = {**table, "scenes": table["scenes"][:i] + table["scenes"][i + 1:]}
+        tmp = ROOT / "outputs" / "pareto" / f".auto_loo_{row['name']}.json"
+        tmp.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(rest))
+        load_table.cache_clear()
+        scene = tr.load_scene(ROOT / "configs" / "suite" / f"{row['name']}.yaml")
+        c = choose(scene, AutoOptions(auto_tolerance=tolerance, auto_table=str(tmp)))
+        tmp.unlink()
+        load_table.cache_clear()
+        key = (c.method, json.dumps(c.options, sort_keys=True))
+        meas = {(v["method"], json.dumps(v["options"], sort_keys=True)): v
+                for v in row["variants"]}
+        got = meas.get(key)
+        best = min(row["variants"], key=lambda v: v["flip"])
+        fastest = min(row["variants"], key=lambda v: v["ms"])
+        out.append({"scene": row["name"], "pick": got["variant"] if got else str(key),
+                    "pick_ms": got["ms"] if got else None,
+                    "pick_flip": got["flip"] if got else None,
+                    "best": best["variant"], "best_ms": best["ms"], "best_flip": best["flip"],
+                    "fastest": fastest["variant"], "fastest_ms": fastest["ms"],
+                    "fastest_flip": fastest["flip"], "neighbours": list(c.neighbours)})
+    return out
 
 
 def main() -> None:
@@ -55,8 +92,20 @@ def main() -> None:
     ap.add_argument("csv", nargs="?", default=str(ROOT / "outputs" / "pareto" / "results.csv"))
     ap.add_argument("--out", default=str(DEFAULT_TABLE))
     ap.add_argument("--metric", default="flip_object")
+    ap.add_argument("--evaluate", action="store_true",
+                    help="also print a leave-one-out check: per scene, auto's pick from the "
+                         "other scenes' measurements against that scene's best and fastest")
     args = ap.parse_args()
     table = build(Path(args.csv), args.metric)
+    if args.evaluate:
+        print(f"{'scene':<16}{'auto picks (leave-one-out)':<30}{'ms':>6}{'FLIP':>7}   "
+              f"{'most accurate':<24}{'ms':>6}{'FLIP':>7}   {'fastest':<20}{'ms':>6}{'FLIP':>7}")
+        for e in leave_one_out(table):
+            pm = "" if e["pick_ms"] is None else f"{e['pick_ms']:.0f}"
+            pf = "" if e["pick_flip"] is None else f"{e['pick_flip']:.3f}"
+            print(f"{e['scene']:<16}{e['pick']:<30}{pm:>6}{pf:>7}   {e['best']:<24}"
+                  f"{e['best_ms']:>6.0f}{e['best_flip']:>7.3f}   {e['fastest']:<20}"
+                  f"{e['fastest_ms']:>6.0f}{e['fastest_flip']:>7.3f}")
     Path(args.out).write_text(json.dumps(table, indent=1) + "\n")
     print(f"saved {args.out}: {len(table['scenes'])} scenes, "
           f"{sum(len(s['variants']) for s in table['scenes'])} measurements")

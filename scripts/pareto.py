@@ -61,6 +61,7 @@ from accuracy import truth as cached_truth  # noqa: E402  (the one truth rendere
 # with the environment turned by 10 degrees each (distinct images, same cost); the error is
 # the first one's and the time is per frame.
 # --------------------------------------------------------------------------------------
+SPP = "samples_per_pixel"  # in a variant's options: the camera's n x n grid, not a method option
 STEPS_FEWER = {"march_steps": 12, "cone_march_steps": 4, "refine_steps": 6}
 STEPS_MORE = {"march_steps": 64, "cone_march_steps": 16, "refine_steps": 12}
 VARIANTS: list[tuple[str, str, dict, int, bool]] = [
@@ -74,16 +75,33 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers plane b8", "rousiers", {"cone_rays": "plane"}, 8, False),
     ("rousiers steps 12/4/6", "rousiers", STEPS_FEWER, 1, False),
     ("rousiers steps 64/16/12", "rousiers", STEPS_MORE, 1, False),
-    ("specular ib0", "specular", {"internal_bounces": 0}, 1, False),
+    # internal_bounces 0 is the default: the plain "specular" / "rousiers" rows
     ("specular ib1", "specular", {"internal_bounces": 1}, 1, False),
     ("specular ib2", "specular", {"internal_bounces": 2}, 1, False),
-    ("rousiers ib0", "rousiers", {"internal_bounces": 0}, 1, False),
     ("rousiers ib1", "rousiers", {"internal_bounces": 1}, 1, False),
     ("rousiers ib2", "rousiers", {"internal_bounces": 2}, 1, True),
+    ("specular ib auto", "specular", {"internal_bounces": "auto"}, 1, False),
+    ("rousiers ib auto", "rousiers", {"internal_bounces": "auto"}, 1, False),
+    ("specular tir conserve", "specular", {"tir": "conserve"}, 1, False),
+    ("prefiltered tir conserve", "prefiltered", {"tir": "conserve"}, 1, False),
+    ("rousiers tir conserve", "rousiers", {"tir": "conserve"}, 1, False),
+    ("auto", "auto", {}, 1, False),
+    # One sample per pixel instead of the scenes' n x n grid (what a user short of time
+    # would set; Mitsuba's 1 spp is the same pixel count):
+    ("specular 1x1", "specular", {SPP: 1}, 1, False),
+    ("prefiltered 1x1", "prefiltered", {SPP: 1}, 1, False),
+    ("rousiers plane 1x1", "rousiers", {"cone_rays": "plane", SPP: 1}, 1, False),
+    ("rousiers plane 1x1 b8", "rousiers", {"cone_rays": "plane", SPP: 1}, 8, False),
+    ("rousiers ib2 1x1", "rousiers", {"internal_bounces": 2, SPP: 1}, 1, False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
+    # the converged end of the Monte Carlo curve (its error is near the truth's own noise)
+    ("mitsuba 1024spp", "reference", {"spp": 1024, "seed": 11, "denoise": False}, 1, False),
 ]
+LONG_SPP = 1024
+"""Mitsuba variants with at least this many spp are timed by one render after the warm-up
+(10+ s each on a 2-core CPU; their spread is small next to the curve's range)."""
 # --quick: a smoke test of every code path (tiny sizes, few variants, batch 2).
 QUICK_VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("specular", "specular", {}, 1, True),
@@ -196,7 +214,7 @@ def _family(method: str, variant: str) -> str:
 
 STYLE = {"specular": ("tab:blue", "o"), "prefiltered": ("tab:green", "s"),
          "rousiers": ("tab:red", "D"), "mitsuba": ("0.3", "^"),
-         "mitsuba oidn": ("tab:purple", "v")}
+         "mitsuba oidn": ("tab:purple", "v"), "auto": ("gold", "*")}
 
 
 # Horizontal lines: converged Mitsuba at a limited depth (the best a method modelling that
@@ -216,7 +234,8 @@ def _panel(ax, rows: list[dict], floors: dict[str, float], metric: str, title: s
         ms = [r["ms_per_frame"] for r in pts]
         ys = [r[metric] for r in pts]
         ax.plot(ms, ys, marker=marker, color=color, ls="-" if fam.startswith("mitsuba") else "",
-                ms=5, label=fam)
+                ms=11 if fam == "auto" else 5, mec="k" if fam == "auto" else color,
+                label=fam, zorder=3 if fam == "auto" else 2)
         for r, x, y in zip(pts, ms, ys):
             short = r["variant"].replace(r["method"], "").replace("mitsuba", "").strip()
             if short:
@@ -349,10 +368,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     ap.add_argument("--variants", nargs="*", default=None,
                     help="only these variant names (default: all of the table)")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the rows of an existing results.csv in --out (rows of the "
+                         "same scene and variant are replaced); the chart shows them all")
+    ap.add_argument("--report", action="store_true",
+                    help="render nothing: redraw pareto.png and rewrite summary.md from "
+                         "--out's results.csv")
     ap.add_argument("--metric", default="flip_object", choices=METRICS,
                     help="y axis of pareto.png (default flip_object)")
     args = ap.parse_args(argv)
 
+    if args.report:
+        with open(Path(args.out) / "results.csv", newline="") as f:
+            kept = [_parsed(r) for r in csv.DictReader(f)]
+        plot_pareto(kept, args.metric, Path(args.out) / "pareto.png")
+        (Path(args.out) / "summary.md").write_text(summarize(kept, args.metric))
+        print(summarize(kept, args.metric))
+        return 0
     if args.threads:
         torch.set_num_threads(args.threads)
     size = args.size or (32 if args.quick else None)
@@ -381,18 +413,28 @@ def main(argv: list[str] | None = None) -> int:
     skipped: list[dict] = []
     gallery: dict[str, dict] = {}
     csv_path = out / "results.csv"
+    kept: list[dict] = []
+    if args.append and csv_path.exists():
+        with open(csv_path, newline="") as f:
+            kept = [_parsed(r) for r in csv.DictReader(f)]
     header = f"{'scene':<18}{'variant':<26}{'ms/frame':>10}{'FLIP obj':>10}{'FLIP':>8}" \
              f"{'HDR-FLIP':>10}{'relMSE obj':>12}"
     print(header)
 
     def emit(row: dict) -> None:
         rows.append(row)
+        at = [i for i, r in enumerate(kept)
+              if (r["scene"], r["variant"]) == (row["scene"], row["variant"])]
+        if at:  # re-measured: replaced in place
+            kept[at[0]] = row
+        else:
+            kept.append(row)
         ms = row["ms_per_frame"]
         print(f"{row['scene']:<18}{row['variant']:<26}"
               f"{'' if ms is None else f'{ms:.0f}':>10}{row['flip_object']:>10.4f}"
               f"{row['flip']:>8.4f}{row['hdrflip_object']:>10.4f}{row['relmse_object']:>12.4f}",
               flush=True)
-        write_csv(csv_path, rows)  # after every row: a long run interrupted keeps its rows
+        write_csv(csv_path, kept)  # after every row: an interrupted run keeps its rows
 
     for path in suite_paths(args.scenes):
         scene = sized(tr.load_scene(path), size)
@@ -423,8 +465,12 @@ def main(argv: list[str] | None = None) -> int:
             s = scene
             if method == "reference":  # Mitsuba samples the pixel itself: spp per pixel
                 s = sized(scene, None, 1)
+            if SPP in options:
+                s = sized(scene, None, options[SPP])
+                options = {k: v for k, v in options.items() if k != SPP}
             try:
-                img, ms = time_variant(s, method, options, batch, repeats)
+                reps = 1 if method == "reference" and options["spp"] >= LONG_SPP else repeats
+                img, ms = time_variant(s, method, options, batch, reps)
             except (ConfigError, NotImplementedError, ImportError) as exc:
                 print(f"warning: {scene.name}: variant {name!r} skipped: {exc}", flush=True)
                 skipped.append({"scene": scene.name, "variant": name, "reason": str(exc)})
@@ -432,7 +478,8 @@ def main(argv: list[str] | None = None) -> int:
             met = scored(img)
             emit({**base, "method": method, "variant": name,
                   "options": json.dumps(options, sort_keys=True), "batch": batch,
-                  "samples_per_pixel": s.camera.samples_per_pixel, "ms_per_frame": ms, **met})
+                  "samples_per_pixel": s.camera.samples_per_pixel, "ms_per_frame": ms,
+                  "repeats": reps, **met})
             if main_variant:
                 gallery[scene.name]["images"][name] = img
                 gallery[scene.name]["flip"][name] = met["flip_object"]
@@ -440,15 +487,100 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         print("pareto: nothing measured", file=sys.stderr)
         return 1
-    plot_pareto(rows, args.metric, out / "pareto.png")
-    plot_gallery(gallery, out / "gallery.png")
+    plot_pareto(kept, args.metric, out / "pareto.png")
+    (out / "summary.md").write_text(summarize(kept, args.metric))
+    if any(g["images"] for g in gallery.values()) or not args.append:
+        plot_gallery(gallery, out / "gallery.png")
     meta = {"args": vars(args), **common, "size": size, "metric": args.metric,
             "variants": [{"variant": v[0], "method": v[1], "options": v[2], "batch": v[3]}
                          for v in variants],
             "skipped": skipped, "columns": list(COLUMNS)}
+    if args.append and (out / "meta.json").exists():  # the first run's meta, this one added
+        first = json.loads((out / "meta.json").read_text())
+        first.setdefault("appended", []).append(meta)
+        meta = first
     (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     print(f"saved {csv_path}, {out / 'pareto.png'}, {out / 'gallery.png'}")
     return 0
+
+
+def _parsed(row: dict) -> dict:
+    """A results.csv row read back: numbers as numbers, empty cells as None."""
+    out: dict = {}
+    for k, v in row.items():
+        if v == "":
+            out[k] = None
+        elif k in METRICS or k == "ms_per_frame":
+            out[k] = float(v)
+        elif k in ("batch", "width", "height", "samples_per_pixel", "repeats", "truth_spp",
+                   "threads"):
+            out[k] = int(float(v))
+        else:
+            out[k] = v
+    return out
+
+
+def _equal_error_ms(curve: list[dict], err: float, metric: str) -> float | None:
+    """Time at which a Mitsuba curve (points by spp) reaches ``err``: log-log interpolation
+    between the bracketing points; None when even its best point is worse."""
+    pts = sorted((r["ms_per_frame"], r[metric]) for r in curve)
+    for (t0, e0), (t1, e1) in zip(pts, pts[1:]):
+        if e0 <= err:
+            return t0
+        if e1 <= err < e0:
+            f = (math.log(err) - math.log(e0)) / (math.log(e1) - math.log(e0))
+            return math.exp(math.log(t0) + f * (math.log(t1) - math.log(t0)))
+    return pts[0][0] if pts and pts[0][1] <= err else None
+
+
+def summarize(rows: list[dict], metric: str = "flip_object") -> str:
+    """Markdown: per scene, our fastest and most accurate variants against Mitsuba at its
+    cheapest and at equal error, and who holds the Pareto front at which time budgets."""
+    lines = [f"Error: {metric} against full truth. Times: ms per frame (batch-8 rows amortized)."
+             , "", "| scene | floors d3 / d4 / d5 | truth noise | ours fastest | ours most "
+             "accurate | Mitsuba 1 spp | 1 spp + OIDN | Mitsuba time at our best error: "
+             "raw / OIDN | Pareto front (from ms: holder) |", "|---|---|---|---|---|---|---|---|---|"]
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        rs = [r for r in rows if r["scene"] == scene]
+        fl = _floor_lines(rs, metric)
+        timed = [r for r in rs if r["method"] not in ("truth", "floor")]
+        ours = [r for r in timed if r["method"] != "reference"]
+        raw = [r for r in timed if _family(r["method"], r["variant"]) == "mitsuba"]
+        dn = [r for r in timed if _family(r["method"], r["variant"]) == "mitsuba oidn"]
+        if not ours:
+            continue
+        fast = min(ours, key=lambda r: (r["ms_per_frame"], r[metric]))
+        best = min(ours, key=lambda r: (r[metric], r["ms_per_frame"]))
+
+        def cell(r):
+            return f"{r['variant']}: {r['ms_per_frame']:.0f} / {r[metric]:.3f}" if r else "-"
+
+        m1 = next((r for r in raw if r["variant"] == "mitsuba 1spp"), None)
+        d1 = next((r for r in dn if r["variant"] == "mitsuba 1spp oidn"), None)
+        eq = []
+        for curve in (raw, dn):
+            t = _equal_error_ms(curve, best[metric], metric) if curve else None
+            eq.append("-" if t is None else f"{t:.0f} ms ({t / best['ms_per_frame']:.2g}x)")
+        ms = np.array([r["ms_per_frame"] for r in timed])
+        err = np.array([r[metric] for r in timed])
+        segs: list[tuple[str, float]] = []
+        for i in pareto_front(ms, err):
+            r = timed[i]
+            who = "ours" if r["method"] != "reference" else _family(r["method"], r["variant"])
+            if not segs or segs[-1][0] != who:
+                segs.append((who, r["ms_per_frame"]))
+        front = ", ".join(f"{t:.0f}: {w}" for w, t in segs)
+        floors = " / ".join(f"{fl[k]:.3f}" for k in ("max_depth 3", "max_depth 4",
+                                                      "max_depth 5") if k in fl)
+
+        def mits(r):
+            return "-" if r is None else f"{r['ms_per_frame']:.0f} / {r[metric]:.3f}"
+
+        lines.append(
+            f"| {scene} | {floors} | {fl.get('truth noise', float('nan')):.3f} | "
+            f"{cell(fast)} | {cell(best)} | {mits(m1)} | {mits(d1)} | "
+            f"{eq[0]} / {eq[1]} | {front} |")
+    return "\n".join(lines) + "\n"
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:

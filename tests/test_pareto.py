@@ -83,3 +83,27 @@ def test_quick_run_writes_rows_and_figures(tmp_path):
     for name in ("pareto.png", "gallery.png"):
         assert (out / name).stat().st_size > 10_000
     assert len(list(truth.glob("sphere_a03_24x24_*.exr"))) == 5  # 2 seeds + 3 floors
+
+    # --append: a second run adds its rows (a 1x1 variant: one sample per pixel) and keeps
+    # the first run's; the auto table skips rows at another pixel sampling than the scene's.
+    r = subprocess.run([sys.executable, str(SCRIPT), "--append", "--variants", "specular 1x1",
+                        "--scenes", "sphere_a03", "--size", "24", "--threads", "1",
+                        "--repeats", "1", "--truth-spp", "16", "--out", str(out),
+                        "--truth-dir", str(truth)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    with open(out / "results.csv", newline="") as f:
+        rows2 = list(csv.DictReader(f))
+    assert [r["variant"] for r in rows2] == variants + ["specular 1x1"]
+    one = rows2[-1]
+    assert one["samples_per_pixel"] == "1" and json.loads(one["options"]) == {}
+    assert one["flip_object"] != by["specular"]["flip_object"]  # another pixel sampling
+    assert len(json.loads((out / "meta.json").read_text())["appended"]) == 1
+    spec = importlib.util.spec_from_file_location(
+        "build_auto_table", ROOT / "scripts" / "build_auto_table.py")
+    bat = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bat)
+    table = bat.build(out / "results.csv")
+    names = {v["variant"] for s in table["scenes"] for v in s["variants"]}
+    assert "specular" in names and "specular 1x1" not in names
+    assert not {"auto"} & {v["method"] for s in table["scenes"] for v in s["variants"]}
