@@ -4,7 +4,8 @@ Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians,
 with the machine quiet; the thread count is recorded.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
-        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--out outputs/bench]
+        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
+        [--out outputs/bench]
 
 A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``.
 """
@@ -42,7 +43,9 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
     scenes = [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
                                              rotate_deg=scene.envmap.rotate_deg + 10 * i))
               for i in range(batch)]
-    tr.render(scenes, method=method)  # warm-up (context, caches)
+    t0 = time.perf_counter()
+    tr.render(scenes, method=method)  # warm-up (context, caches, compiling)
+    warmup = time.perf_counter() - t0
     totals, stages = [], {}
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -56,6 +59,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
     }
 
 
@@ -67,13 +71,18 @@ def main() -> None:
     ap.add_argument("--batches", nargs="+", type=int, default=[1, 8])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--compile", action="store_true",
+                    help="torch.compile the march (torchrefract.set_compile); the first "
+                         "render of each row (warm-up, not timed) includes the compiling")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench"))
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    tr.set_compile(args.compile)
     base = tr.load_scene(args.scene)
     rows = []
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}")
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
+          f"{', compiled march' if args.compile else ''}")
     print(f"{'method':<28}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
           f"{'peakMB':>8}")
     for method in args.methods:
@@ -88,6 +97,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.platform(),
+            "compiled": args.compile,
             "scene": args.scene, "results": rows}
     (out / "bench.json").write_text(json.dumps(meta, indent=2) + "\n")
     print(f"saved {out / 'bench.json'}")

@@ -9,6 +9,7 @@ Public API::
     out.passes     # dict of (B, H, W, C)
 """
 
+from .accel import set_compile
 from .checks import ConfigError
 from .render import RenderResult, render
 from .scene import Camera, EnvMap, Material, Scene, SphereLight, Transform, load_scene, \
@@ -17,5 +18,5 @@ from .scene import Camera, EnvMap, Material, Scene, SphereLight, Transform, load
 __version__ = "0.1.0"
 
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "Scene",
-           "SphereLight", "Transform", "load_scene", "render", "scene_from_dict",
+           "SphereLight", "Transform", "load_scene", "render", "scene_from_dict", "set_compile",
            "__version__"]

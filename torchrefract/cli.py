@@ -10,6 +10,7 @@ then 1. Invalid command-line use exits with 2.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections import defaultdict
@@ -30,6 +31,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--batch-size", type=int, default=8,
                    help="scenes rendered together in one tensor pass (default 8)")
     r.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    r.add_argument("--compile", action="store_true",
+                   help="torch.compile the ray march (same images; pays off on long runs: "
+                        "seconds of start-up, README 'Compiled march')")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -57,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="samples of one resolution rendered together (default 8)")
     w.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads per rendering process")
+    w.add_argument("--compile", action="store_true",
+                   help="torch.compile the ray march in every rendering process (same "
+                        "images; seconds of start-up per process)")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -184,6 +191,12 @@ def _compare_cmd(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if getattr(args, "compile", False):
+        from . import accel  # noqa: PLC0415
+
+        # the environment carries it to worker processes (local and Ray) as well
+        os.environ["TORCHREFRACT_COMPILE"] = "1"
+        accel.set_compile(True)
     if args.command == "render":
         return _render_cmd(args)
     if args.command == "compare":

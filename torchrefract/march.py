@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .accel import compile_enabled, kernel
 from .gbuffer import GBuffer, interpolate, intersect_triangles
 
 
@@ -91,15 +92,23 @@ class _Projector:
         def sel(x):
             return x if idx is None else x[idx]
 
-        c = sel(self.c0) + s[:, None] * sel(self.ct)  # (M, 3)
-        z = c[:, 2]
-        zs = z.clamp(min=1e-12)
-        px = torch.floor(c[:, 0] / zs * sel(self.sx) + 0.5 * self.w)
-        py = torch.floor(0.5 * self.h - c[:, 1] / zs * sel(self.sy))
-        inside = (z > 1e-12) & (px >= 0) & (px < self.w) & (py >= 0) & (py < self.h)
-        flat = sel(self.base) + py.clamp(0, self.h - 1).long() * self.w \
-            + px.clamp(0, self.w - 1).long()
-        return flat, inside
+        return _pixel_of(sel(self.c0), sel(self.ct), s, sel(self.sx), sel(self.sy),
+                         sel(self.base), self.h, self.w)
+
+
+def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Tensor,
+              sy: torch.Tensor, base: torch.Tensor, h: int, w: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel index (M,) and in-frame flag (M,) of the points at parameters ``s`` (M,)
+    of rays with camera coordinates c0 + s ct (``_Projector``'s per-ray terms)."""
+    c = c0 + s[:, None] * ct  # (M, 3)
+    z = c[:, 2]
+    zs = z.clamp(min=1e-12)
+    px = torch.floor(c[:, 0] / zs * sx + 0.5 * w)
+    py = torch.floor(0.5 * h - c[:, 1] / zs * sy)
+    inside = (z > 1e-12) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+    flat = base + py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
+    return flat, inside
 
 
 def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
@@ -109,6 +118,39 @@ def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
     if pl.shape[1] == 8:  # two layers: also in front of the front face
         beyond = beyond | ((pl[:, 4:7] * x).sum(-1) - pl[:, 7] > 0)
     return ~inside | ~valid[flat] | beyond
+
+
+def _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h: int, w: int
+                      ) -> torch.Tensor:
+    """(M,) bool: the points p + s t (M rays) have left the marched layer(s)."""
+    flat, inside = _pixel_of(c0, ct, s, sx, sy, base, h, w)
+    return _crossed(p + s[:, None] * t, flat, inside, planes, valid)
+
+
+def _bisect_step_eager(lo, hi, c0, ct, p, t, sx, sy, base, planes, valid, h: int, w: int
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One bisection of the bracketing intervals [lo, hi] (N,) of all rays."""
+    mid = 0.5 * (lo + hi)
+    crossed = _crossed_at(c0, ct, p, t, mid, sx, sy, base, planes, valid, h, w)
+    return torch.where(crossed, lo, mid), torch.where(crossed, mid, hi)
+
+
+def _coarse_step_eager(lo, hi, done, frac, c0, ct, p, t, s_max, sx, sy, base, planes, valid,
+                       h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One sample of the coarse search on every ray (no compaction): rays not ``done``
+    that have crossed at s = s_max frac get hi = s and lo = the previous sample
+    s_max (frac - 1/steps), passed as ``frac[1]``. ``frac``: (2,) tensor (a tensor, so that
+    one compiled kernel serves every sample)."""
+    s = s_max * frac[0]
+    crossed = _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h, w) & ~done
+    return (torch.where(crossed, s_max * frac[1], lo), torch.where(crossed, s, hi),
+            done | crossed)
+
+
+# The march's hot steps as kernels (compiled where ``accel`` is enabled: each fuses into
+# one pass over the rays).
+_bisect_step = kernel(_bisect_step_eager)
+_coarse_step = kernel(_coarse_step_eager)
 
 
 def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor
@@ -226,25 +268,39 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     else:
         planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
         valid = g.back.mask.reshape(-1)
+    planes = planes.detach()
     tv = g.meshes.tri_vertices
-    s_max = _bounding_chord(g, batch, p1, t)
-    proj = _Projector(g, batch, p1, t)
+    # Where each ray crosses is a discrete choice (no gradient); the gradient flows through
+    # the exact intersection with the triangle found there (p1 and t below, not detached).
+    p1d, td = p1.detach(), t.detach()
+    s_max = _bounding_chord(g, batch, p1d, td)
+    proj = _Projector(g, batch, p1d, td)
     n = p1.shape[0]
     lo = torch.zeros(n, dtype=p1.dtype)
     hi = s_max.clone()
     every = torch.arange(n)
 
-    def exact_crossed(idx: torch.Tensor | None, s: torch.Tensor) -> torch.Tensor:
+    def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         flat, inside = proj.pixels(idx, s)
-        x = p1 + s[:, None] * t if idx is None else p1[idx] + s[:, None] * t[idx]
-        return _crossed(x, flat, inside, planes, valid)
+        return _crossed(p1d[idx] + s[:, None] * td[idx], flat, inside, planes, valid)
 
     active = every  # rays whose crossing is not bracketed yet
-    if depth_min is None:
+    _, h, w = g.shape
+    if depth_min is None and compile_enabled():
+        # Compiled: every ray at every sample in one fused pass each (cheaper than the
+        # compaction below, which pays for gathers the fused step does not need). The same
+        # intervals: the first sample k where a ray has crossed gives lo = s_{k-1},
+        # hi = s_k; a ray that never crosses gets lo = hi = s_max.
+        done = torch.zeros(n, dtype=torch.bool)
+        for k in range(1, steps + 1):
+            frac = torch.tensor([k / steps, (k - 1) / steps], dtype=p1.dtype)
+            lo, hi, done = _coarse_step(lo, hi, done, frac, proj.c0, proj.ct, p1d, td, s_max,
+                                        proj.sx, proj.sy, proj.base, planes, valid, h, w)
+        lo = torch.where(done, lo, s_max)
+    elif depth_min is None:
         # Compacted state: every per-ray quantity the step needs, packed so that dropping
         # the rays that crossed is one gather (instead of gathering each array every step).
-        _, h, w = g.shape
-        state = torch.cat([proj.c0, proj.ct, p1, t, s_max[:, None], proj.sx[:, None],
+        state = torch.cat([proj.c0, proj.ct, p1d, td, s_max[:, None], proj.sx[:, None],
                            proj.sy[:, None]], 1)  # (N, 15)
         base = proj.base
         ids = every
@@ -252,16 +308,9 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         for k in range(1, steps + 1):
             if ids.numel() == 0:
                 break
-            c0, ct, pp, tt = state[:, 0:3], state[:, 3:6], state[:, 6:9], state[:, 9:12]
             s = state[:, 12] * (k / steps)
-            c = c0 + s[:, None] * ct
-            z = c[:, 2]
-            zs = z.clamp(min=1e-12)
-            px = torch.floor(c[:, 0] / zs * state[:, 13] + 0.5 * w)
-            py = torch.floor(0.5 * h - c[:, 1] / zs * state[:, 14])
-            inside = (z > 1e-12) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-            flat = base + py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
-            crossed = _crossed(pp + s[:, None] * tt, flat, inside, planes, valid)
+            crossed = _crossed_at(state[:, 0:3], state[:, 3:6], state[:, 6:9], state[:, 9:12],
+                                  s, state[:, 13], state[:, 14], base, planes, valid, h, w)
             if bool(crossed.any()):
                 done = crossed.nonzero(as_tuple=True)[0]
                 hi[ids[done]] = s[done]
@@ -274,7 +323,6 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         if ids.numel():
             lo[ids] = last
     else:
-        _, h, w = g.shape
         th, tw = depth_min.shape[1:3]
         dmin = depth_min.reshape(-1)
         for k in range(1, steps + 1):
@@ -304,10 +352,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
             done[idx[found]] = True
             active = active[~done[active]]
     for _ in range(refine):
-        mid = 0.5 * (lo + hi)
-        crossed = exact_crossed(None, mid)
-        hi = torch.where(crossed, mid, hi)
-        lo = torch.where(crossed, lo, mid)
+        lo, hi = _bisect_step(lo, hi, proj.c0, proj.ct, p1d, td, proj.sx, proj.sy, proj.base,
+                              planes, valid, h, w)
 
     # Exact exit: intersect the ray with the crossed layer's triangle at the crossing (first
     # choice: the pixel just beyond the crossing; second: the last pixel still inside). Two
@@ -316,7 +362,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     masks = (g.front.mask.reshape(-1), g.back.mask.reshape(-1))
     if both:
         flat, _ = proj.pixels(None, hi)
-        pl, x = planes[flat], p1 + hi[:, None] * t
+        pl, x = planes[flat], p1d + hi[:, None] * td
         primary_front = ((pl[:, 4:7] * x).sum(-1) - pl[:, 7]) > ((pl[:, :3] * x).sum(-1)
                                                                   - pl[:, 3])
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
