@@ -45,6 +45,9 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
         # chart's "1x1" variants) are not choices it can make
         if int(r["samples_per_pixel"] or 0) != scenes[name]["spp"]:
             continue
+        # compiled rows are a process setting (torchrefract.set_compile), not an option
+        if "compile" in json.loads(r["options"] or "{}"):
+            continue
         scenes[name]["variants"].append({
             "method": r["method"], "options": json.loads(r["options"] or "{}"),
             "variant": r["variant"], "ms": float(r["ms_per_frame"]), "flip": float(r[metric])})

@@ -62,6 +62,7 @@ from accuracy import truth as cached_truth  # noqa: E402  (the one truth rendere
 # the first one's and the time is per frame.
 # --------------------------------------------------------------------------------------
 SPP = "samples_per_pixel"  # in a variant's options: the camera's n x n grid, not a method option
+COMPILE = "compile"  # in a variant's options: torchrefract.set_compile(True) while it runs
 STEPS_FEWER = {"march_steps": 12, "cone_march_steps": 4, "refine_steps": 6}
 STEPS_MORE = {"march_steps": 64, "cone_march_steps": 16, "refine_steps": 12}
 VARIANTS: list[tuple[str, str, dict, int, bool]] = [
@@ -93,6 +94,11 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers plane 1x1", "rousiers", {"cone_rays": "plane", SPP: 1}, 1, False),
     ("rousiers plane 1x1 b8", "rousiers", {"cone_rays": "plane", SPP: 1}, 8, False),
     ("rousiers ib2 1x1", "rousiers", {"internal_bounces": 2, SPP: 1}, 1, False),
+    # The compiled march (torchrefract.accel; same images, its start-up is in the warm-up):
+    ("rousiers compiled", "rousiers", {COMPILE: True}, 1, False),
+    ("rousiers compiled b8", "rousiers", {COMPILE: True}, 8, False),
+    ("rousiers plane 1x1 compiled b8", "rousiers", {"cone_rays": "plane", SPP: 1, COMPILE: True},
+     8, False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
@@ -467,17 +473,21 @@ def main(argv: list[str] | None = None) -> int:
                 s = sized(scene, None, 1)
             if SPP in options:
                 s = sized(scene, None, options[SPP])
-                options = {k: v for k, v in options.items() if k != SPP}
+            render_options = {k: v for k, v in options.items() if k not in (SPP, COMPILE)}
             try:
                 reps = 1 if method == "reference" and options["spp"] >= LONG_SPP else repeats
-                img, ms = time_variant(s, method, options, batch, reps)
+                tr.set_compile(bool(options.get(COMPILE)))
+                img, ms = time_variant(s, method, render_options, batch, reps)
             except (ConfigError, NotImplementedError, ImportError) as exc:
                 print(f"warning: {scene.name}: variant {name!r} skipped: {exc}", flush=True)
                 skipped.append({"scene": scene.name, "variant": name, "reason": str(exc)})
                 continue
+            finally:
+                tr.set_compile(False)
             met = scored(img)
+            recorded = {k: v for k, v in options.items() if k != SPP}  # compile stays
             emit({**base, "method": method, "variant": name,
-                  "options": json.dumps(options, sort_keys=True), "batch": batch,
+                  "options": json.dumps(recorded, sort_keys=True), "batch": batch,
                   "samples_per_pixel": s.camera.samples_per_pixel, "ms_per_frame": ms,
                   "repeats": reps, **met})
             if main_variant:
