@@ -101,3 +101,30 @@ def test_bad_auto_options_are_named(tmp_path):
     bad.write_text("[1, 2]")
     with pytest.raises(ConfigError, match="auto table"):
         tr.render([_scene(auto_table=str(bad))])
+
+
+def test_shipped_table_covers_the_suite_and_its_picks_render():
+    """The table shipped with the package (built from the chart's results.csv by
+    scripts/build_auto_table.py) has every suite scene, only variants a scene file can ask
+    for (the scene's own pixel sampling, batch 1, method options the methods accept), and
+    auto renders with it."""
+    from conftest import ROOT
+    from torchrefract.methods.auto import DEFAULT_TABLE, load_table
+    from torchrefract.render import METHODS
+
+    table = load_table(str(DEFAULT_TABLE))
+    suite = {p.stem for p in (ROOT / "configs" / "suite").glob("*.yaml")}
+    assert {s["name"] for s in table["scenes"]} == suite
+    for s in table["scenes"]:
+        assert len(s["variants"]) >= 10, s["name"]
+        for v in s["variants"]:
+            assert v["method"] in ("specular", "prefiltered", "rousiers"), v
+            METHODS[v["method"]][0](v["options"], None)  # raises on an unknown option
+            assert v["ms"] > 0 and 0 <= v["flip"] <= 1
+    # a rough slab and a smooth sphere, the default table: a choice from two neighbours
+    rough = _scene(mesh=SLAB, roughness=0.25)
+    c = choose(rough)
+    assert len(c.neighbours) == 2 and c.predicted_flip is not None
+    out = tr.render([rough])
+    assert out.scenes[0].method == c.method and out.scenes[0].method_options == c.options
+    assert torch.isfinite(out.radiance).all()
