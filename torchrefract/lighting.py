@@ -173,6 +173,11 @@ def sg_light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: 
     """Fraction of a normalized spherical Gaussian lobe's mass that falls on each sphere
     light's disc.
 
+    de Rousiers et al. (sec. 5.2, eqs. 14-15) stand the light in by an SG of its own and take
+    the SG inner product with the lobe; a sphere light is a uniform disc, whose exact
+    coverage by the lobe this computes instead (so a sharp lobe inside the disc sees the
+    light's full radiance, and none outside it).
+
     The lobe exp(k (v.p - 1)) (normalized over the sphere) and the light's cap (half-angle
     asin(r / d) around the direction to its center, at angle gamma from the axis p) are
     mapped to the plane by the chord length c(x) = sqrt(2 (1 - cos x)), which makes both
