@@ -99,6 +99,8 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers compiled b8", "rousiers", {COMPILE: True}, 8, False),
     ("rousiers plane 1x1 compiled b8", "rousiers", {"cone_rays": "plane", SPP: 1, COMPILE: True},
      8, False),
+    ("rousiers ib2 1x1 compiled b8", "rousiers", {"internal_bounces": 2, SPP: 1, COMPILE: True},
+     8, False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
