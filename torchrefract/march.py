@@ -121,7 +121,7 @@ def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
 
 
 def _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h: int, w: int
-                      ) -> torch.Tensor:
+                ) -> torch.Tensor:
     """(M,) bool: the points p + s t (M rays) have left the marched layer(s)."""
     flat, inside = _pixel_of(c0, ct, s, sx, sy, base, h, w)
     return _crossed(p + s[:, None] * t, flat, inside, planes, valid)
@@ -137,10 +137,10 @@ def _bisect_step_eager(lo, hi, c0, ct, p, t, sx, sy, base, planes, valid, h: int
 
 def _coarse_step_eager(lo, hi, done, frac, c0, ct, p, t, s_max, sx, sy, base, planes, valid,
                        h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One sample of the coarse search on every ray (no compaction): rays not ``done``
-    that have crossed at s = s_max frac get hi = s and lo = the previous sample
-    s_max (frac - 1/steps), passed as ``frac[1]``. ``frac``: (2,) tensor (a tensor, so that
-    one compiled kernel serves every sample)."""
+    """One sample of the coarse search on every ray (no compaction): the rays not yet
+    ``done`` that have crossed at s = s_max k/steps get hi = s and lo = the previous sample
+    s_max (k-1)/steps. ``frac``: the (2,) tensor [k/steps, (k-1)/steps] (a tensor, not
+    floats, so that one compiled kernel serves every sample)."""
     s = s_max * frac[0]
     crossed = _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h, w) & ~done
     return (torch.where(crossed, s_max * frac[1], lo), torch.where(crossed, s, hi),
