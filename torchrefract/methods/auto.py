@@ -9,7 +9,7 @@ Mitsuba truth (object pixels). For a new scene:
 
 1. Features, from the scene alone (no render needed): roughness alpha (a roughness map: the
    middle of its range), IOR, and thinness, the ratio of the smallest to the largest
-   principal extent of the mesh's vertices (a slab ~0.1, a sphere 1).
+   principal extent of the mesh's surface (area-weighted; a slab ~0.1, a sphere 1).
 2. Similar scenes: the two nearest suite scenes in (log10 alpha / 0.5, thinness / 0.2,
    IOR / 0.5) space, weighted by inverse distance.
 3. For each variant, the predicted FLIP and time are those weighted means; ``auto`` picks the
@@ -81,9 +81,19 @@ def features(scene: Scene) -> dict[str, float]:
 
     m = scene.material
     alpha = m.roughness if m.roughness_map is None else 0.5 * sum(m.roughness_range)
-    v = load_mesh(scene.mesh, scene.transform).vertices.double().numpy()
-    sv = np.linalg.svd(v - v.mean(0), compute_uv=False)
-    thin = float(sv[-1] / max(sv[0], 1e-30))
+    mesh = load_mesh(scene.mesh, scene.transform)
+    # Principal axes of the surface, not of the vertex cloud (triangle centroids weighted by
+    # area: a UV sphere's vertices crowd at its poles, which tilts the vertex statistics to
+    # 0.69), and the mesh's full extent along each axis.
+    v = mesh.vertices.double().numpy()
+    tri = v[mesh.faces.numpy()]  # (F, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    c = tri.mean(1)
+    w = area / max(area.sum(), 1e-30)
+    d = c - (w[:, None] * c).sum(0)
+    _, axes = np.linalg.eigh((w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0))
+    ext = np.ptp(v @ axes, axis=0)  # (3,) extents along the axes
+    thin = float(ext.min() / max(ext.max(), 1e-30))
     return {"log_alpha": math.log10(max(alpha, 0.005)), "thin": thin, "ior": float(m.ior)}
 
 
