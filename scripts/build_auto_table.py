@@ -29,6 +29,7 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
     with open(csv_path, newline="") as f:
         rows = list(csv.DictReader(f))
     scenes: dict[str, dict] = {}
+    spp: dict[str, int] = {}  # each scene's own n x n pixel sampling
     for r in rows:
         if r["method"] not in OURS or int(r["batch"] or 0) != 1 or not r["ms_per_frame"]:
             continue
@@ -39,11 +40,11 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
                 print(f"skip {name}: {cfg} not found")
                 continue
             scene = tr.load_scene(cfg)
-            scenes[name] = {"name": name, "features": features(scene), "variants": [],
-                            "spp": scene.camera.samples_per_pixel}
+            scenes[name] = {"name": name, "features": features(scene), "variants": []}
+            spp[name] = scene.camera.samples_per_pixel
         # auto keeps the user's pixel sampling: rows measured at another n x n grid (the
         # chart's "1x1" variants) are not choices it can make
-        if int(r["samples_per_pixel"] or 0) != scenes[name]["spp"]:
+        if int(r["samples_per_pixel"] or 0) != spp[name]:
             continue
         # compiled rows are a process setting (torchrefract.set_compile), not an option
         if "compile" in json.loads(r["options"] or "{}"):
@@ -55,8 +56,7 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
     threads = next((r["threads"] for r in rows if r.get("threads")), "")
     return {"version": 1, "metric": metric, "source": str(csv_path), "machine": machine,
             "threads": threads, "built": time.strftime("%Y-%m-%d"),
-            "scenes": [{k: v for k, v in s.items() if k != "spp"}
-                       for s in sorted(scenes.values(), key=lambda s: s["name"])]}
+            "scenes": sorted(scenes.values(), key=lambda s: s["name"])}
 
 
 def leave_one_out(table: dict, tolerance: float = 0.05) -> list[dict]:

@@ -65,7 +65,6 @@ def kernel(fn: Callable) -> Callable:
                           RuntimeWarning, stacklevel=2)
             return fn(*args, **kwargs)
 
-    run.eager = fn
     return run
 
 
