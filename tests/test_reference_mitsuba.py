@@ -460,7 +460,7 @@ def test_specular_sphere_against_mitsuba(tmp_path):
                      camera=tr.Camera(eye=(0.0, 0.6, 3.4), target=(0.0, 0.0, 0.0),
                                       yfov_deg=40.0, width=64, height=64,
                                       samples_per_pixel=2),
-                     method="specular")
+                     method="specular", method_options={"tir": "clamp"})  # two interfaces
     out = tr.render([scene], method="specular")
     x = out.radiance[0].numpy()  # (64, 64, 3)
     cov = out.coverage[0].numpy()  # (64, 64)

@@ -19,8 +19,10 @@ def _sphere_scene(sphere_ply, env_path, **kw):
                     camera=tr.Camera(**cam), method="specular", **kw)
 
 
-def _analytic_sphere(scene, texels):
-    """Exact two-interface radiance of a unit sphere at the origin (float64, numpy)."""
+def _analytic_sphere(scene, texels, conserve=False):
+    """Exact two-interface radiance of a unit sphere at the origin (float64, numpy);
+    ``conserve``: the exit's reflection leaves along the refracted ray too (exit weight 1:
+    smooth glass loses nothing)."""
     from torchrefract.camera import pixel_rays
 
     d = pixel_rays(scene.camera).double().numpy().reshape(-1, 3)
@@ -57,16 +59,20 @@ def _analytic_sphere(scene, texels):
     env = torch.from_numpy(texels).double()
     look = lambda v: lookup(env, torch.from_numpy(v), scene.envmap.rotate_deg,  # noqa: E731
                             scene.envmap.scale).numpy()
-    lo = f1[:, None] * look(r) + ((1 - f1) * (1 - f2))[:, None] * look(t2)
+    w2 = np.ones_like(f2) if conserve else 1 - f2
+    lo = f1[:, None] * look(r) + ((1 - f1) * w2)[:, None] * look(t2)
     out = np.where(hit[:, None], lo, look(d))
     h, w = scene.camera.height, scene.camera.width
     return out.reshape(h, w, 3), c1.reshape(h, w), hit.reshape(h, w)
 
 
-def test_sphere_matches_analytic_two_interface(sphere_ply, smooth_env_exr):
-    scene = _sphere_scene(sphere_ply, smooth_env_exr, env={"rotate_deg": 25.0})
+@pytest.mark.parametrize("tir", ["clamp", "conserve"])
+def test_sphere_matches_analytic_two_interface(sphere_ply, smooth_env_exr, tir):
+    scene = _sphere_scene(sphere_ply, smooth_env_exr, env={"rotate_deg": 25.0},
+                          method_options={"tir": tir})
     out = tr.render([scene])
-    ref, cos1, hit = _analytic_sphere(scene, load_envmap(smooth_env_exr).numpy())
+    ref, cos1, hit = _analytic_sphere(scene, load_envmap(smooth_env_exr).numpy(),
+                                      conserve=tir == "conserve")
     img = out.radiance[0].double().numpy()
     inner = hit & (cos1 > 0.3)  # away from the silhouette
     assert inner.sum() > 1000

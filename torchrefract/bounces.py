@@ -19,10 +19,12 @@ alive, so a few TIR-trapped pixels never cost a full-frame pass.
 Budget (``internal_bounces``): an integer K (0 = the papers' two interfaces), or ``auto``:
 a ray continues while its reflected throughput (max over RGB) exceeds
 ``bounce_tolerance``, up to ``max_internal_bounces``. At the last interface the method's
-own end rule applies (``tir: clamp`` lets TIR light leave at the critical angle, standing
-in for the bounces not followed); everything else not followed is recorded as residual
-throughput (the ``bounce_residual`` pass), so energy can be audited: in a white furnace
-without absorption, image + (1 - F_entry) residual = 1 per pixel for smooth glass.
+own end rule applies (``tir: conserve``, the default, lets what the interface reflects
+leave there too, times :func:`escape_fraction`, the bounces not followed summed in closed
+form; ``tir: clamp`` lets TIR light leave at the critical angle); everything else not
+followed is recorded as residual throughput (the ``bounce_residual`` pass), so energy can
+be audited: in a white furnace without absorption, image + (1 - F_entry) residual = 1 per
+pixel for smooth glass (with ``clamp``; ``conserve`` leaves no residual).
 Rays lost by the march (they leave the frame or both layers) leave along their current
 direction (the environment there), never garbage.
 """
@@ -32,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Callable
 
+import numpy as np
 import torch
 
 from .checks import ConfigError, check_number, where
@@ -202,4 +205,52 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
     return BounceResult(radiance=out, bounces=bounces, residual=residual, alive=alive_counts)
 
 
-__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "follow"]
+def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha: torch.Tensor,
+                    batch: torch.Tensor, nodes: int = 16, grid: int = 41) -> torch.Tensor:
+    """Fraction of the light reflected back inside that eventually leaves the object: the
+    bounces not followed, summed in closed form (``tir: conserve``'s end rule).
+
+    Light trapped inside meets interface after interface; at each, a fraction T leaves,
+    R is reflected on and L = 1 - T - R is lost to the single-scattering microfacet model's
+    masking-shadowing (absorption aside). Summing the geometric series, a unit of trapped
+    light leaves with T (1 + R + R^2 + ...) = T / (T + L). T and L are the interface's
+    energies averaged over the directions of the trapped light, taken as isotropic inside
+    (the flux on the interface is then cosine-weighted: ``nodes`` Gauss-Legendre nodes in
+    cos theta). A smooth surface loses nothing (L = 0): all trapped light leaves, so a smooth
+    object conserves energy in a white furnace; a rough one keeps what Mitsuba's
+    ``roughdielectric`` keeps over many bounces. L is measured from the table's smooth
+    limit, so it is exactly 0 at alpha = 0.
+
+    Args:
+        table: the SG table (:func:`torchrefract.sgfit.load_sg_table`).
+        ior: (B,) index inside per scene; distribution: (B,) 0 beckmann, 1 ggx.
+        alpha: (N,) roughness at each interface point; batch: (N,) its scene.
+        nodes: quadrature nodes in cos theta; grid: roughness nodes in [0, 1] per scene,
+            interpolated linearly (the fraction is smooth in alpha).
+
+    Returns:
+        (N,) fraction in [0, 1]; differentiable w.r.t. ``ior`` and ``alpha``.
+    """
+    from .sgfit import sg_lookup  # noqa: PLC0415
+
+    x, w = np.polynomial.legendre.leggauss(nodes)
+    mu = torch.as_tensor(0.5 * (x + 1.0), dtype=alpha.dtype)
+    wt = torch.as_tensor(0.5 * w, dtype=alpha.dtype) * 2.0 * mu  # cos-weighted, sums to 1
+    a_grid = torch.linspace(0.0, 1.0, grid, dtype=alpha.dtype)
+    a_grid = torch.cat([a_grid.new_full((1,), table.spec.alpha_min), a_grid[1:]])
+    shape = (ior.shape[0], grid, nodes)
+    args = (mu.expand(shape), (1.0 / ior)[:, None, None].expand(shape),
+            a_grid[None, :, None].expand(shape), distribution[:, None, None].expand(shape))
+    e_t = (sg_lookup(table, *args, "transmit")[3] * wt).sum(-1)  # (B, grid)
+    e_r = (sg_lookup(table, *args, "reflect")[3] * wt).sum(-1)
+    loss = 1.0 - e_t - e_r
+    loss = (loss - loss[:, :1]).clamp(min=0.0)  # 0 at the smooth limit
+    esc = e_t / (e_t + loss).clamp(min=1e-6)
+    esc = torch.where(loss > 0, esc, torch.ones_like(esc))  # (B, grid)
+    pos = alpha.clamp(0.0, 1.0) * (grid - 1)
+    i0 = pos.floor().long().clamp(max=grid - 2)
+    f = pos - i0
+    return esc[batch, i0] * (1.0 - f) + esc[batch, i0 + 1] * f
+
+
+__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "escape_fraction", "follow"]

@@ -30,6 +30,10 @@ class MaterialBatch:
     roughness_maps: tuple[torch.Tensor | None, ...] = ()
     roughness_range: torch.Tensor | None = None
 
+    def distribution_index(self) -> torch.Tensor:
+        """(B,) long: 0 for beckmann, 1 for ggx (the SG table's distribution axis)."""
+        return torch.tensor([1 if d == "ggx" else 0 for d in self.distribution])
+
     @property
     def has_maps(self) -> bool:
         return any(m is not None for m in self.roughness_maps)

@@ -728,10 +728,18 @@ def load_sg_table(spec: SGTableSpec | None = None, cache_dir: str | Path | None 
 # --------------------------------------------------------------------------------------
 
 def _safe_acos01(c: torch.Tensor) -> torch.Tensor:
-    """acos on [0, 1] with a finite gradient at 1 (via atan2(sqrt(1 - c^2), c))."""
+    """acos on [0, 1] with a finite gradient at 1: asin(sqrt(1 - c^2)) above c = 0.5.
+
+    Not ``atan2``: torch's vectorized atan2 and its scalar loop tail round differently, so a
+    pixel's value would depend on where it falls in the batch (a sample rendered alone and
+    in a batch would differ in the last bit); ``asin`` and ``acos`` do not.
+    """
     c = c.clamp(0.0, 1.0)
     s2 = (1.0 - c * c).clamp(min=torch.finfo(c.dtype).eps ** 2)
-    return torch.atan2(torch.sqrt(s2), c)
+    # each branch's argument is clamped to its own range, so the unused one has a finite
+    # gradient too (torch.where would turn inf * 0 into NaN)
+    return torch.where(c > 0.5, torch.asin(torch.sqrt(s2).clamp(max=0.9)),
+                       torch.acos(c.clamp(max=0.5)))
 
 
 def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tensor | float,
@@ -819,6 +827,61 @@ def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tens
     energy = energy.clamp(min=0.0)
     amplitude = energy * k / (2.0 * math.pi * -torch.expm1(-2.0 * k))
     return amplitude, k, angle, energy
+
+
+def interface_energies(table: SGTable, cos_theta_o: torch.Tensor, eta: torch.Tensor,
+                       alpha: torch.Tensor, distribution: str | torch.Tensor,
+                       fresnel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Transmitted and reflected energy of a rough interface with an exact smooth limit.
+
+    The smooth Fresnel split ``(1 - F, F)`` plus what the roughness changes in the table's
+    energies: ``E(alpha) - E(alpha_table_min)`` for each lobe (the directional albedo of
+    the Walter BSDF, the split-sum "DFG" term of real-time engines for reflection and its
+    counterpart for transmission). The change is 0 for ``alpha`` at or below the table's
+    smallest roughness, so a smooth surface gets exact Fresnel; a rough one loses what the
+    single-scattering microfacet model loses to masking-shadowing (Mitsuba's
+    ``roughdielectric`` loses the same).
+
+    Args:
+        table: from :func:`load_sg_table`.
+        cos_theta_o: (...) cosine of the incident direction with the normal on its side.
+        eta: (...) far-side index over incident-side index.
+        alpha: (...) roughness.
+        distribution: as :func:`sg_lookup`.
+        fresnel: (...) the exact smooth reflectance at ``cos_theta_o`` (1 under TIR).
+
+    Returns:
+        e_t, e_r: (...) energies, each >= 0, ``e_t + e_r <= 1`` up to the table's error.
+    """
+    a0 = torch.full_like(alpha, table.spec.alpha_min)
+    both = torch.stack([alpha, a0])  # (2, ...): one lookup per lobe for both roughnesses
+    e_t = sg_lookup(table, cos_theta_o, eta, both, distribution, "transmit")[3]
+    e_r = sg_lookup(table, cos_theta_o, eta, both, distribution, "reflect")[3]
+    fade = matched_fade(eta)
+    t = (1.0 - fresnel + fade * (e_t[0] - e_t[1])).clamp(min=0.0)
+    r = (fresnel + fade * (e_r[0] - e_r[1])).clamp(min=0.0)
+    return t, r
+
+
+#: Width of the fade of the roughness's energy change near an index-matched interface:
+#: full from ``|ln eta| = ln(1 + MATCHED_FADE)`` on (:func:`matched_fade`).
+MATCHED_FADE = 0.1
+
+
+def matched_fade(eta: torch.Tensor | float) -> torch.Tensor:
+    """Weight in [0, 1] of the roughness's energy change at relative index ``eta``.
+
+    At ``eta = 1`` there is no interface: a rough surface bends no ray and the light the
+    single-scattering model loses to masking-shadowing (the microfacets' shadows, light that
+    in truth goes on unchanged) is an artefact of the model; Mitsuba's ``roughdielectric``
+    rejects ``eta = 1`` and loses it at ``1.0001`` (furnace mean 0.974 at alpha 0.5). The
+    change is faded in with a smoothstep of ``|ln eta|`` over ``[0, ln 1.1]``, so an
+    index-matched object is invisible and the image is a smooth function of the IOR at 1
+    (zero slope there); from IOR 1.1 on the model is Mitsuba's.
+    """
+    x = torch.as_tensor(eta).log().abs() / math.log1p(MATCHED_FADE)
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
 
 
 def lobe_axis(view: torch.Tensor, normal: torch.Tensor, axis_polar_angle: torch.Tensor,

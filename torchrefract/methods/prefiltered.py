@@ -69,7 +69,7 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     """
     b, h, w = g.shape
     radiance = background(g, lighting)
-    paths = trace_paths(g, lighting, materials.ior, options)
+    paths = trace_paths(g, lighting, materials, options)
     k_pass = torch.zeros(b * h * w)
     if paths.idx.numel() > 0:
         bi = paths.batch
@@ -80,7 +80,7 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         l_trans = incident_radiance_sg(lighting, bi, paths.p2, paths.t2, k_t)
         att = torch.exp(-materials.absorption[bi] * paths.path[:, None])
         f1 = paths.f1[:, None]
-        l_obj = f1 * l_refl + (1.0 - f1) * paths.w2[:, None] * att * l_trans
+        l_obj = f1 * l_refl + paths.e1[:, None] * paths.w2[:, None] * att * l_trans
         radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
         k_pass[paths.idx] = torch.rsqrt(k_t)  # angular std (radians); 0 when smooth
     passes = path_passes(g, paths)

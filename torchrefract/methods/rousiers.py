@@ -34,10 +34,16 @@ own exit normals, and their angles to the central exit direction give the geomet
 of the lobe's variance, added to the exit roughness's lobe (which then uses the exact exit
 normal, not the NDF). It costs nothing extra: the rays are marched anyway.
 
-Total internal reflection at the exit (``tir: clamp``, the paper's and Wyman's choice): the
-incident angle is clamped to the critical angle and all the transmitted light leaves with
-that lobe (weight 1, as ``specular`` does, so the smooth limit matches it); ``tir: reflect``
-reads the environment with the table's internal reflection lobe instead.
+The exit rule (``tir``). ``conserve`` (default; ours): what the exit reflects inside (all
+of it under total internal reflection) leaves there too, with the transmitted lobe (its
+incident angle clamped to the critical angle), times the fraction of trapped light that
+eventually escapes (:func:`torchrefract.bounces.escape_fraction`), so the image is
+continuous in roughness and IOR at the critical angle and a white furnace keeps what
+Mitsuba keeps. ``clamp`` (the paper's and Wyman's choice): the incident angle is clamped to
+the critical angle and all the transmitted light leaves with that lobe (weight 1, as
+``specular`` does, so the smooth limit matches it), the exit's reflection outside TIR is
+lost; ``tir: reflect`` reads the environment with the table's internal reflection lobe
+instead.
 Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
 
 ``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`; ours, beyond the
@@ -59,7 +65,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from .. import microfacet as mf
-from ..bounces import Arrival, BounceSettings, Shading, follow
+from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
@@ -69,7 +75,7 @@ from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
-from ..sgfit import lobe_axis, load_sg_table, sg_lookup
+from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_lookup
 from .specular import background, bounce_passes, light_in_front
 
 _DIST = {"beckmann": 0, "ggx": 1}
@@ -79,8 +85,8 @@ _DIST = {"beckmann": 0, "ggx": 1}
 class RousiersOptions:
     """Settings of ``rousiers`` (``method_options`` in a scene)."""
 
-    tir: str = "clamp"
-    """Total internal reflection at the exit: ``clamp`` (critical angle) or ``reflect``."""
+    tir: str = "conserve"
+    """Exit rule (module docstring): ``conserve``, ``clamp`` (the paper's) or ``reflect``."""
     cone_rays: str = "march"
     """Footprint rays: ``march`` (the paper: march the four bounding rays) or ``plane``
     (intersect them with the exit point's tangent plane: 5x fewer march steps)."""
@@ -111,7 +117,7 @@ class RousiersOptions:
         check_option_keys(d, keys, cls.METHOD, source)
         return cls(
             bounces=BounceSettings.from_dict(d, source),
-            tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
+            tir=check_choice(d.get("tir", "conserve"), "method_options.tir",
                              ("clamp", "reflect", "conserve"), source),
             cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
                                    ("march", "plane"), source),
@@ -162,6 +168,14 @@ def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
     if bool(ggx.any()):
         l2 = sg_lookup(table, cos_theta, eta, alpha, dist, lobe, sharpness="l2")
         out = tuple(torch.where(ggx, b, a) for a, b in zip(out, l2))
+    fade = matched_fade(eta)
+    if bool((fade < 1).any()):  # near IOR 1: the roughness's energy change fades out
+        a, k, t, e = out
+        e0 = sg_lookup(table, cos_theta, eta, torch.full_like(alpha, table.spec.alpha_min),
+                       dist, lobe)[3]
+        e_f = e0 + fade * (e - e0)
+        a = a * e_f / e.clamp(min=1e-12)  # the amplitude scales with the energy
+        out = (a, k, t, e_f)
     return out
 
 
@@ -219,7 +233,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     ior = materials.ior[bi]
     # Front roughness: the map at the front hit's UV (sec. 5.1), else the uniform value.
     alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx]).clamp(min=mf.ALPHA_MIN)
-    dist = torch.tensor([_DIST[x] for x in materials.distribution])[bi]
+    dist_b = torch.tensor([_DIST[x] for x in materials.distribution])
+    dist = dist_b[bi]
     view = -d
     cos1 = dot(view, n1).clamp(0.0, 1.0)
 
@@ -360,12 +375,14 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         elif exit_mode == "conserve":
             # The paper's clamp, made continuous: what the exit reflects inside (all of it
             # under TIR) leaves here too, with the transmitted lobe (clamped at the critical
-            # angle); the weight is the interface's total kept energy at the true angle.
+            # angle), after the losses of the bounces it would take on its way out
+            # (bounces.escape_fraction); the transmitted part is taken at the true angle.
             cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
             _, k_t2, t_t2, _ = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            esc = escape_fraction(table, materials.ior, dist_b, alpha_exit, bi)
             e_keep = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")[3] \
-                + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3]
+                + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3] * esc
             weight2 = e_keep.clamp(max=1.0)
         else:
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
@@ -496,9 +513,12 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
             refl_part = e_r
             if tir_mode in ("clamp", "conserve"):  # TIR light leaves at the critical
                 # angle: all that this interface keeps at the true angle (the model loses
-                # some to masking); ``conserve``: the reflected part leaves too, always
+                # some to masking); ``conserve``: the reflected part leaves too, always,
+                # after the losses of the bounces not followed (escape_fraction)
+                e_rest = e_r * escape_fraction(table, materials.ior, dist_b, alpha, bi) \
+                    if tir_mode == "conserve" else e_r
                 e_keep = (_lobe(table, cos, 1.0 / ior, alpha, dist, "transmit")[3]
-                          + e_r).clamp(max=1.0)
+                          + e_rest).clamp(max=1.0)
                 leave_all = tir | (tir_mode == "conserve")
                 w_out = torch.where(leave_all, e_keep, e_t)
                 refl_part = torch.where(leave_all, torch.zeros_like(e_r), e_r)

@@ -5,15 +5,29 @@ refracted ray through the back-face buffer to its exit (Oliveira and Brauwers 20
 triangle hit, see :mod:`torchrefract.march`), refract again with the IOR ratio inverted, and
 look the environment up. The front surface's Fresnel reflection is added:
 
-    L = F1 L_env(reflect(d)) + (1 - F1) (1 - F2) exp(-sigma s) L_env(T2)
+    L = F1 L_env(reflect(d)) + (1 - F1) W2 exp(-sigma s) L_env(T2)
 
 with exact unpolarized dielectric Fresnel terms F1 (entry) and F2 (exit), s the path length
-inside and sigma the absorption. Under total internal reflection at the exit, ``tir: clamp``
-(default, as the seeds do) sends the transmitted light out along the critical-angle
-direction with weight (1 - F1), standing in for the light that escapes after further
-bounces; ``tir: reflect`` reflects it once and looks the environment up in that direction.
-Rays whose exit is not found (they leave the frame, miss the back layer) fall back to the
-refracted direction T1, never to garbage.
+inside and sigma the absorption. The exit weight W2 is the ``tir`` rule's:
+
+- ``conserve`` (default; ours): W2 = (1 - F2) + F2 P_esc. What the exit reflects inside
+  (all of it under total internal reflection) leaves there too, along the refracted
+  (critical-angle) direction, times the fraction of trapped light that eventually escapes
+  (:func:`torchrefract.bounces.escape_fraction`: 1 for smooth glass, below 1 for rough
+  glass, which loses light to masking at every bounce). The image is continuous at the
+  critical angle and smooth glass keeps its energy (the white furnace).
+- ``clamp`` (Wyman's and de Rousiers' choice): W2 = 1 - F2, and under TIR the light leaves
+  along the critical-angle direction with weight 1, standing in for the light that escapes
+  after further bounces; the exit's reflection outside TIR is lost.
+- ``reflect``: under TIR the light is reflected once and the environment looked up in that
+  direction.
+
+Rough glass: the rays follow the smooth surface (no blur: see ``prefiltered`` and
+``rousiers``), but the interfaces' energies are the rough surface's
+(:func:`torchrefract.sgfit.interface_energies`: F1, 1 - F1, F2, 1 - F2 become the Walter
+BSDF's reflected and transmitted energies, which add up to less than 1), so the object has
+the brightness of rough glass. Rays whose exit is not found (they leave the frame, miss the
+back layer) fall back to the refracted direction T1, never to garbage.
 
 ``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`): the exit interface
 reflects F2 of the light back inside (all of it under TIR); that part is marched to the next
@@ -27,21 +41,22 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ..bounces import Arrival, BounceSettings, Shading, follow
+from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..checks import check_choice, check_number, check_option_keys
-from ..gbuffer import GBuffer
+from ..gbuffer import GBuffer, interpolate
 from ..lighting import Lighting, hit_lights, incident_radiance
 from ..materials import MaterialBatch
 from ..march import march_back
 from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
+from ..sgfit import interface_energies, load_sg_table
 
 
 @dataclass(frozen=True)
 class SpecularOptions:
     """Settings of ``specular`` (``method_options`` in a scene)."""
 
-    tir: str = "clamp"
-    """Total internal reflection at the exit: ``clamp`` (critical angle) or ``reflect``."""
+    tir: str = "conserve"
+    """Exit rule (module docstring): ``conserve``, ``clamp`` (the papers') or ``reflect``."""
     march_steps: int = 64
     """Coarse samples along the refracted ray (over the bounding sphere's chord)."""
     refine_steps: int = 10
@@ -61,7 +76,7 @@ class SpecularOptions:
         check_option_keys(d, keys, cls.METHOD, source)
         return cls(
             bounces=BounceSettings.from_dict(d, source),
-            tir=check_choice(d.get("tir", "clamp"), "method_options.tir",
+            tir=check_choice(d.get("tir", "conserve"), "method_options.tir",
                              ("clamp", "reflect", "conserve"), source),
             march_steps=check_number(d.get("march_steps", 64), "method_options.march_steps",
                                      source, minimum=1, maximum=4096, integer=True),
@@ -78,11 +93,15 @@ class Paths:
     Attributes:
         idx: (N,) flat index into (B*H*W) of each object pixel; batch: (N,) its view.
         d: (N, 3) camera ray; p1: (N, 3) entry point; n1: (N, 3) entry normal facing the eye.
-        f1: (N,) Fresnel reflectance at entry; refl: (N, 3) mirror direction.
+        f1: (N,) reflectance at entry (Fresnel; the rough surface's reflected energy);
+        e1: (N,) transmittance at entry (1 - F; less the rough surface's masking loss).
+        refl: (N, 3) mirror direction.
         t1: (N, 3) refracted direction inside; found: (N,) exit found by the march.
         p2: (N, 3) exit point (p1 where not found); t2: (N, 3) direction leaving the object.
         n2: (N, 3) outward shading normal at the exit (zeros where not found).
-        w2: (N,) exit transmittance (1 - F2; 1 under TIR and in the fallback).
+        uv2: (N, 2) texture coordinates at the exit.
+        w2: (N,) exit weight: transmittance (1 - F2, rough: its energy), under TIR and
+            ``tir: conserve`` as the rule says; 1 in the fallback.
         path: (N,) length travelled inside; tir: (N,) total internal reflection somewhere.
         hidden: (N,) a sphere light between the eye and the object hides it.
     """
@@ -93,11 +112,13 @@ class Paths:
     p1: torch.Tensor
     n1: torch.Tensor
     f1: torch.Tensor
+    e1: torch.Tensor
     refl: torch.Tensor
     t1: torch.Tensor
     found: torch.Tensor
     p2: torch.Tensor
     n2: torch.Tensor
+    uv2: torch.Tensor
     t2: torch.Tensor
     w2: torch.Tensor
     path: torch.Tensor
@@ -116,38 +137,66 @@ def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
     return incident_radiance(lighting, batch_all, g.eye[batch_all], d_all, max_dist)
 
 
-def trace_paths(g: GBuffer, lighting: Lighting, ior: torch.Tensor,
+def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                 options: SpecularOptions) -> Paths:
-    """Refract every object pixel's camera ray in, march to the exit, refract out."""
+    """Refract every object pixel's camera ray in, march to the exit, refract out.
+
+    The rays follow the smooth surface; the interfaces' energies are those of the rough
+    surface (``sgfit.interface_energies``: exact Fresnel when smooth, less the microfacet
+    model's masking-shadowing loss when rough), at the front hit's roughness and at the
+    exit's.
+    """
     b, h, w = g.shape
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]  # compact: object pixels only
     bi = idx // (h * w)
     d = g.ray_dir.reshape(-1, 3)[idx]  # (N, 3)
     p1 = g.front.position.reshape(-1, 3)[idx]
     n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
-    eta = ior[bi]  # (N,)
+    eta = materials.ior[bi]  # (N,)
     hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
-    f1 = fresnel_dielectric(-dot(d, n1), 1.0 / eta)
+    cos1 = -dot(d, n1)
+    f1 = fresnel_dielectric(cos1, 1.0 / eta)
     t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
     ex = march_back(g, bi, p1, t1, steps=options.march_steps, refine=options.refine_steps)
     n2 = face_forward(ex.normal, t1)  # against the ray: points into the object
-    f2 = fresnel_dielectric(-dot(t1, n2), eta)
+    cos2 = -dot(t1, n2)
+    f2 = fresnel_dielectric(cos2, eta)
     t2, tir2 = refract(t1, n2, eta)
     tir2 = tir2 & ex.found
     if options.tir == "reflect":
         t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
-    w2 = torch.where(tir2, torch.ones_like(f2), 1.0 - f2)
-    if options.tir == "conserve":  # the reflected part leaves here too: continuous at TIR
-        w2 = torch.ones_like(f2)
+    alpha1 = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx])
+    uv2 = interpolate(ex.bary, g.meshes.tri_uvs[ex.tri.clamp(min=0)])
+    if bool((alpha1 > 0).any()):
+        table = load_sg_table()
+        dist_b = materials.distribution_index()
+        dist = dist_b[bi]
+        e_t1, e_r1 = interface_energies(table, cos1, eta, alpha1, dist, f1)
+        alpha2 = torch.where(ex.found, materials.roughness_at(bi, uv2), alpha1)
+        e_t2, e_r2 = interface_energies(table, cos2, 1.0 / eta, alpha2, dist, f2)
+        esc = escape_fraction(table, materials.ior, dist_b, alpha2, bi) \
+            if options.tir == "conserve" else None
+    else:  # smooth: exact Fresnel, nothing lost
+        e_t1, e_r1, e_t2, e_r2 = 1.0 - f1, f1, 1.0 - f2, f2
+        esc = torch.ones_like(f2)
+    one = torch.ones_like(f2)
+    if options.tir == "conserve":
+        # the reflected part leaves here too, after the losses of the bounces not followed
+        # (bounces.escape_fraction; 1 when smooth): continuous at TIR
+        w2 = (e_t2 + e_r2 * esc).clamp(max=1.0)
+    elif options.tir == "reflect":
+        w2 = torch.where(tir2, e_r2, e_t2)
+    else:  # clamp: all TIR light leaves at the critical angle (what the interface keeps)
+        w2 = torch.where(tir2, (e_t2 + e_r2).clamp(max=1.0), e_t2)
     # Fallback where no exit was found: leave along the refracted direction.
     t2 = torch.where(ex.found[:, None], t2, t1)
-    w2 = torch.where(ex.found, w2, torch.ones_like(w2))
+    w2 = torch.where(ex.found, w2, one)
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
                        (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
-    return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=f1, refl=reflect(d, n1), t1=t1,
-                 found=ex.found, p2=p2, n2=ex.normal, t2=t2, w2=w2, path=path, tir=tir1 | tir2,
-                 hidden=hidden)
+    return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=e_r1, e1=e_t1, refl=reflect(d, n1),
+                 t1=t1, found=ex.found, p2=p2, n2=ex.normal, uv2=uv2, t2=t2, w2=w2, path=path,
+                 tir=tir1 | tir2, hidden=hidden)
 
 
 def path_passes(g: GBuffer, paths: Paths) -> dict[str, torch.Tensor]:
@@ -167,7 +216,8 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     Args:
         g: G-buffer of B views at (H, W) (sub-)pixels.
         lighting: environment maps and lights of the B scenes.
-        materials: IOR and absorption per scene (roughness is ignored: smooth surfaces).
+        materials: IOR, absorption, and roughness (for the interfaces' energies only:
+            the rays follow the smooth surface).
         options: method settings.
 
     Returns:
@@ -176,7 +226,7 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     """
     b, h, w = g.shape
     radiance = background(g, lighting)
-    paths = trace_paths(g, lighting, materials.ior, options)
+    paths = trace_paths(g, lighting, materials, options)
     if paths.idx.numel() > 0:
         bi = paths.batch
         l_refl = incident_radiance(lighting, bi, paths.p1, paths.refl)
@@ -185,14 +235,14 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         if options.bounces.enabled:
             n = paths.idx.numel()
             first = Arrival(pix=torch.arange(n), batch=bi, p=paths.p2, t=paths.t1,
-                            normal=paths.n2, uv=torch.zeros(n, 2), found=paths.found,
-                            w=(1.0 - f1) * att, var=torch.zeros(n))
-            res = follow(g, first, _interface(lighting, materials.ior, options.tir),
+                            normal=paths.n2, uv=paths.uv2, found=paths.found,
+                            w=paths.e1[:, None] * att, var=torch.zeros(n))
+            res = follow(g, first, _interface(lighting, materials, options.tir),
                          materials.absorption, options.bounces, n, options.refine_steps)
             l_obj = f1 * l_refl + res.radiance
         else:
             l_trans = incident_radiance(lighting, bi, paths.p2, paths.t2)
-            l_obj = f1 * l_refl + (1.0 - f1) * paths.w2[:, None] * att * l_trans
+            l_obj = f1 * l_refl + paths.e1[:, None] * paths.w2[:, None] * att * l_trans
         radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
     passes = path_passes(g, paths)
     if options.bounces.enabled:
@@ -211,25 +261,42 @@ def bounce_passes(g: GBuffer, idx: torch.Tensor, res) -> dict[str, torch.Tensor]
     return {k: v.view(b, h, w, 1) for k, v in out.items()}
 
 
-def _interface(lighting: Lighting, ior: torch.Tensor, tir_mode: str):
-    """The smooth interface seen from inside: (1 - F) leaves along the refracted ray, F is
-    mirrored back inside; at the last interface the ``tir`` rule lets TIR light leave
-    (``clamp``: critical angle; ``reflect``: the mirror direction), as without bounces."""
+def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
+    """The interface seen from inside: (1 - F) leaves along the refracted ray, F is
+    mirrored back inside (rough surfaces: the energies of ``sgfit.interface_energies``); at
+    the last interface the ``tir`` rule lets TIR light leave (``clamp``: critical angle;
+    ``reflect``: the mirror direction; ``conserve``: the reflected part leaves too, after
+    the losses of the bounces not followed), as without bounces."""
+    dist_b = materials.distribution_index()
 
     def shade(a: Arrival, k: int, last: bool) -> Shading:
-        eta = ior[a.batch]
+        eta = materials.ior[a.batch]
         n_view = face_forward(a.normal, a.t)
-        f = fresnel_dielectric(-dot(a.t, n_view), eta)
+        cos = -dot(a.t, n_view)
+        f = fresnel_dielectric(cos, eta)
         t_out, tir = refract(a.t, n_view, eta)
         r = reflect(a.t, n_view)
         one, zero = torch.ones_like(f), torch.zeros_like(f)
+        alpha = materials.roughness_at(a.batch, a.uv)
+        rough = bool((alpha > 0).any())
+        if rough:
+            table = load_sg_table()
+            e_t, e_r = interface_energies(table, cos, 1.0 / eta, alpha, dist_b[a.batch], f)
+        else:
+            e_t, e_r = 1.0 - f, f
         if last:
             if tir_mode == "reflect":
                 t_out = torch.where(tir[:, None], r, t_out)
-            leave_all = tir | (tir_mode == "conserve")
-            w_out, refl = torch.where(leave_all, one, 1.0 - f), torch.where(leave_all, zero, f)
-        else:
-            w_out, refl = torch.where(tir, zero, 1.0 - f), torch.where(tir, one, f)
+                w_out, refl = torch.where(tir, e_r, e_t), torch.where(tir, zero, e_r)
+            elif tir_mode == "conserve":
+                esc = escape_fraction(table, materials.ior, dist_b, alpha, a.batch) \
+                    if rough else one
+                w_out, refl = (e_t + e_r * esc).clamp(max=1.0), zero
+            else:  # clamp: TIR light leaves at the critical angle (what the interface keeps)
+                w_out = torch.where(tir, (e_t + e_r).clamp(max=1.0), e_t)
+                refl = torch.where(tir, zero, e_r)
+        else:  # smooth TIR: e_t = 0, e_r = 1
+            w_out, refl = e_t, e_r
         # Lost rays (no interface found) leave along their current direction.
         t_out = torch.where(a.found[:, None], t_out, a.t)
         w_out = torch.where(a.found, w_out, one)
