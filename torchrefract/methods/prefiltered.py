@@ -5,7 +5,9 @@ march to the exit through the back-face buffer, exit refraction), then the envir
 read from the SG-pre-convolved pyramid with a blur chosen from the roughness and the IOR
 instead of a sharp lookup. The object's thickness enters through the exact exit point (the
 engines' "solid" refraction models approximate that point from a thickness value) and the
-Beer-Lambert path length.
+Beer-Lambert path length. The interfaces' weights and the exit rule (``tir``) are
+``specular``'s: the rough surface's energies (the engines' split-sum "DFG" term, here for
+both reflection and transmission), ``tir: conserve`` by default.
 
 Blur (small-slope approximation): a microfacet tilted by a slope angle delta deviates a
 refracted ray by delta (1 - 1/eta) on entry and delta (eta - 1) on exit, and a reflected one

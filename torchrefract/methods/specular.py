@@ -17,8 +17,9 @@ inside and sigma the absorption. The exit weight W2 is the ``tir`` rule's:
   glass, which loses light to masking at every bounce). The image is continuous at the
   critical angle and smooth glass keeps its energy (the white furnace).
 - ``clamp`` (Wyman's and de Rousiers' choice): W2 = 1 - F2, and under TIR the light leaves
-  along the critical-angle direction with weight 1, standing in for the light that escapes
-  after further bounces; the exit's reflection outside TIR is lost.
+  along the critical-angle direction with weight 1 (rough glass: what the interface keeps,
+  less its masking loss), standing in for the light that escapes after further bounces;
+  the exit's reflection outside TIR is lost.
 - ``reflect``: under TIR the light is reflected once and the environment looked up in that
   direction.
 
