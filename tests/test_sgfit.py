@@ -256,3 +256,24 @@ def test_lookup_does_not_depend_on_the_batch():
             part = sgfit.sg_lookup(table, c[sl], e[sl], a[sl], "beckmann", lobe)
             for p, f in zip(part, full):
                 assert torch.equal(p, f[sl]), (lobe, sl)
+
+
+def test_energies_alone_equal_the_full_lookup():
+    """``sg_energies`` (one 2-channel pass, used for every interface's weights) gives the
+    energies of ``sg_lookup`` bit for bit, for one distribution, a uniform distribution
+    tensor (one table read) and a mixed one (both)."""
+    table = sgfit.load_sg_table()
+    g = torch.Generator().manual_seed(1)
+    n = 2001
+    c, a = torch.rand(n, generator=g), torch.rand(n, generator=g)
+    e = 0.4 + 2.0 * torch.rand(n, generator=g)
+    for d in ("beckmann", "ggx", torch.ones(n, dtype=torch.long),
+              (torch.rand(n, generator=g) > 0.5).long()):
+        e_t, e_r = sgfit.sg_energies(table, c, e, a, d)
+        assert torch.equal(e_t, sgfit.sg_lookup(table, c, e, a, d, "transmit")[3])
+        assert torch.equal(e_r, sgfit.sg_lookup(table, c, e, a, d, "reflect")[3])
+    mixed = (torch.arange(n) % 2).long()
+    ggx = sgfit.sg_lookup(table, c, e, a, "ggx")[1]
+    beck = sgfit.sg_lookup(table, c, e, a, "beckmann")[1]
+    k = sgfit.sg_lookup(table, c, e, a, mixed)[1]
+    assert torch.equal(k, torch.where(mixed == 1, ggx, beck))

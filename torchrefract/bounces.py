@@ -231,7 +231,7 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     Returns:
         (N,) fraction in [0, 1]; differentiable w.r.t. ``ior`` and ``alpha``.
     """
-    from .sgfit import sg_lookup  # noqa: PLC0415
+    from .sgfit import sg_energies  # noqa: PLC0415
 
     x, w = np.polynomial.legendre.leggauss(nodes)
     mu = torch.as_tensor(0.5 * (x + 1.0), dtype=alpha.dtype)
@@ -241,8 +241,8 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     shape = (ior.shape[0], grid, nodes)
     args = (mu.expand(shape), (1.0 / ior)[:, None, None].expand(shape),
             a_grid[None, :, None].expand(shape), distribution[:, None, None].expand(shape))
-    e_t = (sg_lookup(table, *args, "transmit")[3] * wt).sum(-1)  # (B, grid)
-    e_r = (sg_lookup(table, *args, "reflect")[3] * wt).sum(-1)
+    e_t, e_r = sg_energies(table, *args)
+    e_t, e_r = (e_t * wt).sum(-1), (e_r * wt).sum(-1)  # (B, grid)
     loss = 1.0 - e_t - e_r
     loss = (loss - loss[:, :1]).clamp(min=0.0)  # 0 at the smooth limit
     esc = e_t / (e_t + loss).clamp(min=1e-6)

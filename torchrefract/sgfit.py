@@ -219,6 +219,13 @@ class SGTable:
                 device=device, dtype=dtype).contiguous()
         return self._cache[key]
 
+    def energy_volume(self, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+        """``(2, 2, T, E, A)`` volumes (distribution, lobe) of the energy alone (memoized)."""
+        key = ("energy", dtype, str(device))
+        if key not in self._cache:
+            self._cache[key] = self.data[..., 0].to(device=device, dtype=dtype).contiguous()
+        return self._cache[key]
+
 
 # --------------------------------------------------------------------------------------
 # Fitting
@@ -742,6 +749,69 @@ def _safe_acos01(c: torch.Tensor) -> torch.Tensor:
                        torch.acos(c.clamp(max=0.5)))
 
 
+def _coordinates(table: SGTable, cos_theta_o, eta, alpha, distribution):
+    """Broadcast the lookup's arguments; ``grid_sample`` coordinates (1, P, 1, 1, 3), the
+    shape, the distribution index per point, log alpha, dtype and device."""
+    tensors = [x for x in (cos_theta_o, eta, alpha) if isinstance(x, torch.Tensor)]
+    ref = tensors[0] if tensors else torch.zeros(())
+    dtype = ref.dtype if ref.dtype.is_floating_point else torch.get_default_dtype()
+    for x in tensors:
+        if x.dtype.is_floating_point:
+            dtype = torch.promote_types(dtype, x.dtype)
+    dev = ref.device
+    c = torch.as_tensor(cos_theta_o, dtype=dtype, device=dev)
+    e = torch.as_tensor(eta, dtype=dtype, device=dev)
+    a = torch.as_tensor(alpha, dtype=dtype, device=dev)
+    if isinstance(distribution, torch.Tensor):
+        d_idx = distribution.to(device=dev, dtype=torch.long)
+    else:
+        d_idx = torch.tensor(1 if mf._is_ggx(distribution) else 0, device=dev)
+    shape = torch.broadcast_shapes(c.shape, e.shape, a.shape, d_idx.shape)
+    c, e, a, d_idx = (t.expand(shape) for t in (c, e, a, d_idx))
+
+    spec = table.spec
+    # grid_sample coordinates in [-1, 1] (align_corners: -1 and 1 are the end nodes):
+    # x = log alpha, y = log eta, z = theta_o; clamped to the table (zero gradient outside)
+    theta = _safe_acos01(c)
+    z = theta.clamp(0.0, 0.5 * math.pi) * (4.0 / math.pi) - 1.0
+    le_max = math.log(spec.eta_max)
+    y = torch.log(e.clamp(1.0 / spec.eta_max, spec.eta_max)) / le_max
+    la0, la1 = math.log(spec.alpha_min), math.log(spec.alpha_max)
+    log_a = torch.log(a.clamp(min=mf.ALPHA_MIN))
+    x = (log_a.clamp(la0, la1) - la0) * (2.0 / (la1 - la0)) - 1.0
+    grid = torch.stack([x, y, z], -1).reshape(1, -1, 1, 1, 3)  # (1, P, 1, 1, 3)
+    return grid, shape, d_idx, log_a, dtype, dev
+
+
+def _per_distribution(distribution, d_idx: torch.Tensor, sample) -> torch.Tensor:
+    """``sample(d)`` for the distribution(s) present: one lookup when every point has the
+    same one (the usual batch), both blended by ``torch.where`` otherwise."""
+    if not isinstance(distribution, torch.Tensor):
+        return sample(int(d_idx.reshape(-1)[0]) if d_idx.numel() else 0)
+    flat = d_idx.reshape(-1)
+    if flat.numel() == 0 or bool((flat == flat[0]).all()):
+        return sample(int(flat[0]) if flat.numel() else 0)
+    return torch.where((d_idx != 0)[..., None], sample(1), sample(0))
+
+
+def sg_energies(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tensor | float,
+                alpha: torch.Tensor | float, distribution: str | torch.Tensor = "beckmann"
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The transmitted and reflected lobes' energies only (``sg_lookup(...)[3]`` of both
+    lobes, interpolated identically), in one trilinear pass over a 2-channel volume."""
+    grid, shape, d_idx, _, dtype, dev = _coordinates(table, cos_theta_o, eta, alpha,
+                                                     distribution)
+    vol = table.energy_volume(dtype, dev)  # (2, 2, T, E, A): distribution, lobe
+
+    def sample(d: int) -> torch.Tensor:
+        v = torch.nn.functional.grid_sample(vol[d][None], grid, mode="bilinear",
+                                            padding_mode="border", align_corners=True)
+        return v.reshape(2, -1).t().reshape(*shape, 2)
+
+    out = _per_distribution(distribution, d_idx, sample).clamp(min=0.0)
+    return out[..., 0], out[..., 1]
+
+
 def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tensor | float,
               alpha: torch.Tensor | float, distribution: str | torch.Tensor = "beckmann",
               lobe: str = "transmit", sharpness: str = "moment"
@@ -778,34 +848,9 @@ def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tens
         raise ValueError(f"lobe must be 'transmit' or 'reflect', got {lobe!r}")
     if sharpness not in ("moment", "l2"):
         raise ValueError(f"sharpness must be 'moment' or 'l2', got {sharpness!r}")
-    tensors = [x for x in (cos_theta_o, eta, alpha) if isinstance(x, torch.Tensor)]
-    ref = tensors[0] if tensors else torch.zeros(())
-    dtype = ref.dtype if ref.dtype.is_floating_point else torch.get_default_dtype()
-    for x in tensors:
-        if x.dtype.is_floating_point:
-            dtype = torch.promote_types(dtype, x.dtype)
-    dev = ref.device
-    c = torch.as_tensor(cos_theta_o, dtype=dtype, device=dev)
-    e = torch.as_tensor(eta, dtype=dtype, device=dev)
-    a = torch.as_tensor(alpha, dtype=dtype, device=dev)
-    if isinstance(distribution, torch.Tensor):
-        d_idx = distribution.to(device=dev, dtype=torch.long)
-    else:
-        d_idx = torch.tensor(1 if mf._is_ggx(distribution) else 0, device=dev)
-    shape = torch.broadcast_shapes(c.shape, e.shape, a.shape, d_idx.shape)
-    c, e, a, d_idx = (t.expand(shape) for t in (c, e, a, d_idx))
-
-    spec = table.spec
-    # grid_sample coordinates in [-1, 1] (align_corners: -1 and 1 are the end nodes):
-    # x = log alpha, y = log eta, z = theta_o; clamped to the table (zero gradient outside)
-    theta = _safe_acos01(c)
-    z = theta.clamp(0.0, 0.5 * math.pi) * (4.0 / math.pi) - 1.0
-    le_max = math.log(spec.eta_max)
-    y = torch.log(e.clamp(1.0 / spec.eta_max, spec.eta_max)) / le_max
-    la0, la1 = math.log(spec.alpha_min), math.log(spec.alpha_max)
-    log_a = torch.log(a.clamp(min=mf.ALPHA_MIN))
-    x = (log_a.clamp(la0, la1) - la0) * (2.0 / (la1 - la0)) - 1.0
-    grid = torch.stack([x, y, z], -1).reshape(1, -1, 1, 1, 3)  # (1, P, 1, 1, 3)
+    grid, shape, d_idx, log_a, dtype, dev = _coordinates(table, cos_theta_o, eta, alpha,
+                                                         distribution)
+    la0 = math.log(table.spec.alpha_min)
 
     l_idx = LOBES.index(lobe)
     vol = table.volume(dtype, dev, sharpness)  # (2 * 2, 3, T, E, A)
@@ -815,10 +860,7 @@ def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tens
                                             padding_mode="border", align_corners=True)
         return v.reshape(3, -1).t().reshape(*shape, 3)
 
-    if not isinstance(distribution, torch.Tensor):
-        out = sample(int(d_idx.reshape(-1)[0]) if d_idx.numel() else 0)
-    else:
-        out = torch.where((d_idx != 0)[..., None], sample(1), sample(0))
+    out = _per_distribution(distribution, d_idx, sample)
     energy, log_k, sin_angle = out.unbind(-1)
     angle = torch.asin(sin_angle.clamp(-1.0 + 1e-7, 1.0 - 1e-7))
     # alpha below the table: k ~ 1 / alpha^2 (the lobe width is proportional to alpha).
@@ -855,8 +897,7 @@ def interface_energies(table: SGTable, cos_theta_o: torch.Tensor, eta: torch.Ten
     """
     a0 = torch.full_like(alpha, table.spec.alpha_min)
     both = torch.stack([alpha, a0])  # (2, ...): one lookup per lobe for both roughnesses
-    e_t = sg_lookup(table, cos_theta_o, eta, both, distribution, "transmit")[3]
-    e_r = sg_lookup(table, cos_theta_o, eta, both, distribution, "reflect")[3]
+    e_t, e_r = sg_energies(table, cos_theta_o, eta, both, distribution)
     fade = matched_fade(eta)
     t = (1.0 - fresnel + fade * (e_t[0] - e_t[1])).clamp(min=0.0)
     r = (fresnel + fade * (e_r[0] - e_r[1])).clamp(min=0.0)
