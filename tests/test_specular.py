@@ -196,3 +196,17 @@ def test_sphere_lights_seen_directly_and_through_glass(sphere_ply, smooth_env_ex
     assert (center.mean((0, 1)) > 0.5 * want).all()
     without = tr.render([scene.replace(lights=())]).radiance[0]
     assert without[28:36, 28:36].max() < 3.0
+
+
+@pytest.mark.parametrize("method", ["specular", "prefiltered", "rousiers"])
+def test_conserve_is_the_default_exit_rule(method, sphere_ply, smooth_env_exr):
+    """No ``tir`` option means ``conserve`` (the same image bit for bit), which differs from
+    the papers' ``clamp`` on rough glass (the exit's reflection leaves instead of being
+    lost: brighter)."""
+    scene = _sphere_scene(sphere_ply, smooth_env_exr, camera={"width": 24, "height": 20})
+    scene = scene.replace(method=method, material=tr.Material(roughness=0.3))
+    default = tr.render([scene]).radiance
+    conserve = tr.render([scene.replace(method_options={"tir": "conserve"})]).radiance
+    clamp = tr.render([scene.replace(method_options={"tir": "clamp"})]).radiance
+    assert torch.equal(default, conserve)
+    assert conserve.mean() > clamp.mean() + 1e-3
