@@ -253,4 +253,5 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     return esc[batch, i0] * (1.0 - f) + esc[batch, i0 + 1] * f
 
 
-__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "escape_fraction", "follow"]
+__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "escape_fraction",
+           "follow"]

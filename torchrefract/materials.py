@@ -32,7 +32,7 @@ class MaterialBatch:
 
     def distribution_index(self) -> torch.Tensor:
         """(B,) long: 0 for beckmann, 1 for ggx (the SG table's distribution axis)."""
-        return torch.tensor([1 if d == "ggx" else 0 for d in self.distribution])
+        return torch.tensor([{"beckmann": 0, "ggx": 1}[d] for d in self.distribution])
 
     @property
     def has_maps(self) -> bool:

@@ -78,8 +78,6 @@ from ..optics import dot, face_forward, normalize, refract
 from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_lookup
 from .specular import background, bounce_passes, light_in_front
 
-_DIST = {"beckmann": 0, "ggx": 1}
-
 
 @dataclass(frozen=True)
 class RousiersOptions:
@@ -233,7 +231,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     ior = materials.ior[bi]
     # Front roughness: the map at the front hit's UV (sec. 5.1), else the uniform value.
     alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx]).clamp(min=mf.ALPHA_MIN)
-    dist_b = torch.tensor([_DIST[x] for x in materials.distribution])
+    dist_b = materials.distribution_index()
     dist = dist_b[bi]
     view = -d
     cos1 = dot(view, n1).clamp(0.0, 1.0)
@@ -479,7 +477,7 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
     """The rough interface seen from inside (internal bounces; module docstring): the
     table's transmitted lobe leaves, its reflected lobe goes on. ``first``: the shading of
     the first exit, computed by the cone-traced path above."""
-    dist_b = torch.tensor([_DIST[x] for x in materials.distribution])
+    dist_b = materials.distribution_index()
 
     def shade(a: Arrival, k: int, last: bool) -> Shading:
         if k == 0:
