@@ -70,6 +70,32 @@ def slab_planes(g: GBuffer) -> torch.Tensor:
     return torch.cat([back_planes(g), _planes(g.front, g.eye, away_from_eye=False)], -1)
 
 
+def _camera_planes(g: GBuffer, both: bool) -> torch.Tensor:
+    """The marched planes in each view's camera coordinates, flat: (B*H*W, 4) (back layer)
+    or (B*H*W, 8) (``both``: back, then front), detached.
+
+    A point with camera coordinates C (right, up, forward from the eye) is beyond a plane
+    when ``dot(n_c, C) - c_c > 0``, with n_c = basis n and c_c = c - dot(n, eye): the world
+    test without the world point, which the march then never forms. Where the marched
+    layer(s) are empty the back plane is (0, 0, 0, -1): every point is beyond it, so the
+    test needs no separate validity lookup.
+    """
+    world = slab_planes(g) if both else back_planes(g)  # (B, H, W, 4|8)
+    valid = (g.back.mask & g.front.mask) if both else g.back.mask
+    b = world.shape[0]
+    basis = g.proj[:, 3:12].reshape(b, 3, 3)  # rows: right, up, forward
+    # [n, c] -> [basis n, c - n.eye]: one (B, HW*L, 4) x (B, 4, 4) product per layer
+    m = torch.zeros(b, 4, 4, dtype=world.dtype)
+    m[:, :3, :3] = basis.transpose(1, 2)
+    m[:, :3, 3] = -g.eye
+    m[:, 3, 3] = 1.0
+    cam = torch.bmm(world.reshape(b, -1, 4), m).reshape(world.shape)
+    empty = torch.tensor([0.0, 0.0, 0.0, -1.0] + [0.0] * (world.shape[-1] - 4),
+                         dtype=cam.dtype)
+    cam = torch.where(valid[..., None], cam, empty)
+    return cam.reshape(-1, world.shape[-1]).detach()
+
+
 class _Projector:
     """Pixel lookups of points p1 + s t along rays, linear in s (precomputed per ray)."""
 
@@ -79,8 +105,9 @@ class _Projector:
         eye, r, u, f = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
         rel = p1 - eye
         basis = torch.stack([r, u, f], 1)  # (N, 3, 3) rows: right, up, forward
-        self.c0 = (basis * rel[:, None, :]).sum(-1)  # (N, 3) camera coords of p1
-        self.ct = (basis * t[:, None, :]).sum(-1)  # (N, 3) per unit s
+        both = torch.bmm(basis, torch.stack([rel, t], 2))  # (N, 3, 2)
+        self.c0 = both[..., 0].contiguous()  # (N, 3) camera coords of p1
+        self.ct = both[..., 1].contiguous()  # (N, 3) per unit s
         # pixel x = (cx / (cz ta) + 1) w / 2, y = (1 - cy / (cz t)) h / 2
         self.sx = 0.5 * self.w / p[:, 12]
         self.sy = 0.5 * self.h / p[:, 13]
@@ -96,12 +123,9 @@ class _Projector:
                          sel(self.base), self.h, self.w)
 
 
-def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Tensor,
-              sy: torch.Tensor, base: torch.Tensor, h: int, w: int
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat pixel index (M,) and in-frame flag (M,) of the points at parameters ``s`` (M,)
-    of rays with camera coordinates c0 + s ct (``_Projector``'s per-ray terms)."""
-    c = c0 + s[:, None] * ct  # (M, 3)
+def _pixel_of_camera(c: torch.Tensor, sx: torch.Tensor, sy: torch.Tensor, base: torch.Tensor,
+                     h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel index (M,) and in-frame flag (M,) of points with camera coordinates c."""
     z = c[:, 2]
     zs = z.clamp(min=1e-12)
     px = torch.floor(c[:, 0] / zs * sx + 0.5 * w)
@@ -111,46 +135,59 @@ def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Ten
     return flat, inside
 
 
-def _crossed(x: torch.Tensor, flat: torch.Tensor, inside: torch.Tensor,
-             planes: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Tensor,
+              sy: torch.Tensor, base: torch.Tensor, h: int, w: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel index (M,) and in-frame flag (M,) of the points at parameters ``s`` (M,)
+    of rays with camera coordinates c0 + s ct (``_Projector``'s per-ray terms)."""
+    return _pixel_of_camera(c0 + s[:, None] * ct, sx, sy, base, h, w)
+
+
+def _crossed_at(c0, ct, s, sx, sy, base, planes, h: int, w: int) -> torch.Tensor:
+    """(M,) bool: the points c0 + s ct (camera coordinates, M rays) have left the marched
+    layer(s): outside the frame, or beyond a plane of :func:`_camera_planes` at their
+    pixel (which includes the pixels where the layer is empty)."""
+    c = c0 + s[:, None] * ct  # (M, 3)
+    flat, inside = _pixel_of_camera(c, sx, sy, base, h, w)
     pl = planes[flat]  # (M, 4) or (M, 8)
-    beyond = (pl[:, :3] * x).sum(-1) - pl[:, 3] > 0
+    beyond = (pl[:, :3] * c).sum(-1) - pl[:, 3] > 0
     if pl.shape[1] == 8:  # two layers: also in front of the front face
-        beyond = beyond | ((pl[:, 4:7] * x).sum(-1) - pl[:, 7] > 0)
-    return ~inside | ~valid[flat] | beyond
+        beyond = beyond | ((pl[:, 4:7] * c).sum(-1) - pl[:, 7] > 0)
+    return ~inside | beyond
 
 
-def _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h: int, w: int
-                ) -> torch.Tensor:
-    """(M,) bool: the points p + s t (M rays) have left the marched layer(s)."""
-    flat, inside = _pixel_of(c0, ct, s, sx, sy, base, h, w)
-    return _crossed(p + s[:, None] * t, flat, inside, planes, valid)
+def _search_eager(c0, ct, s_max, sx, sy, base, planes, h: int, w: int, steps: int,
+                  refine: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The whole search on every ray, without compaction: ``steps`` uniform samples over
+    [0, s_max] (the first sample k where a ray has crossed gives lo = s_{k-1}, hi = s_k; a
+    ray that never crosses gets lo = hi = s_max), then ``refine`` bisections. The compiled
+    form of the march: traced once per (steps, refine), every sample and bisection fuse
+    into one pass over the rays that reads each ray's terms once."""
+    lo = torch.zeros_like(s_max)
+    hi = s_max
+    done = torch.zeros_like(s_max, dtype=torch.bool)
+    for k in range(1, steps + 1):
+        s = s_max * (k / steps)
+        crossed = _crossed_at(c0, ct, s, sx, sy, base, planes, h, w) & ~done
+        lo = torch.where(crossed, s_max * ((k - 1) / steps), lo)
+        hi = torch.where(crossed, s, hi)
+        done = done | crossed
+    lo = torch.where(done, lo, s_max)
+    for _ in range(refine):
+        lo, hi = _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, planes, h, w)
+    return lo, hi
 
 
-def _bisect_step_eager(lo, hi, c0, ct, p, t, sx, sy, base, planes, valid, h: int, w: int
+def _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, planes, h: int, w: int
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """One bisection of the bracketing intervals [lo, hi] (N,) of all rays."""
     mid = 0.5 * (lo + hi)
-    crossed = _crossed_at(c0, ct, p, t, mid, sx, sy, base, planes, valid, h, w)
+    crossed = _crossed_at(c0, ct, mid, sx, sy, base, planes, h, w)
     return torch.where(crossed, lo, mid), torch.where(crossed, mid, hi)
 
 
-def _coarse_step_eager(lo, hi, done, frac, c0, ct, p, t, s_max, sx, sy, base, planes, valid,
-                       h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One sample of the coarse search on every ray (no compaction): the rays not yet
-    ``done`` that have crossed at s = s_max k/steps get hi = s and lo = the previous sample
-    s_max (k-1)/steps. ``frac``: the (2,) tensor [k/steps, (k-1)/steps] (a tensor, not
-    floats, so that one compiled kernel serves every sample)."""
-    s = s_max * frac[0]
-    crossed = _crossed_at(c0, ct, p, t, s, sx, sy, base, planes, valid, h, w) & ~done
-    return (torch.where(crossed, s_max * frac[1], lo), torch.where(crossed, s, hi),
-            done | crossed)
-
-
-# The march's hot steps as kernels (compiled where ``accel`` is enabled: each fuses into
-# one pass over the rays).
-_bisect_step = kernel(_bisect_step_eager)
-_coarse_step = kernel(_coarse_step_eager)
+# The compiled march (where ``accel`` is enabled): the whole search as one kernel.
+_search = kernel(_search_eager)
 
 
 def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor
@@ -262,13 +299,7 @@ def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tens
 def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, steps: int,
            refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
            both: bool) -> Exit:
-    if both:
-        planes = slab_planes(g).reshape(-1, 8)  # (B*H*W, 8)
-        valid = (g.back.mask & g.front.mask).reshape(-1)
-    else:
-        planes = back_planes(g).reshape(-1, 4)  # (B*H*W, 4)
-        valid = g.back.mask.reshape(-1)
-    planes = planes.detach()
+    planes = _camera_planes(g, both)  # (B*H*W, 4|8)
     tv = g.meshes.tri_vertices
     # Where each ray crosses is a discrete choice (no gradient); the gradient flows through
     # the exact intersection with the triangle found there (p1 and t below, not detached).
@@ -276,84 +307,79 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     s_max = _bounding_chord(g, batch, p1d, td)
     proj = _Projector(g, batch, p1d, td)
     n = p1.shape[0]
-    lo = torch.zeros(n, dtype=p1.dtype)
-    hi = s_max.clone()
-    every = torch.arange(n)
+    _, h, w = g.shape
 
     def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        flat, inside = proj.pixels(idx, s)
-        return _crossed(p1d[idx] + s[:, None] * td[idx], flat, inside, planes, valid)
+        return _crossed_at(proj.c0[idx], proj.ct[idx], s, proj.sx[idx], proj.sy[idx],
+                           proj.base[idx], planes, h, w)
 
-    active = every  # rays whose crossing is not bracketed yet
-    _, h, w = g.shape
     if depth_min is None and compile_enabled():
-        # Compiled: every ray at every sample in one fused pass each (cheaper than the
-        # compaction below, which pays for gathers the fused step does not need). The same
-        # intervals: the first sample k where a ray has crossed gives lo = s_{k-1},
-        # hi = s_k; a ray that never crosses gets lo = hi = s_max.
-        done = torch.zeros(n, dtype=torch.bool)
-        for k in range(1, steps + 1):
-            frac = torch.tensor([k / steps, (k - 1) / steps], dtype=p1.dtype)
-            lo, hi, done = _coarse_step(lo, hi, done, frac, proj.c0, proj.ct, p1d, td, s_max,
-                                        proj.sx, proj.sy, proj.base, planes, valid, h, w)
-        lo = torch.where(done, lo, s_max)
-    elif depth_min is None:
-        # Compacted state: every per-ray quantity the step needs, packed so that dropping
-        # the rays that crossed is one gather (instead of gathering each array every step).
-        state = torch.cat([proj.c0, proj.ct, p1d, td, s_max[:, None], proj.sx[:, None],
-                           proj.sy[:, None]], 1)  # (N, 15)
-        base = proj.base
-        ids = every
-        last = torch.zeros(n, dtype=p1.dtype)  # the last s still inside, per active ray
-        for k in range(1, steps + 1):
-            if ids.numel() == 0:
-                break
-            s = state[:, 12] * (k / steps)
-            crossed = _crossed_at(state[:, 0:3], state[:, 3:6], state[:, 6:9], state[:, 9:12],
-                                  s, state[:, 13], state[:, 14], base, planes, valid, h, w)
-            if bool(crossed.any()):
-                done = crossed.nonzero(as_tuple=True)[0]
-                hi[ids[done]] = s[done]
-                lo[ids[done]] = last[done]
-                keep = (~crossed).nonzero(as_tuple=True)[0]
-                state, base, ids = state[keep], base[keep], ids[keep]
-                last = s[keep]
-            else:
-                last = s
-        if ids.numel():
-            lo[ids] = last
+        # Compiled: every ray at every sample, search and bisection in one fused pass
+        # (cheaper than the compaction below, which pays for gathers the fused pass does
+        # not need); the same intervals, so the same exits.
+        lo, hi = _search(proj.c0, proj.ct, s_max, proj.sx, proj.sy, proj.base, planes, h, w,
+                         steps, refine)
     else:
-        th, tw = depth_min.shape[1:3]
-        dmin = depth_min.reshape(-1)
-        for k in range(1, steps + 1):
-            if active.numel() == 0:
-                break
-            s0 = s_max[active] * ((k - 1) / steps)
-            s1 = s_max[active] * (k / steps)
-            # Coarse test at the interval's end: can the ray have crossed by s1?
-            c = proj.c0[active] + s1[:, None] * proj.ct[active]  # camera coords
-            flat, inside = proj.pixels(active, s1)
-            px = flat % w
-            py = (flat // w) % h
-            tflat = batch[active] * (th * tw) + (py // tile) * tw + (px // tile)
-            maybe = ~inside | (c[:, 2] >= dmin[tflat] * (1.0 - 1e-6))
-            # Exact search inside the intervals that may hold the crossing.
-            idx = active[maybe]
-            a, b = s0[maybe], s1[maybe]
-            found = torch.zeros(idx.numel(), dtype=torch.bool)
-            for j in range(1, fine_steps + 1):
-                sj = a + (b - a) * (j / fine_steps)
-                cj = exact_crossed(idx, sj) & ~found
-                hi[idx[cj]] = sj[cj]
-                found = found | cj
-                lo[idx[~found]] = sj[~found]
-            lo[active[~maybe]] = s1[~maybe]
-            done = torch.zeros(n, dtype=torch.bool)
-            done[idx[found]] = True
-            active = active[~done[active]]
-    for _ in range(refine):
-        lo, hi = _bisect_step(lo, hi, proj.c0, proj.ct, p1d, td, proj.sx, proj.sy, proj.base,
-                              planes, valid, h, w)
+        lo = torch.zeros(n, dtype=p1.dtype)
+        hi = s_max.clone()
+        if depth_min is None:
+            # Compacted state: every per-ray quantity the step needs, packed so that
+            # dropping the rays that crossed is one gather (instead of one per array).
+            state = torch.cat([proj.c0, proj.ct, s_max[:, None], proj.sx[:, None],
+                               proj.sy[:, None]], 1)  # (N, 9)
+            base = proj.base
+            ids = torch.arange(n)
+            last = torch.zeros(n, dtype=p1.dtype)  # the last s still inside, per active ray
+            for k in range(1, steps + 1):
+                if ids.numel() == 0:
+                    break
+                s = state[:, 6] * (k / steps)
+                crossed = _crossed_at(state[:, 0:3], state[:, 3:6], s, state[:, 7],
+                                      state[:, 8], base, planes, h, w)
+                if bool(crossed.any()):
+                    done = crossed.nonzero(as_tuple=True)[0]
+                    hi[ids[done]] = s[done]
+                    lo[ids[done]] = last[done]
+                    keep = (~crossed).nonzero(as_tuple=True)[0]
+                    state, base, ids = state[keep], base[keep], ids[keep]
+                    last = s[keep]
+                else:
+                    last = s
+            if ids.numel():
+                lo[ids] = last
+        else:
+            th, tw = depth_min.shape[1:3]
+            dmin = depth_min.reshape(-1)
+            active = torch.arange(n)  # rays whose crossing is not bracketed yet
+            for k in range(1, steps + 1):
+                if active.numel() == 0:
+                    break
+                s0 = s_max[active] * ((k - 1) / steps)
+                s1 = s_max[active] * (k / steps)
+                # Coarse test at the interval's end: can the ray have crossed by s1?
+                c = proj.c0[active] + s1[:, None] * proj.ct[active]  # camera coords
+                flat, inside = proj.pixels(active, s1)
+                px = flat % w
+                py = (flat // w) % h
+                tflat = batch[active] * (th * tw) + (py // tile) * tw + (px // tile)
+                maybe = ~inside | (c[:, 2] >= dmin[tflat] * (1.0 - 1e-6))
+                # Exact search inside the intervals that may hold the crossing.
+                idx = active[maybe]
+                a, b = s0[maybe], s1[maybe]
+                found = torch.zeros(idx.numel(), dtype=torch.bool)
+                for j in range(1, fine_steps + 1):
+                    sj = a + (b - a) * (j / fine_steps)
+                    cj = exact_crossed(idx, sj) & ~found
+                    hi[idx[cj]] = sj[cj]
+                    found = found | cj
+                    lo[idx[~found]] = sj[~found]
+                lo[active[~maybe]] = s1[~maybe]
+                done = torch.zeros(n, dtype=torch.bool)
+                done[idx[found]] = True
+                active = active[~done[active]]
+        for _ in range(refine):
+            lo, hi = _bisect_step_eager(lo, hi, proj.c0, proj.ct, proj.sx, proj.sy,
+                                        proj.base, planes, h, w)
 
     # Exact exit: intersect the ray with the crossed layer's triangle at the crossing (first
     # choice: the pixel just beyond the crossing; second: the last pixel still inside). Two
@@ -362,7 +388,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     masks = (g.front.mask.reshape(-1), g.back.mask.reshape(-1))
     if both:
         flat, _ = proj.pixels(None, hi)
-        pl, x = planes[flat], p1d + hi[:, None] * td
+        pl, x = planes[flat], proj.c0 + hi[:, None] * proj.ct  # camera coordinates
         primary_front = ((pl[:, 4:7] * x).sum(-1) - pl[:, 7]) > ((pl[:, :3] * x).sum(-1)
                                                                   - pl[:, 3])
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
