@@ -210,3 +210,30 @@ def test_shipped_meshes_load_closed_with_unit_normals():
         # the mesh is outward-wound: positive signed volume
         tm = trimesh.Trimesh(m.vertices.numpy(), m.faces.numpy(), process=False)
         assert tm.volume > 0
+
+
+@pytest.mark.parametrize("name", ["spot.ply", "suzanne.ply"])
+def test_across_is_the_face_over_the_edge_opposite_each_corner(name):
+    """MeshData.across (the march's walk table): on a closed mesh every corner has a face
+    across its opposite edge, which holds both other corners' positions and not its own."""
+    m = load_mesh(str(ROOT / "assets" / "meshes" / name), Transform())
+    tv = m.vertices[m.faces].numpy()  # (F, 3, 3)
+    across = m.across.numpy()
+    assert across.shape == (m.num_faces, 3) and (across >= 0).all()
+    f = np.arange(m.num_faces)
+    for k in range(3):
+        other = tv[across[:, k]]  # (F, 3 corners, 3)
+        at = [(np.abs(other - tv[:, c][:, None, :]).max(-1) < 1e-6).any(-1) for c in range(3)]
+        assert not at[k].any(), k  # the opposite corner is not on the face across
+        assert all(at[c].all() for c in range(3) if c != k), k  # the edge is shared
+        assert (across[:, k] != f).all()
+
+
+def test_across_on_an_open_mesh_is_minus_one_at_the_border(tmp_path):
+    # two triangles sharing the edge 1-2: corner 0 of face 0 looks across it to face 1
+    path = write_ply(tmp_path / "two.ply", [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]],
+                     [[0, 1, 2], [1, 3, 2]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # not watertight
+        m = load_mesh(path, Transform())
+    assert m.across.tolist() == [[1, -1, -1], [-1, 0, -1]]

@@ -37,6 +37,8 @@ class MeshBatch:
         face_offset: (B,) int64 index of each mesh's first face.
         num_faces: (B,) int64 faces per mesh.
         tri_neighbors: (F, 3) int64 edge-adjacent faces (batch indices, -1 where none).
+        tri_across: (F, 3) int64 the face across the edge opposite each corner (batch
+            indices, -1 where none; ``MeshData.across``).
     """
 
     tri_vertices: torch.Tensor
@@ -45,10 +47,11 @@ class MeshBatch:
     face_offset: torch.Tensor
     num_faces: torch.Tensor
     tri_neighbors: torch.Tensor
+    tri_across: torch.Tensor
 
     @staticmethod
     def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
-        tv, tn, tu, nb, counts = [], [], [], [], []
+        tv, tn, tu, nb, ac, counts = [], [], [], [], [], []
         offset = 0
         for m in meshes:
             f = m.faces
@@ -56,12 +59,13 @@ class MeshBatch:
             tn.append(m.normals[f])
             tu.append(m.uvs[f] if m.uvs is not None else torch.zeros(f.shape[0], 3, 2))
             nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
+            ac.append(torch.where(m.across >= 0, m.across + offset, m.across))
             counts.append(f.shape[0])
             offset += f.shape[0]
         counts_t = torch.tensor(counts, dtype=torch.int64)
         offsets = torch.cumsum(counts_t, 0) - counts_t
         return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t,
-                         torch.cat(nb))
+                         torch.cat(nb), torch.cat(ac))
 
 
 @dataclass(frozen=True)

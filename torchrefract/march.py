@@ -207,7 +207,7 @@ def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.
     return (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
 
 
-def _walk_to_containing(p1, t, tv, neighbors, found, tri, s_exit, bary, s_min, s_max,
+def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_max,
                         max_steps: int = 16):
     """Move each exit to the triangle that contains it.
 
@@ -226,14 +226,8 @@ def _walk_to_containing(p1, t, tv, neighbors, found, tri, s_exit, bary, s_min, s
             break
         sel = active.nonzero(as_tuple=True)[0]
         worst = cur_bary[sel].argmin(-1)  # the vertex opposite the edge to cross
-        rows = torch.arange(sel.numel())
-        v_opp = tv[cur_tri[sel], worst]  # (M, 3)
-        nb = neighbors[cur_tri[sel]]  # (M, 3)
-        nbv = tv[nb.clamp(min=0)]  # (M, 3, 3, 3)
-        shares = ((nbv - v_opp[:, None, None, :]).abs().amax(-1) < 1e-6).any(-1)  # (M, 3)
-        across = (nb >= 0) & ~shares
-        has = across.any(-1)
-        nxt = nb[rows, across.float().argmax(-1)]
+        nxt = across[cur_tri[sel], worst]  # the face across that edge (MeshData.across)
+        has = nxt >= 0
         st, bt = intersect_triangles(p1[sel], t[sel], tv[nxt.clamp(min=0)])
         ok = has & torch.isfinite(st) & (st > s_min[sel]) & (st <= 1.5 * s_max[sel])
         cur_tri[sel] = torch.where(ok, nxt, cur_tri[sel])
@@ -398,30 +392,40 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         back = torch.zeros(n, dtype=torch.bool)
         tries = [(hi, back), (lo, back)]
         s_min = torch.zeros_like(s_max)
-    found = torch.zeros(n, dtype=torch.bool)
-    s_exit = torch.zeros(n, dtype=p1.dtype)
-    tri = torch.full((n,), -1, dtype=torch.int64)
-    layer = torch.full((n,), -1, dtype=torch.int64)
-    bary = torch.zeros(n, 3, dtype=p1.dtype)
-    for s_try, use_front in tries:
-        todo = (~found).nonzero(as_tuple=True)[0]  # only the rays still without an exit
-        if todo.numel() == 0:
-            break
-        flat, inside = proj.pixels(todo, s_try[todo])
-        uf = use_front[todo]
+    def candidates(todo: torch.Tensor | None, s_try: torch.Tensor, use_front: torch.Tensor):
+        """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``:
+        the triangle seen at that pixel in the chosen layer, and the hit with it."""
+        def sel(x):
+            return x if todo is None else x[todo]
+
+        flat, inside = proj.pixels(todo, sel(s_try))
+        uf = sel(use_front)
         seen = torch.where(uf, masks[0][flat], masks[1][flat])
         cand = torch.where(inside & seen, torch.where(uf, tri_maps[0][flat], tri_maps[1][flat]),
                            torch.full_like(flat, -1))
-        st, bt = intersect_triangles(p1[todo], t[todo], tv[cand.clamp(min=0)])
-        ok = (cand >= 0) & torch.isfinite(st) & (st > s_min[todo]) \
-            & (st <= s_max[todo] * 1.5)
+        st, bt = intersect_triangles(sel(p1), sel(t), tv[cand.clamp(min=0)])
+        ok = (cand >= 0) & torch.isfinite(st) & (st > sel(s_min)) & (st <= sel(s_max) * 1.5)
+        return cand, st, bt, ok, uf
+
+    # The first try on every ray at once (no gathers), the others on the rays still
+    # without an exit.
+    tri, s_exit, bary, found, uf = candidates(None, *tries[0])
+    s_exit = torch.where(found, s_exit, torch.zeros_like(s_exit))
+    tri = torch.where(found, tri, torch.full_like(tri, -1))
+    bary = torch.where(found[:, None], bary, torch.zeros_like(bary))
+    layer = torch.where(found, (~uf).long(), torch.full_like(tri, -1))
+    for s_try, use_front in tries[1:]:
+        todo = (~found).nonzero(as_tuple=True)[0]  # only the rays still without an exit
+        if todo.numel() == 0:
+            break
+        cand, st, bt, ok, uf = candidates(todo, s_try, use_front)
         hit = todo[ok]
         s_exit[hit] = st[ok]
         tri[hit] = cand[ok]
         layer[hit] = (~uf[ok]).long()
         bary[hit] = bt[ok]
         found[hit] = True
-    tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_neighbors, found, tri,
+    tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_across, found, tri,
                                             s_exit, bary, s_min, s_max)
     normal = interpolate(bary, g.meshes.tri_normals[tri.clamp(min=0)])
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-20)

@@ -32,6 +32,8 @@ class MeshData:
         uvs: (V, 2) texture coordinates (OpenGL convention) or None.
         watertight: whether every edge is shared by exactly two faces.
         neighbors: (F, 3) int64 faces sharing an edge with each face (-1 where none).
+        across: (F, 3) int64 the face across the edge opposite each corner: the first of
+            ``neighbors`` without a vertex at that corner's position (-1 where none).
     """
 
     vertices: torch.Tensor
@@ -40,6 +42,7 @@ class MeshData:
     uvs: torch.Tensor | None
     watertight: bool
     neighbors: torch.Tensor
+    across: torch.Tensor
 
     @property
     def num_faces(self) -> int:
@@ -162,11 +165,36 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
             if fill[f] < 3:  # non-manifold edges may list more; three are plenty
                 neighbors[f, fill[f]] = g
                 fill[f] += 1
+    v32 = verts.astype(np.float32)
     return MeshData(
-        vertices=torch.from_numpy(verts.astype(np.float32)),
+        vertices=torch.from_numpy(v32),
         faces=torch.from_numpy(faces),
         normals=torch.from_numpy(normals.astype(np.float32)),
         uvs=None if uvs is None else torch.from_numpy(uvs.astype(np.float32)),
         watertight=watertight,
         neighbors=torch.from_numpy(neighbors),
+        across=torch.from_numpy(across_edges(v32[faces], neighbors)),
     )
+
+
+def across_edges(tri_vertices: np.ndarray, neighbors: np.ndarray, tol: float = 1e-6
+                 ) -> np.ndarray:
+    """(F, 3) the neighbour across the edge opposite each corner of each face.
+
+    For corner k of face f: the first of ``neighbors[f]`` (in order) none of whose corners
+    lies within ``tol`` (per axis) of corner k's position, -1 where there is none. By
+    position, not vertex index, so that faces meeting at split vertices (normal or UV
+    seams) are neighbours too. The walk of the march (``march._walk_to_containing``) crosses
+    the edge opposite a barycentric's most negative corner through this table.
+
+    Args:
+        tri_vertices: (F, 3, 3) float32 corner positions; neighbors: (F, 3) int64.
+    """
+    nbv = tri_vertices[np.maximum(neighbors, 0)]  # (F, 3 neighbours, 3 corners, 3)
+    # has[f, j, k]: neighbour j has a vertex at corner k of f
+    has = (np.abs(nbv[:, :, None, :, :] - tri_vertices[:, None, :, None, :]).max(-1)
+           < tol).any(-1)  # (F, 3, 3)
+    ok = (neighbors >= 0)[:, :, None] & ~has  # (F, j, k)
+    first = ok.argmax(1)  # (F, k): the first neighbour j that qualifies
+    across = np.take_along_axis(neighbors, first, 1)
+    return np.where(ok.any(1), across, -1).astype(np.int64)
