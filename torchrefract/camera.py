@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from kornia.geometry import create_meshgrid
 
+from .optics import dot
 from .scene import Camera
 
 
@@ -97,10 +98,10 @@ def project(points: torch.Tensor, params: torch.Tensor) -> tuple[torch.Tensor, t
     eye, r, u, f = (p[:, i:i + 3].view(*shape, 3) for i in (0, 3, 6, 9))
     ta, t, w, h = (p[:, 12 + i].view(shape) for i in range(4))
     rel = points - eye
-    z = (rel * f).sum(-1)
+    z = dot(rel, f)
     zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
-    x = (rel * r).sum(-1) / (zs * ta)  # in [-1, 1] across the image
-    y = (rel * u).sum(-1) / (zs * t)
+    x = dot(rel, r) / (zs * ta)  # in [-1, 1] across the image
+    y = dot(rel, u) / (zs * t)
     px = (x + 1.0) * 0.5 * w
     py = (1.0 - y) * 0.5 * h
     return torch.stack([px, py], -1), z

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from .camera import pixel_rays, projection_params
 from .mesh import MeshData
+from .optics import dot
 from .raster import visibility_pass
 from .scene import Camera
 
@@ -141,15 +142,15 @@ def intersect_triangles(origin: torch.Tensor, direction: torch.Tensor,
     v0, v1, v2 = tri_vertices.unbind(-2)
     e1, e2 = v1 - v0, v2 - v0
     p = torch.cross(direction, e2, dim=-1)
-    det = (e1 * p).sum(-1)
+    det = dot(e1, p)
     ok = det.abs() > 1e-30
     inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)),
                       torch.zeros_like(det))
     s = origin - v0
-    u = (s * p).sum(-1) * inv
+    u = dot(s, p) * inv
     q = torch.cross(s, e1, dim=-1)
-    v = (direction * q).sum(-1) * inv
-    t = (e2 * q).sum(-1) * inv
+    v = dot(direction, q) * inv
+    t = dot(e2, q) * inv
     t = torch.where(ok, t, torch.full_like(t, float("inf")))
     return t, torch.stack([1.0 - u - v, u, v], -1)
 
@@ -165,8 +166,10 @@ def interpolate(bary: torch.Tensor, corner_values: torch.Tensor) -> torch.Tensor
         (..., C)
     """
     w = bary.clamp(min=0.0)
-    w = w / w.sum(-1, keepdim=True).clamp(min=1e-12)
-    return (w.unsqueeze(-1) * corner_values).sum(-2)
+    w = w / (w[..., 0:1] + w[..., 1:2] + w[..., 2:3]).clamp(min=1e-12)
+    # per corner, in the order of a sum over the corner axis (same values, less time)
+    return (w[..., 0:1] * corner_values[..., 0, :] + w[..., 1:2] * corner_values[..., 1, :]
+            + w[..., 2:3] * corner_values[..., 2, :])
 
 
 def _repair_edge_ids(cand_ids: torch.Tensor, ids: torch.Tensor, pb: torch.Tensor,
@@ -205,7 +208,7 @@ def _repair_edge_ids(cand_ids: torch.Tensor, ids: torch.Tensor, pb: torch.Tensor
     ctv = meshes.tri_vertices[cand.clamp(min=0)].double()  # (S, k, 3, 3)
     t, cb = intersect_triangles(os_, ds, ctv)
     gn = torch.cross(ctv[..., 1, :] - ctv[..., 0, :], ctv[..., 2, :] - ctv[..., 0, :], dim=-1)
-    facing = (gn * ds).sum(-1)
+    facing = dot(gn, ds)
     facing_ok = facing > 0 if back else facing < 0
     ok = (cand >= 0) & (cb.min(-1).values >= -tol) & (t > 0) & torch.isfinite(t) & facing_ok
     t = torch.where(ok, t, torch.full_like(t, float("inf")))
@@ -244,7 +247,7 @@ def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: to
     n = interpolate(bary, meshes.tri_normals[tri].double())
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
     uv = interpolate(bary, meshes.tri_uvs[tri].double())
-    depth = t * (d * forward.double()[pb]).sum(-1)
+    depth = t * dot(d, forward.double()[pb])
 
     def scatter(v: torch.Tensor, c: int | None, fill=0.0, dtype=torch.float32):
         shape = (b, h, w) if c is None else (b, h, w, c)

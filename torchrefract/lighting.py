@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from . import envmap
+from .optics import dot
 from .scene import Scene
 
 
@@ -80,8 +81,8 @@ def hit_lights(origin: torch.Tensor, direction: torch.Tensor, pos: torch.Tensor,
         return (torch.full(origin.shape[:1], float("inf"), dtype=origin.dtype),
                 torch.zeros_like(origin))
     oc = origin[:, None, :] - pos  # (N, L, 3)
-    bq = (oc * direction[:, None, :]).sum(-1)  # (N, L)
-    c = (oc * oc).sum(-1) - radius * radius
+    bq = dot(oc, direction[:, None, :])  # (N, L)
+    c = dot(oc, oc) - radius * radius
     disc = bq * bq - c
     sq = torch.sqrt(disc.clamp(min=0.0))
     t0, t1 = -bq - sq, -bq + sq
@@ -207,7 +208,7 @@ def sg_light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: 
     d = to.norm(dim=-1).clamp(min=1e-30)
     r = radius.to(dt)
     cos_t = torch.sqrt((1.0 - (r / d) ** 2).clamp(min=0.0))  # cap half-angle's cosine
-    cos_g = ((to / d[..., None]) * direction.to(dt)[:, None, :]).sum(-1).clamp(-1.0, 1.0)
+    cos_g = dot(to / d[..., None], direction.to(dt)[:, None, :]).clamp(-1.0, 1.0)
     big_r = torch.sqrt((2.0 * (1.0 - cos_t)).clamp(min=0.0))
     c_g = torch.sqrt((2.0 * (1.0 - cos_g)).clamp(min=0.0))
     k = sharpness.to(dt).clamp(max=1e12)[:, None].expand_as(d)

@@ -22,6 +22,7 @@ import torch
 
 from .accel import compile_enabled, kernel
 from .gbuffer import GBuffer, interpolate, intersect_triangles
+from .optics import dot
 
 
 @dataclass(frozen=True)
@@ -49,9 +50,9 @@ class Exit:
 
 def _planes(layer, eye: torch.Tensor, away_from_eye: bool) -> torch.Tensor:
     n = layer.geo_normal
-    away = ((layer.position - eye[:, None, None, :]) * n).sum(-1, keepdim=True)
+    away = dot(layer.position - eye[:, None, None, :], n)[..., None]
     n = torch.where((away < 0) if away_from_eye else (away > 0), -n, n)
-    c = (n * layer.position).sum(-1, keepdim=True)
+    c = dot(n, layer.position)[..., None]
     return torch.cat([n, c], -1)
 
 
@@ -150,9 +151,9 @@ def _crossed_at(c0, ct, s, sx, sy, base, planes, h: int, w: int) -> torch.Tensor
     c = c0 + s[:, None] * ct  # (M, 3)
     flat, inside = _pixel_of_camera(c, sx, sy, base, h, w)
     pl = planes[flat]  # (M, 4) or (M, 8)
-    beyond = (pl[:, :3] * c).sum(-1) - pl[:, 3] > 0
+    beyond = dot(pl[:, :3], c) - pl[:, 3] > 0
     if pl.shape[1] == 8:  # two layers: also in front of the front face
-        beyond = beyond | ((pl[:, 4:7] * c).sum(-1) - pl[:, 7] > 0)
+        beyond = beyond | (dot(pl[:, 4:7], c) - pl[:, 7] > 0)
     return ~inside | beyond
 
 
@@ -202,8 +203,8 @@ def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.
         radii.append((v - c).norm(dim=-1).max())
     center, radius = torch.stack(centers)[batch], torch.stack(radii)[batch]  # (N, 3), (N,)
     oc = p1 - center
-    bq = (oc * t).sum(-1)
-    cq = (oc * oc).sum(-1) - radius * radius
+    bq = dot(oc, t)
+    cq = dot(oc, oc) - radius * radius
     return (-bq + torch.sqrt((bq * bq - cq).clamp(min=0.0))).clamp(min=1e-6) * 1.01
 
 
@@ -383,8 +384,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     if both:
         flat, _ = proj.pixels(None, hi)
         pl, x = planes[flat], proj.c0 + hi[:, None] * proj.ct  # camera coordinates
-        primary_front = ((pl[:, 4:7] * x).sum(-1) - pl[:, 7]) > ((pl[:, :3] * x).sum(-1)
-                                                                  - pl[:, 3])
+        primary_front = (dot(pl[:, 4:7], x) - pl[:, 7]) > (dot(pl[:, :3], x) - pl[:, 3])
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
                  (lo, ~primary_front)]
         s_min = 1e-4 * s_max

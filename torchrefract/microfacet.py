@@ -62,6 +62,8 @@ from typing import Literal
 
 import torch
 
+from .optics import dot
+
 Distribution = Literal["beckmann", "ggx"]
 
 #: Smallest roughness; smaller values are clamped (as Mitsuba 3 does).
@@ -92,7 +94,7 @@ def _alpha(alpha: torch.Tensor | float, like: torch.Tensor) -> torch.Tensor:
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1)
+    return dot(a, b)
 
 
 def _mulsign(x: torch.Tensor, s: torch.Tensor) -> torch.Tensor:

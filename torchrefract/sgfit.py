@@ -99,6 +99,7 @@ import numpy as np
 import torch
 
 from . import microfacet as mf
+from .optics import dot
 
 log = logging.getLogger(__name__)
 
@@ -939,13 +940,13 @@ def lobe_axis(view: torch.Tensor, normal: torch.Tensor, axis_polar_angle: torch.
         (..., 3) ``-sin(t) u -/+ cos(t) n`` with ``u`` the unit tangential part of ``view``
         (any tangent at normal incidence, where ``t = 0``).
     """
-    vt = view - (view * normal).sum(-1, keepdim=True) * normal
-    n2 = (vt * vt).sum(-1, keepdim=True)
+    vt = view - dot(view, normal)[..., None] * normal
+    n2 = dot(vt, vt)[..., None]
     ok = n2 > 1e-24
     # fallback tangent: any vector orthogonal to the normal
     alt = torch.where((normal[..., :1].abs() < 0.9), torch.tensor([1.0, 0.0, 0.0]).to(normal),
                       torch.tensor([0.0, 1.0, 0.0]).to(normal))
-    alt = alt - (alt * normal).sum(-1, keepdim=True) * normal
+    alt = alt - dot(alt, normal)[..., None] * normal
     u = torch.where(ok, vt / torch.sqrt(torch.where(ok, n2, torch.ones_like(n2))),
                     alt / alt.norm(dim=-1, keepdim=True))
     sign = -1.0 if lobe == "transmit" else 1.0
@@ -967,4 +968,4 @@ def sg_eval(direction: torch.Tensor, axis: torch.Tensor, sharpness: torch.Tensor
         (...) value.
     """
     d = direction - axis
-    return amplitude * torch.exp(-0.5 * sharpness * (d * d).sum(-1))
+    return amplitude * torch.exp(-0.5 * sharpness * dot(d, d))

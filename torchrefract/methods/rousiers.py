@@ -258,8 +258,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         n4 = ex4.normal.view(n, 4, 3)
     else:  # intersect with the tangent plane at the central exit
         pn = torch.where(ex.found[:, None], ex.normal, p_t1)
-        denom = (dirs * pn[:, None, :]).sum(-1)
-        s = ((ex.position - p1) * pn).sum(-1, keepdim=True) / denom.clamp(min=1e-6)
+        denom = dot(dirs, pn[:, None, :])
+        s = dot(ex.position - p1, pn)[..., None] / denom.clamp(min=1e-6)
         q = p1[:, None, :] + s[..., None] * dirs
         ok4 = (denom > 1e-6) & ex.found[:, None]
         n4 = None  # read from the back layer below, at the exits' pixels
@@ -338,7 +338,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
         t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
         # squared chord |t_k - t_c|^2 = 2 (1 - cos a) ~ a^2: smooth (acos' diverges at 0)
-        chord2 = ((t_k - t_c[:, None, :]) ** 2).sum(-1)
+        dk = t_k - t_c[:, None, :]
+        chord2 = dot(dk, dk)
         ang2 = torch.where(ok4, chord2, torch.zeros_like(chord2))
         cnt = ok4.sum(-1)
         var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
