@@ -1,7 +1,10 @@
 """Benchmark: milliseconds per frame by method, resolution and batch size, per stage.
 
 Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians, measured
-with the machine quiet; the thread count is recorded.
+with the machine quiet; the thread count is recorded. Stages (``RenderResult.timings``):
+G-buffer (the pyrender passes and exact intersections) and the method's shading, which
+includes the back layer's mip pyramids (``mips``) and the ray marches (``march``); ``rest``
+is the shading outside those two (lobes, table and environment lookups, bounces).
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
@@ -53,6 +56,10 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
         totals.append(time.perf_counter() - t0)
         for k, v in out.timings.items():
             stages.setdefault(k, []).append(v)
+    for i in range(repeats):  # the method's own time outside its marches and mips
+        stages.setdefault("shading_rest", []).append(
+            stages["shading"][i] - stages.get("march", [0.0] * repeats)[i]
+            - stages.get("mips", [0.0] * repeats)[i])
     return {
         "method": method, "options": options, "size": size, "batch": batch, "repeats": repeats,
         "ms_per_frame": 1000 * statistics.median(totals) / batch,
@@ -84,7 +91,7 @@ def main() -> None:
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
           f"{', compiled march' if args.compile else ''}")
     print(f"{'method':<28}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
-          f"{'peakMB':>8}")
+          f"{'(mips':>7}{'march':>7}{'rest)':>7}{'peakMB':>8}")
     for method in args.methods:
         for size in args.sizes:
             for batch in args.batches:
@@ -92,7 +99,8 @@ def main() -> None:
                 rows.append(r)
                 st = r["ms_per_frame_stage"]
                 print(f"{method[:28]:<28}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
-                      f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{r['peak_rss_mb']:>8.0f}")
+                      f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{st['mips']:>7.1f}"
+                      f"{st['march']:>7.1f}{st['shading_rest']:>7.1f}{r['peak_rss_mb']:>8.0f}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,

@@ -23,6 +23,7 @@ import torch
 from .accel import compile_enabled, kernel
 from .gbuffer import GBuffer, interpolate, intersect_triangles
 from .optics import dot
+from .stages import timed
 
 
 @dataclass(frozen=True)
@@ -241,6 +242,7 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
     return tri, s_exit, bary
 
 
+@timed("march")
 def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
                steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
                tile: int = 8, fine_steps: int = 8) -> Exit:
@@ -272,6 +274,7 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False)
 
 
+@timed("march")
 def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor,
                  steps: int = 32, refine: int = 10) -> Exit:
     """March rays that travel inside the object from a point on its surface (an internal

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .stages import timed
+
 KAPPA_MAX = 1e6  # exponent used for a perfectly flat footprint (|n| = 1)
 
 
@@ -59,6 +61,7 @@ def _max2x2(x: torch.Tensor) -> torch.Tensor:
     return y.permute(0, 2, 3, 1)
 
 
+@timed("mips")
 def build_ndf_mips(normal: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
                    max_levels: int = 16) -> NDFMips:
     """Build NDF (Toksvig) and min/max depth mips of a layer.
@@ -176,6 +179,7 @@ def _gather_bilinear(img: torch.Tensor, batch: torch.Tensor, grid: torch.Tensor)
     return out
 
 
+@timed("mips")
 def build_box_mips(x: torch.Tensor, max_levels: int = 16) -> tuple[torch.Tensor, ...]:
     """Box-filtered mips of any per-pixel quantity (B, H, W, C): level l averages 2^l x 2^l
     pixels (empty pixels count as 0, e.g. for coverage ratios of roughness levels)."""

@@ -26,6 +26,7 @@ from .mesh import load_mesh
 from .methods import METHODS, NEEDS_SCENES
 from .scene import METHODS as PLANNED
 from .scene import Scene
+from .stages import collect
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,9 @@ class RenderResult:
             ``thickness`` (distance between the layers along the view ray), ``roughness`` and
             ``ior`` (the material on object pixels), and the method's own buffers. Passes are averaged over the covered sub-pixels; 0 where uncovered.
         scenes: the B scenes, as rendered.
-        timings: seconds per stage for the whole batch (``gbuffer``, ``shading``, ``total``).
+        timings: seconds per stage for the whole batch: ``load`` (meshes, maps), ``gbuffer``,
+            ``shading`` (the method, which includes ``march``, the ray marches, and ``mips``,
+            the back layer's mip pyramids; :mod:`torchrefract.stages`), ``total``.
     """
 
     radiance: torch.Tensor
@@ -147,7 +150,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     materials = MaterialBatch.from_scenes(scenes)
     if method in NEEDS_SCENES:
         shade = functools.partial(shade, scenes=tuple(scenes))
-    radiance, method_passes = shade(g, lighting, materials, options)
+    with collect() as stage_times:
+        radiance, method_passes = shade(g, lighting, materials, options)
     t3 = time.perf_counter()
 
     n = g.supersample
@@ -173,6 +177,7 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
         timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
+                 "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
                  "total": time.perf_counter() - t0},
     )
 
