@@ -190,10 +190,13 @@ def across_edges(tri_vertices: np.ndarray, neighbors: np.ndarray, tol: float = 1
     Args:
         tri_vertices: (F, 3, 3) float32 corner positions; neighbors: (F, 3) int64.
     """
-    nbv = tri_vertices[np.maximum(neighbors, 0)]  # (F, 3 neighbours, 3 corners, 3)
-    # has[f, j, k]: neighbour j has a vertex at corner k of f
-    has = (np.abs(nbv[:, :, None, :, :] - tri_vertices[:, None, :, None, :]).max(-1)
-           < tol).any(-1)  # (F, 3, 3)
+    # has[f, j, k]: neighbour j has a vertex at corner k of f (one (j, k) at a time, so
+    # that a mesh of F faces needs O(F) temporary memory, not 81 F floats)
+    has = np.zeros((len(neighbors), 3, 3), dtype=bool)
+    for j in range(3):
+        nbv = tri_vertices[np.maximum(neighbors[:, j], 0)]  # (F, 3 corners, 3)
+        for k in range(3):
+            has[:, j, k] = (np.abs(nbv - tri_vertices[:, None, k, :]).max(-1) < tol).any(-1)
     ok = (neighbors >= 0)[:, :, None] & ~has  # (F, j, k)
     first = ok.argmax(1)  # (F, k): the first neighbour j that qualifies
     across = np.take_along_axis(neighbors, first, 1)
