@@ -4,7 +4,9 @@ Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians,
 with the machine quiet; the thread count is recorded. Stages (``RenderResult.timings``):
 G-buffer (the pyrender passes and exact intersections) and the method's shading, which
 includes the back layer's mip pyramids (``mips``) and the ray marches (``march``); ``rest``
-is the shading outside those two (lobes, table and environment lookups, bounces).
+is the shading outside those two (lobes, table and environment lookups, bounces). Peak
+memory is the process's resident peak during each row (reset before it where Linux allows;
+else the process's peak so far, and the JSON says which), caches of earlier rows included.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import resource
 import statistics
 import time
@@ -28,6 +31,27 @@ import torch
 import torchrefract as tr
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def reset_peak_rss() -> bool:
+    """Reset the process's peak resident memory (Linux: ``5 > /proc/self/clear_refs``), so
+    that each row reports its own peak; False where that is not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of the process in MB since the last reset (VmHWM), or since
+    the start where /proc is missing (getrusage)."""
+    try:
+        with open("/proc/self/status") as f:
+            return int(re.search(r"VmHWM:\s+(\d+)", f.read()).group(1)) / 1024
+    except (OSError, AttributeError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) -> dict:
@@ -46,6 +70,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
     scenes = [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
                                              rotate_deg=scene.envmap.rotate_deg + 10 * i))
               for i in range(batch)]
+    per_row = reset_peak_rss()
     t0 = time.perf_counter()
     tr.render(scenes, method=method)  # warm-up (context, caches, compiling)
     warmup = time.perf_counter() - t0
@@ -65,7 +90,8 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
         "ms_per_frame": 1000 * statistics.median(totals) / batch,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_mb": peak_rss_mb(),
+        "peak_rss_scope": "row" if per_row else "process",
         "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
     }
 
