@@ -4,12 +4,14 @@ Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians,
 with the machine quiet; the thread count is recorded. Stages (``RenderResult.timings``):
 G-buffer (the pyrender passes and exact intersections) and the method's shading, which
 includes the back layer's mip pyramids (``mips``) and the ray marches (``march``); ``rest``
-is the shading outside those two (lobes, table and environment lookups, bounces). Peak
-memory is the process's resident peak during each row (reset before it where Linux allows;
-else the process's peak so far, and the JSON says which), caches of earlier rows included.
+is the shading outside those two (lobes, table and environment lookups, bounces). Each row
+runs in a fresh process (``--in-process``: all in this one, faster, but then the memory
+column is the peak so far), so its peak resident memory is its own: ``peakMB``, with the
+process's memory before the row's first render (torch, pyrender, the scene) in the JSON
+as ``baseline_rss_mb``.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
-        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
+        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile] [--in-process]
         [--out outputs/bench]
 
 A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``.
@@ -23,6 +25,8 @@ import platform
 import re
 import resource
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -33,23 +37,12 @@ import torchrefract as tr
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def reset_peak_rss() -> bool:
-    """Reset the process's peak resident memory (Linux: ``5 > /proc/self/clear_refs``), so
-    that each row reports its own peak; False where that is not possible."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of the process in MB since the last reset (VmHWM), or since
-    the start where /proc is missing (getrusage)."""
+def rss_mb(field: str = "VmHWM") -> float:
+    """Resident memory of this process in MB: its peak (``VmHWM``) or current (``VmRSS``)
+    from /proc; the peak from getrusage where /proc is missing."""
     try:
         with open("/proc/self/status") as f:
-            return int(re.search(r"VmHWM:\s+(\d+)", f.read()).group(1)) / 1024
+            return int(re.search(rf"{field}:\s+(\d+)", f.read()).group(1)) / 1024
     except (OSError, AttributeError):
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -70,7 +63,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
     scenes = [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
                                              rotate_deg=scene.envmap.rotate_deg + 10 * i))
               for i in range(batch)]
-    per_row = reset_peak_rss()
+    baseline = rss_mb("VmRSS")
     t0 = time.perf_counter()
     tr.render(scenes, method=method)  # warm-up (context, caches, compiling)
     warmup = time.perf_counter() - t0
@@ -90,10 +83,25 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
         "ms_per_frame": 1000 * statistics.median(totals) / batch,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
-        "peak_rss_mb": peak_rss_mb(),
-        "peak_rss_scope": "row" if per_row else "process",
+        "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
         "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
     }
+
+
+def run_row(args: argparse.Namespace, method: str, size: int, batch: int) -> dict:
+    """One row in a fresh Python process (its own peak memory)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--row", method, str(size),
+           str(batch), "--repeats", str(args.repeats), "--scene", args.scene]
+    if args.threads:
+        cmd += ["--threads", str(args.threads)]
+    if args.compile:
+        cmd.append("--compile")
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    for line in proc.stdout.splitlines():
+        if line.startswith("ROW "):
+            return json.loads(line[4:])
+    raise RuntimeError(f"bench row {method} {size} {batch} failed (exit {proc.returncode}):\n"
+                       f"{proc.stderr[-2000:]}")
 
 
 def main() -> None:
@@ -108,11 +116,19 @@ def main() -> None:
                     help="torch.compile the march (torchrefract.set_compile); the first "
                          "render of each row (warm-up, not timed) includes the compiling")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench"))
+    ap.add_argument("--in-process", action="store_true",
+                    help="run every row in this process (memory: the peak so far)")
+    ap.add_argument("--row", nargs=3, metavar=("METHOD", "SIZE", "BATCH"),
+                    help=argparse.SUPPRESS)  # one row, printed as JSON (the child process)
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     tr.set_compile(args.compile)
     base = tr.load_scene(args.scene)
+    if args.row:
+        r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats)
+        print("ROW " + json.dumps(r))
+        return
     rows = []
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
           f"{', compiled march' if args.compile else ''}")
@@ -121,7 +137,8 @@ def main() -> None:
     for method in args.methods:
         for size in args.sizes:
             for batch in args.batches:
-                r = bench_one(base, method, size, batch, args.repeats)
+                r = (bench_one(base, method, size, batch, args.repeats) if args.in_process
+                     else run_row(args, method, size, batch))
                 rows.append(r)
                 st = r["ms_per_frame_stage"]
                 print(f"{method[:28]:<28}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
