@@ -377,11 +377,17 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             # angle), after the losses of the bounces it would take on its way out
             # (bounces.escape_fraction); the transmitted part is taken at the true angle.
             cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
-            _, k_t2, t_t2, _ = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
+            _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
             esc = escape_fraction(table, materials.ior, dist_b, alpha_exit, bi)
-            e_keep = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")[3] \
-                + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3] * esc
+            # the transmitted energy at the true angle: that of the lobe above except under
+            # TIR (cos2_eff is cos2 elsewhere), so only those pixels are looked up again
+            sel = tir.nonzero(as_tuple=True)[0]
+            if sel.numel():
+                e_t2 = e_t2.clone()
+                e_t2[sel] = _lobe(table, cos2[sel], 1.0 / ior[sel], alpha2[sel], dist[sel],
+                                  "transmit")[3]
+            e_keep = e_t2 + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3] * esc
             weight2 = e_keep.clamp(max=1.0)
         else:
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
