@@ -221,24 +221,30 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
     the hit is inside; keep the most-inside hit seen. Only the rays that need it are walked.
     """
     eps = -1e-6
-    cur_tri, cur_bary = tri.clone(), bary.clone()
-    active = found & (bary.min(-1).values < eps)
+    sel = (found & (bary.min(-1).values < eps)).nonzero(as_tuple=True)[0]
+    # The walkers' own state, compacted as they stop (no pass over all rays per step):
+    # where each stands, and the smallest barycentric of the best hit kept so far.
+    cur_tri, cur_bary = tri[sel], bary[sel]
+    best = cur_bary.min(-1).values
+    ps, ts, lo, hi = p1[sel], t[sel], s_min[sel], 1.5 * s_max[sel]
     for _ in range(max_steps):
-        if not bool(active.any()):
+        if sel.numel() == 0:
             break
-        sel = active.nonzero(as_tuple=True)[0]
-        worst = cur_bary[sel].argmin(-1)  # the vertex opposite the edge to cross
-        nxt = across[cur_tri[sel], worst]  # the face across that edge (MeshData.across)
-        has = nxt >= 0
-        st, bt = intersect_triangles(p1[sel], t[sel], tv[nxt.clamp(min=0)])
-        ok = has & torch.isfinite(st) & (st > s_min[sel]) & (st <= 1.5 * s_max[sel])
-        cur_tri[sel] = torch.where(ok, nxt, cur_tri[sel])
-        cur_bary[sel] = torch.where(ok[:, None], bt, cur_bary[sel])
+        worst = cur_bary.argmin(-1)  # the vertex opposite the edge to cross
+        nxt = across[cur_tri, worst]  # the face across that edge (MeshData.across)
+        st, bt = intersect_triangles(ps, ts, tv[nxt.clamp(min=0)])
+        ok = (nxt >= 0) & torch.isfinite(st) & (st > lo) & (st <= hi)
+        cur_tri = torch.where(ok, nxt, cur_tri)
+        cur_bary = torch.where(ok[:, None], bt, cur_bary)
         score = bt.min(-1).values
-        better = ok & (score > bary[sel].min(-1).values)
+        better = ok & (score > best)
         upd = sel[better]
         tri[upd], s_exit[upd], bary[upd] = nxt[better], st[better], bt[better]
-        active[sel] = ok & (score < eps)
+        best = torch.where(better, score, best)
+        keep = (ok & (score < eps)).nonzero(as_tuple=True)[0]
+        if keep.numel() < sel.numel():
+            sel, cur_tri, cur_bary, best = sel[keep], cur_tri[keep], cur_bary[keep], best[keep]
+            ps, ts, lo, hi = ps[keep], ts[keep], lo[keep], hi[keep]
     return tri, s_exit, bary
 
 
