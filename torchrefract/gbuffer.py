@@ -40,6 +40,7 @@ class MeshBatch:
         tri_neighbors: (F, 3) int64 edge-adjacent faces (batch indices, -1 where none).
         tri_across: (F, 3) int64 the face across the edge opposite each corner (batch
             indices, -1 where none; ``MeshData.across``).
+        sphere_center: (B, 3), sphere_radius: (B,) each mesh's ``MeshData.face_sphere``.
     """
 
     tri_vertices: torch.Tensor
@@ -49,6 +50,8 @@ class MeshBatch:
     num_faces: torch.Tensor
     tri_neighbors: torch.Tensor
     tri_across: torch.Tensor
+    sphere_center: torch.Tensor
+    sphere_radius: torch.Tensor
 
     @staticmethod
     def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
@@ -65,8 +68,10 @@ class MeshBatch:
             offset += f.shape[0]
         counts_t = torch.tensor(counts, dtype=torch.int64)
         offsets = torch.cumsum(counts_t, 0) - counts_t
+        spheres = [m.face_sphere for m in meshes]
         return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t,
-                         torch.cat(nb), torch.cat(ac))
+                         torch.cat(nb), torch.cat(ac), torch.stack([c for c, _ in spheres]),
+                         torch.stack([r for _, r in spheres]))
 
 
 @dataclass(frozen=True)

@@ -195,14 +195,8 @@ _search = kernel(_search_eager)
 def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor
                     ) -> torch.Tensor:
     """(N,) distance along each ray to where it leaves its mesh's bounding sphere (+1%)."""
-    tv = g.meshes.tri_vertices
-    centers, radii = [], []
-    for off, cnt in zip(g.meshes.face_offset.tolist(), g.meshes.num_faces.tolist()):
-        v = tv[off:off + cnt].reshape(-1, 3)
-        c = 0.5 * (v.min(0).values + v.max(0).values)
-        centers.append(c)
-        radii.append((v - c).norm(dim=-1).max())
-    center, radius = torch.stack(centers)[batch], torch.stack(radii)[batch]  # (N, 3), (N,)
+    center = g.meshes.sphere_center[batch]  # (N, 3)
+    radius = g.meshes.sphere_radius[batch]  # (N,)
     oc = p1 - center
     bq = dot(oc, t)
     cq = dot(oc, oc) - radius * radius

@@ -48,6 +48,14 @@ class MeshData:
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
 
+    @functools.cached_property
+    def face_sphere(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """float32 center (3,) and radius () of the sphere around the faces' corners
+        (centered on their axis-aligned box), computed once per mesh: the march's bound."""
+        v = self.vertices[self.faces].reshape(-1, 3)
+        c = 0.5 * (v.min(0).values + v.max(0).values)
+        return c, (v - c).norm(dim=-1).max()
+
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """Center (3,) and radius of the axis-aligned box's circumscribed sphere."""
         v = self.vertices.numpy().astype(np.float64)
