@@ -181,14 +181,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         e_t1, e_r1, e_t2, e_r2 = 1.0 - f1, f1, 1.0 - f2, f2
         esc = torch.ones_like(f2)
     one = torch.ones_like(f2)
-    if options.tir == "conserve":
-        # the reflected part leaves here too, after the losses of the bounces not followed
-        # (bounces.escape_fraction; 1 when smooth): continuous at TIR
-        w2 = (e_t2 + e_r2 * esc).clamp(max=1.0)
-    elif options.tir == "reflect":
-        w2 = torch.where(tir2, e_r2, e_t2)
-    else:  # clamp: all TIR light leaves at the critical angle (what the interface keeps)
-        w2 = torch.where(tir2, (e_t2 + e_r2).clamp(max=1.0), e_t2)
+    w2, _ = _last_interface(options.tir, tir2, e_t2, e_r2, esc)
     # Fallback where no exit was found: leave along the refracted direction.
     t2 = torch.where(ex.found[:, None], t2, t1)
     w2 = torch.where(ex.found, w2, one)
@@ -288,14 +281,9 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
         if last:
             if tir_mode == "reflect":
                 t_out = torch.where(tir[:, None], r, t_out)
-                w_out, refl = torch.where(tir, e_r, e_t), torch.where(tir, zero, e_r)
-            elif tir_mode == "conserve":
-                esc = escape_fraction(table, materials.ior, dist_b, alpha, a.batch) \
-                    if rough else one
-                w_out, refl = (e_t + e_r * esc).clamp(max=1.0), zero
-            else:  # clamp: TIR light leaves at the critical angle (what the interface keeps)
-                w_out = torch.where(tir, (e_t + e_r).clamp(max=1.0), e_t)
-                refl = torch.where(tir, zero, e_r)
+            esc = escape_fraction(table, materials.ior, dist_b, alpha, a.batch) \
+                if tir_mode == "conserve" and rough else one
+            w_out, refl = _last_interface(tir_mode, tir, e_t, e_r, esc)
         else:  # smooth TIR: e_t = 0, e_r = 1
             w_out, refl = e_t, e_r
         # Lost rays (no interface found) leave along their current direction.
@@ -307,6 +295,25 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
                        var=torch.zeros_like(f))
 
     return shade
+
+
+def _last_interface(tir_mode: str, tir: torch.Tensor, e_t: torch.Tensor, e_r: torch.Tensor,
+                    esc: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``tir`` rule at the last interface followed (module docstring): the weight of the
+    light leaving there, and the reflected part that does not (the residual).
+
+    ``conserve``: the reflected part leaves too, after the losses of the bounces not
+    followed (``esc``, :func:`torchrefract.bounces.escape_fraction`; 1 when smooth), so the
+    weight is continuous at TIR; ``reflect``: under TIR the reflected light leaves (along
+    the mirror direction, which the caller sets); ``clamp``: under TIR all the interface
+    keeps leaves at the critical angle.
+    """
+    zero = torch.zeros_like(e_t)
+    if tir_mode == "conserve":
+        return (e_t + e_r * esc).clamp(max=1.0), zero
+    if tir_mode == "reflect":
+        return torch.where(tir, e_r, e_t), torch.where(tir, zero, e_r)
+    return torch.where(tir, (e_t + e_r).clamp(max=1.0), e_t), torch.where(tir, zero, e_r)
 
 
 def light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: torch.Tensor,
