@@ -47,13 +47,19 @@ def rss_mb(field: str = "VmHWM") -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def parse_method_spec(spec: str) -> tuple[str, dict]:
+    """``method[:k=v,...]`` (e.g. ``rousiers:cone_rays=plane,march_steps=24``) -> (method,
+    options); integer values become ints."""
+    method, _, rest = spec.partition(":")
+    options: dict = {}
+    for kv in filter(None, rest.split(",")):
+        k, v = kv.split("=")
+        options[k] = int(v) if v.lstrip("-").isdigit() else v
+    return method, options
+
+
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) -> dict:
-    options = {}
-    if ":" in method:  # e.g. rousiers:cone_rays=plane,march_steps=24
-        method, spec = method.split(":", 1)
-        for kv in spec.split(","):
-            k, v = kv.split("=")
-            options[k] = int(v) if v.isdigit() else v
+    method, options = parse_method_spec(method)
     base = base.replace(method_options=options)
     cam = base.camera
     scene = base.replace(camera=tr.Camera(eye=cam.eye, target=cam.target, up=cam.up,

@@ -41,18 +41,14 @@ from torchrefract.metrics import flip_map, relmse
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import truth as cached_truth  # noqa: E402  (the one truth renderer and cache)
+from bench import parse_method_spec  # noqa: E402  (the one method[:k=v,...] syntax)
 
 REGIONS = ("all", "thin", "thick")
 
 
 def parse_variant(spec: str) -> tuple[str, str, dict]:
     """``method[:k=v,...]`` -> (label, method, options)."""
-    method, _, rest = spec.partition(":")
-    options: dict = {}
-    for kv in filter(None, rest.split(",")):
-        k, _, v = kv.partition("=")
-        options[k] = int(v) if v.lstrip("-").isdigit() else v
-    return spec, method, options
+    return (spec, *parse_method_spec(spec))
 
 
 def region_masks(coverage: np.ndarray, thickness: np.ndarray, split: float
