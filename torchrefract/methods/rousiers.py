@@ -177,6 +177,20 @@ def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
     return out
 
 
+def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
+                         cos_theta: torch.Tensor, eta: torch.Tensor, alpha: torch.Tensor,
+                         dist: torch.Tensor) -> torch.Tensor:
+    """The transmitted lobe's energy at the true incident angle ``cos_theta``, given
+    ``e_t_clamped``, the lookup at that angle clamped to the critical one under ``tir``:
+    the two agree elsewhere, so only the TIR points are looked up again."""
+    sel = tir.nonzero(as_tuple=True)[0]
+    if sel.numel() == 0:
+        return e_t_clamped
+    e = e_t_clamped.clone()
+    e[sel] = _lobe(table, cos_theta[sel], eta[sel], alpha[sel], dist[sel], "transmit")[3]
+    return e
+
+
 def _level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
     """(B, n) roughness levels spanning each scene's roughness_range (or its uniform value)."""
     t = torch.linspace(0.0, 1.0, n)
@@ -380,13 +394,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
             esc = escape_fraction(table, materials.ior, dist_b, alpha_exit, bi)
-            # the transmitted energy at the true angle: that of the lobe above except under
-            # TIR (cos2_eff is cos2 elsewhere), so only those pixels are looked up again
-            sel = tir.nonzero(as_tuple=True)[0]
-            if sel.numel():
-                e_t2 = e_t2.clone()
-                e_t2[sel] = _lobe(table, cos2[sel], 1.0 / ior[sel], alpha2[sel], dist[sel],
-                                  "transmit")[3]
+            e_t2 = _true_angle_transmit(table, e_t2, tir, cos2, 1.0 / ior, alpha2, dist)
             e_keep = e_t2 + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3] * esc
             weight2 = e_keep.clamp(max=1.0)
         else:
@@ -522,7 +530,7 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
                 # after the losses of the bounces not followed (escape_fraction)
                 e_rest = e_r * escape_fraction(table, materials.ior, dist_b, alpha, bi) \
                     if tir_mode == "conserve" else e_r
-                e_keep = (_lobe(table, cos, 1.0 / ior, alpha, dist, "transmit")[3]
+                e_keep = (_true_angle_transmit(table, e_t, tir, cos, 1.0 / ior, alpha, dist)
                           + e_rest).clamp(max=1.0)
                 leave_all = tir | (tir_mode == "conserve")
                 w_out = torch.where(leave_all, e_keep, e_t)
