@@ -39,6 +39,7 @@ import torch
 
 from .checks import ConfigError, check_number, where
 from .gbuffer import GBuffer, interpolate
+from .index import take
 from .march import march_inside
 
 AUTO = "auto"
@@ -191,16 +192,16 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
             break
         sel = go.nonzero(as_tuple=True)[0]
         nxt = cur.take(sel)
-        t = sh.direction[sel]
+        t = take(sh.direction, sel)
         ex = march_inside(g, nxt.batch, nxt.p, t, steps=settings.bounce_march_steps,
                           refine=refine)
         dist = torch.where(ex.found, ex.dist, torch.zeros_like(ex.dist))
         att = torch.exp(-absorption[nxt.batch] * dist[:, None])
-        uv = interpolate(ex.bary, g.meshes.tri_uvs[ex.tri.clamp(min=0)])
+        uv = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))
         bounces.index_add_(0, nxt.pix, torch.ones_like(nxt.pix, dtype=dtype))
         cur = replace(nxt, p=torch.where(ex.found[:, None], ex.position, nxt.p), t=t,
-                      normal=ex.normal, uv=uv, found=ex.found, w=w_next[sel] * att,
-                      var=sh.var[sel])
+                      normal=ex.normal, uv=uv, found=ex.found, w=take(w_next, sel) * att,
+                      var=take(sh.var, sel))
         k += 1
     return BounceResult(radiance=out, bounces=bounces, residual=residual, alive=alive_counts)
 

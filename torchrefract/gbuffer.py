@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from .camera import pixel_rays, projection_params
+from .index import put_, take, where_true
 from .mesh import MeshData
 from .optics import dot
 from .raster import visibility_pass
@@ -58,10 +59,11 @@ class MeshBatch:
         tv, tn, tu, nb, ac, counts = [], [], [], [], [], []
         offset = 0
         for m in meshes:
-            f = m.faces
-            tv.append(m.vertices[f])  # (F_i, 3, 3)
-            tn.append(m.normals[f])
-            tu.append(m.uvs[f] if m.uvs is not None else torch.zeros(f.shape[0], 3, 2))
+            f, corners = m.faces, m.faces.reshape(-1)
+            tv.append(take(m.vertices, corners).view(-1, 3, 3))  # (F_i, 3, 3)
+            tn.append(take(m.normals, corners).view(-1, 3, 3))
+            tu.append(take(m.uvs, corners).view(-1, 3, 2) if m.uvs is not None
+                      else torch.zeros(f.shape[0], 3, 2))
             nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
             ac.append(torch.where(m.across >= 0, m.across + offset, m.across))
             counts.append(f.shape[0])
@@ -227,38 +229,40 @@ def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: to
            meshes: MeshBatch, back: bool, tol: float = 1e-7) -> Layer:
     """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3).
 
-    Work happens on the covered pixels only (compacted), in float64.
+    Work happens on the covered pixels only (compacted, by flat pixel index), in float64.
     """
     b, h, w = ids.shape
-    pb, py, px = (ids >= 0).nonzero(as_tuple=True)  # (N,) covered pixels
-    tri = ids[pb, py, px]
-    o = eye.double()[pb]  # (N, 3)
-    d = dirs.double()[pb, py, px]  # (N, 3)
-    t, bary = intersect_triangles(o, d, meshes.tri_vertices[tri].double())
+    flat_ids = ids.reshape(-1)
+    pix = where_true(flat_ids >= 0)  # (N,) covered pixels, flat
+    tri = take(flat_ids, pix)
+    eye64 = eye.double()
+    o = take(eye64, pix // (h * w))  # (N, 3)
+    d = take(dirs.reshape(-1, 3), pix).double()  # (N, 3)
+    tv = take(meshes.tri_vertices, tri).double()  # (N, 3, 3)
+    t, bary = intersect_triangles(o, d, tv)
     own_min = bary.min(-1).values
-    sus = (own_min < -tol).nonzero(as_tuple=True)[0]
+    sus = where_true(own_min < -tol)
     if sus.numel() > 0:
-        fixed = _repair_edge_ids(ids, tri[sus], pb[sus], py[sus], px[sus], own_min[sus], eye,
-                                 dirs, meshes, back, tol)
-        tri = tri.clone()
-        tri[sus] = fixed
-        keep = tri >= 0
-        pb, py, px, tri, o, d = pb[keep], py[keep], px[keep], tri[keep], o[keep], d[keep]
-        t, bary = intersect_triangles(o, d, meshes.tri_vertices[tri].double())
-    tv = meshes.tri_vertices[tri].double()  # (N, 3, 3)
+        sp = take(pix, sus)
+        fixed = _repair_edge_ids(ids, take(tri, sus), sp // (h * w), (sp // w) % h, sp % w,
+                                 take(own_min, sus), eye, dirs, meshes, back, tol)
+        tri = put_(tri.clone(), sus, fixed)
+        keep = where_true(tri >= 0)
+        pix, tri, o, d = (take(x, keep) for x in (pix, tri, o, d))
+        tv = take(meshes.tri_vertices, tri).double()
+        t, bary = intersect_triangles(o, d, tv)
     pos = o + t[:, None] * d
     gn = torch.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0], dim=-1)
     gn = gn / gn.norm(dim=-1, keepdim=True).clamp(min=1e-300)
-    n = interpolate(bary, meshes.tri_normals[tri].double())
+    n = interpolate(bary, take(meshes.tri_normals, tri).double())
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
-    uv = interpolate(bary, meshes.tri_uvs[tri].double())
-    depth = t * dot(d, forward.double()[pb])
+    uv = interpolate(bary, take(meshes.tri_uvs, tri).double())
+    depth = t * dot(d, take(forward.double(), pix // (h * w)))
 
     def scatter(v: torch.Tensor, c: int | None, fill=0.0, dtype=torch.float32):
-        shape = (b, h, w) if c is None else (b, h, w, c)
-        out = torch.full(shape, fill, dtype=dtype)
-        out[pb, py, px] = v.to(dtype)
-        return out
+        out = torch.full((b * h * w,) if c is None else (b * h * w, c), fill, dtype=dtype)
+        put_(out, pix, v)
+        return out.reshape((b, h, w) if c is None else (b, h, w, c))
 
     return Layer(
         mask=scatter(torch.ones_like(tri, dtype=torch.bool), None, False, torch.bool),

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from . import envmap
+from .index import put_, take
 from .optics import dot
 from .scene import Scene
 
@@ -116,11 +117,12 @@ def incident_radiance(lighting: Lighting, batch: torch.Tensor, origin: torch.Ten
         sel = (batch == b).nonzero(as_tuple=True)[0]
         if sel.numel() == 0:
             continue
-        out[sel] = envmap.lookup(tex, direction[sel], lighting.rotate_deg[b],
-                                 lighting.scale[b]).to(out.dtype)
+        put_(out, sel, envmap.lookup(tex, take(direction, sel), lighting.rotate_deg[b],
+                                     lighting.scale[b]))
     if lighting.light_pos.shape[1] > 0:
-        t, le = hit_lights(origin, direction, lighting.light_pos[batch],
-                           lighting.light_radius[batch], lighting.light_radiance[batch])
+        t, le = hit_lights(origin, direction, take(lighting.light_pos, batch),
+                           take(lighting.light_radius, batch),
+                           take(lighting.light_radiance, batch))
         hit = torch.isfinite(t)
         if max_dist is not None:
             hit = hit & (t < max_dist)
@@ -150,11 +152,12 @@ def incident_radiance_sg(lighting: Lighting, batch: torch.Tensor, origin: torch.
         sel = (batch == b).nonzero(as_tuple=True)[0]
         if sel.numel() == 0:
             continue
-        out[sel] = sg_lookup_env(lighting.pyramid(b), direction[sel], sharpness[sel],
-                                 lighting.rotate_deg[b], lighting.scale[b]).to(out.dtype)
+        put_(out, sel, sg_lookup_env(lighting.pyramid(b), take(direction, sel),
+                                     take(sharpness, sel), lighting.rotate_deg[b],
+                                     lighting.scale[b]))
     if lighting.light_pos.shape[1] > 0:
-        pos, rad = lighting.light_pos[batch], lighting.light_radius[batch]
-        le_all = lighting.light_radiance[batch]
+        pos, rad = take(lighting.light_pos, batch), take(lighting.light_radius, batch)
+        le_all = take(lighting.light_radiance, batch)
         t, le = hit_lights(origin, direction, pos, rad, le_all)
         sharp = torch.where(torch.isfinite(t)[:, None], le.to(out.dtype), out)
         cover = sg_light_coverage(origin, direction, sharpness, pos, rad)  # (N, L)

@@ -22,6 +22,7 @@ import torch
 
 from .accel import compile_enabled, kernel
 from .gbuffer import GBuffer, interpolate, intersect_triangles
+from .index import put_, take, where_true
 from .optics import dot
 from .stages import timed
 
@@ -103,7 +104,7 @@ class _Projector:
 
     def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor):
         _, self.h, self.w = g.shape
-        p = g.proj[batch]  # (N, 16)
+        p = take(g.proj, batch)  # (N, 16)
         eye, r, u, f = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
         rel = p1 - eye
         basis = torch.stack([r, u, f], 1)  # (N, 3, 3) rows: right, up, forward
@@ -119,7 +120,7 @@ class _Projector:
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Flat pixel index and in-frame flag of rays ``idx`` (None: all) at parameters ``s``."""
         def sel(x):
-            return x if idx is None else x[idx]
+            return x if idx is None else take(x, idx)
 
         return _pixel_of(sel(self.c0), sel(self.ct), s, sel(self.sx), sel(self.sy),
                          sel(self.base), self.h, self.w)
@@ -151,7 +152,7 @@ def _crossed_at(c0, ct, s, sx, sy, base, planes, h: int, w: int) -> torch.Tensor
     pixel (which includes the pixels where the layer is empty)."""
     c = c0 + s[:, None] * ct  # (M, 3)
     flat, inside = _pixel_of_camera(c, sx, sy, base, h, w)
-    pl = planes[flat]  # (M, 4) or (M, 8)
+    pl = take(planes, flat)  # (M, 4) or (M, 8)
     beyond = dot(pl[:, :3], c) - pl[:, 3] > 0
     if pl.shape[1] == 8:  # two layers: also in front of the front face
         beyond = beyond | (dot(pl[:, 4:7], c) - pl[:, 7] > 0)
@@ -195,8 +196,8 @@ _search = kernel(_search_eager)
 def _bounding_chord(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor
                     ) -> torch.Tensor:
     """(N,) distance along each ray to where it leaves its mesh's bounding sphere (+1%)."""
-    center = g.meshes.sphere_center[batch]  # (N, 3)
-    radius = g.meshes.sphere_radius[batch]  # (N,)
+    center = take(g.meshes.sphere_center, batch)  # (N, 3)
+    radius = take(g.meshes.sphere_radius, batch)  # (N,)
     oc = p1 - center
     bq = dot(oc, t)
     cq = dot(oc, oc) - radius * radius
@@ -215,30 +216,35 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
     the hit is inside; keep the most-inside hit seen. Only the rays that need it are walked.
     """
     eps = -1e-6
-    sel = (found & (bary.min(-1).values < eps)).nonzero(as_tuple=True)[0]
+    sel = where_true(found & (bary.min(-1).values < eps))
     # The walkers' own state, compacted as they stop (no pass over all rays per step):
     # where each stands, and the smallest barycentric of the best hit kept so far.
-    cur_tri, cur_bary = tri[sel], bary[sel]
+    cur_tri, cur_bary = take(tri, sel), take(bary, sel)
     best = cur_bary.min(-1).values
-    ps, ts, lo, hi = p1[sel], t[sel], s_min[sel], 1.5 * s_max[sel]
+    ps, ts, lo, hi = take(p1, sel), take(t, sel), take(s_min, sel), 1.5 * take(s_max, sel)
+    across_flat = across.reshape(-1)
     for _ in range(max_steps):
         if sel.numel() == 0:
             break
         worst = cur_bary.argmin(-1)  # the vertex opposite the edge to cross
-        nxt = across[cur_tri, worst]  # the face across that edge (MeshData.across)
-        st, bt = intersect_triangles(ps, ts, tv[nxt.clamp(min=0)])
+        nxt = take(across_flat, cur_tri * 3 + worst)  # the face across (MeshData.across)
+        st, bt = intersect_triangles(ps, ts, take(tv, nxt.clamp(min=0)))
         ok = (nxt >= 0) & torch.isfinite(st) & (st > lo) & (st <= hi)
         cur_tri = torch.where(ok, nxt, cur_tri)
         cur_bary = torch.where(ok[:, None], bt, cur_bary)
         score = bt.min(-1).values
         better = ok & (score > best)
-        upd = sel[better]
-        tri[upd], s_exit[upd], bary[upd] = nxt[better], st[better], bt[better]
+        bi = where_true(better)
+        upd = take(sel, bi)
+        put_(tri, upd, take(nxt, bi))
+        put_(s_exit, upd, take(st, bi))
+        put_(bary, upd, take(bt, bi))
         best = torch.where(better, score, best)
-        keep = (ok & (score < eps)).nonzero(as_tuple=True)[0]
+        keep = where_true(ok & (score < eps))
         if keep.numel() < sel.numel():
-            sel, cur_tri, cur_bary, best = sel[keep], cur_tri[keep], cur_bary[keep], best[keep]
-            ps, ts, lo, hi = ps[keep], ts[keep], lo[keep], hi[keep]
+            sel, cur_tri, cur_bary, best = (take(x, keep) for x in (sel, cur_tri, cur_bary,
+                                                                    best))
+            ps, ts, lo, hi = (take(x, keep) for x in (ps, ts, lo, hi))
     return tri, s_exit, bary
 
 
@@ -308,8 +314,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     _, h, w = g.shape
 
     def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        return _crossed_at(proj.c0[idx], proj.ct[idx], s, proj.sx[idx], proj.sy[idx],
-                           proj.base[idx], planes, h, w)
+        return _crossed_at(take(proj.c0, idx), take(proj.ct, idx), s, take(proj.sx, idx),
+                           take(proj.sy, idx), take(proj.base, idx), planes, h, w)
 
     if depth_min is None and compile_enabled():
         # Compiled: every ray at every sample, search and bisection in one fused pass
@@ -335,16 +341,17 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
                 crossed = _crossed_at(state[:, 0:3], state[:, 3:6], s, state[:, 7],
                                       state[:, 8], base, planes, h, w)
                 if bool(crossed.any()):
-                    done = crossed.nonzero(as_tuple=True)[0]
-                    hi[ids[done]] = s[done]
-                    lo[ids[done]] = last[done]
-                    keep = (~crossed).nonzero(as_tuple=True)[0]
-                    state, base, ids = state[keep], base[keep], ids[keep]
-                    last = s[keep]
+                    done = where_true(crossed)
+                    gone = take(ids, done)
+                    put_(hi, gone, take(s, done))
+                    put_(lo, gone, take(last, done))
+                    keep = where_true(~crossed)
+                    state, base, ids = take(state, keep), take(base, keep), take(ids, keep)
+                    last = take(s, keep)
                 else:
                     last = s
             if ids.numel():
-                lo[ids] = last
+                put_(lo, ids, last)
         else:
             th, tw = depth_min.shape[1:3]
             dmin = depth_min.reshape(-1)
@@ -386,7 +393,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     masks = (g.front.mask.reshape(-1), g.back.mask.reshape(-1))
     if both:
         flat, _ = proj.pixels(None, hi)
-        pl, x = planes[flat], proj.c0 + hi[:, None] * proj.ct  # camera coordinates
+        pl, x = take(planes, flat), proj.c0 + hi[:, None] * proj.ct  # camera coordinates
         primary_front = (dot(pl[:, 4:7], x) - pl[:, 7]) > (dot(pl[:, :3], x) - pl[:, 3])
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
                  (lo, ~primary_front)]
@@ -399,14 +406,17 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``:
         the triangle seen at that pixel in the chosen layer, and the hit with it."""
         def sel(x):
-            return x if todo is None else x[todo]
+            return x if todo is None else take(x, todo)
 
         flat, inside = proj.pixels(todo, sel(s_try))
         uf = sel(use_front)
-        seen = torch.where(uf, masks[0][flat], masks[1][flat])
-        cand = torch.where(inside & seen, torch.where(uf, tri_maps[0][flat], tri_maps[1][flat]),
-                           torch.full_like(flat, -1))
-        st, bt = intersect_triangles(sel(p1), sel(t), tv[cand.clamp(min=0)])
+        if both:
+            seen = torch.where(uf, take(masks[0], flat), take(masks[1], flat))
+            seen_tri = torch.where(uf, take(tri_maps[0], flat), take(tri_maps[1], flat))
+        else:  # the back layer only (use_front is all False)
+            seen, seen_tri = take(masks[1], flat), take(tri_maps[1], flat)
+        cand = torch.where(inside & seen, seen_tri, torch.full_like(flat, -1))
+        st, bt = intersect_triangles(sel(p1), sel(t), take(tv, cand.clamp(min=0)))
         ok = (cand >= 0) & torch.isfinite(st) & (st > sel(s_min)) & (st <= sel(s_max) * 1.5)
         return cand, st, bt, ok, uf
 
@@ -418,19 +428,20 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     bary = torch.where(found[:, None], bary, torch.zeros_like(bary))
     layer = torch.where(found, (~uf).long(), torch.full_like(tri, -1))
     for s_try, use_front in tries[1:]:
-        todo = (~found).nonzero(as_tuple=True)[0]  # only the rays still without an exit
+        todo = where_true(~found)  # only the rays still without an exit
         if todo.numel() == 0:
             break
         cand, st, bt, ok, uf = candidates(todo, s_try, use_front)
-        hit = todo[ok]
-        s_exit[hit] = st[ok]
-        tri[hit] = cand[ok]
-        layer[hit] = (~uf[ok]).long()
-        bary[hit] = bt[ok]
-        found[hit] = True
+        oi = where_true(ok)
+        hit = take(todo, oi)
+        put_(s_exit, hit, take(st, oi))
+        put_(tri, hit, take(cand, oi))
+        put_(layer, hit, (~take(uf, oi)).long())
+        put_(bary, hit, take(bt, oi))
+        put_(found, hit, torch.ones_like(hit, dtype=torch.bool))
     tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_across, found, tri,
                                             s_exit, bary, s_min, s_max)
-    normal = interpolate(bary, g.meshes.tri_normals[tri.clamp(min=0)])
+    normal = interpolate(bary, take(g.meshes.tri_normals, tri.clamp(min=0)))
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-20)
     normal = torch.where(found[:, None], normal, torch.zeros_like(normal))
     pos = p1 + s_exit[:, None] * t

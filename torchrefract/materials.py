@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .index import put_, take
 from .scene import Scene
 from .textures import load_roughness_map
 
@@ -42,14 +43,14 @@ class MaterialBatch:
         """Per-point roughness (N,) of points on scene ``batch`` (N,) at UVs (N, 2)."""
         from .textures import sample_uv  # noqa: PLC0415
 
-        alpha = self.roughness[batch].clone()
+        alpha = take(self.roughness, batch).clone()
         for b, tex in enumerate(self.roughness_maps):
             if tex is None:
                 continue
             sel = (batch == b).nonzero(as_tuple=True)[0]
             if sel.numel():
                 lo, hi = self.roughness_range[b]
-                alpha[sel] = lo + sample_uv(tex, uv[sel]) * (hi - lo)
+                put_(alpha, sel, lo + sample_uv(tex, take(uv, sel)) * (hi - lo))
         return alpha
 
     @staticmethod

@@ -64,6 +64,7 @@ import torch.nn.functional as F
 from . import envmap
 from .checks import ConfigError, check_tensor_shape, file_version
 from .envmap import direction_to_uv, rotate_y
+from .index import take
 
 # Bump when the pyramid's contents change for the same parameters (disk cache key).
 _FORMAT_VERSION = 2
@@ -507,7 +508,7 @@ def _blend_weights(pyr: SGPyramid, k: torch.Tensor) -> tuple[torch.Tensor, torch
     inf = torch.isinf(k)
     k_safe = torch.where(inf, torch.zeros_like(k), k)  # no inf / inf (nor NaN gradients)
     kap = torch.where(inf, torch.full_like(k, 1 / v0), k_safe / (1 + v0 * k_safe))
-    hi, lo = kap_levels[i], kap_levels[i + 1]
+    hi, lo = take(kap_levels, i), take(kap_levels, i + 1)
     return i, (hi - kap) / (hi - lo)
 
 
@@ -558,7 +559,7 @@ def sg_lookup_env(pyramid: SGPyramid, directions: torch.Tensor,
 
     def sample(img: torch.Tensor, level: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         """Bilinear reads (3, N') of levels (N',) packed in img, at uv (N', 2)."""
-        y0, x0, h, w = rects[level].unbind(-1)  # (N',) each
+        y0, x0, h, w = take(rects, level).unbind(-1)  # (N',) each
         # Texel coordinates as envmap.lookup: x = u W - 0.5 (+1 padded column), y = v (H - 1).
         x = x0 + 1 + uv[:, 0] * w - 0.5
         y = y0 + uv[:, 1] * (h - 1)

@@ -69,6 +69,7 @@ from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
+from ..index import put_, take
 from ..lighting import Lighting, incident_radiance_sg
 from ..march import march_back
 from ..materials import MaterialBatch
@@ -187,7 +188,8 @@ def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
     if sel.numel() == 0:
         return e_t_clamped
     e = e_t_clamped.clone()
-    e[sel] = _lobe(table, cos_theta[sel], eta[sel], alpha[sel], dist[sel], "transmit")[3]
+    put_(e, sel, _lobe(table, take(cos_theta, sel), take(eta, sel), take(alpha, sel),
+                       take(dist, sel), "transmit")[3])
     return e
 
 
@@ -239,14 +241,15 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in passes.items()}
     table = load_sg_table()
     bi = idx // hw
-    d = g.ray_dir.reshape(-1, 3)[idx]  # (N, 3)
-    p1 = g.front.position.reshape(-1, 3)[idx]
-    n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)  # view side
-    ior = materials.ior[bi]
+    d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
+    p1 = take(g.front.position.reshape(-1, 3), idx)
+    n1 = face_forward(take(g.front.normal.reshape(-1, 3), idx), d)  # view side
+    ior = take(materials.ior, bi)
     # Front roughness: the map at the front hit's UV (sec. 5.1), else the uniform value.
-    alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx]).clamp(min=mf.ALPHA_MIN)
+    alpha = materials.roughness_at(bi, take(g.front.uv.reshape(-1, 2), idx)
+                                   ).clamp(min=mf.ALPHA_MIN)
     dist_b = materials.distribution_index()
-    dist = dist_b[bi]
+    dist = take(dist_b, bi)
     view = -d
     cos1 = dot(view, n1).clamp(0.0, 1.0)
 
@@ -278,7 +281,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         ok4 = (denom > 1e-6) & ex.found[:, None]
         n4 = None  # read from the back layer below, at the exits' pixels
     # Footprint in pixels: screen bounding box of the four exits.
-    proj = g.proj[bi]
+    proj = take(g.proj, bi)
     xy, _ = project(q, proj)  # (N, 4, 2)
     xy_c, _ = project(ex.position[:, None, :], proj)
     xy_c = xy_c[:, 0]
@@ -362,7 +365,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
                        (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
-    att = torch.exp(-materials.absorption[bi] * path[:, None])
+    att = torch.exp(-take(materials.absorption, bi) * path[:, None])
 
     bounce = options.bounces.enabled
     # With internal bounces the first exit is not the last interface: the table's own split
@@ -456,7 +459,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         # The light the exit reflects back inside, followed bounce by bounce. The exit's
         # internal reflection lobe uses the roughness at the exit point.
         n_pix = idx.numel()
-        uv_x = interpolate(ex.bary, g.meshes.tri_uvs[ex.tri.clamp(min=0)])
+        uv_x = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))
         alpha_x = torch.where(ex.found, materials.roughness_at(bi, uv_x), alpha)
         _, k_ri, t_ri, e_ri = _lobe(table, cos2, 1.0 / ior, alpha_x.clamp(min=mf.ALPHA_MIN),
                                     dist, "reflect")
@@ -475,12 +478,15 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         l_obj = e_r[:, None] * l_refl + l_through
     else:
         l_obj = e_r[:, None] * l_refl + e_t[:, None] * att * l_trans
-    hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
-    radiance[idx] = torch.where(hidden[:, None], radiance[idx], l_obj.to(radiance.dtype))
-    passes["exit_found"][idx] = ex.found.float()
-    passes["tir"][idx] = tir.float()
-    passes["lobe_sigma"][idx] = torch.rsqrt(k.clamp(min=1e-12)).float()
-    passes["footprint"][idx] = torch.where(ex.found, major, torch.zeros_like(major)).float()
+    hidden = light_in_front(lighting, bi, take(g.eye, bi), d,
+                            take(g.front.dist.reshape(-1), idx))
+    put_(radiance, idx, torch.where(hidden[:, None], take(radiance, idx),
+                                    l_obj.to(radiance.dtype)))
+    put_(passes["exit_found"], idx, ex.found.float())
+    put_(passes["tir"], idx, tir.float())
+    put_(passes["lobe_sigma"], idx, torch.rsqrt(k.clamp(min=1e-12)).float())
+    put_(passes["footprint"], idx,
+         torch.where(ex.found, major, torch.zeros_like(major)).float())
     out = {k: v.view(b, h, w, 1) for k, v in passes.items()}
     if bounce:
         out.update(bounce_passes(g, idx, res))
@@ -498,8 +504,8 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         if k == 0:
             return first
         bi = a.batch
-        ior = materials.ior[bi]
-        dist = dist_b[bi]
+        ior = take(materials.ior, bi)
+        dist = take(dist_b, bi)
         alpha = materials.roughness_at(bi, a.uv).clamp(min=mf.ALPHA_MIN)
         n_view = face_forward(a.normal, a.t)  # inside, facing the arriving ray
         view = -a.t

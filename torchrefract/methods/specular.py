@@ -45,6 +45,7 @@ import torch
 from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
+from ..index import put_, take
 from ..lighting import Lighting, hit_lights, incident_radiance
 from ..materials import MaterialBatch
 from ..march import march_back
@@ -135,7 +136,7 @@ def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
     batch_all = torch.arange(b).repeat_interleave(h * w)
     max_dist = torch.where(g.front.mask.reshape(-1), g.front.dist.reshape(-1),
                            torch.full_like(d_all[:, 0], float("inf")))
-    return incident_radiance(lighting, batch_all, g.eye[batch_all], d_all, max_dist)
+    return incident_radiance(lighting, batch_all, take(g.eye, batch_all), d_all, max_dist)
 
 
 def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
@@ -150,11 +151,12 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     b, h, w = g.shape
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]  # compact: object pixels only
     bi = idx // (h * w)
-    d = g.ray_dir.reshape(-1, 3)[idx]  # (N, 3)
-    p1 = g.front.position.reshape(-1, 3)[idx]
-    n1 = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
-    eta = materials.ior[bi]  # (N,)
-    hidden = light_in_front(lighting, bi, g.eye[bi], d, g.front.dist.reshape(-1)[idx])
+    d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
+    p1 = take(g.front.position.reshape(-1, 3), idx)
+    n1 = face_forward(take(g.front.normal.reshape(-1, 3), idx), d)
+    eta = take(materials.ior, bi)  # (N,)
+    hidden = light_in_front(lighting, bi, take(g.eye, bi), d,
+                            take(g.front.dist.reshape(-1), idx))
     cos1 = -dot(d, n1)
     f1 = fresnel_dielectric(cos1, 1.0 / eta)
     t1, tir1 = refract(d, n1, 1.0 / eta)  # TIR at entry only when ior < 1
@@ -166,12 +168,12 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     tir2 = tir2 & ex.found
     if options.tir == "reflect":
         t2 = torch.where(tir2[:, None], reflect(t1, n2), t2)
-    alpha1 = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[idx])
-    uv2 = interpolate(ex.bary, g.meshes.tri_uvs[ex.tri.clamp(min=0)])
+    alpha1 = materials.roughness_at(bi, take(g.front.uv.reshape(-1, 2), idx))
+    uv2 = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))
     if bool((alpha1 > 0).any()):
         table = load_sg_table()
         dist_b = materials.distribution_index()
-        dist = dist_b[bi]
+        dist = take(dist_b, bi)
         e_t1, e_r1 = interface_energies(table, cos1, eta, alpha1, dist, f1)
         alpha2 = torch.where(ex.found, materials.roughness_at(bi, uv2), alpha1)
         e_t2, e_r2 = interface_energies(table, cos2, 1.0 / eta, alpha2, dist, f2)
@@ -224,7 +226,7 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if paths.idx.numel() > 0:
         bi = paths.batch
         l_refl = incident_radiance(lighting, bi, paths.p1, paths.refl)
-        att = torch.exp(-materials.absorption[bi] * paths.path[:, None])  # (N, 3)
+        att = torch.exp(-take(materials.absorption, bi) * paths.path[:, None])  # (N, 3)
         f1 = paths.f1[:, None]
         if options.bounces.enabled:
             n = paths.idx.numel()
@@ -250,8 +252,8 @@ def bounce_passes(g: GBuffer, idx: torch.Tensor, res) -> dict[str, torch.Tensor]
     b, h, w = g.shape
     out = {k: torch.zeros(b * h * w) for k in ("bounces", "bounce_residual")}
     if res is not None:
-        out["bounces"][idx] = res.bounces.float()
-        out["bounce_residual"][idx] = res.residual.float()
+        put_(out["bounces"], idx, res.bounces.float())
+        put_(out["bounce_residual"], idx, res.residual.float())
     return {k: v.view(b, h, w, 1) for k, v in out.items()}
 
 
@@ -321,6 +323,6 @@ def light_in_front(lighting: Lighting, bi: torch.Tensor, o: torch.Tensor, d: tor
     """(N,) whether a sphere light lies between each camera ray's origin and the object."""
     if lighting.light_pos.shape[1] == 0:
         return torch.zeros_like(dist, dtype=torch.bool)
-    t, _ = hit_lights(o, d, lighting.light_pos[bi], lighting.light_radius[bi],
-                      lighting.light_radiance[bi])
+    t, _ = hit_lights(o, d, take(lighting.light_pos, bi), take(lighting.light_radius, bi),
+                      take(lighting.light_radiance, bi))
     return t < dist
