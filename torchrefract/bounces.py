@@ -40,7 +40,7 @@ import torch
 from .checks import ConfigError, check_number, where
 from .gbuffer import GBuffer, interpolate
 from .index import take
-from .march import march_inside
+from .march import camera_planes, march_inside
 
 AUTO = "auto"
 
@@ -177,6 +177,7 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
     alive_counts = []
     cur = first
     k = 0
+    planes = None
     while cur.pix.numel() > 0:
         alive_counts.append(int(cur.pix.numel()))
         last = k >= limit
@@ -193,8 +194,10 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
         sel = go.nonzero(as_tuple=True)[0]
         nxt = cur.take(sel)
         t = take(sh.direction, sel)
+        if planes is None:  # the slab between the layers, built once for every bounce
+            planes = camera_planes(g, both=True)
         ex = march_inside(g, nxt.batch, nxt.p, t, steps=settings.bounce_march_steps,
-                          refine=refine)
+                          refine=refine, planes=planes)
         dist = torch.where(ex.found, ex.dist, torch.zeros_like(ex.dist))
         att = torch.exp(-absorption[nxt.batch] * dist[:, None])
         uv = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))

@@ -73,7 +73,7 @@ def slab_planes(g: GBuffer) -> torch.Tensor:
     return torch.cat([back_planes(g), _planes(g.front, g.eye, away_from_eye=False)], -1)
 
 
-def _camera_planes(g: GBuffer, both: bool) -> torch.Tensor:
+def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     """The marched planes in each view's camera coordinates, flat: (B*H*W, 4) (back layer)
     or (B*H*W, 8) (``both``: back, then front), detached.
 
@@ -81,7 +81,9 @@ def _camera_planes(g: GBuffer, both: bool) -> torch.Tensor:
     when ``dot(n_c, C) - c_c > 0``, with n_c = basis n and c_c = c - dot(n, eye): the world
     test without the world point, which the march then never forms. Where the marched
     layer(s) are empty the back plane is (0, 0, 0, -1): every point is beyond it, so the
-    test needs no separate validity lookup.
+    test needs no separate validity lookup. A caller that marches one G-buffer several
+    times (the central and the bounding rays, the bounces) builds them once and passes them
+    as ``planes``.
     """
     world = slab_planes(g) if both else back_planes(g)  # (B, H, W, 4|8)
     valid = (g.back.mask & g.front.mask) if both else g.back.mask
@@ -105,12 +107,12 @@ class _Projector:
     def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor):
         _, self.h, self.w = g.shape
         p = take(g.proj, batch)  # (N, 16)
-        eye, r, u, f = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
-        rel = p1 - eye
-        basis = torch.stack([r, u, f], 1)  # (N, 3, 3) rows: right, up, forward
-        both = torch.bmm(basis, torch.stack([rel, t], 2))  # (N, 3, 2)
-        self.c0 = both[..., 0].contiguous()  # (N, 3) camera coords of p1
-        self.ct = both[..., 1].contiguous()  # (N, 3) per unit s
+        rel = p1 - p[:, 0:3]  # from the eye
+        basis = p[:, 3:12].view(-1, 3, 3)  # (N, 3, 3) rows: right, up, forward
+        # one matrix-vector product per ray each (einsum: the values of a bmm with both
+        # vectors stacked, in half its time)
+        self.c0 = torch.einsum("nij,nj->ni", basis, rel)  # (N, 3) camera coords of p1
+        self.ct = torch.einsum("nij,nj->ni", basis, t)  # (N, 3) per unit s
         # pixel x = (cx / (cz ta) + 1) w / 2, y = (1 - cy / (cz t)) h / 2
         self.sx = 0.5 * self.w / p[:, 12]
         self.sy = 0.5 * self.h / p[:, 13]
@@ -148,7 +150,7 @@ def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Ten
 
 def _crossed_at(c0, ct, s, sx, sy, base, planes, h: int, w: int) -> torch.Tensor:
     """(M,) bool: the points c0 + s ct (camera coordinates, M rays) have left the marched
-    layer(s): outside the frame, or beyond a plane of :func:`_camera_planes` at their
+    layer(s): outside the frame, or beyond a plane of :func:`camera_planes` at their
     pixel (which includes the pixels where the layer is empty)."""
     c = c0 + s[:, None] * ct  # (M, 3)
     flat, inside = _pixel_of_camera(c, sx, sy, base, h, w)
@@ -251,7 +253,8 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
 @timed("march")
 def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
                steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
-               tile: int = 8, fine_steps: int = 8) -> Exit:
+               tile: int = 8, fine_steps: int = 8, planes: torch.Tensor | None = None
+               ) -> Exit:
     """March rays from entry points to their exit through the back-face layer.
 
     Without ``depth_min``: ``steps`` uniform samples over the bounding-sphere chord bracket
@@ -273,16 +276,19 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
             (+inf where a tile is empty).
         tile: the tile size of ``depth_min`` in pixels (a power of two).
         fine_steps: exact samples inside a coarse interval that may hold the crossing.
+        planes: ``camera_planes(g)``, where the caller already has them.
 
     Returns:
         Exit of each ray.
     """
-    return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False)
+    return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False,
+                  planes=planes)
 
 
 @timed("march")
 def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor,
-                 steps: int = 32, refine: int = 10) -> Exit:
+                 steps: int = 32, refine: int = 10, planes: torch.Tensor | None = None
+                 ) -> Exit:
     """March rays that travel inside the object from a point on its surface (an internal
     reflection at the back or the front surface) to where they meet either layer.
 
@@ -295,15 +301,20 @@ def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tens
     Args:
         g: the G-buffer; batch: (N,) scene per ray; p: (N, 3) start points on the surface;
         t: (N, 3) unit directions pointing into the object; steps, refine: as
-        :func:`march_back`.
+        :func:`march_back`; planes: ``camera_planes(g, both=True)``, where the caller
+        already has them.
     """
-    return _march(g, batch, p, t, steps, refine, None, 8, 8, both=True)
+    return _march(g, batch, p, t, steps, refine, None, 8, 8, both=True, planes=planes)
 
 
 def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, steps: int,
            refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
-           both: bool) -> Exit:
-    planes = _camera_planes(g, both)  # (B*H*W, 4|8)
+           both: bool, planes: torch.Tensor | None = None) -> Exit:
+    if planes is None:
+        planes = camera_planes(g, both)  # (B*H*W, 4|8)
+    elif planes.shape != (g.ray_dir[..., 0].numel(), 8 if both else 4):
+        raise ValueError(f"march: planes of shape {tuple(planes.shape)} do not belong to this "
+                         f"G-buffer (camera_planes(g, both={both}))")
     tv = g.meshes.tri_vertices
     # Where each ray crosses is a discrete choice (no gradient); the gradient flows through
     # the exact intersection with the triangle found there (p1 and t below, not detached).

@@ -71,7 +71,7 @@ from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
 from ..index import put_, take
 from ..lighting import Lighting, incident_radiance_sg
-from ..march import march_back
+from ..march import camera_planes, march_back
 from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
@@ -260,7 +260,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     p_t1 = normalize(lobe_axis(view, n1, t_t1, "transmit"))
 
     # 2. Cone tracing: the axis and four bounding rays (eq. 12).
-    ex = march_back(g, bi, p1, p_t1, steps=options.march_steps, refine=options.refine_steps)
+    planes = camera_planes(g)  # built once for the axis and the bounding rays
+    ex = march_back(g, bi, p1, p_t1, steps=options.march_steps, refine=options.refine_steps,
+                    planes=planes)
     theta_b = bounding_angle(k_t1)[:, None]
     u, v = _tangent_frame(p_t1)
     dirs = torch.stack([torch.cos(theta_b) * p_t1 + torch.sin(theta_b) * s * a
@@ -269,7 +271,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if options.cone_rays == "march":
         ex4 = march_back(g, bi.repeat_interleave(4), p1.repeat_interleave(4, 0),
                          dirs.reshape(-1, 3), steps=options.cone_march_steps,
-                         refine=options.refine_steps)
+                         refine=options.refine_steps, planes=planes)
         q = ex4.position.view(n, 4, 3)
         ok4 = ex4.found.view(n, 4)
         n4 = ex4.normal.view(n, 4, 3)
