@@ -69,7 +69,7 @@ from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
-from ..index import put_, take
+from ..index import put_, take, where_true
 from ..lighting import Lighting, incident_radiance_sg
 from ..march import camera_planes, march_back
 from ..materials import MaterialBatch
@@ -453,10 +453,11 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     matched = ior == 1.0
     e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
     e_t = torch.where(matched, torch.ones_like(e_t1), e_t1)
-    l_trans = torch.where(matched[:, None],
-                          incident_radiance_sg(lighting, bi, p1, d,
-                                               torch.full_like(k, float("inf"))),
-                          l_trans)
+    if bool(matched.any()):  # looked up only where some scene has IOR 1
+        sel = where_true(matched)
+        plain = incident_radiance_sg(lighting, take(bi, sel), take(p1, sel), take(d, sel),
+                                     torch.full((sel.numel(),), float("inf")))
+        l_trans = put_(l_trans.clone(), sel, plain)
     if bounce:
         # The light the exit reflects back inside, followed bounce by bounce. The exit's
         # internal reflection lobe uses the roughness at the exit point.

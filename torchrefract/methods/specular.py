@@ -45,7 +45,7 @@ import torch
 from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
-from ..index import put_, take
+from ..index import put_, take, where_true
 from ..lighting import Lighting, hit_lights, incident_radiance
 from ..materials import MaterialBatch
 from ..march import march_back
@@ -130,10 +130,20 @@ class Paths:
 
 def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
     """(B*H*W, 3) radiance of the camera rays without the object: environment or a light
-    (a light in front of the object included, one behind it excluded)."""
+    (a light in front of the object included, one behind it excluded).
+
+    Without sphere lights nothing can hide the object, so every object pixel's value is
+    replaced by the method's and the pixels the object covers are left at zero (not looked
+    up); with lights, every pixel is looked up (a light in front of the object shows)."""
     b, h, w = g.shape
     d_all = g.ray_dir.reshape(-1, 3)
     batch_all = torch.arange(b).repeat_interleave(h * w)
+    if lighting.light_pos.shape[1] == 0:
+        sel = where_true(~g.front.mask.reshape(-1))
+        out = torch.zeros_like(d_all)
+        bs = take(batch_all, sel)
+        return put_(out, sel, incident_radiance(lighting, bs, take(g.eye, bs),
+                                                take(d_all, sel)))
     max_dist = torch.where(g.front.mask.reshape(-1), g.front.dist.reshape(-1),
                            torch.full_like(d_all[:, 0], float("inf")))
     return incident_radiance(lighting, batch_all, take(g.eye, batch_all), d_all, max_dist)
