@@ -6,7 +6,8 @@ every triangle gets its own three vertices with a flat vertex color encoding ``i
 The back layer renders the same triangles with reversed winding under back-face culling,
 which keeps the nearest back face. Multisampling must be off or edge pixels blend ids:
 pyrender's forward pass calls ``glEnable(GL_MULTISAMPLE)``, which we intercept while our
-passes run. One EGL context per process is created lazily and reused.
+passes run (and its offscreen framebuffer is made single-sample, which it then need not
+be resolved from). One EGL context per process is created lazily and reused.
 """
 
 from __future__ import annotations
@@ -59,11 +60,19 @@ def get_renderer(width: int, height: int):
 
 @contextmanager
 def _multisampling_off():
-    """Make pyrender's ``glEnable(GL_MULTISAMPLE)`` a no-op for the duration."""
+    """Make pyrender's ``glEnable(GL_MULTISAMPLE)`` a no-op for the duration, and its
+    offscreen framebuffer single-sample.
+
+    pyrender renders offscreen into a 4-sample framebuffer and resolves it by a blit. With
+    multisampling disabled every sample of a pixel holds the same id, so the 4 samples only
+    cost llvmpipe memory traffic and a resolve: the framebuffer it creates while a pass runs
+    (the first pass, and after a resize) gets 0 samples, a plain buffer (the same ids).
+    """
     import pyrender.renderer as prr  # noqa: PLC0415
     from OpenGL import GL  # noqa: PLC0415
 
     original = prr.glEnable
+    original_storage = prr.glRenderbufferStorageMultisample
 
     def gl_enable(cap):
         if cap == GL.GL_MULTISAMPLE:
@@ -71,11 +80,16 @@ def _multisampling_off():
             return None
         return original(cap)
 
+    def storage(target, _samples, fmt, width, height):
+        return original_storage(target, 0, fmt, width, height)
+
     prr.glEnable = gl_enable
+    prr.glRenderbufferStorageMultisample = storage
     try:
         yield
     finally:
         prr.glEnable = original
+        prr.glRenderbufferStorageMultisample = original_storage
 
 
 def _id_colors(num_faces: int, offset: int) -> np.ndarray:
