@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 
 from ..gbuffer import GBuffer
+from ..index import put_, take
 from ..lighting import Lighting, incident_radiance_sg
 from ..materials import MaterialBatch
 from .specular import SpecularOptions, background, path_passes, trace_paths
@@ -76,15 +77,16 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if paths.idx.numel() > 0:
         bi = paths.batch
         # The roughness at the front hit (the map at its UV when there is one).
-        alpha = materials.roughness_at(bi, g.front.uv.reshape(-1, 2)[paths.idx])
-        k_t, k_r = blur_sharpness(alpha, materials.ior[bi])
+        alpha = materials.roughness_at(bi, take(g.front.uv.reshape(-1, 2), paths.idx))
+        k_t, k_r = blur_sharpness(alpha, take(materials.ior, bi))
         l_refl = incident_radiance_sg(lighting, bi, paths.p1, paths.refl, k_r)
         l_trans = incident_radiance_sg(lighting, bi, paths.p2, paths.t2, k_t)
-        att = torch.exp(-materials.absorption[bi] * paths.path[:, None])
+        att = torch.exp(-take(materials.absorption, bi) * paths.path[:, None])
         f1 = paths.f1[:, None]
         l_obj = f1 * l_refl + paths.e1[:, None] * paths.w2[:, None] * att * l_trans
-        radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
-        k_pass[paths.idx] = torch.rsqrt(k_t)  # angular std (radians); 0 when smooth
+        put_(radiance, paths.idx,
+             torch.where(paths.hidden[:, None], take(radiance, paths.idx), l_obj))
+        put_(k_pass, paths.idx, torch.rsqrt(k_t))  # angular std (radians); 0 when smooth
     passes = path_passes(g, paths)
     passes["blur_sigma"] = k_pass.view(b, h, w, 1)
     return radiance.view(b, h, w, 3), passes

@@ -352,8 +352,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         if n4 is None:
             flat = bi[:, None] * hw + (xy[..., 1].floor().clamp(0, h - 1).long() * w
                                         + xy[..., 0].floor().clamp(0, w - 1).long())
-            n4 = g.back.normal.reshape(-1, 3)[flat]  # (N, 4, 3)
-            ok4 = ok4 & g.back.mask.reshape(-1)[flat]
+            n4 = take(g.back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
+            ok4 = ok4 & take(g.back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
         t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
         t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
         # squared chord |t_k - t_c|^2 = 2 (1 - cos a) ~ a^2: smooth (acos' diverges at 0)
@@ -366,7 +366,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         var_geo = torch.where(cnt > 0, var_geo, mag2 / k_t1)
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
-                       (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
+                       take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0))
     att = torch.exp(-take(materials.absorption, bi) * path[:, None])
 
     bounce = options.bounces.enabled

@@ -199,7 +199,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     w2 = torch.where(ex.found, w2, one)
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
-                       (g.back.dist - g.front.dist).reshape(-1)[idx].clamp(min=0.0))
+                       take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0))
     return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=e_r1, e1=e_t1, refl=reflect(d, n1),
                  t1=t1, found=ex.found, p2=p2, n2=ex.normal, uv2=uv2, t2=t2, w2=w2, path=path,
                  tir=tir1 | tir2, hidden=hidden)
@@ -209,8 +209,8 @@ def path_passes(g: GBuffer, paths: Paths) -> dict[str, torch.Tensor]:
     b, h, w = g.shape
     exit_found = torch.zeros(b * h * w)
     tir = torch.zeros(b * h * w)
-    exit_found[paths.idx] = paths.found.float()
-    tir[paths.idx] = paths.tir.float()
+    put_(exit_found, paths.idx, paths.found.float())
+    put_(tir, paths.idx, paths.tir.float())
     return {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
 
 
@@ -249,7 +249,8 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         else:
             l_trans = incident_radiance(lighting, bi, paths.p2, paths.t2)
             l_obj = f1 * l_refl + paths.e1[:, None] * paths.w2[:, None] * att * l_trans
-        radiance[paths.idx] = torch.where(paths.hidden[:, None], radiance[paths.idx], l_obj)
+        put_(radiance, paths.idx,
+             torch.where(paths.hidden[:, None], take(radiance, paths.idx), l_obj))
     passes = path_passes(g, paths)
     if options.bounces.enabled:
         passes.update(bounce_passes(g, paths.idx, res if paths.idx.numel() else None))
