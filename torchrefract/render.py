@@ -62,6 +62,8 @@ def _box(x: torch.Tensor, n: int) -> torch.Tensor:
 
 def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int) -> torch.Tensor:
     """Average of x over the covered sub-pixels of each pixel (0 where none is covered)."""
+    if n == 1:  # one sub-pixel per pixel: x where covered (x * 1 / 1 is x), else 0
+        return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype))
     m = mask[..., None].to(x.dtype)
     num, den = _box(x * m, n), _box(m, n)
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
