@@ -397,3 +397,15 @@ def test_egl_context_is_reused_across_calls_and_sizes(mesh_paths):
     # resizing back gives the same ids as the first call (no stale framebuffer)
     assert torch.equal(g1.front.tri, g3.front.tri) and torch.equal(g1.back.tri, g3.back.tri)
     assert raster.get_renderer(W, H) is r1
+
+
+def test_passes_leave_pyrender_unpatched():
+    """The visibility pass patches pyrender's glEnable and multisample storage only while it
+    runs (single-sample framebuffer, multisampling off) and restores them after."""
+    import pyrender.renderer as prr
+
+    before = (prr.glEnable, prr.glRenderbufferStorageMultisample)
+    mesh = load_mesh(str(ASSETS / "suzanne.ply"))
+    ids = raster.visibility_pass(mesh, Camera(eye=(0.0, 0.0, 3.0), width=16, height=12))
+    assert ids.shape == (12, 16) and (ids >= 0).any()
+    assert (prr.glEnable, prr.glRenderbufferStorageMultisample) == before
