@@ -135,8 +135,11 @@ def _pixel_of_camera(c: torch.Tensor, sx: torch.Tensor, sy: torch.Tensor, base: 
     zs = z.clamp(min=1e-12)
     px = torch.floor(c[:, 0] / zs * sx + 0.5 * w)
     py = torch.floor(0.5 * h - c[:, 1] / zs * sy)
-    inside = (z > 1e-12) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-    flat = base + py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
+    # px, py are whole numbers: in the frame exactly where clamping leaves them unchanged
+    # (NaN and inf fail either test), two comparisons fewer than testing both bounds
+    pxc, pyc = px.clamp(0, w - 1), py.clamp(0, h - 1)
+    inside = (z > 1e-12) & (pxc == px) & (pyc == py)
+    flat = base + pyc.long() * w + pxc.long()
     return flat, inside
 
 
