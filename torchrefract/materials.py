@@ -43,7 +43,7 @@ class MaterialBatch:
         """Per-point roughness (N,) of points on scene ``batch`` (N,) at UVs (N, 2)."""
         from .textures import sample_uv  # noqa: PLC0415
 
-        alpha = take(self.roughness, batch).clone()
+        alpha = take(self.roughness, batch)  # a new tensor (index_select copies)
         for b, tex in enumerate(self.roughness_maps):
             if tex is None:
                 continue

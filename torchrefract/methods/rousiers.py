@@ -184,7 +184,7 @@ def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
     """The transmitted lobe's energy at the true incident angle ``cos_theta``, given
     ``e_t_clamped``, the lookup at that angle clamped to the critical one under ``tir``:
     the two agree elsewhere, so only the TIR points are looked up again."""
-    sel = tir.nonzero(as_tuple=True)[0]
+    sel = where_true(tir)
     if sel.numel() == 0:
         return e_t_clamped
     e = e_t_clamped.clone()
