@@ -170,7 +170,8 @@ def test_the_bound_catches_a_lobe_switch(smooth_env):
     """The bounds flag discontinuities that an unchanged smooth sweep does not have: the same
     prefiltered roughness sweep, (a) with the lobe widened at a threshold (alpha + 0.1 from
     alpha 0.5 on: an isolated jump of ~4 steps' worth), (b) switching the model there
-    (prefiltered below 0.5, rousiers above: its microfacet energy loss appears at once)."""
+    (prefiltered below 0.5, the same with the papers' ``tir: clamp`` above: the light the
+    exit reflects inside is lost at once)."""
     m = ("prefiltered", {})
     smooth = [tr.Material(ior=1.5, roughness=float(a)) for a in ROUGHNESS]
     s_smooth, _ = steps(sweep(smooth_env, "sphere", smooth, m))
@@ -182,7 +183,7 @@ def test_the_bound_catches_a_lobe_switch(smooth_env):
     assert discontinuities(s_wide) == [at - 1], describe(s_wide, ROUGHNESS,
                                                          discontinuities(s_wide))
     low = sweep(smooth_env, "sphere", smooth[:at], m)
-    high = sweep(smooth_env, "sphere", smooth[at:], ("rousiers", {}))
+    high = sweep(smooth_env, "sphere", smooth[at:], ("prefiltered", {"tir": "clamp"}))
     mixed = tr.RenderResult(radiance=torch.cat([low.radiance, high.radiance]),
                             coverage=torch.cat([low.coverage, high.coverage]), passes={},
                             scenes=low.scenes + high.scenes)

@@ -227,6 +227,17 @@ class SGTable:
             self._cache[key] = self.data[..., 0].to(device=device, dtype=dtype).contiguous()
         return self._cache[key]
 
+    def energy_change_volume(self, dtype: torch.dtype, device: torch.device | str
+                             ) -> torch.Tensor:
+        """``(2, 2, T, E, A)``: the energy less its value at the smallest roughness (the first
+        node of the last axis), the change the roughness makes (memoized). Interpolation is
+        linear, so one lookup of it is the difference of two lookups of the energy."""
+        key = ("energy_change", dtype, str(device))
+        if key not in self._cache:
+            e = self.data[..., 0].to(dtype=torch.float64)
+            self._cache[key] = (e - e[..., :1]).to(device=device, dtype=dtype).contiguous()
+        return self._cache[key]
+
 
 # --------------------------------------------------------------------------------------
 # Fitting
@@ -800,16 +811,26 @@ def sg_energies(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Te
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The transmitted and reflected lobes' energies only (``sg_lookup(...)[3]`` of both
     lobes, interpolated identically), in one trilinear pass over a 2-channel volume."""
+    return _energy_lookup(table, cos_theta_o, eta, alpha, distribution, change=False)
+
+
+def _energy_lookup(table: SGTable, cos_theta_o, eta, alpha, distribution, change: bool
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Trilinear lookup of both lobes' energies (``change``: less their value at the
+    smallest roughness, :meth:`SGTable.energy_change_volume`)."""
     grid, shape, d_idx, _, dtype, dev = _coordinates(table, cos_theta_o, eta, alpha,
                                                      distribution)
-    vol = table.energy_volume(dtype, dev)  # (2, 2, T, E, A): distribution, lobe
+    # (2, 2, T, E, A): distribution, lobe
+    vol = table.energy_change_volume(dtype, dev) if change else table.energy_volume(dtype, dev)
 
     def sample(d: int) -> torch.Tensor:
         v = torch.nn.functional.grid_sample(vol[d][None], grid, mode="bilinear",
                                             padding_mode="border", align_corners=True)
         return v.reshape(2, -1).t().reshape(*shape, 2)
 
-    out = _per_distribution(distribution, d_idx, sample).clamp(min=0.0)
+    out = _per_distribution(distribution, d_idx, sample)
+    if not change:
+        out = out.clamp(min=0.0)
     return out[..., 0], out[..., 1]
 
 
@@ -896,13 +917,63 @@ def interface_energies(table: SGTable, cos_theta_o: torch.Tensor, eta: torch.Ten
     Returns:
         e_t, e_r: (...) energies, each >= 0, ``e_t + e_r <= 1`` up to the table's error.
     """
-    a0 = torch.full_like(alpha, table.spec.alpha_min)
-    both = torch.stack([alpha, a0])  # (2, ...): one lookup per lobe for both roughnesses
-    e_t, e_r = sg_energies(table, cos_theta_o, eta, both, distribution)
+    d_t, d_r = _energy_lookup(table, cos_theta_o, eta, alpha, distribution, change=True)
     fade = matched_fade(eta)
-    t = (1.0 - fresnel + fade * (e_t[0] - e_t[1])).clamp(min=0.0)
-    r = (fresnel + fade * (e_r[0] - e_r[1])).clamp(min=0.0)
+    t = (1.0 - fresnel + fade * d_t).clamp(min=0.0)
+    r = (fresnel + fade * d_r).clamp(min=0.0)
     return t, r
+
+
+#: Weights of the three distinct cosines of :func:`spread_cosines`.
+SPREAD_WEIGHTS = (0.25, 0.25, 0.5)
+
+
+def spread_cosines(cos_theta: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+    """Incident cosines of a four-point quadrature of a lobe of directions arriving at an
+    interface (ours): the light reaching an exit comes from the entry's transmitted lobe,
+    not along its axis, and an interface's energies bend sharply with the angle (total
+    internal reflection, grazing masking), so they are averaged over the lobe.
+
+    The lobe, an SG (von Mises-Fisher) of sharpness ``k = 1 / var`` around an axis at
+    ``acos(cos_theta)`` from the normal, is replaced by four directions at the angle ``r``
+    from the axis, two in the plane of incidence (towards and away from the normal) and two
+    across it, each of weight 1/4; ``sin^2 r = E[sin^2 theta] = 2 A(k) / k`` with
+    ``A(k) = coth k - 1/k`` (the vMF's mean cosine) matches the lobe's second moments. The
+    two out-of-plane points share one cosine, so there are three: ``cos(theta - r)``,
+    ``cos(theta + r)`` and ``cos theta cos r`` (weights :data:`SPREAD_WEIGHTS`; average
+    values over them with :func:`spread_mean`). For a flat exit (a slab) the tangent plane
+    is exact; on a sphere a ray tilted by ``delta`` meets the exit at an angle changed by
+    ``delta`` too, so the same holds to first order. Measured against Monte Carlo of
+    Mitsuba's ``roughdielectric`` through a slab (IOR 1.5, Beckmann 0.3-1.0, the exit's
+    ``tir: conserve`` weight): within 0.015 (alpha <= 0.5) and 0.03 (alpha 1) from normal to
+    grazing incidence, where the axis alone is off by up to 0.05 and the sharp refracted
+    ray by up to 0.19.
+
+    Args:
+        cos_theta: (...) cosine of the lobe's axis with the normal on its side.
+        var: (...) the lobe's per-axis angular variance ``1 / k`` (0: a single ray).
+
+    Returns:
+        (3, ...) cosines in [0, 1] (0: the point misses the interface, grazing).
+    """
+    k = 1.0 / var.clamp(min=1e-12)
+    small = k < 0.1
+    ks = torch.where(small, torch.ones_like(k), k)  # a safe value in the unused branch
+    mean_cos = torch.where(small, k / 3.0 - k ** 3 / 45.0, 1.0 / torch.tanh(ks) - 1.0 / ks)
+    s2 = (2.0 * mean_cos / k).clamp(1e-12, 1.0)  # E[sin^2 theta] = sin^2 r
+    ray = var <= 0  # a single ray: its own cosine, exactly
+    sr = torch.where(ray, torch.zeros_like(s2), torch.sqrt(s2))
+    cr = torch.where(ray, torch.ones_like(s2), torch.sqrt((1.0 - s2).clamp(min=0.0)))
+    c = cos_theta.clamp(-1.0, 1.0)
+    s = torch.sqrt((1.0 - c * c).clamp(min=1e-12))
+    return torch.stack([c * cr + s * sr, c * cr - s * sr, c * cr]).clamp(0.0, 1.0)
+
+
+def spread_mean(values: torch.Tensor) -> torch.Tensor:
+    """(...) the weighted mean over the leading axis of (3, ...) values taken at
+    :func:`spread_cosines`."""
+    a, b, c = SPREAD_WEIGHTS
+    return a * values[0] + b * values[1] + c * values[2]
 
 
 #: Width of the fade of the roughness's energy change near an index-matched interface:

@@ -76,7 +76,8 @@ from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
 from ..optics import dot, face_forward, normalize, refract
-from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_lookup
+from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_energies, sg_lookup, \
+    spread_cosines, spread_mean
 from .specular import background, bounce_passes, light_in_front
 
 
@@ -172,10 +173,29 @@ def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
         a, k, t, e = out
         e0 = sg_lookup(table, cos_theta, eta, torch.full_like(alpha, table.spec.alpha_min),
                        dist, lobe)[3]
-        e_f = e0 + fade * (e - e0)
-        a = a * e_f / e.clamp(min=1e-12)  # the amplitude scales with the energy
+        near = fade < 1  # elsewhere exactly the unfaded values (batch-independent bits)
+        e_f = torch.where(near, e0 + fade * (e - e0), e)
+        a = torch.where(near, a * e_f / e.clamp(min=1e-12), a)  # scales with the energy
         out = (a, k, t, e_f)
     return out
+
+
+def _energies(table, cos_theta: torch.Tensor, var: torch.Tensor, eta: torch.Tensor,
+              alpha: torch.Tensor, dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The transmitted and reflected lobes' energies (``_lobe``'s, faded the same way near
+    IOR 1) averaged over a lobe of arriving directions of variance ``var`` around the axis
+    at ``cos_theta`` (:func:`torchrefract.sgfit.spread_cosines`), (N,) each."""
+    cs = spread_cosines(cos_theta, var)  # (3, N)
+    args = [x.expand_as(cs) for x in (eta, alpha, dist)]
+    e_t, e_r = sg_energies(table, cs, *args)
+    fade = matched_fade(eta)
+    if bool((fade < 1).any()):
+        e_t0, e_r0 = sg_energies(table, cs, args[0], torch.full_like(cs, table.spec.alpha_min),
+                                 args[2])
+        near = fade < 1  # elsewhere exactly the unfaded values (batch-independent bits)
+        e_t = torch.where(near, e_t0 + fade * (e_t - e_t0), e_t)
+        e_r = torch.where(near, e_r0 + fade * (e_r - e_r0), e_r)
+    return spread_mean(e_t), spread_mean(e_r)
 
 
 def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
@@ -369,6 +389,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                        take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0))
     att = torch.exp(-take(materials.absorption, bi) * path[:, None])
 
+    var1 = 1.0 / k_t1.clamp(min=1e-12)  # the front lobe's spread, arriving at the exit
     bounce = options.bounces.enabled
     # With internal bounces the first exit is not the last interface: the table's own split
     # between the transmitted and the internally reflected lobe applies (no TIR rule).
@@ -382,9 +403,10 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         else:  # eq. 10: the footprint's NDF convolved with the BTDF's
             kappa_d = mf.blinn_phong_from_alpha(alpha_exit).clamp(min=0.0)
             alpha2 = mf.alpha_from_blinn_phong(combine_exponents(kappa_g, kappa_d))
-        if exit_mode == "split":
-            _, k_t2, t_t2, weight2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
+        if exit_mode == "split":  # the energy averaged over the arriving lobe
+            _, k_t2, t_t2, _ = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            weight2 = _energies(table, cos2, var1, 1.0 / ior, alpha2, dist)[0]
         elif exit_mode == "clamp":
             cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
@@ -398,10 +420,10 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             cos2_eff = torch.where(tir, cos_crit + 1e-4, cos2)
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2_eff, 1.0 / ior, alpha2, dist, "transmit")
             p_t2 = normalize(lobe_axis(view2, n_in, t_t2, "transmit"))
+            # Both energies at the true angles of the arriving lobe (``_energies``).
             esc = escape_fraction(table, materials.ior, dist_b, alpha_exit, bi)
-            e_t2 = _true_angle_transmit(table, e_t2, tir, cos2, 1.0 / ior, alpha2, dist)
-            e_keep = e_t2 + _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")[3] * esc
-            weight2 = e_keep.clamp(max=1.0)
+            e_t2, e_r2 = _energies(table, cos2, var1, 1.0 / ior, alpha2, dist)
+            weight2 = (e_t2 + e_r2 * esc).clamp(max=1.0)
         else:
             _, k_t2, t_t2, e_t2 = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "transmit")
             _, k_ti, t_ti, e_ti = _lobe(table, cos2, 1.0 / ior, alpha2, dist, "reflect")
@@ -464,8 +486,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         n_pix = idx.numel()
         uv_x = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))
         alpha_x = torch.where(ex.found, materials.roughness_at(bi, uv_x), alpha)
-        _, k_ri, t_ri, e_ri = _lobe(table, cos2, 1.0 / ior, alpha_x.clamp(min=mf.ALPHA_MIN),
-                                    dist, "reflect")
+        a_x = alpha_x.clamp(min=mf.ALPHA_MIN)
+        _, k_ri, t_ri, _ = _lobe(table, cos2, 1.0 / ior, a_x, dist, "reflect")
+        e_ri = _energies(table, cos2, var1, 1.0 / ior, a_x, dist)[1]
         p_ri = normalize(lobe_axis(view2, n_in, t_ri, "reflect"))
         w1 = e_t1[:, None] * att
         first = Shading(radiance=w1 * l_trans, direction=p_ri,
@@ -520,6 +543,8 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
             if last and tir_mode in ("clamp", "conserve") else cos
         _, k_t, t_t, e_t = _lobe(table, cos_t, 1.0 / ior, alpha, dist, "transmit")
         _, k_r, t_r, e_r = _lobe(table, cos, 1.0 / ior, alpha, dist, "reflect")
+        if not last or tir_mode == "conserve":  # the split: averaged over the lobe carried
+            e_t, e_r = _energies(table, cos, a.var, 1.0 / ior, alpha, dist)
         p_t = normalize(lobe_axis(view, n_view, t_t, "transmit"))
         p_r = normalize(lobe_axis(view, n_view, t_r, "reflect"))
         sin2 = (1.0 - cos_t * cos_t).clamp(min=0.0)
@@ -539,8 +564,9 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
                 # after the losses of the bounces not followed (escape_fraction)
                 e_rest = e_r * escape_fraction(table, materials.ior, dist_b, alpha, bi) \
                     if tir_mode == "conserve" else e_r
-                e_keep = (_true_angle_transmit(table, e_t, tir, cos, 1.0 / ior, alpha, dist)
-                          + e_rest).clamp(max=1.0)
+                e_true = e_t if tir_mode == "conserve" else _true_angle_transmit(
+                    table, e_t, tir, cos, 1.0 / ior, alpha, dist)
+                e_keep = (e_true + e_rest).clamp(max=1.0)
                 leave_all = tir | (tir_mode == "conserve")
                 w_out = torch.where(leave_all, e_keep, e_t)
                 refl_part = torch.where(leave_all, torch.zeros_like(e_r), e_r)

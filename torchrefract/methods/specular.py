@@ -50,7 +50,7 @@ from ..lighting import Lighting, hit_lights, incident_radiance
 from ..materials import MaterialBatch
 from ..march import march_back
 from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
-from ..sgfit import interface_energies, load_sg_table
+from ..sgfit import interface_energies, load_sg_table, sg_lookup, spread_cosines, spread_mean
 
 
 @dataclass(frozen=True)
@@ -104,6 +104,10 @@ class Paths:
         uv2: (N, 2) texture coordinates at the exit.
         w2: (N,) exit weight: transmittance (1 - F2, rough: its energy), under TIR and
             ``tir: conserve`` as the rule says; 1 in the fallback.
+        e_t2, e_r2: (N,) the exit interface's transmitted and reflected energies (rough,
+            ``tir: conserve`` or internal bounces: averaged over the entry's transmitted
+            lobe, :func:`torchrefract.sgfit.spread_cosines`).
+        var: (N,) per-axis angular variance of the entry's transmitted lobe (0 when smooth).
         path: (N,) length travelled inside; tir: (N,) total internal reflection somewhere.
         hidden: (N,) a sphere light between the eye and the object hides it.
     """
@@ -123,6 +127,9 @@ class Paths:
     uv2: torch.Tensor
     t2: torch.Tensor
     w2: torch.Tensor
+    e_t2: torch.Tensor
+    e_r2: torch.Tensor
+    var: torch.Tensor
     path: torch.Tensor
     tir: torch.Tensor
     hidden: torch.Tensor
@@ -186,12 +193,17 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         dist = take(dist_b, bi)
         e_t1, e_r1 = interface_energies(table, cos1, eta, alpha1, dist, f1)
         alpha2 = torch.where(ex.found, materials.roughness_at(bi, uv2), alpha1)
-        e_t2, e_r2 = interface_energies(table, cos2, 1.0 / eta, alpha2, dist, f2)
+        if options.tir == "conserve" or options.bounces.enabled:
+            e_t2, e_r2, var = _spread_exit(table, cos1, eta, alpha1, dist, cos2, alpha2)
+        else:  # the papers' rules: the energies of the sharp ray
+            e_t2, e_r2 = interface_energies(table, cos2, 1.0 / eta, alpha2, dist, f2)
+            var = torch.zeros_like(f2)
         esc = escape_fraction(table, materials.ior, dist_b, alpha2, bi) \
             if options.tir == "conserve" else None
     else:  # smooth: exact Fresnel, nothing lost
         e_t1, e_r1, e_t2, e_r2 = 1.0 - f1, f1, 1.0 - f2, f2
         esc = torch.ones_like(f2)
+        var = torch.zeros_like(f2)
     one = torch.ones_like(f2)
     w2, _ = _last_interface(options.tir, tir2, e_t2, e_r2, esc)
     # Fallback where no exit was found: leave along the refracted direction.
@@ -201,8 +213,38 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     path = torch.where(ex.found, ex.dist,
                        take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0))
     return Paths(idx=idx, batch=bi, d=d, p1=p1, n1=n1, f1=e_r1, e1=e_t1, refl=reflect(d, n1),
-                 t1=t1, found=ex.found, p2=p2, n2=ex.normal, uv2=uv2, t2=t2, w2=w2, path=path,
-                 tir=tir1 | tir2, hidden=hidden)
+                 t1=t1, found=ex.found, p2=p2, n2=ex.normal, uv2=uv2, t2=t2, w2=w2,
+                 e_t2=e_t2, e_r2=e_r2, var=var, path=path, tir=tir1 | tir2, hidden=hidden)
+
+
+def _spread_exit(table, cos1, eta, alpha1, dist, cos2, alpha2):
+    """The exit interface's energies averaged over the light arriving there: the entry's
+    transmitted lobe (the SG table's, of sharpness k), at the incident cosines of
+    :func:`torchrefract.sgfit.spread_cosines` around its axis. The table's axis tilts from
+    the refracted ray towards grazing (Walter's off-specular peak); the ray is marched, so
+    the axis's own exit is estimated: its angle there is the ray's, plus the tilt (exact in
+    a slab, where the two normals are parallel, and in a sphere, where a chord meets both
+    interfaces at the same angle). Smooth entry points keep the ray.
+
+    Returns e_t2, e_r2 and the lobe's variance 1 / k (0 where the entry is smooth), (N,).
+    """
+    rough = alpha1 > table.spec.alpha_min
+    _, k1, tilt_axis, _ = sg_lookup(table, cos1, eta, alpha1, dist, "transmit")
+    # cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities (no atan2: its
+    # vectorized and scalar kernels differ in the last bit, and a batch must not change one)
+    sin_t = torch.sqrt((1.0 - cos1 * cos1).clamp(min=1e-12)) / eta  # Snell
+    cos_t = torch.sqrt((1.0 - sin_t * sin_t).clamp(min=1e-12))
+    ca, sa = torch.cos(tilt_axis), torch.sin(tilt_axis)
+    cos_d, sin_d = ca * cos_t + sa * sin_t, sa * cos_t - ca * sin_t  # of tilt_axis - tilt_ray
+    sin2 = torch.sqrt((1.0 - cos2 * cos2).clamp(min=1e-12))
+    c_axis = (cos2 * cos_d - sin2 * sin_d).clamp(min=0.0)
+    c_axis = torch.where(rough, c_axis, cos2)
+    var = torch.where(rough, 1.0 / k1, torch.zeros_like(k1))
+    cs = spread_cosines(c_axis, var)  # (3, N)
+    e_t, e_r = interface_energies(table, cs, (1.0 / eta).expand_as(cs),
+                                  alpha2.expand_as(cs), dist.expand_as(cs),
+                                  fresnel_dielectric(cs, eta))
+    return spread_mean(e_t), spread_mean(e_r), var
 
 
 def path_passes(g: GBuffer, paths: Paths) -> dict[str, torch.Tensor]:
@@ -242,8 +284,8 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
             n = paths.idx.numel()
             first = Arrival(pix=torch.arange(n), batch=bi, p=paths.p2, t=paths.t1,
                             normal=paths.n2, uv=paths.uv2, found=paths.found,
-                            w=paths.e1[:, None] * att, var=torch.zeros(n))
-            res = follow(g, first, _interface(lighting, materials, options.tir),
+                            w=paths.e1[:, None] * att, var=paths.var)
+            res = follow(g, first, _interface(lighting, materials, options.tir, paths),
                          materials.absorption, options.bounces, n, options.refine_steps)
             l_obj = f1 * l_refl + res.radiance
         else:
@@ -268,9 +310,11 @@ def bounce_passes(g: GBuffer, idx: torch.Tensor, res) -> dict[str, torch.Tensor]
     return {k: v.view(b, h, w, 1) for k, v in out.items()}
 
 
-def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
+def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str, paths: Paths):
     """The interface seen from inside: (1 - F) leaves along the refracted ray, F is
-    mirrored back inside (rough surfaces: the energies of ``sgfit.interface_energies``); at
+    mirrored back inside (rough surfaces: the energies of ``sgfit.interface_energies``,
+    averaged over the lobe of directions the light arrives with: the first exit's are the
+    ``paths``', later ones carry the entry lobe's variance plus each reflection lobe's); at
     the last interface the ``tir`` rule lets TIR light leave (``clamp``: critical angle;
     ``reflect``: the mirror direction; ``conserve``: the reflected part leaves too, after
     the losses of the bounces not followed), as without bounces."""
@@ -286,9 +330,20 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
         one, zero = torch.ones_like(f), torch.zeros_like(f)
         alpha = materials.roughness_at(a.batch, a.uv)
         rough = bool((alpha > 0).any())
+        var = torch.zeros_like(f)
         if rough:
             table = load_sg_table()
-            e_t, e_r = interface_energies(table, cos, 1.0 / eta, alpha, dist_b[a.batch], f)
+            dist = dist_b[a.batch]
+            if k == 0:  # the first exit: all paths, in order
+                e_t, e_r = paths.e_t2, paths.e_r2
+            else:
+                cs = spread_cosines(cos, a.var)
+                e_t, e_r = interface_energies(table, cs, (1.0 / eta).expand_as(cs),
+                                              alpha.expand_as(cs), dist.expand_as(cs),
+                                              fresnel_dielectric(cs, eta))
+                e_t, e_r = spread_mean(e_t), spread_mean(e_r)
+            k_r = sg_lookup(table, cos, 1.0 / eta, alpha, dist, "reflect")[1]
+            var = a.var + torch.where(alpha > 0, 1.0 / k_r, zero)
         else:
             e_t, e_r = 1.0 - f, f
         if last:
@@ -305,7 +360,7 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str):
         refl = torch.where(a.found, refl, zero)
         l_out = incident_radiance(lighting, a.batch, a.p, t_out)
         return Shading(radiance=a.w * w_out[:, None] * l_out, direction=r, reflectance=refl,
-                       var=torch.zeros_like(f))
+                       var=var)
 
     return shade
 
