@@ -39,7 +39,9 @@ of it under total internal reflection) leaves there too, with the transmitted lo
 incident angle clamped to the critical angle), times the fraction of trapped light that
 eventually escapes (:func:`torchrefract.bounces.escape_fraction`), so the image is
 continuous in roughness and IOR at the critical angle and a white furnace keeps what
-Mitsuba keeps. ``clamp`` (the paper's and Wyman's choice): the incident angle is clamped to
+Mitsuba keeps. Its energies (and the split's, with internal bounces) are averaged over the
+front lobe arriving at the exit (:func:`torchrefract.sgfit.spread_cosines`, variance
+1/k_t1; at later bounces, the variance carried). ``clamp`` (the paper's and Wyman's choice): the incident angle is clamped to
 the critical angle and all the transmitted light leaves with that lobe (weight 1, as
 ``specular`` does, so the smooth limit matches it), the exit's reflection outside TIR is
 lost; ``tir: reflect`` reads the environment with the table's internal reflection lobe

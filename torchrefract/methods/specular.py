@@ -27,7 +27,12 @@ Rough glass: the rays follow the smooth surface (no blur: see ``prefiltered`` an
 ``rousiers``), but the interfaces' energies are the rough surface's
 (:func:`torchrefract.sgfit.interface_energies`: F1, 1 - F1, F2, 1 - F2 become the Walter
 BSDF's reflected and transmitted energies, which add up to less than 1), so the object has
-the brightness of rough glass. Rays whose exit is not found (they leave the frame, miss the
+the brightness of rough glass. The light reaching the exit is the entry's rough transmitted
+lobe, not the one ray: under ``tir: conserve`` and with internal bounces, the exit's
+energies are averaged over that lobe (:func:`torchrefract.sgfit.spread_cosines`, around the
+lobe's axis, which tilts towards grazing: ``_spread_exit``), and each internal reflection
+adds its lobe's spread to the next interface's average; the papers' ``clamp`` and
+``reflect`` keep the one ray's. Rays whose exit is not found (they leave the frame, miss the
 back layer) fall back to the refracted direction T1, never to garbage.
 
 ``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`): the exit interface
