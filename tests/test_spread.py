@@ -48,10 +48,13 @@ def test_quadrature_matches_the_lobe(k, theta0):
 
 
 def test_a_single_ray_keeps_its_cosine_exactly():
-    c = torch.rand(1000)
+    """var 0 returns the cosine itself, bit for bit, also next to spread lobes; a lobe
+    (here r ~ 0.014 rad, axes at least 0.45 rad from the normal: r < 2 theta) puts one
+    point closer to the normal and one farther."""
+    c = 0.1 + 0.8 * torch.rand(1000, generator=torch.Generator().manual_seed(3))
     cs = spread_cosines(c, torch.zeros(1000))
     assert torch.equal(cs, c.expand(3, -1))
-    mixed = torch.where(torch.arange(1000) % 2 == 0, 0.0, 0.01)
+    mixed = torch.where(torch.arange(1000) % 2 == 0, 0.0, 1e-4)
     cs = spread_cosines(c, mixed)
     assert torch.equal(cs[:, ::2], c[::2].expand(3, -1))
     assert (cs[0, 1::2] > c[1::2]).all() and (cs[1, 1::2] < c[1::2]).all()
