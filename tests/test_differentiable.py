@@ -103,3 +103,28 @@ def test_ior_gradient_matches_a_small_finite_difference(method, smooth_env_exr):
         fd = (mean(rough, torch.tensor([ior + h]))
               - mean(rough, torch.tensor([ior - h]))) / (2 * h)
         assert abs(i.grad.item() - fd.item()) < 0.02 * abs(fd.item()), (i.grad.item(), fd.item())
+
+
+@pytest.mark.parametrize("method", ["specular", "prefiltered"])
+def test_sharp_path_roughness_gradients(method, setup):
+    """The roughness reaches ``specular``'s and ``prefiltered``'s images through the
+    interfaces' energies (averaged over the arriving lobe at the exit) and the blur: the
+    gradient of the mean image is finite and within 25% of the median of eight one-sided
+    differences (h = 1e-3; measured within 11% at alpha 0.3 and 1% at 0.8; the table's
+    trilinear interpolation makes the image piecewise smooth, see above)."""
+    g, lighting = setup
+    fn = METHODS[method][1]
+
+    def mean(r):
+        m = MaterialBatch(ior=torch.tensor([1.5]), roughness=r, absorption=torch.zeros(1, 3),
+                          distribution=("beckmann",))
+        return fn(g, lighting, m)[0].double().mean()
+
+    for rough in (0.3, 0.8):
+        r = torch.tensor([rough], requires_grad=True)
+        mean(r).backward()
+        assert torch.isfinite(r.grad).all()
+        h = 1e-3
+        vals = [mean(torch.tensor([rough + k * h])) for k in range(-4, 5)]
+        fd = torch.stack([(vals[k + 1] - vals[k]) / h for k in range(8)]).median().item()
+        assert abs(r.grad.item() - fd) < 0.25 * abs(fd), (r.grad.item(), fd)
