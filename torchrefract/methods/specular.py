@@ -55,7 +55,7 @@ from ..lighting import Lighting, hit_lights, incident_radiance
 from ..materials import MaterialBatch
 from ..march import march_back
 from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
-from ..sgfit import interface_energies, load_sg_table, sg_lookup, spread_cosines, spread_mean
+from ..sgfit import interface_energies, load_sg_table, sg_lookup, spread_interface_energies
 
 
 @dataclass(frozen=True)
@@ -245,11 +245,8 @@ def _spread_exit(table, cos1, eta, alpha1, dist, cos2, alpha2):
     c_axis = (cos2 * cos_d - sin2 * sin_d).clamp(min=0.0)
     c_axis = torch.where(rough, c_axis, cos2)
     var = torch.where(rough, 1.0 / k1, torch.zeros_like(k1))
-    cs = spread_cosines(c_axis, var)  # (3, N)
-    e_t, e_r = interface_energies(table, cs, (1.0 / eta).expand_as(cs),
-                                  alpha2.expand_as(cs), dist.expand_as(cs),
-                                  fresnel_dielectric(cs, eta))
-    return spread_mean(e_t), spread_mean(e_r), var
+    e_t, e_r = spread_interface_energies(table, c_axis, var, eta, alpha2, dist)
+    return e_t, e_r, var
 
 
 def path_passes(g: GBuffer, paths: Paths) -> dict[str, torch.Tensor]:
@@ -342,13 +339,10 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str, path
             if k == 0:  # the first exit: all paths, in order
                 e_t, e_r = paths.e_t2, paths.e_r2
             else:
-                cs = spread_cosines(cos, a.var)
-                e_t, e_r = interface_energies(table, cs, (1.0 / eta).expand_as(cs),
-                                              alpha.expand_as(cs), dist.expand_as(cs),
-                                              fresnel_dielectric(cs, eta))
-                e_t, e_r = spread_mean(e_t), spread_mean(e_r)
-            k_r = sg_lookup(table, cos, 1.0 / eta, alpha, dist, "reflect")[1]
-            var = a.var + torch.where(alpha > 0, 1.0 / k_r, zero)
+                e_t, e_r = spread_interface_energies(table, cos, a.var, eta, alpha, dist)
+            if not last:  # the reflected lobe's spread, for the next interface
+                k_r = sg_lookup(table, cos, 1.0 / eta, alpha, dist, "reflect")[1]
+                var = a.var + torch.where(alpha > 0, 1.0 / k_r, zero)
         else:
             e_t, e_r = 1.0 - f, f
         if last:
