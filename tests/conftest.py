@@ -32,6 +32,22 @@ def one_thread():
 
 
 @pytest.fixture(scope="session")
+def mi_vectorized():
+    """Mitsuba 3 in a vectorized (LLVM) variant, for tests that draw millions of BSDF
+    samples; skipped where Mitsuba is missing or only ``scalar_rgb`` works."""
+    pytest.importorskip("mitsuba")
+    from torchrefract.reference import mitsuba  # noqa: PLC0415
+
+    try:
+        mi = mitsuba()
+    except ImportError as exc:
+        pytest.skip(f"Mitsuba unusable here: {exc}")
+    if mi.variant().startswith("scalar"):
+        pytest.skip("needs a vectorized Mitsuba variant (llvm_ad_rgb): millions of samples")
+    return mi
+
+
+@pytest.fixture(scope="session")
 def sphere_ply(tmp_path_factory) -> Path:
     """A unit icosphere (subdivision 6, 81,920 faces, radius 1) as PLY, no stored normals."""
     path = tmp_path_factory.mktemp("meshes") / "sphere6.ply"

@@ -37,17 +37,8 @@ def _one_thread(one_thread):
 
 
 @pytest.fixture(scope="module")
-def mi():
-    pytest.importorskip("mitsuba")
-    from torchrefract.reference import mitsuba  # noqa: PLC0415
-
-    try:
-        mi = mitsuba()
-    except ImportError as exc:
-        pytest.skip(f"Mitsuba unusable here: {exc}")
-    if mi.variant().startswith("scalar"):
-        pytest.skip("needs a vectorized Mitsuba variant (llvm_ad_rgb): millions of samples")
-    return mi
+def mi(mi_vectorized):
+    return mi_vectorized
 
 
 @pytest.fixture(scope="module")
