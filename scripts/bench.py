@@ -12,7 +12,12 @@ as ``baseline_rss_mb``.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile] [--in-process]
-        [--out outputs/bench]
+        [--views shared distinct] [--out outputs/bench]
+
+The batch items differ by their environment map's rotation (10 degrees apart). ``--views``:
+``distinct`` (default) also turns each item's camera 3 degrees further around the object,
+so every item has its own G-buffer; ``shared`` keeps one camera for the whole batch (a
+sweep of materials or maps over one view), whose G-buffer is then built once per batch.
 
 A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``.
 """
@@ -20,7 +25,9 @@ A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import math
 import platform
 import re
 import resource
@@ -58,16 +65,34 @@ def parse_method_spec(spec: str) -> tuple[str, dict]:
     return method, options
 
 
-def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) -> dict:
+def orbit(cam: tr.Camera, deg: float) -> tr.Camera:
+    """``cam`` turned by ``deg`` degrees around its target, about its up vector."""
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (cam.eye, cam.target,
+                                                                    cam.up))
+    k = up / up.norm()
+    r = eye - target
+    a = math.radians(deg)
+    r = (r * math.cos(a) + torch.cross(k, r, dim=0) * math.sin(a)
+         + k * torch.dot(k, r) * (1.0 - math.cos(a)))
+    return tr.Camera(eye=tuple((target + r).tolist()), target=cam.target, up=cam.up,
+                     yfov_deg=cam.yfov_deg, width=cam.width, height=cam.height,
+                     samples_per_pixel=cam.samples_per_pixel)
+
+
+def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
+              views: str = "distinct") -> dict:
     method, options = parse_method_spec(method)
     base = base.replace(method_options=options)
     cam = base.camera
     scene = base.replace(camera=tr.Camera(eye=cam.eye, target=cam.target, up=cam.up,
                                           yfov_deg=cam.yfov_deg, width=size, height=size,
                                           samples_per_pixel=1))
-    # Vary the view a little per batch item so the batch is not one image repeated.
+    # Vary each batch item so the batch is not one image repeated: the map's rotation, and
+    # (``distinct``) the camera.
     scenes = [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
-                                             rotate_deg=scene.envmap.rotate_deg + 10 * i))
+                                             rotate_deg=scene.envmap.rotate_deg + 10 * i),
+                            camera=orbit(scene.camera, 3.0 * i) if views == "distinct"
+                            else scene.camera)
               for i in range(batch)]
     baseline = rss_mb("VmRSS")
     t0 = time.perf_counter()
@@ -85,7 +110,8 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
             stages["shading"][i] - stages.get("march", [0.0] * repeats)[i]
             - stages.get("mips", [0.0] * repeats)[i])
     return {
-        "method": method, "options": options, "size": size, "batch": batch, "repeats": repeats,
+        "method": method, "options": options, "size": size, "batch": batch, "views": views,
+        "repeats": repeats,
         "ms_per_frame": 1000 * statistics.median(totals) / batch,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
@@ -94,10 +120,11 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int) 
     }
 
 
-def run_row(args: argparse.Namespace, method: str, size: int, batch: int) -> dict:
+def run_row(args: argparse.Namespace, method: str, size: int, batch: int, views: str) -> dict:
     """One row in a fresh Python process (its own peak memory)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--row", method, str(size),
-           str(batch), "--repeats", str(args.repeats), "--scene", args.scene]
+           str(batch), "--repeats", str(args.repeats), "--scene", args.scene,
+           "--views", views]
     if args.threads:
         cmd += ["--threads", str(args.threads)]
     if args.compile:
@@ -121,6 +148,9 @@ def main() -> None:
     ap.add_argument("--compile", action="store_true",
                     help="torch.compile the march (torchrefract.set_compile); the first "
                          "render of each row (warm-up, not timed) includes the compiling")
+    ap.add_argument("--views", nargs="+", choices=("distinct", "shared"), default=["distinct"],
+                    help="batch items each with its own camera (distinct) or all with one "
+                         "(shared: its G-buffer is built once)")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench"))
     ap.add_argument("--in-process", action="store_true",
                     help="run every row in this process (memory: the peak so far)")
@@ -132,24 +162,26 @@ def main() -> None:
     tr.set_compile(args.compile)
     base = tr.load_scene(args.scene)
     if args.row:
-        r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats)
+        r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats,
+                      args.views[0])
         print("ROW " + json.dumps(r))
         return
     rows = []
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
           f"{', compiled march' if args.compile else ''}")
-    print(f"{'method':<28}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}{'shading':>9}"
-          f"{'(mips':>7}{'march':>7}{'rest)':>7}{'peakMB':>8}")
-    for method in args.methods:
-        for size in args.sizes:
-            for batch in args.batches:
-                r = (bench_one(base, method, size, batch, args.repeats) if args.in_process
-                     else run_row(args, method, size, batch))
-                rows.append(r)
-                st = r["ms_per_frame_stage"]
-                print(f"{method[:28]:<28}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
-                      f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{st['mips']:>7.1f}"
-                      f"{st['march']:>7.1f}{st['shading_rest']:>7.1f}{r['peak_rss_mb']:>8.0f}")
+    print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}"
+          f"{'shading':>9}{'(mips':>7}{'march':>7}{'rest)':>7}{'peakMB':>8}")
+    for method, views, size, batch in itertools.product(args.methods, args.views, args.sizes,
+                                                        args.batches):
+        if batch == 1 and views == "shared" and "distinct" in args.views:
+            continue  # one item: the same row
+        r = (bench_one(base, method, size, batch, args.repeats, views) if args.in_process
+             else run_row(args, method, size, batch, views))
+        rows.append(r)
+        st = r["ms_per_frame_stage"]
+        print(f"{method[:28]:<28}{views:>9}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
+              f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{st['mips']:>7.1f}"
+              f"{st['march']:>7.1f}{st['shading_rest']:>7.1f}{r['peak_rss_mb']:>8.0f}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,

@@ -14,14 +14,16 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
     proc = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "bench.py"), "--methods", "specular",
          "rousiers:cone_rays=plane", "--sizes", "32", "--batches", "1", "2", "--repeats", "1",
-         "--threads", "1", "--out", str(tmp_path)], capture_output=True, text=True,
+         "--threads", "1", "--views", "distinct", "shared", "--out", str(tmp_path)], capture_output=True, text=True,
         timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     meta = json.loads((tmp_path / "bench.json").read_text())
     rows = meta["results"]
-    assert [(r["method"], r["options"], r["batch"]) for r in rows] == [
-        ("specular", {}, 1), ("specular", {}, 2), ("rousiers", {"cone_rays": "plane"}, 1),
-        ("rousiers", {"cone_rays": "plane"}, 2)]
+    plane = {"cone_rays": "plane"}
+    assert [(r["method"], r["options"], r["views"], r["batch"]) for r in rows] == [
+        ("specular", {}, "distinct", 1), ("specular", {}, "distinct", 2),
+        ("specular", {}, "shared", 2), ("rousiers", plane, "distinct", 1),
+        ("rousiers", plane, "distinct", 2), ("rousiers", plane, "shared", 2)]
     for r in rows:
         st = r["ms_per_frame_stage"]
         assert st["march"] > 0 and st["mips"] == 0
@@ -30,3 +32,25 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
         # a fresh process per row: its peak is above its own start, not the run's peak so far
         assert r["peak_rss_mb"] > r["baseline_rss_mb"] > 50
     assert meta["threads"] == 1
+
+
+def test_bench_distinct_views_orbit_the_target():
+    """``--views distinct`` turns each batch item's camera around the target about its up
+    vector: same distance and height, the requested angle apart."""
+    import importlib.util
+    import math
+
+    import torchrefract as tr
+    spec = importlib.util.spec_from_file_location("bench", ROOT / "scripts" / "bench.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    cam = tr.Camera(eye=(0.5, 1.0, 4.0), target=(0.5, 0.2, 0.0), up=(0.0, 1.0, 0.0))
+    turned = bench.orbit(cam, 30.0)
+    a = [e - t for e, t in zip(cam.eye, cam.target)]
+    b = [e - t for e, t in zip(turned.eye, turned.target)]
+    assert math.isclose(b[1], a[1], abs_tol=1e-12)  # about the up axis
+    assert math.isclose(math.hypot(b[0], b[2]), math.hypot(a[0], a[2]), rel_tol=1e-12)
+    ang = math.degrees(math.atan2(b[0], b[2]) - math.atan2(a[0], a[2]))
+    assert math.isclose(abs(ang), 30.0, rel_tol=1e-9)
+    assert all(math.isclose(x, y, abs_tol=1e-12) for x, y in zip(bench.orbit(cam, 0.0).eye,
+                                                                  cam.eye))

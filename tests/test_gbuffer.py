@@ -409,3 +409,58 @@ def test_passes_leave_pyrender_unpatched():
     ids = raster.visibility_pass(mesh, Camera(eye=(0.0, 0.0, 3.0), width=16, height=12))
     assert ids.shape == (12, 16) and (ids >= 0).any()
     assert (prr.glEnable, prr.glRenderbufferStorageMultisample) == before
+
+
+def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, monkeypatch):
+    """A batch that repeats (mesh, camera) pairs (a material or environment sweep over one
+    view) rasterizes each distinct view once, stores each distinct mesh's faces once, and
+    gives every batch item exactly the layers of a G-buffer built for it alone."""
+    t_spot, cams_spot = CASES["spot"]
+    t_suz, cams_suz = CASES["suzanne"]
+    spot = load_mesh(mesh_paths["spot"], t_spot)
+    suz = load_mesh(mesh_paths["suzanne"], t_suz)
+    meshes = [spot, suz, spot, spot, suz]
+    cams = [cams_spot[0], cams_suz[0], cams_spot[1], cams_spot[0], cams_suz[0]]
+    calls = []
+    real_pass = raster.visibility_pass
+
+    def counting(mesh, cam, n=1, back=False):
+        calls.append((id(mesh), cam, back))
+        return real_pass(mesh, cam, n, back=back)
+
+    import torchrefract.gbuffer as gbuffer_mod
+    monkeypatch.setattr(gbuffer_mod, "visibility_pass", counting)
+    g = build_gbuffer(meshes, cams)
+    assert len(calls) == 2 * 3  # three distinct views, two layers each
+    assert g.meshes.tri_vertices.shape[0] == spot.num_faces + suz.num_faces
+    assert g.meshes.face_offset.tolist() == [0, spot.num_faces, 0, 0, spot.num_faces]
+    for b, (mesh, cam) in enumerate(zip(meshes, cams)):
+        single = build_gbuffer([mesh], [cam])
+        off = int(g.meshes.face_offset[b])
+        for name in ("front", "back"):
+            lb, ls = getattr(g, name), getattr(single, name)
+            assert torch.equal(lb.mask[b], ls.mask[0])
+            assert torch.equal(torch.where(lb.tri[b] >= 0, lb.tri[b] - off, -1), ls.tri[0])
+            for f in ("position", "normal", "depth", "uv", "bary", "geo_normal"):
+                assert torch.equal(getattr(lb, f)[b], getattr(ls, f)[0]), (b, name, f)
+        assert torch.equal(g.ray_dir[b], single.ray_dir[0])
+        assert torch.equal(g.proj[b], single.proj[0])
+
+
+def test_cached_pass_scenes_give_the_ids_of_fresh_ones(mesh_paths):
+    """The pass scene kept per mesh (raster._PassScene) switches layer and camera between
+    passes; interleaving meshes, layers and cameras gives the ids of a cleared cache."""
+    t_spot, cams_spot = CASES["spot"]
+    t_ico, cams_ico = CASES["icosphere"]
+    spot = load_mesh(mesh_paths["spot"], t_spot)
+    ico = load_mesh(mesh_paths["icosphere"], t_ico)
+    order = [(spot, cams_spot[0], False), (ico, cams_ico[1], True), (spot, cams_spot[1], True),
+             (spot, cams_spot[0], True), (ico, cams_ico[0], False), (spot, cams_spot[0], False)]
+    interleaved = [raster.visibility_pass(m, c, 1, back=bk) for m, c, bk in order]
+    for (m, c, bk), ids in zip(order, interleaved):
+        raster._pass_scenes.clear()
+        fresh = raster.visibility_pass(m, c, 1, back=bk)
+        assert (fresh >= 0).sum() > 300
+        assert torch.equal(ids, fresh)
+    assert torch.equal(interleaved[0], interleaved[5])
+    assert not torch.equal(interleaved[3], interleaved[5])  # the back layer differs

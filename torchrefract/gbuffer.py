@@ -9,12 +9,15 @@ triangles), the 3x3 neighbourhood's triangles are tested and the true hit kept.
 
 Layout: channels-last, ``(B, H, W, C)``, where (H, W) is the *rendered* resolution: the
 camera resolution times ``samples_per_pixel`` (the G-buffer lives on sub-pixel centers).
-Meshes of a batch are concatenated; ``tri`` indexes the concatenation.
+Meshes of a batch are concatenated, each distinct mesh once; ``tri`` indexes the
+concatenation. Views that repeat within a batch (the same mesh object and camera: a sweep
+of materials or environment maps over one view) are rasterized and intersected once and
+copied to each of their batch items.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -30,13 +33,14 @@ from .scene import Camera
 
 @dataclass(frozen=True)
 class MeshBatch:
-    """Triangles of B meshes concatenated (float32).
+    """Triangles of B meshes concatenated (float32), each distinct mesh object once (batch
+    items showing the same mesh share its faces).
 
     Attributes:
-        tri_vertices: (F, 3, 3) corner positions, F = total faces of the batch.
+        tri_vertices: (F, 3, 3) corner positions, F = total faces of the distinct meshes.
         tri_normals: (F, 3, 3) unit corner shading normals.
         tri_uvs: (F, 3, 2) corner UVs (zeros where a mesh has none).
-        face_offset: (B,) int64 index of each mesh's first face.
+        face_offset: (B,) int64 index of each batch item's mesh's first face.
         num_faces: (B,) int64 faces per mesh.
         tri_neighbors: (F, 3) int64 edge-adjacent faces (batch indices, -1 where none).
         tri_across: (F, 3) int64 the face across the edge opposite each corner (batch
@@ -56,9 +60,13 @@ class MeshBatch:
 
     @staticmethod
     def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
-        tv, tn, tu, nb, ac, counts = [], [], [], [], [], []
+        tv, tn, tu, nb, ac = [], [], [], [], []
+        first: dict[int, int] = {}  # id(mesh) -> its first face in the concatenation
         offset = 0
         for m in meshes:
+            if id(m) in first:
+                continue
+            first[id(m)] = offset
             f, corners = m.faces, m.faces.reshape(-1)
             tv.append(take(m.vertices, corners).view(-1, 3, 3))  # (F_i, 3, 3)
             tn.append(take(m.normals, corners).view(-1, 3, 3))
@@ -66,10 +74,9 @@ class MeshBatch:
                       else torch.zeros(f.shape[0], 3, 2))
             nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
             ac.append(torch.where(m.across >= 0, m.across + offset, m.across))
-            counts.append(f.shape[0])
             offset += f.shape[0]
-        counts_t = torch.tensor(counts, dtype=torch.int64)
-        offsets = torch.cumsum(counts_t, 0) - counts_t
+        counts_t = torch.tensor([m.num_faces for m in meshes], dtype=torch.int64)
+        offsets = torch.tensor([first[id(m)] for m in meshes], dtype=torch.int64)
         spheres = [m.face_sphere for m in meshes]
         return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t,
                          torch.cat(nb), torch.cat(ac), torch.stack([c for c, _ in spheres]),
@@ -297,8 +304,15 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
                              f"samples_per_pixel; got {c0} and {c}")
     n = c0.samples_per_pixel
     batch = MeshBatch.from_meshes(meshes)
+    # Each distinct view once: (mesh object, camera) -> its slot among the distinct views.
+    slot: dict[tuple[int, Camera], int] = {}
+    inverse = [slot.setdefault((id(m), c), len(slot)) for m, c in zip(meshes, cameras)]
+    views = [None] * len(slot)
+    for b, (m, c) in enumerate(zip(meshes, cameras)):
+        if views[inverse[b]] is None:
+            views[inverse[b]] = (b, m, c)
     front_ids, back_ids, dirs, eyes, fwd, proj = [], [], [], [], [], []
-    for b, (mesh, cam) in enumerate(zip(meshes, cameras)):
+    for b, mesh, cam in views:
         off = int(batch.face_offset[b])
         for back, out in ((False, front_ids), (True, back_ids)):
             ids = visibility_pass(mesh, cam, n, back=back)
@@ -311,8 +325,17 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
         p[14:16] *= n
         proj.append(p)
     dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
-    return GBuffer(
-        front=_layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch, back=False),
-        back=_layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch, back=True),
-        ray_dir=dirs_t, eye=eye_t, proj=torch.stack(proj), meshes=batch, supersample=n,
-    )
+    front = _layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch, back=False)
+    back_layer = _layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch, back=True)
+    proj_t = torch.stack(proj)
+    if len(views) < len(meshes):  # copy the distinct views to their batch items
+        inv = torch.tensor(inverse, dtype=torch.int64)
+
+        def expand(x: torch.Tensor) -> torch.Tensor:
+            return x.index_select(0, inv)
+
+        front, back_layer = (Layer(**{f.name: expand(getattr(lay, f.name)) for f in fields(Layer)})
+                             for lay in (front, back_layer))
+        dirs_t, eye_t, proj_t = expand(dirs_t), expand(eye_t), expand(proj_t)
+    return GBuffer(front=front, back=back_layer, ray_dir=dirs_t, eye=eye_t, proj=proj_t,
+                   meshes=batch, supersample=n)

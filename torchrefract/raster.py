@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections import OrderedDict
 from contextlib import contextmanager
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -100,6 +101,50 @@ def _id_colors(num_faces: int, offset: int) -> np.ndarray:
     return np.repeat(rgba, 3, axis=0)
 
 
+class _PassScene:
+    """A mesh's two pass meshes (front winding, and reversed for the back layer) in one
+    pyrender scene with its camera, kept between passes: switching the layer or the view
+    sets a visibility flag and the camera, and nothing is uploaded again while the renderer
+    keeps rendering this scene (pyrender re-uploads only meshes new to its context)."""
+
+    def __init__(self, mesh: MeshData):
+        pyrender = _pyrender()
+        self.mesh = mesh  # held, so the cache key (its id) cannot be reused
+        faces = mesh.faces.numpy()
+        verts = mesh.vertices.numpy()
+        colors = _id_colors(mesh.num_faces, 0)
+        self.scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
+        self.layers = []
+        for f in (faces, faces[:, ::-1]):  # front, back (reversed winding)
+            prim = pyrender.Primitive(
+                positions=verts[f.reshape(-1)], color_0=colors,  # (3F, 3): unshared vertices
+                mode=pyrender.GLTF.TRIANGLES,
+                material=pyrender.MetallicRoughnessMaterial(
+                    baseColorFactor=[1.0, 1.0, 1.0, 1.0], doubleSided=False))
+            pm = pyrender.Mesh([prim])
+            self.scene.add(pm)
+            self.layers.append(pm)
+        self.camera = pyrender.PerspectiveCamera(yfov=1.0, znear=0.1, zfar=10.0)
+        self.camera_node = self.scene.add(self.camera)
+        self.sphere = mesh.bounding_sphere()
+
+
+_pass_scenes: "OrderedDict[int, _PassScene]" = OrderedDict()
+_PASS_SCENES_KEPT = 4
+
+
+def _pass_scene(mesh: MeshData) -> _PassScene:
+    """The cached :class:`_PassScene` of ``mesh`` (the last few meshes; call under _lock)."""
+    ps = _pass_scenes.get(id(mesh))
+    if ps is None or ps.mesh is not mesh:
+        ps = _PassScene(mesh)
+        _pass_scenes[id(mesh)] = ps
+        while len(_pass_scenes) > _PASS_SCENES_KEPT:
+            _pass_scenes.popitem(last=False)
+    _pass_scenes.move_to_end(id(mesh))
+    return ps
+
+
 def visibility_pass(mesh: MeshData, cam: Camera, supersample: int = 1,
                     back: bool = False) -> torch.Tensor:
     """Rasterize per-pixel triangle ids of the nearest front (or back) face.
@@ -117,32 +162,23 @@ def visibility_pass(mesh: MeshData, cam: Camera, supersample: int = 1,
         raise ValueError(f"mesh has {mesh.num_faces} triangles; the id buffer holds {_MAX_ID}")
     pyrender = _pyrender()
     h, w = cam.height * supersample, cam.width * supersample
-    faces = mesh.faces.numpy()
-    if back:
-        faces = faces[:, ::-1]
-    pos = mesh.vertices.numpy()[faces.reshape(-1)]  # (3F, 3): unshared vertices
-    center, radius = mesh.bounding_sphere()
-    eye = np.asarray(cam.eye, dtype=np.float64)
-    dist = float(np.linalg.norm(center - eye))
-    # Near/far planes from the bounding sphere: only the ids are used, so depth precision
-    # only matters for telling overlapping surfaces apart.
-    znear = max(dist - radius, 0.0) * 0.5
-    znear = max(znear, radius * 1e-4, 1e-6)
-    zfar = dist + radius * 2.0 + znear
-
-    prim = pyrender.Primitive(
-        positions=pos, color_0=_id_colors(mesh.num_faces, 0), mode=pyrender.GLTF.TRIANGLES,
-        material=pyrender.MetallicRoughnessMaterial(baseColorFactor=[1.0, 1.0, 1.0, 1.0],
-                                                    doubleSided=False))
-    scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
-    scene.add(pyrender.Mesh([prim]))
-    camera = pyrender.PerspectiveCamera(yfov=np.radians(cam.yfov_deg), znear=znear,
-                                        zfar=zfar, aspectRatio=cam.width / cam.height)
-    scene.add(camera, pose=camera_pose(cam))
     with _lock:
+        ps = _pass_scene(mesh)
+        center, radius = ps.sphere
+        eye = np.asarray(cam.eye, dtype=np.float64)
+        dist = float(np.linalg.norm(center - eye))
+        # Near/far planes from the bounding sphere: only the ids are used, so depth
+        # precision only matters for telling overlapping surfaces apart.
+        znear = max(dist - radius, 0.0) * 0.5
+        znear = max(znear, radius * 1e-4, 1e-6)
+        zfar = dist + radius * 2.0 + znear
+        ps.camera.yfov, ps.camera.aspectRatio = np.radians(cam.yfov_deg), cam.width / cam.height
+        ps.camera.znear, ps.camera.zfar = znear, zfar
+        ps.scene.set_pose(ps.camera_node, camera_pose(cam))
+        ps.layers[0].is_visible, ps.layers[1].is_visible = not back, back
         renderer = get_renderer(w, h)
         with _multisampling_off():
-            color, _ = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
+            color, _ = renderer.render(ps.scene, flags=pyrender.RenderFlags.FLAT)
     c = color.astype(np.int64)
     ids = (c[..., 0] << 16) | (c[..., 1] << 8) | c[..., 2]
     ids = np.where(ids > mesh.num_faces, 0, ids) - 1  # out-of-range ids cannot occur
