@@ -464,3 +464,15 @@ def test_cached_pass_scenes_give_the_ids_of_fresh_ones(mesh_paths):
         assert torch.equal(ids, fresh)
     assert torch.equal(interleaved[0], interleaved[5])
     assert not torch.equal(interleaved[3], interleaved[5])  # the back layer differs
+
+
+def test_pixel_rays_are_cached_but_each_caller_gets_its_own():
+    from torchrefract.camera import pixel_rays
+    cam = Camera(eye=(0.3, 0.2, 3.0), width=12, height=8, yfov_deg=33.0)
+    a = pixel_rays(cam, 2)
+    ref = a.clone()
+    a.zero_()  # a caller writing to its rays does not change the next caller's
+    b = pixel_rays(cam, 2)
+    assert torch.equal(b, ref) and b.shape == (16, 24, 3)
+    assert torch.allclose(b.norm(dim=-1), torch.ones(16, 24))
+    assert not torch.equal(pixel_rays(dataclasses.replace(cam, yfov_deg=34.0), 2), ref)

@@ -10,6 +10,7 @@ box-filtered back, which is exactly the n x n stratified grid of sub-pixel cente
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -54,6 +55,13 @@ def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
         >>> d.shape
         torch.Size([2, 4, 3])
     """
+    return _pixel_rays_cached(cam, supersample).clone()  # callers may write to theirs
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
+    """:func:`pixel_rays`, kept for the last cameras (a sweep renders one camera in batch
+    after batch)."""
     n = supersample
     h, w = cam.height * n, cam.width * n
     eye, r, u, f = camera_frame(cam)

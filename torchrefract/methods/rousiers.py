@@ -100,10 +100,13 @@ class RousiersOptions:
     march_steps: int = 24
     """Coarse samples of the central ray's march (fewer change nothing measurable on the
     suite: bisection refines the hit, then the exact triangle is intersected)."""
-    cone_march_steps: int = 8
-    """Coarse samples of each bounding ray's march (only the footprint needs them)."""
-    refine_steps: int = 8
-    """Bisection iterations after the coarse search."""
+    cone_march_steps: int = 4
+    """Coarse samples of each bounding ray's march (only the footprint and the lobe's
+    spread need them; 4 and 8 give the same FLIP within 0.001 on the suite)."""
+    refine_steps: int = 3
+    """Bisection iterations after the coarse search (the exit is then the exact hit with
+    the triangle found there, walked to the one containing it: 3 and 8 give the same FLIP
+    within 0.0013 on the suite, with and without internal bounces)."""
     roughness_levels: int = 4
     """With a roughness map: how many roughness levels the exit interface is split into
     (coverage ratios, sec. 5.1)."""
@@ -127,10 +130,10 @@ class RousiersOptions:
                                 ("paper", "paper+front", "rays"), source),
             march_steps=check_number(d.get("march_steps", 24), "method_options.march_steps",
                                      source, minimum=1, maximum=4096, integer=True),
-            cone_march_steps=check_number(d.get("cone_march_steps", 8),
+            cone_march_steps=check_number(d.get("cone_march_steps", 4),
                                           "method_options.cone_march_steps", source,
                                           minimum=1, maximum=4096, integer=True),
-            refine_steps=check_number(d.get("refine_steps", 8),
+            refine_steps=check_number(d.get("refine_steps", 3),
                                       "method_options.refine_steps", source, minimum=0,
                                       maximum=64, integer=True),
             roughness_levels=check_number(d.get("roughness_levels", 4),
