@@ -382,3 +382,23 @@ def test_lookup_gradcheck_texels_direction_rotation_scale():
     (gt,) = torch.autograd.grad(out[0].sum(), tex)
     assert int((gt.abs().sum(-1) > 0).sum()) == 4
     assert torch.allclose(gt.sum(), torch.tensor(3.0, dtype=torch.float64))  # weights sum to 1
+
+
+def test_lookup_keeps_the_padded_map_until_it_changes():
+    """envmap.lookup keeps its padded copy of a map between calls; an in-place change of
+    the map, or a map that needs gradients, is padded anew (no stale or gradient-less
+    reads)."""
+    from torchrefract import envmap
+    from torchrefract.envmap import lookup
+    tex = torch.rand(8, 16, 3)
+    d = torch.randn(200, 3)
+    first = lookup(tex, d, 20.0)
+    cached = envmap._padded(tex)
+    assert envmap._padded(tex) is cached  # reused
+    assert torch.equal(lookup(tex, d, 20.0), first)
+    tex.mul_(2.0)  # in place: the version counter moves
+    assert envmap._padded(tex) is not cached
+    assert torch.allclose(lookup(tex, d, 20.0), 2.0 * first)
+    g = tex.clone().requires_grad_(True)
+    lookup(g, d, 20.0).sum().backward()
+    assert g.grad is not None and g.grad.abs().sum() > 0

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +93,31 @@ def direction_to_uv(d: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], -1)
 
 
+_PADDED: "OrderedDict[int, tuple[weakref.ref, int, torch.Tensor]]" = OrderedDict()
+
+
+def _padded(texels: torch.Tensor) -> torch.Tensor:
+    """(1, 3, H, W + 2) channels-first copy of ``texels`` with one wrapped column on each
+    side. Kept for the last few maps that need no gradient (the loaded maps are cached and
+    read by every lookup of a batch: copying a 1024x512 map took 3.5 ms per lookup), keyed
+    by the tensor itself and its version counter (an in-place change makes a new copy)."""
+    def pad(t: torch.Tensor) -> torch.Tensor:
+        img = t.permute(2, 0, 1)  # (3, H, W)
+        return torch.cat([img[:, :, -1:], img, img[:, :, :1]], dim=2)[None]
+
+    if texels.requires_grad:
+        return pad(texels)
+    hit = _PADDED.get(id(texels))
+    if hit is not None and hit[0]() is texels and hit[1] == texels._version:
+        _PADDED.move_to_end(id(texels))
+        return hit[2]
+    out = pad(texels)
+    _PADDED[id(texels)] = (weakref.ref(texels), texels._version, out)
+    while len(_PADDED) > 4:
+        _PADDED.popitem(last=False)
+    return out
+
+
 def lookup(texels: torch.Tensor, d: torch.Tensor, rotate_deg: float | torch.Tensor = 0.0,
            scale: float | torch.Tensor = 1.0) -> torch.Tensor:
     """Bilinear environment lookup of world directions; differentiable in texels and d.
@@ -120,8 +147,7 @@ def lookup(texels: torch.Tensor, d: torch.Tensor, rotate_deg: float | torch.Tens
     # so that x in [-0.5, W - 0.5) interpolates across the seam.
     x = uv[:, 0] * w - 0.5 + 1.0  # index into the padded image
     y = uv[:, 1] * (h - 1)
-    img = texels.permute(2, 0, 1)  # (3, H, W)
-    img = torch.cat([img[:, :, -1:], img, img[:, :, :1]], dim=2)[None]  # (1, 3, H, W + 2)
+    img = _padded(texels)  # (1, 3, H, W + 2)
     gx = 2.0 * x / (w + 1) - 1.0
     gy = 2.0 * y / (h - 1) - 1.0
     grid = torch.stack([gx, gy], -1).view(1, 1, -1, 2).to(img.dtype)
