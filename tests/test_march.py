@@ -76,3 +76,29 @@ def test_exit_lies_in_its_triangle_when_triangles_are_smaller_than_pixels():
     radial = ex.position[ex.found] / ex.position[ex.found].norm(dim=-1, keepdim=True)
     cos = (radial * ex.normal[ex.found]).sum(-1)
     assert torch.rad2deg(torch.acos(cos.clamp(max=1.0))).max() < 0.3
+
+
+def test_given_camera_coordinates_give_the_same_exits():
+    """march_back(camera=...) with the coordinates of camera_coordinates(), or with those of
+    a combination of directions combined the same way (rousiers' bounding rays), finds the
+    exits it finds on its own."""
+    from torchrefract.march import camera_coordinates
+    _, g, p1, t1, b = _setup("spot.ply", 64)
+    own = march_back(g, b, p1, t1, steps=24, refine=3)
+    given = march_back(g, b, p1, t1, steps=24, refine=3,
+                       camera=camera_coordinates(g, b, p1, t1))
+    for f in ("found", "tri", "position", "normal"):
+        assert torch.equal(getattr(own, f), getattr(given, f)), f
+    # a tilted direction: coordinates combined from those of t1 and a tangent
+    up = torch.tensor([[0.0, 1.0, 0.0]]).expand_as(t1)
+    tang = torch.nn.functional.normalize(torch.cross(t1, up, dim=-1), dim=-1)
+    d = torch.nn.functional.normalize(0.95 * t1 + 0.3 * tang, dim=-1)
+    c0, ct = camera_coordinates(g, b, p1, t1)
+    _, cu = camera_coordinates(g, b, p1, tang)
+    norm = (0.95 * t1 + 0.3 * tang).norm(dim=-1, keepdim=True)
+    fanned = march_back(g, b, p1, d, steps=24, refine=3,
+                        camera=(c0, (0.95 * ct + 0.3 * cu) / norm))
+    plain = march_back(g, b, p1, d, steps=24, refine=3)
+    assert plain.found.float().mean() > 0.95
+    assert (fanned.tri == plain.tri).float().mean() > 0.999
+    assert torch.allclose(fanned.position, plain.position, atol=1e-5)

@@ -101,21 +101,33 @@ def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     return cam.reshape(-1, world.shape[-1]).detach()
 
 
+def camera_coordinates(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera coordinates (right, up, forward; N, 3 each) of points ``p`` (from the eye)
+    and of directions ``t`` of rays in views ``batch`` (N,), detached: what the march
+    projects. A caller marching rays whose directions are combinations of a few vectors
+    (``rousiers``' bounding rays around the lobe axis) combines their coordinates instead
+    and passes them to :func:`march_back` as ``camera``."""
+    pr = take(g.proj[:, :12], batch)  # (N, 12): eye, then the basis rows
+    basis = pr[:, 3:12].view(-1, 3, 3)  # (N, 3, 3) rows: right, up, forward
+    # one matrix-vector product per ray each (einsum: the values of a bmm with both
+    # vectors stacked, in half its time)
+    rel = p.detach() - pr[:, 0:3]
+    return (torch.einsum("nij,nj->ni", basis, rel),
+            torch.einsum("nij,nj->ni", basis, t.detach()))
+
+
 class _Projector:
     """Pixel lookups of points p1 + s t along rays, linear in s (precomputed per ray)."""
 
-    def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor):
+    def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
+                 camera: tuple[torch.Tensor, torch.Tensor] | None = None):
         _, self.h, self.w = g.shape
-        p = take(g.proj, batch)  # (N, 16)
-        rel = p1 - p[:, 0:3]  # from the eye
-        basis = p[:, 3:12].view(-1, 3, 3)  # (N, 3, 3) rows: right, up, forward
-        # one matrix-vector product per ray each (einsum: the values of a bmm with both
-        # vectors stacked, in half its time)
-        self.c0 = torch.einsum("nij,nj->ni", basis, rel)  # (N, 3) camera coords of p1
-        self.ct = torch.einsum("nij,nj->ni", basis, t)  # (N, 3) per unit s
+        # (N, 3) camera coords of p1 and per unit s
+        self.c0, self.ct = camera if camera is not None else camera_coordinates(g, batch, p1, t)
         # pixel x = (cx / (cz ta) + 1) w / 2, y = (1 - cy / (cz t)) h / 2
-        self.sx = 0.5 * self.w / p[:, 12]
-        self.sy = 0.5 * self.h / p[:, 13]
+        self.sx = take(0.5 * self.w / g.proj[:, 12], batch)
+        self.sy = take(0.5 * self.h / g.proj[:, 13], batch)
         self.base = batch * (self.h * self.w)
 
     def pixels(self, idx: torch.Tensor | None, s: torch.Tensor
@@ -256,8 +268,8 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
 @timed("march")
 def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
                steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
-               tile: int = 8, fine_steps: int = 8, planes: torch.Tensor | None = None
-               ) -> Exit:
+               tile: int = 8, fine_steps: int = 8, planes: torch.Tensor | None = None,
+               camera: tuple[torch.Tensor, torch.Tensor] | None = None) -> Exit:
     """March rays from entry points to their exit through the back-face layer.
 
     Without ``depth_min``: ``steps`` uniform samples over the bounding-sphere chord bracket
@@ -280,12 +292,13 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
         tile: the tile size of ``depth_min`` in pixels (a power of two).
         fine_steps: exact samples inside a coarse interval that may hold the crossing.
         planes: ``camera_planes(g)``, where the caller already has them.
+        camera: ``camera_coordinates(g, batch, p1, t)``, where the caller already has them.
 
     Returns:
         Exit of each ray.
     """
     return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False,
-                  planes=planes)
+                  planes=planes, camera=camera)
 
 
 @timed("march")
@@ -312,7 +325,8 @@ def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tens
 
 def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, steps: int,
            refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
-           both: bool, planes: torch.Tensor | None = None) -> Exit:
+           both: bool, planes: torch.Tensor | None = None,
+           camera: tuple[torch.Tensor, torch.Tensor] | None = None) -> Exit:
     if planes is None:
         planes = camera_planes(g, both)  # (B*H*W, 4|8)
     elif planes.shape != (g.ray_dir[..., 0].numel(), 8 if both else 4):
@@ -323,7 +337,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     # the exact intersection with the triangle found there (p1 and t below, not detached).
     p1d, td = p1.detach(), t.detach()
     s_max = _bounding_chord(g, batch, p1d, td)
-    proj = _Projector(g, batch, p1d, td)
+    proj = _Projector(g, batch, p1d, td, camera)
     n = p1.shape[0]
     _, h, w = g.shape
 

@@ -73,7 +73,7 @@ from ..checks import check_choice, check_number, check_option_keys
 from ..gbuffer import GBuffer, interpolate
 from ..index import put_, take, where_true
 from ..lighting import Lighting, incident_radiance_sg
-from ..march import camera_planes, march_back
+from ..march import camera_coordinates, camera_planes, march_back
 from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
@@ -286,17 +286,27 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
 
     # 2. Cone tracing: the axis and four bounding rays (eq. 12).
     planes = camera_planes(g)  # built once for the axis and the bounding rays
+    c_p1, c_t1 = camera_coordinates(g, bi, p1, p_t1)
     ex = march_back(g, bi, p1, p_t1, steps=options.march_steps, refine=options.refine_steps,
-                    planes=planes)
+                    planes=planes, camera=(c_p1, c_t1))
     theta_b = bounding_angle(k_t1)[:, None]
     u, v = _tangent_frame(p_t1)
-    dirs = torch.stack([torch.cos(theta_b) * p_t1 + torch.sin(theta_b) * s * a
+    cos_b, sin_b = torch.cos(theta_b), torch.sin(theta_b)
+    dirs = torch.stack([cos_b * p_t1 + sin_b * s * a
                         for a in (u, v) for s in (1.0, -1.0)], 1)  # (N, 4, 3)
     n = idx.numel()
     if options.cone_rays == "march":
+        # The bounding rays start at p1 with directions combining p_t1, u and v: their
+        # camera coordinates combine those of the axis (no per-ray camera transform).
+        _, c_u = camera_coordinates(g, bi, p1, u)
+        _, c_v = camera_coordinates(g, bi, p1, v)
+        cb, sb = cos_b.detach(), sin_b.detach()
+        c_dirs = torch.stack([cb * c_t1 + sb * s * c for c in (c_u, c_v)
+                              for s in (1.0, -1.0)], 1)  # (N, 4, 3)
         ex4 = march_back(g, bi.repeat_interleave(4), p1.repeat_interleave(4, 0),
                          dirs.reshape(-1, 3), steps=options.cone_march_steps,
-                         refine=options.refine_steps, planes=planes)
+                         refine=options.refine_steps, planes=planes,
+                         camera=(c_p1.repeat_interleave(4, 0), c_dirs.reshape(-1, 3)))
         q = ex4.position.view(n, 4, 3)
         ok4 = ex4.found.view(n, 4)
         n4 = ex4.normal.view(n, 4, 3)
