@@ -137,3 +137,30 @@ def test_cli_compare_prints_metrics_and_writes_error_map(tmp_path, capsys):
     assert m["flip_object"] > 0 and m["relmse_object"] > 0 and m["flip"] <= m["flip_object"]
     assert np.asarray(Image.open(err)).shape == (32, 40, 3)
     assert main(["compare", str(tmp_path / "missing.exr"), str(a / "small.exr")]) == 2
+
+
+@pytest.mark.parametrize("method, options", [("rousiers", {"internal_bounces": 1}),
+                                             ("specular", {})])
+def test_a_large_batch_renders_in_chunks_with_the_same_pixels(monkeypatch, method, options):
+    """Batches above render.MAX_PASS_SUBPIXELS are shaded in consecutive chunks of views:
+    the result equals the one-pass render, passes included, also where a chunk sees no
+    object at all (its passes are the same set)."""
+    import importlib
+    render_mod = importlib.import_module("torchrefract.render")  # the module, not tr.render
+    s = tr.load_scene(str(ROOT / "configs" / "demo.yaml"))
+    cam = tr.Camera(eye=(0.0, 0.3, 3.0), width=24, height=20)
+    away = tr.Camera(eye=(0.0, 0.3, 3.0), target=(0.0, 0.3, 6.0), width=24, height=20)
+    scenes = [s.replace(camera=c, method=method, method_options=options,
+                        envmap=tr.EnvMap(path=s.envmap.path, rotate_deg=15.0 * i))
+              for i, c in enumerate([cam, cam, away, away, cam])]
+    whole = tr.render(scenes)
+    monkeypatch.setattr(render_mod, "MAX_PASS_SUBPIXELS", 2 * 24 * 20)
+    assert [len(c) for c in render_mod._chunks(scenes)] == [2, 2, 1]
+    chunked = tr.render(scenes)
+    assert whole.coverage[2:4].sum() == 0 and whole.coverage[0].sum() > 20
+    assert torch.equal(whole.radiance, chunked.radiance)
+    assert torch.equal(whole.coverage, chunked.coverage)
+    assert whole.passes.keys() == chunked.passes.keys()
+    for k in whole.passes:
+        assert torch.equal(whole.passes[k], chunked.passes[k]), k
+    assert chunked.scenes == whole.scenes

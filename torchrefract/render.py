@@ -142,6 +142,49 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     options = parse_options(scenes[0].method_options, scenes[0].name)
     if method == "auto":
         return _render_auto(scenes, options)
+    parts = _chunks(scenes)
+    if len(parts) > 1:
+        return _concat([_render_pass(p, method, shade, options) for p in parts])
+    return _render_pass(scenes, method, shade, options)
+
+
+MAX_PASS_SUBPIXELS = 1 << 19
+"""Sub-pixels shaded in one tensor pass (8 views at 256x256). A larger batch is rendered in
+consecutive chunks of views (the same pixels: a batch's images are those of its scenes
+rendered alone): the march's per-sample plane lookups and the shading's gathers then stay
+within a few views' buffers, and the peak memory follows the chunk, not the batch."""
+
+
+def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
+    """The batch split into near-equal consecutive chunks of at most MAX_PASS_SUBPIXELS."""
+    c = scenes[0].camera
+    per_view = c.width * c.height * c.samples_per_pixel ** 2
+    most = max(1, MAX_PASS_SUBPIXELS // per_view)
+    n = -(-len(scenes) // most)  # chunks
+    size = -(-len(scenes) // n)
+    return [scenes[i:i + size] for i in range(0, len(scenes), size)]
+
+
+def _concat(parts: list[RenderResult]) -> RenderResult:
+    """One RenderResult of consecutive chunks (timings summed)."""
+    timings: dict[str, float] = {}
+    for r in parts:
+        for k, v in r.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+    passes: dict[str, torch.Tensor] = {}
+    for k in dict.fromkeys(k for r in parts for k in r.passes):  # a chunk without object
+        like = next(r.passes[k] for r in parts if k in r.passes)  # pixels may lack some
+        passes[k] = torch.cat([r.passes[k] if k in r.passes else
+                               torch.zeros((r.radiance.shape[0], *like.shape[1:]),
+                                           dtype=like.dtype) for r in parts])
+    return RenderResult(
+        radiance=torch.cat([r.radiance for r in parts]),
+        coverage=torch.cat([r.coverage for r in parts]), passes=passes,
+        scenes=tuple(s for r in parts for s in r.scenes), timings=timings)
+
+
+def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResult:
+    """One tensor pass over ``scenes`` (checked: one resolution, method and options)."""
 
     t0 = time.perf_counter()
     meshes = [load_mesh(s.mesh, s.transform) for s in scenes]

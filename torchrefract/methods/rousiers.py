@@ -263,7 +263,10 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
     passes = {k: torch.zeros(b * hw) for k in ("exit_found", "tir", "lobe_sigma", "footprint")}
     if idx.numel() == 0:
-        return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in passes.items()}
+        out = {k: v.view(b, h, w, 1) for k, v in passes.items()}
+        if options.bounces.enabled:  # the same passes as a batch with object pixels
+            out.update(bounce_passes(g, idx, None))
+        return radiance.view(b, h, w, 3), out
     table = load_sg_table()
     bi = idx // hw
     d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
