@@ -324,3 +324,22 @@ def test_shipped_demo_sweep_renders(tmp_path):
     assert e["method"] == "rousiers" and e["camera"]["width"] == 64
     ch = read_exr(tmp_path / "000000.exr")
     assert np.allclose(ch["roughness"][ch["A"] == 1], 0.05)
+
+
+def test_batches_keep_the_samples_of_one_view_together():
+    """_plan_batches puts the samples of one view (mesh, transform, camera) side by side
+    (views in first-seen order, samples in index order within a view), so a batch's
+    repeated views share one G-buffer; each sample is planned exactly once."""
+    import torchrefract as tr
+    from torchrefract.dataset_run import _plan_batches
+    from torchrefract.sweep import Sample
+    base = tr.Scene(mesh="m.ply", envmap=tr.EnvMap(path="e.exr"))
+    cams = [tr.Camera(eye=(0.0, 0.0, 4.0 + k)) for k in range(3)]
+    # a grid whose camera axis varies fastest: views interleaved
+    todo = [Sample(f"{i:06d}", base.replace(camera=cams[i % 3],
+                                            material=tr.Material(roughness=0.1 * (i // 3))),
+                   {"index": i}) for i in range(12)]
+    batches = _plan_batches(todo, 4)
+    assert [[int(s.sample_id) for s in b] for b in batches] == [
+        [0, 3, 6, 9], [1, 4, 7, 10], [2, 5, 8, 11]]
+    assert all(len({s.scene.camera for s in b}) == 1 for b in batches)

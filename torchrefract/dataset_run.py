@@ -690,8 +690,19 @@ def _plan_batches(todo: list[Sample], batch_size: int) -> list[list[Sample]]:
         groups.setdefault(key, []).append(s)
     batches = []
     for g in groups.values():  # dicts keep first-seen order: deterministic
+        # Samples of one view (mesh, transform, camera) side by side, views in first-seen
+        # order (a stable sort): a batch's repeated views share one G-buffer
+        # (gbuffer.build_gbuffer), e.g. a grid sweep whose camera axis is not the last.
+        first: dict[tuple, int] = {}
+        for smp in g:
+            first.setdefault(_view_key(smp), len(first))
+        g = sorted(g, key=lambda smp: first[_view_key(smp)])
         batches.extend(g[k:k + batch_size] for k in range(0, len(g), batch_size))
     return batches
+
+
+def _view_key(s: Sample) -> tuple:
+    return (s.scene.mesh, s.scene.transform, s.scene.camera)
 
 
 def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "folder",
