@@ -92,6 +92,11 @@ def test_options_and_cone_variants(sphere_ply):
         RousiersOptions.from_dict({"cone_rays": "cone"})
     with pytest.raises(tr.ConfigError, match="spread"):
         RousiersOptions.from_dict({"spread": "wide"})
+    o = RousiersOptions.from_dict({})
+    assert (o.refine_steps, o.cone_refine_steps, o.cone_march_steps) == (8, 3, 4)
+    assert RousiersOptions.from_dict({"cone_refine_steps": 6}).cone_refine_steps == 6
+    with pytest.raises(tr.ConfigError, match="cone_refine_steps"):
+        RousiersOptions.from_dict({"cone_refine_steps": -1})
 
 
 def test_bounding_angle_holds_75_percent_of_the_lobe():

@@ -378,7 +378,7 @@ def test_specular_options_parse_valid_values():
     from torchrefract.methods.specular import SpecularOptions
 
     o = SpecularOptions.from_dict({"tir": "reflect", "march_steps": 16}, "x.yaml")
-    assert o == SpecularOptions(tir="reflect", march_steps=16, refine_steps=3)
+    assert o == SpecularOptions(tir="reflect", march_steps=16, refine_steps=10)
     assert SpecularOptions.from_dict({}) == SpecularOptions()
     with pytest.raises(ConfigError, match=r"x\.yaml: method_options: unknown key 'foo'"):
         SpecularOptions.from_dict({"foo": 1}, "x.yaml")
