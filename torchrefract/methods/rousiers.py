@@ -56,7 +56,9 @@ interface (front or back layer), where the table again splits it into a transmit
 along: the front lobe's 1/k_t1, plus 1/k_r at each reflection (a reflection keeps angular
 spread; the curvature of the reflecting surface is not modelled), magnified by the exit
 refraction (d theta_out / d theta_in)^2 where it leaves. The ``tir`` rule applies at the
-last interface only.
+last interface only. A bounce whose march finds no next interface (the image-space march
+lost it) leaves along its own direction with the escape fraction of trapped light
+(:func:`torchrefract.bounces.escape_fraction`; 1 for smooth glass).
 """
 
 from __future__ import annotations
@@ -602,10 +604,15 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
                 w_out = torch.where(tir, e_r, e_t)
                 refl_part = torch.where(tir, torch.zeros_like(e_r), e_r)
             refl = refl_part  # not followed: recorded as residual by the loop
-        # Lost rays leave along their current direction with the lobe they carry.
+        # Lost rays (the march found no next interface) leave along their current
+        # direction with the lobe they carry, and with what light trapped inside eventually
+        # lets out (escape_fraction: 1 for smooth glass; a found ray's last interface keeps
+        # that too under conserve, so losing or finding the interface changes less).
         p_t = torch.where(a.found[:, None], p_t, a.t)
         k_out = torch.where(a.found, k_out, 1.0 / a.var.clamp(min=1e-12))
-        w_out = torch.where(a.found, w_out, one)
+        lost_w = escape_fraction(table, materials.ior, dist_b, alpha, bi) \
+            if bool((~a.found).any()) else one
+        w_out = torch.where(a.found, w_out, lost_w)
         refl = torch.where(a.found, refl, torch.zeros_like(refl))
         l_out = incident_radiance_sg(lighting, bi, a.p, p_t, k_out)
         return Shading(radiance=a.w * w_out[:, None] * l_out, direction=p_r, reflectance=refl,
