@@ -353,9 +353,13 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str, path
             w_out, refl = _last_interface(tir_mode, tir, e_t, e_r, esc)
         else:  # smooth TIR: e_t = 0, e_r = 1
             w_out, refl = e_t, e_r
-        # Lost rays (no interface found) leave along their current direction.
+        # Lost rays (no interface found) leave along their current direction, with what
+        # light trapped inside eventually lets out (escape_fraction; 1 for smooth glass),
+        # as rousiers' bounces do.
         t_out = torch.where(a.found[:, None], t_out, a.t)
-        w_out = torch.where(a.found, w_out, one)
+        lost_w = escape_fraction(load_sg_table(), materials.ior, dist_b, alpha, a.batch) \
+            if rough and bool((~a.found).any()) else one
+        w_out = torch.where(a.found, w_out, lost_w)
         refl = torch.where(a.found, refl, zero)
         l_out = incident_radiance(lighting, a.batch, a.p, t_out)
         return Shading(radiance=a.w * w_out[:, None] * l_out, direction=r, reflectance=refl,
