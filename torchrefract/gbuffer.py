@@ -304,13 +304,16 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
                              f"samples_per_pixel; got {c0} and {c}")
     n = c0.samples_per_pixel
     batch = MeshBatch.from_meshes(meshes)
-    # Each distinct view once: (mesh object, camera) -> its slot among the distinct views.
+    # Each distinct view (mesh object, camera) once, at its first batch item; ``inverse``:
+    # the distinct view of every batch item.
     slot: dict[tuple[int, Camera], int] = {}
-    inverse = [slot.setdefault((id(m), c), len(slot)) for m, c in zip(meshes, cameras)]
-    views = [None] * len(slot)
+    views: list[tuple[int, MeshData, Camera]] = []
+    inverse = []
     for b, (m, c) in enumerate(zip(meshes, cameras)):
-        if views[inverse[b]] is None:
-            views[inverse[b]] = (b, m, c)
+        if (id(m), c) not in slot:
+            slot[id(m), c] = len(views)
+            views.append((b, m, c))
+        inverse.append(slot[id(m), c])
     front_ids, back_ids, dirs, eyes, fwd, proj = [], [], [], [], [], []
     for b, mesh, cam in views:
         off = int(batch.face_offset[b])

@@ -143,9 +143,15 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     if method == "auto":
         return _render_auto(scenes, options)
     parts = _chunks(scenes)
-    if len(parts) > 1:
-        return _concat([_render_pass(p, method, shade, options) for p in parts])
-    return _render_pass(scenes, method, shade, options)
+    if len(parts) == 1:
+        return _render_pass(scenes, method, shade, options)
+    start = 0
+    placed = []
+    for p in parts:
+        placed.append((list(range(start, start + len(p))),
+                       _render_pass(p, method, shade, options)))
+        start += len(p)
+    return _merge(len(scenes), placed)
 
 
 MAX_PASS_SUBPIXELS = 1 << 19
@@ -163,24 +169,6 @@ def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
     n = -(-len(scenes) // most)  # chunks
     size = -(-len(scenes) // n)
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]
-
-
-def _concat(parts: list[RenderResult]) -> RenderResult:
-    """One RenderResult of consecutive chunks (timings summed)."""
-    timings: dict[str, float] = {}
-    for r in parts:
-        for k, v in r.timings.items():
-            timings[k] = timings.get(k, 0.0) + v
-    passes: dict[str, torch.Tensor] = {}
-    for k in dict.fromkeys(k for r in parts for k in r.passes):  # a chunk without object
-        like = next(r.passes[k] for r in parts if k in r.passes)  # pixels may lack some
-        passes[k] = torch.cat([r.passes[k] if k in r.passes else
-                               torch.zeros((r.radiance.shape[0], *like.shape[1:]),
-                                           dtype=like.dtype) for r in parts])
-    return RenderResult(
-        radiance=torch.cat([r.radiance for r in parts]),
-        coverage=torch.cat([r.coverage for r in parts]), passes=passes,
-        scenes=tuple(s for r in parts for s in r.scenes), timings=timings)
 
 
 def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResult:
@@ -240,29 +228,37 @@ def _render_auto(scenes: list[Scene], options) -> RenderResult:
     groups: dict[tuple[str, str], list[int]] = {}
     for i, c in enumerate(picked):
         groups.setdefault((c.method, json.dumps(c.options, sort_keys=True)), []).append(i)
-    parts = {}
+    parts = []
     for (method, opts), idx in groups.items():
         sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
-        parts[method, opts] = (idx, render(sub))
-    b = len(scenes)
-    first = next(iter(parts.values()))[1]
+        parts.append((idx, render(sub)))
+    out = _merge(len(scenes), parts)
+    out.timings["total"] = time.perf_counter() - t0
+    return out
+
+
+def _merge(b: int, parts: list[tuple[list[int], RenderResult]]) -> RenderResult:
+    """One RenderResult of B scenes from parts rendered apart, each with the batch positions
+    of its scenes (``auto``'s method groups, a large batch's chunks). A pass that only some
+    parts have (another method's, or a part without object pixels) is zero elsewhere;
+    timings are summed."""
+    first = parts[0][1]
     radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype)
     coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype)
     passes: dict[str, torch.Tensor] = {}
     out_scenes: list[Scene | None] = [None] * b
     timings: dict[str, float] = {}
-    for idx, res in parts.values():
+    for idx, res in parts:
         sel = torch.tensor(idx)
         radiance[sel] = res.radiance
         coverage[sel] = res.coverage
         for k, v in res.passes.items():
-            if k not in passes:  # a pass only some methods have: zeros elsewhere
+            if k not in passes:
                 passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype)
             passes[k][sel] = v
         for j, i in enumerate(idx):
             out_scenes[i] = res.scenes[j]
         for k, v in res.timings.items():
             timings[k] = timings.get(k, 0.0) + v
-    timings["total"] = time.perf_counter() - t0
     return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
                         scenes=tuple(out_scenes), timings=timings)

@@ -583,6 +583,11 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         # unbounded gave FLIP 0.259 at 2 bounces on the alpha-0.3 sphere, bounded 0.176).
         mag2 = mag2.clamp(max=4.0)
         k_out = 1.0 / (1.0 / k_t.clamp(min=1e-12) + mag2 * a.var)
+        # The fraction of trapped light that eventually leaves (escape_fraction), looked up
+        # once where ``conserve``'s last interface or a lost ray needs it.
+        lost_any = bool((~a.found).any())
+        esc = escape_fraction(table, materials.ior, dist_b, alpha, bi) \
+            if lost_any or (last and tir_mode == "conserve") else None
         w_out, refl = e_t, e_r
         if last:
             refl_part = e_r
@@ -590,8 +595,7 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
                 # angle: all that this interface keeps at the true angle (the model loses
                 # some to masking); ``conserve``: the reflected part leaves too, always,
                 # after the losses of the bounces not followed (escape_fraction)
-                e_rest = e_r * escape_fraction(table, materials.ior, dist_b, alpha, bi) \
-                    if tir_mode == "conserve" else e_r
+                e_rest = e_r * esc if tir_mode == "conserve" else e_r
                 e_true = e_t if tir_mode == "conserve" else _true_angle_transmit(
                     table, e_t, tir, cos, 1.0 / ior, alpha, dist)
                 e_keep = (e_true + e_rest).clamp(max=1.0)
@@ -610,9 +614,7 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         # that too under conserve, so losing or finding the interface changes less).
         p_t = torch.where(a.found[:, None], p_t, a.t)
         k_out = torch.where(a.found, k_out, 1.0 / a.var.clamp(min=1e-12))
-        lost_w = escape_fraction(table, materials.ior, dist_b, alpha, bi) \
-            if bool((~a.found).any()) else one
-        w_out = torch.where(a.found, w_out, lost_w)
+        w_out = torch.where(a.found, w_out, esc if lost_any else one)
         refl = torch.where(a.found, refl, torch.zeros_like(refl))
         l_out = incident_radiance_sg(lighting, bi, a.p, p_t, k_out)
         return Shading(radiance=a.w * w_out[:, None] * l_out, direction=p_r, reflectance=refl,

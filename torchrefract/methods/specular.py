@@ -345,11 +345,14 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str, path
                 var = a.var + torch.where(alpha > 0, 1.0 / k_r, zero)
         else:
             e_t, e_r = 1.0 - f, f
+        # The fraction of trapped light that eventually leaves (escape_fraction; 1 when
+        # smooth), looked up once where ``conserve``'s last interface or a lost ray needs it.
+        lost_any = bool((~a.found).any())
+        esc = escape_fraction(table, materials.ior, dist_b, alpha, a.batch) \
+            if rough and (lost_any or (last and tir_mode == "conserve")) else one
         if last:
             if tir_mode == "reflect":
                 t_out = torch.where(tir[:, None], r, t_out)
-            esc = escape_fraction(table, materials.ior, dist_b, alpha, a.batch) \
-                if tir_mode == "conserve" and rough else one
             w_out, refl = _last_interface(tir_mode, tir, e_t, e_r, esc)
         else:  # smooth TIR: e_t = 0, e_r = 1
             w_out, refl = e_t, e_r
@@ -357,9 +360,7 @@ def _interface(lighting: Lighting, materials: MaterialBatch, tir_mode: str, path
         # light trapped inside eventually lets out (escape_fraction; 1 for smooth glass),
         # as rousiers' bounces do.
         t_out = torch.where(a.found[:, None], t_out, a.t)
-        lost_w = escape_fraction(load_sg_table(), materials.ior, dist_b, alpha, a.batch) \
-            if rough and bool((~a.found).any()) else one
-        w_out = torch.where(a.found, w_out, lost_w)
+        w_out = torch.where(a.found, w_out, esc)
         refl = torch.where(a.found, refl, zero)
         l_out = incident_radiance(lighting, a.batch, a.p, t_out)
         return Shading(radiance=a.w * w_out[:, None] * l_out, direction=r, reflectance=refl,
