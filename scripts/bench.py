@@ -25,6 +25,7 @@ A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import math
@@ -74,9 +75,7 @@ def orbit(cam: tr.Camera, deg: float) -> tr.Camera:
     a = math.radians(deg)
     r = (r * math.cos(a) + torch.cross(k, r, dim=0) * math.sin(a)
          + k * torch.dot(k, r) * (1.0 - math.cos(a)))
-    return tr.Camera(eye=tuple((target + r).tolist()), target=cam.target, up=cam.up,
-                     yfov_deg=cam.yfov_deg, width=cam.width, height=cam.height,
-                     samples_per_pixel=cam.samples_per_pixel)
+    return dataclasses.replace(cam, eye=tuple((target + r).tolist()))
 
 
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
