@@ -474,6 +474,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     tri = torch.where(found, tri, torch.full_like(tri, -1))
     bary = torch.where(found[:, None], bary, torch.zeros_like(bary))
     layer = torch.where(found, (~uf).long(), torch.full_like(tri, -1))
+    # the where above keeps ``found`` for its gradient: the later tries set a copy
+    found = found.clone()
     for s_try, use_front in tries[1:]:
         todo = where_true(~found)  # only the rays still without an exit
         if todo.numel() == 0:
