@@ -11,8 +11,8 @@ process's memory before the row's first render (torch, pyrender, the scene) in t
 as ``baseline_rss_mb``.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
-        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile] [--in-process]
-        [--views shared distinct] [--out outputs/bench]
+        [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
+        [--no-native] [--in-process] [--views shared distinct] [--out outputs/bench]
 
 The batch items differ by their environment map's rotation (10 degrees apart). ``--views``:
 ``distinct`` (default) also turns each item's camera 3 degrees further around the object,
@@ -116,6 +116,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
                                for k, v in stages.items()},
         "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
         "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
+        "native": tr.native.available(),
     }
 
 
@@ -128,6 +129,8 @@ def run_row(args: argparse.Namespace, method: str, size: int, batch: int, views:
         cmd += ["--threads", str(args.threads)]
     if args.compile:
         cmd.append("--compile")
+    if args.no_native:
+        cmd.append("--no-native")
     proc = subprocess.run(cmd, capture_output=True, text=True)
     for line in proc.stdout.splitlines():
         if line.startswith("ROW "):
@@ -147,6 +150,9 @@ def main() -> None:
     ap.add_argument("--compile", action="store_true",
                     help="torch.compile the march (torchrefract.set_compile); the first "
                          "render of each row (warm-up, not timed) includes the compiling")
+    ap.add_argument("--no-native", action="store_true",
+                    help="march with the tensor code instead of the native kernel "
+                         "(torchrefract.set_native(False); the same images)")
     ap.add_argument("--views", nargs="+", choices=("distinct", "shared"), default=["distinct"],
                     help="batch items each with its own camera (distinct) or all with one "
                          "(shared: its G-buffer is built once)")
@@ -159,6 +165,7 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     tr.set_compile(args.compile)
+    tr.set_native(not args.no_native)
     base = tr.load_scene(args.scene)
     if args.row:
         r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats,
@@ -167,7 +174,8 @@ def main() -> None:
         return
     rows = []
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
-          f"{', compiled march' if args.compile else ''}")
+          f"{', compiled march' if args.compile else ''}"
+          f"{', tensor-code march' if args.no_native else ''}")
     print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}"
           f"{'shading':>9}{'(mips':>7}{'march':>7}{'rest)':>7}{'peakMB':>8}")
     for method, views, size, batch in itertools.product(args.methods, args.views, args.sizes,
@@ -185,7 +193,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.platform(),
-            "compiled": args.compile,
+            "compiled": args.compile, "native": not args.no_native,
             "scene": args.scene, "results": rows}
     (out / "bench.json").write_text(json.dumps(meta, indent=2) + "\n")
     print(f"saved {out / 'bench.json'}")

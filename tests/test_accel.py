@@ -20,10 +20,13 @@ ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 
 @pytest.fixture
 def compiled():
-    """Compiling on for one test, and off again after it whatever happens."""
+    """Compiling on for one test, and off again after it whatever happens; the native
+    march off meanwhile (where it is on it replaces the compiled search)."""
     accel.set_compile(True)
+    tr.set_native(False)
     yield
     accel.set_compile(False)
+    tr.set_native(True)
 
 
 def _scenes(**options):

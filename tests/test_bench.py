@@ -31,6 +31,7 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
         assert 0 < st["gbuffer"] < r["ms_per_frame"]
         # a fresh process per row: its peak is above its own start, not the run's peak so far
         assert r["peak_rss_mb"] > r["baseline_rss_mb"] > 50
+        assert isinstance(r["native"], bool)
     assert meta["threads"] == 1
 
 

@@ -10,6 +10,7 @@ Public API::
 """
 
 from .accel import set_compile
+from .native import set_native
 from .checks import ConfigError
 from .render import RenderResult, render
 from .scene import Camera, EnvMap, Material, Scene, SphereLight, Transform, load_scene, \
@@ -19,4 +20,4 @@ __version__ = "0.1.0"
 
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "Scene",
            "SphereLight", "Transform", "load_scene", "render", "scene_from_dict", "set_compile",
-           "__version__"]
+           "set_native", "__version__"]

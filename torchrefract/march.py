@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from . import native
 from .accel import compile_enabled, kernel
 from .gbuffer import GBuffer, interpolate, intersect_triangles
 from .index import put_, take, where_true
@@ -356,9 +357,25 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     # the exact intersection with the triangle found there (p1 and t below, not detached).
     p1d, td = p1.detach(), t.detach()
     s_max = _bounding_chord(g, batch, p1d, td)
-    proj = _Projector(g, batch, p1d, td, camera)
     n = p1.shape[0]
     _, h, w = g.shape
+    s_min = 1e-4 * s_max if both else torch.zeros_like(s_max)
+    if depth_min is None and native.available():
+        # The native kernel (native.py): the same search, candidates and walk below, one
+        # ray at a time; the same triangles, then the same differentiable hit.
+        c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
+        res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
+                           0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
+                           td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),
+                           g.front.mask.reshape(-1), g.back.mask.reshape(-1), tv,
+                           g.meshes.tri_across)
+        if res is not None:
+            found, tri, layer = res
+            st, bt = intersect_triangles(p1, t, take(tv, tri.clamp(min=0)))
+            s_exit = torch.where(found, st, torch.zeros_like(st))
+            bary = torch.where(found[:, None], bt, torch.zeros_like(bt))
+            return _exit(g, p1, t, found, tri, s_exit, bary, layer)
+    proj = _Projector(g, batch, p1d, td, camera)
 
     def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         return _crossed_at(take(proj.c0, idx), take(proj.ct, idx), s, take(proj.sx, idx),
@@ -444,11 +461,9 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         primary_front = (dot(pl[:, 4:7], x) - pl[:, 7]) > (dot(pl[:, :3], x) - pl[:, 3])
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
                  (lo, ~primary_front)]
-        s_min = 1e-4 * s_max
     else:
         back = torch.zeros(n, dtype=torch.bool)
         tries = [(hi, back), (lo, back)]
-        s_min = torch.zeros_like(s_max)
     def candidates(todo: torch.Tensor | None, s_try: torch.Tensor, use_front: torch.Tensor):
         """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``:
         the triangle seen at that pixel in the chosen layer, and the hit with it."""
@@ -490,6 +505,13 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         put_(found, hit, torch.ones_like(hit, dtype=torch.bool))
     tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_across, found, tri,
                                             s_exit, bary, s_min, s_max)
+    return _exit(g, p1, t, found, tri, s_exit, bary, layer)
+
+
+def _exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, found: torch.Tensor,
+          tri: torch.Tensor, s_exit: torch.Tensor, bary: torch.Tensor, layer: torch.Tensor
+          ) -> Exit:
+    """The Exit of rays p1 + s t that leave through triangles ``tri`` at ``s_exit``."""
     normal = interpolate(bary, take(g.meshes.tri_normals, tri.clamp(min=0)))
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-20)
     normal = torch.where(found[:, None], normal, torch.zeros_like(normal))

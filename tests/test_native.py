@@ -1,0 +1,203 @@
+"""The native march kernel (``torchrefract.native``, csrc/march.c) makes the tensor code's
+choices exactly: the same exits (so the same images and gradients), on real G-buffers;
+it falls back to the tensor code with a warning where it cannot be built."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import pytest
+import torch
+
+import torchrefract as tr
+from torchrefract import native
+from torchrefract.gbuffer import build_gbuffer
+from torchrefract.lighting import Lighting
+from torchrefract.march import camera_planes, march_back, march_inside
+from torchrefract.materials import MaterialBatch
+from torchrefract.mesh import load_mesh
+from torchrefract.methods import METHODS
+from torchrefract.optics import face_forward, reflect, refract
+
+from conftest import ASSETS
+
+ENV = str(ASSETS / "envmaps" / "lebombo.exr")
+
+needs_native = pytest.mark.skipif(not native.available(),
+                                  reason="the native kernel does not build here")
+
+
+@pytest.fixture
+def tensor_code():
+    """Returns a function running ``fn()`` with the native kernel off."""
+    def run(fn):
+        native.set_native(False)
+        try:
+            return fn()
+        finally:
+            native.set_native(True)
+    return run
+
+
+def _entries(mesh: str, size: int, eye=(0.0, 0.4, 3.2), transform=None, views=2):
+    """Entry points and refracted directions of every covered pixel of ``views`` views."""
+    m = load_mesh(mesh, transform or tr.Transform(rotate_deg=(0.0, -35.0, 0.0)))
+    cams = [tr.Camera(eye=(eye[0] + 0.3 * i, eye[1], eye[2]), width=size, height=size)
+            for i in range(views)]
+    g = build_gbuffer([m] * views, cams)
+    idx = g.front.mask.reshape(-1).nonzero()[:, 0]
+    d = g.ray_dir.reshape(-1, 3)[idx]
+    n = face_forward(g.front.normal.reshape(-1, 3)[idx], d)
+    t1, _ = refract(d, n, torch.tensor(1 / 1.5))
+    p1 = g.front.position.reshape(-1, 3)[idx]
+    batch = idx // (size * size)
+    return g, batch, p1, t1, n
+
+
+def _assert_same(a, b):
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        assert torch.equal(x, y), f"Exit.{f.name} differs on {(x != y).sum().item()} rays"
+
+
+@needs_native
+@pytest.mark.parametrize("mesh, size, steps, refine, eye", [
+    ("spot.ply", 64, 24, 8, (0.0, 0.4, 3.2)),       # rousiers' central rays
+    ("spot.ply", 64, 4, 3, (0.0, 0.4, 3.2)),        # its bounding rays' settings
+    ("suzanne.ply", 48, 64, 10, (0.4, 0.3, 3.0)),   # non-convex: rays lost and found
+    ("suzanne.ply", 48, 7, 0, (0.1, 0.0, 1.2)),     # camera close: rays leave the frame
+])
+def test_back_exits_are_identical(mesh, size, steps, refine, eye, tensor_code):
+    g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / mesh), size, eye)
+    fast = march_back(g, batch, p1, t1, steps=steps, refine=refine)
+    slow = tensor_code(lambda: march_back(g, batch, p1, t1, steps=steps, refine=refine))
+    assert slow.found.float().mean() > 0.5
+    _assert_same(fast, slow)
+
+
+@needs_native
+def test_walk_over_triangles_smaller_than_pixels_is_identical(sphere_ply, tensor_code):
+    """81,920 faces seen at 32x32: most exits are walked across several edges."""
+    g, batch, p1, t1, _ = _entries(str(sphere_ply), 32, eye=(0.0, 0.0, 3.0),
+                                   transform=tr.Transform())
+    fast = march_back(g, batch, p1, t1, steps=24, refine=8)
+    slow = tensor_code(lambda: march_back(g, batch, p1, t1, steps=24, refine=8))
+    assert slow.found.float().mean() > 0.99
+    _assert_same(fast, slow)
+
+
+@needs_native
+def test_inside_exits_through_both_layers_are_identical(tensor_code):
+    """march_inside (8 plane terms, four candidate tries): internal reflections at the
+    front surface of suzanne, which leave through either layer."""
+    g, batch, p1, t1, n = _entries(str(ASSETS / "meshes" / "suzanne.ply"), 48,
+                                   eye=(0.4, 0.3, 3.0))
+    ex = march_back(g, batch, p1, t1, steps=24, refine=8)
+    keep = ex.found.nonzero()[:, 0]
+    p, t = ex.position[keep], reflect(t1[keep], ex.normal[keep])
+    planes = camera_planes(g, both=True)
+    fast = march_inside(g, batch[keep], p, t, steps=32, refine=10, planes=planes)
+    slow = tensor_code(lambda: march_inside(g, batch[keep], p, t, steps=32, refine=10,
+                                            planes=planes))
+    assert (slow.layer == 0).any() and (slow.layer == 1).any()
+    _assert_same(fast, slow)
+
+
+@needs_native
+@pytest.mark.parametrize("method, options", [
+    ("rousiers", {}),
+    ("rousiers", {"internal_bounces": 2}),
+    ("specular", {"internal_bounces": 2}),
+])
+def test_renders_and_gradients_are_identical(method, options, tensor_code):
+    """Suzanne, two views: the images and passes are the same bit for bit, and so are the
+    IOR and roughness gradients of the mean image but for summation order."""
+    suzanne = str(ASSETS / "meshes" / "suzanne.ply")
+    scenes = [tr.Scene(mesh=suzanne, envmap=tr.EnvMap(path=ENV, rotate_deg=r),
+                       material=tr.Material(ior=1.5, roughness=a),
+                       camera=tr.Camera(eye=(0.4, 0.3, 3.0), width=40, height=32),
+                       method=method, method_options=options)
+              for r, a in ((0.0, 0.1), (40.0, 0.3))]
+    g = build_gbuffer([load_mesh(s.mesh, s.transform) for s in scenes],
+                      [s.camera for s in scenes])
+    lighting = Lighting.from_scenes(scenes)
+    parse, fn = METHODS[method]
+
+    def run():
+        out = tr.render(scenes)
+        ior = torch.tensor([1.45, 1.5], requires_grad=True)
+        rough = torch.tensor([0.1, 0.3], requires_grad=True)
+        m = MaterialBatch(ior=ior, roughness=rough, absorption=torch.zeros(2, 3),
+                          distribution=("beckmann", "beckmann"))
+        img = fn(g, lighting, m, parse(options))[0]
+        grads = torch.autograd.grad(img.double().mean(), (ior, rough))
+        return out, grads
+
+    fast, g_fast = run()
+    slow, g_slow = tensor_code(run)
+    assert slow.coverage.sum() > 300
+    assert torch.equal(fast.radiance, slow.radiance)
+    for k in ("exit_found", "tir"):
+        assert torch.equal(fast.passes[k], slow.passes[k]), k
+    # the same values through a differently shaped graph (one hit over all rays against
+    # hits over the subsets of each try): equal up to the float32 order of summation
+    for a, b in zip(g_fast, g_slow):
+        assert (b != 0).all() and torch.allclose(a, b, rtol=1e-5, atol=0), (a, b)
+
+
+def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatch,
+                                                                      tmp_path):
+    g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / "spot.ply"), 32)
+    native.set_native(False)
+    slow = march_back(g, batch, p1, t1, steps=24, refine=8)
+    native.set_native(True)
+    monkeypatch.setattr(native, "_LIB", None)
+    monkeypatch.setattr(native, "_FAILED", None)
+    monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path))  # nothing built there yet
+    monkeypatch.setattr(native, "_compiler", lambda: None)
+    with pytest.warns(RuntimeWarning, match="native march kernel is unavailable.*no C "
+                                            "compiler"):
+        fell_back = march_back(g, batch, p1, t1, steps=24, refine=8)
+    _assert_same(fell_back, slow)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once
+        assert not native.available()
+    assert not list(tmp_path.rglob("*.so"))
+
+
+def test_a_compile_error_is_reported_with_the_compiler_output(monkeypatch, tmp_path):
+    bad = tmp_path / "bad.c"
+    bad.write_text("int broken(void) { return undefined_name; }\n")
+    monkeypatch.setattr(native, "SOURCE", bad)
+    with pytest.raises(RuntimeError, match="undefined_name"):
+        native.build(tmp_path / "cache")
+    assert not list((tmp_path / "cache").rglob("*.so*"))  # no half-written library left
+
+
+@needs_native
+def test_build_is_cached_per_source(tmp_path):
+    path = native.build(tmp_path)
+    assert path.exists() and path.parent == tmp_path / "native"
+    stamp = path.stat().st_mtime_ns
+    assert native.build(tmp_path) == path and path.stat().st_mtime_ns == stamp
+
+
+@needs_native
+def test_inputs_it_does_not_take_go_to_the_tensor_code():
+    """Only float32 rays with int64 indices go native (a float64 caller, say)."""
+    z = torch.zeros(1, 3)
+    assert native.march(z.double(), z, torch.ones(1), torch.zeros(1), torch.ones(1),
+                        torch.ones(1), torch.zeros(1, dtype=torch.long),
+                        torch.zeros(32 * 32, 4), 32, 32, 4, 3, z, z,
+                        torch.zeros(1024, dtype=torch.long), torch.zeros(1024, dtype=torch.long),
+                        torch.zeros(1024, dtype=torch.bool), torch.zeros(1024, dtype=torch.bool),
+                        torch.zeros(1, 3, 3), torch.zeros(1, 3, dtype=torch.long)) is None
+
+
+def test_native_is_on_by_default_and_switchable():
+    assert native.native_enabled()
+    tr.set_native(False)
+    assert not native.native_enabled() and not native.available()
+    tr.set_native(True)
+    assert native.native_enabled()

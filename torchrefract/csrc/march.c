@@ -1,0 +1,326 @@
+/* The discrete part of torchrefract's ray march (march.py), one ray at a time.
+ *
+ * The same decisions as march.py's tensor code, in the same float32 arithmetic (built with
+ * -ffp-contract=off and no fast-math, so every product, sum and quotient rounds as torch's
+ * elementwise ops do): the uniform search over the bounding chord, the bisections, the
+ * exit candidates (the triangle seen at the crossing pixel, then at the last pixel still
+ * inside, per marched layer) and the walk to the triangle that contains the hit. It
+ * returns which triangle each ray leaves through; march.py then intersects the ray with
+ * that triangle in torch (the differentiable part), so the exits' positions, normals and
+ * gradients are computed by the same tensor code either way.
+ *
+ * Why by hand: the tensor form is a chain of ~20 elementwise ops and a gather per sample
+ * over all rays (memory traffic, compactions); here each ray's state stays in registers
+ * and only its plane and triangle reads touch memory. Plain C and pthreads, no Python or
+ * torch headers: torchrefract/native.py builds it with the system C compiler on first use
+ * and falls back to the tensor code when that fails.
+ *
+ * The formulas mirror, line by line:
+ *   march._pixel_of_camera, march._crossed_at (the plane test), march._march's search
+ *   and bisections, its ``candidates`` and ``tries``, march._walk_to_containing, and
+ *   gbuffer.intersect_triangles and optics.dot ((a0 b0 + a1 b1) + a2 b2).
+ */
+
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+typedef struct {
+    int64_t n;
+    const float *c0, *ct;   /* (N, 3) camera coordinates of the start and per unit s */
+    const float *s_max;     /* (N,) bounding chord */
+    const float *s_min;     /* (N,) smallest accepted exit distance */
+    const float *sx_v, *sy_v; /* (B,) per-view pixel scales */
+    const int64_t *batch;   /* (N,) view of each ray */
+    const float *planes;    /* (B*H*W, pw) camera-space planes (march.camera_planes) */
+    int pw;                 /* 4: back layer only, 8: back then front (march_inside) */
+    int64_t h, w;
+    int steps, refine;
+    const float *p1, *t;    /* (N, 3) world start and direction */
+    const int64_t *tri_front, *tri_back;    /* (B*H*W,) triangle seen per pixel */
+    const uint8_t *mask_front, *mask_back;  /* (B*H*W,) layer covered */
+    const float *tv;        /* (T, 3, 3) triangle vertices */
+    const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
+    int walk_steps;
+    uint8_t *found;         /* out (N,) */
+    int64_t *tri;           /* out (N,) exit triangle or -1 */
+    int64_t *layer;         /* out (N,) 0 front, 1 back, -1 */
+} Job;
+
+typedef struct { const Job *job; int64_t begin, end; } Range;
+
+static inline float dot3(const float *a, const float *b) {
+    float x = a[0] * b[0];
+    float y = a[1] * b[1];
+    float z = a[2] * b[2];
+    return (x + y) + z;
+}
+
+/* torch.cross as torch's CPU kernel computes it (measured: each component is one fused
+ * multiply-add, a1 b2 - (a2 b1) with the second product rounded first). */
+static inline void cross3(const float *a, const float *b, float *out) {
+    out[0] = fmaf(a[1], b[2], -(a[2] * b[1]));
+    out[1] = fmaf(a[2], b[0], -(a[0] * b[2]));
+    out[2] = fmaf(a[0], b[1], -(a[1] * b[0]));
+}
+
+/* gbuffer.intersect_triangles for one ray and one triangle: returns t (inf where the ray
+ * is parallel to the plane), writes the barycentrics (1 - u - v, u, v). */
+static float intersect(const float *o, const float *d, const float *v, float *bary) {
+    float e1[3], e2[3], p[3], s[3], q[3];
+    for (int i = 0; i < 3; i++) {
+        e1[i] = v[3 + i] - v[i];
+        e2[i] = v[6 + i] - v[i];
+    }
+    cross3(d, e2, p);
+    float det = dot3(e1, p);
+    int ok = fabsf(det) > 1e-30f;
+    float inv = ok ? 1.0f / det : 0.0f;
+    for (int i = 0; i < 3; i++) s[i] = o[i] - v[i];
+    float u = dot3(s, p) * inv;
+    cross3(s, e1, q);
+    float vv = dot3(d, q) * inv;
+    float t = dot3(e2, q) * inv;
+    if (!ok) t = INFINITY;
+    float one_u = 1.0f - u;
+    bary[0] = one_u - vv;
+    bary[1] = u;
+    bary[2] = vv;
+    return t;
+}
+
+static inline float min3(const float *b) {
+    float m = b[0];
+    if (b[1] < m) m = b[1];
+    if (b[2] < m) m = b[2];
+    return m;
+}
+
+static inline int argmin3(const float *b) {  /* torch.argmin: the first of equal minima */
+    int k = 0;
+    if (b[1] < b[k]) k = 1;
+    if (b[2] < b[k]) k = 2;
+    return k;
+}
+
+/* march._pixel_of_camera: the flat pixel (clamped into the frame, as torch's clamp does)
+ * and whether the point lies in the frame, of camera coordinates c. */
+static inline int64_t pixel_of(const Job *j, int64_t r, const float *c, int *inside) {
+    int64_t b = j->batch[r];
+    float z = c[2];
+    float zs = z < 1e-12f ? 1e-12f : z;
+    if (z != z) zs = z;  /* clamp propagates NaN */
+    float hw = 0.5f * (float)j->w, hh = 0.5f * (float)j->h;
+    float px = floorf(c[0] / zs * j->sx_v[b] + hw);
+    float py = floorf(hh - c[1] / zs * j->sy_v[b]);
+    float wm = (float)(j->w - 1), hm = (float)(j->h - 1);
+    *inside = (z > 1e-12f) && px >= 0.0f && px <= wm && py >= 0.0f && py <= hm;
+    float pxc = px < 0.0f ? 0.0f : (px > wm ? wm : px);
+    float pyc = py < 0.0f ? 0.0f : (py > hm ? hm : py);
+    if (pxc != pxc) pxc = 0.0f;  /* NaN: any pixel (the caller ignores it) */
+    if (pyc != pyc) pyc = 0.0f;
+    return b * j->h * j->w + (int64_t)pyc * j->w + (int64_t)pxc;
+}
+
+static inline void point_at(const Job *j, int64_t r, float s, float *c) {
+    const float *c0 = j->c0 + 3 * r, *ct = j->ct + 3 * r;
+    for (int i = 0; i < 3; i++) {
+        float m = s * ct[i];
+        c[i] = c0[i] + m;
+    }
+}
+
+/* march._crossed_at for one ray at parameter s. */
+static int crossed_at(const Job *j, int64_t r, float s) {
+    float c[3];
+    point_at(j, r, s, c);
+    int inside;
+    int64_t flat = pixel_of(j, r, c, &inside);
+    if (!inside) return 1;
+    const float *pl = j->planes + flat * j->pw;
+    if (dot3(pl, c) - pl[3] > 0.0f) return 1;
+    if (j->pw == 8 && dot3(pl + 4, c) - pl[7] > 0.0f) return 1;
+    return 0;
+}
+
+/* One exit candidate (march._march's ``candidates``): the triangle seen at parameter s in
+ * the chosen layer, and whether the ray's hit with it is accepted. */
+static int candidate(const Job *j, int64_t r, float s, int use_front, int64_t *cand_out,
+                     float *st_out, float *bt_out) {
+    float c[3];
+    point_at(j, r, s, c);
+    int inside;
+    int64_t flat = pixel_of(j, r, c, &inside);
+    int64_t cand = -1;
+    if (inside) {
+        int seen = use_front ? j->mask_front[flat] : j->mask_back[flat];
+        if (seen) cand = use_front ? j->tri_front[flat] : j->tri_back[flat];
+    }
+    if (cand < 0) return 0;
+    float st = intersect(j->p1 + 3 * r, j->t + 3 * r, j->tv + 9 * cand, bt_out);
+    float hi = j->s_max[r] * 1.5f;
+    *cand_out = cand;
+    *st_out = st;
+    return isfinite(st) && st > j->s_min[r] && st <= hi;
+}
+
+#define BLOCK 16
+
+/* The uniform search and the bisections of rays [r0, r0 + m), m <= BLOCK, in lockstep:
+ * each pass tests one sample of every ray of the block, so their (independent) plane reads
+ * overlap instead of waiting on each other. */
+static void search_block(const Job *j, int64_t r0, int m, float *lo_out, float *hi_out) {
+    float lo[BLOCK], hi[BLOCK], last[BLOCK];
+    int done[BLOCK];
+    for (int i = 0; i < m; i++) {
+        lo[i] = 0.0f;
+        hi[i] = j->s_max[r0 + i];
+        last[i] = 0.0f;
+        done[i] = 0;
+    }
+    /* The first sample that has crossed brackets the crossing; a ray that never crosses
+     * gets lo = hi = s_max. */
+    int active = m;
+    for (int k = 1; k <= j->steps && active > 0; k++) {
+        float frac = (float)((double)k / (double)j->steps);
+        for (int i = 0; i < m; i++) {
+            if (done[i]) continue;
+            float s = j->s_max[r0 + i] * frac;
+            if (crossed_at(j, r0 + i, s)) {
+                hi[i] = s;
+                lo[i] = last[i];
+                done[i] = 1;
+                active--;
+            } else {
+                last[i] = s;
+            }
+        }
+    }
+    for (int i = 0; i < m; i++)
+        if (!done[i]) lo[i] = last[i];
+    for (int b = 0; b < j->refine; b++) {
+        for (int i = 0; i < m; i++) {
+            float mid = 0.5f * (lo[i] + hi[i]);
+            int c = crossed_at(j, r0 + i, mid);
+            hi[i] = c ? mid : hi[i];
+            lo[i] = c ? lo[i] : mid;
+        }
+    }
+    for (int i = 0; i < m; i++) {
+        lo_out[i] = lo[i];
+        hi_out[i] = hi[i];
+    }
+}
+
+/* The exit of ray r bracketed by [lo, hi]. */
+static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
+    float smax = j->s_max[r];
+    /* The exit candidates, in march._march's order of ``tries``. */
+    float ss[4];
+    int fronts[4], ntries;
+    if (j->pw == 8) {
+        float c[3];
+        point_at(j, r, hi, c);
+        int inside;
+        int64_t flat = pixel_of(j, r, c, &inside);
+        const float *pl = j->planes + flat * j->pw;
+        int primary_front = (dot3(pl + 4, c) - pl[7]) > (dot3(pl, c) - pl[3]);
+        ss[0] = hi; fronts[0] = primary_front;
+        ss[1] = lo; fronts[1] = primary_front;
+        ss[2] = hi; fronts[2] = !primary_front;
+        ss[3] = lo; fronts[3] = !primary_front;
+        ntries = 4;
+    } else {
+        ss[0] = hi; fronts[0] = 0;
+        ss[1] = lo; fronts[1] = 0;
+        ntries = 2;
+    }
+    int64_t tri = -1;
+    int layer = -1;
+    float bary[3] = {0.0f, 0.0f, 0.0f};
+    for (int i = 0; i < ntries; i++) {
+        int64_t cand;
+        float st, bt[3];
+        if (candidate(j, r, ss[i], fronts[i], &cand, &st, bt)) {
+            tri = cand;
+            layer = fronts[i] ? 0 : 1;
+            bary[0] = bt[0]; bary[1] = bt[1]; bary[2] = bt[2];
+            break;
+        }
+    }
+
+    /* march._walk_to_containing: across the edge opposite the most negative barycentric
+     * until the hit is inside, keeping the most-inside hit seen. */
+    const float eps = -1e-6f;
+    if (tri >= 0 && min3(bary) < eps) {
+        int64_t cur = tri;
+        float cur_bary[3] = {bary[0], bary[1], bary[2]};
+        float best = min3(cur_bary);
+        float lo_s = j->s_min[r], hi_s = 1.5f * smax;
+        for (int step = 0; step < j->walk_steps; step++) {
+            int worst = argmin3(cur_bary);
+            int64_t nxt = j->across[cur * 3 + worst];
+            float bt[3];
+            float st = intersect(j->p1 + 3 * r, j->t + 3 * r,
+                                 j->tv + 9 * (nxt < 0 ? 0 : nxt), bt);
+            int ok = nxt >= 0 && isfinite(st) && st > lo_s && st <= hi_s;
+            float score = min3(bt);
+            if (!ok) break;
+            cur = nxt;
+            cur_bary[0] = bt[0]; cur_bary[1] = bt[1]; cur_bary[2] = bt[2];
+            if (score > best) {
+                tri = nxt;
+                best = score;
+            }
+            if (!(score < eps)) break;
+        }
+    }
+    j->found[r] = tri >= 0;
+    j->tri[r] = tri;
+    j->layer[r] = layer;
+}
+
+static void *run_range(void *arg) {
+    const Range *rg = (const Range *)arg;
+    float lo[BLOCK], hi[BLOCK];
+    for (int64_t r = rg->begin; r < rg->end; r += BLOCK) {
+        int m = rg->end - r < BLOCK ? (int)(rg->end - r) : BLOCK;
+        search_block(rg->job, r, m, lo, hi);
+        for (int i = 0; i < m; i++) exit_ray(rg->job, r + i, lo[i], hi[i]);
+    }
+    return NULL;
+}
+
+/* Entry point (ctypes, native.py): march all rays of ``job`` on ``threads`` threads.
+ * Returns 0, or -1 where a thread could not be started (then nothing is guaranteed). */
+int torchrefract_march(const Job *job, int threads) {
+    if (threads < 1) threads = 1;
+    if (threads > 64) threads = 64;
+    int64_t n = job->n;
+    if (n < 4096 || threads == 1) {
+        Range rg = {job, 0, n};
+        run_range(&rg);
+        return 0;
+    }
+    pthread_t ids[64];
+    Range rgs[64];
+    int64_t per = (n + threads - 1) / threads;
+    int started = 0, rc = 0;
+    for (int i = 0; i < threads; i++) {
+        int64_t b = (int64_t)i * per, e = b + per < n ? b + per : n;
+        rgs[i].job = job; rgs[i].begin = b; rgs[i].end = e;
+        if (i == threads - 1) break;  /* the calling thread runs the last range */
+        if (pthread_create(&ids[i], NULL, run_range, &rgs[i]) != 0) {
+            rc = -1;
+            break;
+        }
+        started++;
+    }
+    if (rc == 0) run_range(&rgs[threads - 1]);
+    for (int i = 0; i < started; i++) pthread_join(ids[i], NULL);
+    return rc;
+}
+
+/* The layout of Job, for native.py's check that its ctypes mirror matches. */
+int64_t torchrefract_march_job_size(void) { return (int64_t)sizeof(Job); }

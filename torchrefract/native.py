@@ -1,0 +1,217 @@
+"""The ray march's discrete part as a native kernel (``csrc/march.c``), built on first use.
+
+Where each marched ray crosses the back-face layer, and which triangle it leaves through,
+is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
+elementwise ops and gathers per sample over all rays, bound by memory traffic; the C
+kernel makes the same choices one ray at a time, in the same float32 arithmetic, and
+``march.py`` then intersects each ray with its chosen triangle in torch (positions,
+normals and gradients come from the same tensor code either way; tests/test_native.py
+checks that the exits are identical).
+
+The kernel is plain C with pthreads (no Python or torch headers). The first call of a
+machine compiles it with the system C compiler (``$CC``, else ``cc``/``gcc``; about a
+second) into the cache folder (``$TORCHREFRACT_CACHE`` or ``~/.cache/torchrefract``,
+``native/``), keyed by the source, the flags and the platform. Where no compiler is found
+or the build fails, a warning names the reason once and the tensor code marches instead
+(the same images, slower). On by default; turn it off with::
+
+    torchrefract.set_native(False)     # Python
+    TORCHREFRACT_NATIVE=0              # environment, read at import
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+SOURCE = Path(__file__).with_name("csrc") / "march.c"
+# No fast-math and no contraction: every float32 operation rounds as torch's elementwise
+# ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
+FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
+
+_ENABLED = os.environ.get("TORCHREFRACT_NATIVE", "1").strip().lower() not in ("0", "false",
+                                                                              "no", "off")
+_LOCK = threading.Lock()
+_LIB: ctypes.CDLL | None = None
+_FAILED: str | None = None
+
+
+def set_native(enabled: bool) -> None:
+    """March with the native kernel (``True``, the default) or the tensor code."""
+    global _ENABLED
+    _ENABLED = bool(enabled)
+
+
+def native_enabled() -> bool:
+    """Whether marches use the native kernel where it builds."""
+    return _ENABLED
+
+
+class _Job(ctypes.Structure):
+    """ctypes mirror of ``Job`` in csrc/march.c (the field order and types must match; the
+    loader checks the size against the library's own)."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64),
+        ("c0", ctypes.c_void_p), ("ct", ctypes.c_void_p),
+        ("s_max", ctypes.c_void_p), ("s_min", ctypes.c_void_p),
+        ("sx_v", ctypes.c_void_p), ("sy_v", ctypes.c_void_p),
+        ("batch", ctypes.c_void_p),
+        ("planes", ctypes.c_void_p), ("pw", ctypes.c_int),
+        ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+        ("steps", ctypes.c_int), ("refine", ctypes.c_int),
+        ("p1", ctypes.c_void_p), ("t", ctypes.c_void_p),
+        ("tri_front", ctypes.c_void_p), ("tri_back", ctypes.c_void_p),
+        ("mask_front", ctypes.c_void_p), ("mask_back", ctypes.c_void_p),
+        ("tv", ctypes.c_void_p), ("across", ctypes.c_void_p),
+        ("walk_steps", ctypes.c_int),
+        ("found", ctypes.c_void_p), ("tri", ctypes.c_void_p), ("layer", ctypes.c_void_p),
+    ]
+
+
+def _compiler() -> str | None:
+    cc = os.environ.get("CC")
+    if cc and shutil.which(cc.split()[0]):
+        return cc
+    for name in ("cc", "gcc", "clang"):
+        if shutil.which(name):
+            return name
+    return None
+
+
+def library_path(cache_dir: str | Path | None = None) -> Path:
+    """Where the built kernel lives for this source, flags and platform."""
+    from .sgfit import default_cache_dir
+
+    h = hashlib.sha256(SOURCE.read_bytes())
+    h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
+    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return root / "native" / f"march_{h.hexdigest()[:16]}.so"
+
+
+def build(cache_dir: str | Path | None = None) -> Path:
+    """Compile the kernel into the cache (if not there yet); returns the library's path.
+
+    Raises:
+        RuntimeError: no C compiler, or the compile failed (its output quoted).
+    """
+    out = library_path(cache_dir)
+    if out.exists():
+        return out
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set $CC, or install gcc: "
+                           "apt-get install gcc)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        cmd = cc.split() + list(FLAGS) + ["-o", tmp, str(SOURCE), "-lm"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
+                               f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
+        os.replace(tmp, out)  # atomic: a concurrent process sees no half-written library
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def _load() -> ctypes.CDLL | None:
+    global _LIB, _FAILED
+    if _LIB is not None or _FAILED is not None:
+        return _LIB
+    with _LOCK:
+        if _LIB is None and _FAILED is None:
+            try:
+                lib = ctypes.CDLL(str(build()))
+                lib.torchrefract_march.argtypes = [ctypes.POINTER(_Job), ctypes.c_int]
+                lib.torchrefract_march.restype = ctypes.c_int
+                lib.torchrefract_march_job_size.restype = ctypes.c_int64
+                if lib.torchrefract_march_job_size() != ctypes.sizeof(_Job):
+                    raise RuntimeError("the library's Job layout differs from native._Job")
+                _LIB = lib
+            except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
+                _FAILED = f"{type(exc).__name__}: {exc}"
+                warnings.warn(f"torchrefract: the native march kernel is unavailable, "
+                              f"marching with the tensor code (same images, slower): "
+                              f"{_FAILED}", RuntimeWarning, stacklevel=3)
+    return _LIB
+
+
+def available() -> bool:
+    """Whether marches run natively now: enabled, and the kernel built and loaded (the
+    first call builds it)."""
+    return _ENABLED and _load() is not None
+
+
+def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.Tensor,
+          sx_v: torch.Tensor, sy_v: torch.Tensor, batch: torch.Tensor, planes: torch.Tensor,
+          h: int, w: int, steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor,
+          tri_front: torch.Tensor, tri_back: torch.Tensor, mask_front: torch.Tensor,
+          mask_back: torch.Tensor, tv: torch.Tensor, across: torch.Tensor,
+          walk_steps: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The search, bisections, exit candidates and walk of ``march._march`` (its
+    ``depth_min=None`` form) for N rays; ``None`` where the kernel is unavailable or an
+    input is not a float32 / int64 / bool CPU tensor (the caller then marches in torch).
+
+    Args:
+        c0, ct: (N, 3) camera coordinates of the start and per unit s.
+        s_max, s_min: (N,) the bounding chord and the smallest accepted exit distance.
+        sx_v, sy_v: (B,) per-view pixel scales (``0.5 w / tan``, ``0.5 h / tan``).
+        batch: (N,) int64 view per ray. planes: (B*H*W, 4|8) ``march.camera_planes``.
+        h, w: the frame. steps, refine: the uniform samples and bisections.
+        p1, t: (N, 3) world start points and directions.
+        tri_front, tri_back: (B*H*W,) int64 triangle per pixel; mask_front, mask_back:
+            (B*H*W,) bool coverage. tv: (T, 3, 3) vertices; across: (T, 3) int64
+            (``MeshData.across``).
+        walk_steps: the most edges a walk crosses.
+
+    Returns:
+        found (N,) bool, tri (N,) int64 (-1 where not found), layer (N,) int64 (0 front,
+        1 back, -1).
+    """
+    if not available():
+        return None
+    f32 = (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv)
+    i64 = (batch, tri_front, tri_back, across)
+    if (any(x.dtype != torch.float32 for x in f32) or any(x.dtype != torch.int64 for x in i64)
+            or mask_front.dtype != torch.bool or mask_back.dtype != torch.bool
+            or any(x.device.type != "cpu" for x in f32 + i64)
+            or planes.shape[-1] not in (4, 8)):
+        return None
+    keep = [x.detach().contiguous() for x in f32 + i64 + (mask_front, mask_back)]
+    (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv,
+     batch, tri_front, tri_back, across, mask_front, mask_back) = keep
+    n = c0.shape[0]
+    found = torch.empty(n, dtype=torch.bool)
+    tri = torch.empty(n, dtype=torch.int64)
+    layer = torch.empty(n, dtype=torch.int64)
+    if n == 0:
+        return found, tri, layer
+    job = _Job(n=n, c0=c0.data_ptr(), ct=ct.data_ptr(), s_max=s_max.data_ptr(),
+               s_min=s_min.data_ptr(), sx_v=sx_v.data_ptr(), sy_v=sy_v.data_ptr(),
+               batch=batch.data_ptr(), planes=planes.data_ptr(), pw=planes.shape[-1],
+               h=h, w=w, steps=steps, refine=refine, p1=p1.data_ptr(), t=t.data_ptr(),
+               tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
+               mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
+               tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
+               found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
+    if _LIB.torchrefract_march(ctypes.byref(job), torch.get_num_threads()) != 0:
+        return None  # a thread could not be started: march in torch
+    return found, tri, layer
+
+
+__all__ = ["available", "build", "library_path", "march", "native_enabled", "set_native"]
