@@ -1,6 +1,7 @@
-"""The native march kernel (``torchrefract.native``, csrc/march.c) makes the tensor code's
-choices exactly: the same exits (so the same images and gradients), on real G-buffers;
-it falls back to the tensor code with a warning where it cannot be built."""
+"""The native kernels (``torchrefract.native``: csrc/march.c, csrc/gbuffer.c) compute what
+the tensor code computes exactly: the same march exits (so the same images and gradients)
+and the same G-buffer layers, on real meshes; they fall back to the tensor code with a
+warning where they cannot be built."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def _entries(mesh: str, size: int, eye=(0.0, 0.4, 3.2), transform=None, views=2)
 def _assert_same(a, b):
     for f in dataclasses.fields(a):
         x, y = getattr(a, f.name), getattr(b, f.name)
-        assert torch.equal(x, y), f"Exit.{f.name} differs on {(x != y).sum().item()} rays"
+        assert torch.equal(x, y), f"{type(a).__name__}.{f.name} differs at {(x != y).sum().item()}"
 
 
 @needs_native
@@ -146,6 +147,27 @@ def test_renders_and_gradients_are_identical(method, options, tensor_code):
         assert (b != 0).all() and torch.allclose(a, b, rtol=1e-5, atol=0), (a, b)
 
 
+@needs_native
+@pytest.mark.parametrize("mesh, size, eye", [
+    ("spot.ply", 64, (0.0, 0.4, 3.2)),
+    ("suzanne.ply", 48, (0.4, 0.3, 3.0)),
+    ("suzanne.ply", 40, (0.1, 0.0, 1.2)),  # close: the object crosses the frame's edges
+    (None, 24, (0.0, 0.0, 3.0)),           # 81,920 faces at 24x24: many edge repairs
+])
+def test_gbuffer_layers_are_identical(mesh, size, eye, sphere_ply, tensor_code):
+    """The exact layers (ids after the edge repair, positions, depths, barycentrics,
+    normals, UVs) of two views are the same bit for bit."""
+    path = str(sphere_ply) if mesh is None else str(ASSETS / "meshes" / mesh)
+    m = load_mesh(path, tr.Transform(rotate_deg=(0.0, -35.0, 0.0)))
+    cams = [tr.Camera(eye=(eye[0] + 0.3 * i, eye[1], eye[2]), width=size, height=size)
+            for i in range(2)]
+    fast = build_gbuffer([m, m], cams)
+    slow = tensor_code(lambda: build_gbuffer([m, m], cams))
+    assert slow.front.mask.sum() > 200 and slow.back.mask.sum() > 200
+    for layer in ("front", "back"):
+        _assert_same(getattr(fast, layer), getattr(slow, layer))
+
+
 def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatch,
                                                                       tmp_path):
     g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / "spot.ply"), 32)
@@ -156,7 +178,7 @@ def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatc
     monkeypatch.setattr(native, "_FAILED", None)
     monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path))  # nothing built there yet
     monkeypatch.setattr(native, "_compiler", lambda: None)
-    with pytest.warns(RuntimeWarning, match="native march kernel is unavailable.*no C "
+    with pytest.warns(RuntimeWarning, match="native kernels .* are unavailable.*no C "
                                             "compiler"):
         fell_back = march_back(g, batch, p1, t1, steps=24, refine=8)
     _assert_same(fell_back, slow)
@@ -169,7 +191,7 @@ def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatc
 def test_a_compile_error_is_reported_with_the_compiler_output(monkeypatch, tmp_path):
     bad = tmp_path / "bad.c"
     bad.write_text("int broken(void) { return undefined_name; }\n")
-    monkeypatch.setattr(native, "SOURCE", bad)
+    monkeypatch.setattr(native, "SOURCES", (bad,))
     with pytest.raises(RuntimeError, match="undefined_name"):
         native.build(tmp_path / "cache")
     assert not list((tmp_path / "cache").rglob("*.so*"))  # no half-written library left

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import native
 from .camera import pixel_rays, projection_params
 from .index import put_, take, where_true
 from .mesh import MeshData
@@ -236,8 +237,14 @@ def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: to
            meshes: MeshBatch, back: bool, tol: float = 1e-7) -> Layer:
     """ids (B, H, W) global face index or -1; eye (B, 3); dirs (B, H, W, 3).
 
-    Work happens on the covered pixels only (compacted, by flat pixel index), in float64.
+    Work happens on the covered pixels only (compacted, by flat pixel index), in float64;
+    where the native kernel is available (``native.layer``) it does the same, one pixel at
+    a time, with the same values.
     """
+    fast = native.layer(ids, eye, dirs, forward, meshes.tri_vertices, meshes.tri_normals,
+                        meshes.tri_uvs, meshes.tri_neighbors, back, tol, 1e-3)
+    if fast is not None:
+        return Layer(**fast)
     b, h, w = ids.shape
     flat_ids = ids.reshape(-1)
     pix = where_true(flat_ids >= 0)  # (N,) covered pixels, flat

@@ -363,12 +363,20 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     if depth_min is None and native.available():
         # The native kernel (native.py): the same search, candidates and walk below, one
         # ray at a time; the same triangles, then the same differentiable hit.
+        # Where no gradient is wanted, the kernel also returns the exits' values (the same
+        # as _exit's); else the hit is taken again below, in torch.
         c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
+        grad = torch.is_grad_enabled() and (p1.requires_grad or t.requires_grad)
         res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
                            0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
                            td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),
                            g.front.mask.reshape(-1), g.back.mask.reshape(-1), tv,
-                           g.meshes.tri_across)
+                           g.meshes.tri_across,
+                           tri_normals=None if grad else g.meshes.tri_normals)
+        if res is not None and not grad:
+            found, tri, layer, s_exit, bary, normal, pos = res
+            return Exit(found=found, position=pos, normal=normal, tri=tri, dist=s_exit,
+                        layer=layer, bary=bary)
         if res is not None:
             found, tri, layer = res
             st, bt = intersect_triangles(p1, t, take(tv, tri.clamp(min=0)))

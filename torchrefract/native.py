@@ -1,4 +1,5 @@
-"""The ray march's discrete part as a native kernel (``csrc/march.c``), built on first use.
+"""Native kernels: the ray march's discrete part (``csrc/march.c``) and the exact G-buffer
+layer (``csrc/gbuffer.c``), built on first use.
 
 Where each marched ray crosses the back-face layer, and which triangle it leaves through,
 is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
@@ -35,7 +36,8 @@ from pathlib import Path
 
 import torch
 
-SOURCE = Path(__file__).with_name("csrc") / "march.c"
+SOURCES = (Path(__file__).with_name("csrc") / "march.c",
+           Path(__file__).with_name("csrc") / "gbuffer.c")
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
@@ -76,7 +78,26 @@ class _Job(ctypes.Structure):
         ("mask_front", ctypes.c_void_p), ("mask_back", ctypes.c_void_p),
         ("tv", ctypes.c_void_p), ("across", ctypes.c_void_p),
         ("walk_steps", ctypes.c_int),
+        ("tn", ctypes.c_void_p),
+        ("s_out", ctypes.c_void_p), ("bary_out", ctypes.c_void_p),
+        ("normal_out", ctypes.c_void_p), ("pos_out", ctypes.c_void_p),
         ("found", ctypes.c_void_p), ("tri", ctypes.c_void_p), ("layer", ctypes.c_void_p),
+    ]
+
+
+class _LayerJob(ctypes.Structure):
+    """ctypes mirror of ``LayerJob`` in csrc/gbuffer.c."""
+
+    _fields_ = [
+        ("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+        ("ids", ctypes.c_void_p), ("eye", ctypes.c_void_p), ("dirs", ctypes.c_void_p),
+        ("forward", ctypes.c_void_p), ("tv", ctypes.c_void_p), ("tn", ctypes.c_void_p),
+        ("tuv", ctypes.c_void_p), ("neighbors", ctypes.c_void_p),
+        ("back", ctypes.c_int), ("tol", ctypes.c_double), ("keep_tol", ctypes.c_double),
+        ("mask", ctypes.c_void_p), ("tri", ctypes.c_void_p),
+        ("position", ctypes.c_void_p), ("dist", ctypes.c_void_p), ("depth", ctypes.c_void_p),
+        ("bary", ctypes.c_void_p), ("geo_normal", ctypes.c_void_p),
+        ("normal", ctypes.c_void_p), ("uv", ctypes.c_void_p),
     ]
 
 
@@ -94,7 +115,7 @@ def library_path(cache_dir: str | Path | None = None) -> Path:
     """Where the built kernel lives for this source, flags and platform."""
     from .sgfit import default_cache_dir
 
-    h = hashlib.sha256(SOURCE.read_bytes())
+    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES))
     h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     return root / "native" / f"march_{h.hexdigest()[:16]}.so"
@@ -117,7 +138,7 @@ def build(cache_dir: str | Path | None = None) -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        cmd = cc.split() + list(FLAGS) + ["-o", tmp, str(SOURCE), "-lm"]
+        cmd = cc.split() + list(FLAGS) + ["-o", tmp] + [str(src) for src in SOURCES] + ["-lm"]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         if proc.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
@@ -140,13 +161,17 @@ def _load() -> ctypes.CDLL | None:
                 lib.torchrefract_march.argtypes = [ctypes.POINTER(_Job), ctypes.c_int]
                 lib.torchrefract_march.restype = ctypes.c_int
                 lib.torchrefract_march_job_size.restype = ctypes.c_int64
-                if lib.torchrefract_march_job_size() != ctypes.sizeof(_Job):
-                    raise RuntimeError("the library's Job layout differs from native._Job")
+                lib.torchrefract_layer.argtypes = [ctypes.POINTER(_LayerJob), ctypes.c_int]
+                lib.torchrefract_layer.restype = ctypes.c_int
+                lib.torchrefract_layer_job_size.restype = ctypes.c_int64
+                if (lib.torchrefract_march_job_size() != ctypes.sizeof(_Job)
+                        or lib.torchrefract_layer_job_size() != ctypes.sizeof(_LayerJob)):
+                    raise RuntimeError("the library's job layouts differ from native.py's")
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
                 _FAILED = f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"torchrefract: the native march kernel is unavailable, "
-                              f"marching with the tensor code (same images, slower): "
+                warnings.warn(f"torchrefract: the native kernels (march, G-buffer) are "
+                              f"unavailable, using the tensor code (same images, slower): "
                               f"{_FAILED}", RuntimeWarning, stacklevel=3)
     return _LIB
 
@@ -162,7 +187,8 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
           h: int, w: int, steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor,
           tri_front: torch.Tensor, tri_back: torch.Tensor, mask_front: torch.Tensor,
           mask_back: torch.Tensor, tv: torch.Tensor, across: torch.Tensor,
-          walk_steps: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+          walk_steps: int = 16, tri_normals: torch.Tensor | None = None
+          ) -> tuple[torch.Tensor, ...] | None:
     """The search, bisections, exit candidates and walk of ``march._march`` (its
     ``depth_min=None`` form) for N rays; ``None`` where the kernel is unavailable or an
     input is not a float32 / int64 / bool CPU tensor (the caller then marches in torch).
@@ -178,14 +204,20 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
             (B*H*W,) bool coverage. tv: (T, 3, 3) vertices; across: (T, 3) int64
             (``MeshData.across``).
         walk_steps: the most edges a walk crosses.
+        tri_normals: (T, 3, 3) corner shading normals: also return the exits' values
+            (for callers that need no gradient through them).
 
     Returns:
         found (N,) bool, tri (N,) int64 (-1 where not found), layer (N,) int64 (0 front,
-        1 back, -1).
+        1 back, -1); with ``tri_normals`` also the distance (N,), barycentrics (N, 3),
+        unit shading normal (N, 3) and position (N, 3) of each exit (zeros, and p1, where
+        none was found), as ``march._exit`` computes them.
     """
     if not available():
         return None
-    f32 = (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv)
+    values = tri_normals is not None
+    tn = tri_normals if values else tv  # (not read without values)
+    f32 = (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn)
     i64 = (batch, tri_front, tri_back, across)
     if (any(x.dtype != torch.float32 for x in f32) or any(x.dtype != torch.int64 for x in i64)
             or mask_front.dtype != torch.bool or mask_back.dtype != torch.bool
@@ -193,14 +225,17 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
             or planes.shape[-1] not in (4, 8)):
         return None
     keep = [x.detach().contiguous() for x in f32 + i64 + (mask_front, mask_back)]
-    (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv,
+    (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn,
      batch, tri_front, tri_back, across, mask_front, mask_back) = keep
     n = c0.shape[0]
     found = torch.empty(n, dtype=torch.bool)
     tri = torch.empty(n, dtype=torch.int64)
     layer = torch.empty(n, dtype=torch.int64)
+    extra = ((torch.empty(n), torch.empty(n, 3), torch.empty(n, 3), torch.empty(n, 3))
+             if values else ())
     if n == 0:
-        return found, tri, layer
+        return (found, tri, layer) + extra
+    ptrs = [x.data_ptr() for x in extra] if values else [None] * 4
     job = _Job(n=n, c0=c0.data_ptr(), ct=ct.data_ptr(), s_max=s_max.data_ptr(),
                s_min=s_min.data_ptr(), sx_v=sx_v.data_ptr(), sy_v=sy_v.data_ptr(),
                batch=batch.data_ptr(), planes=planes.data_ptr(), pw=planes.shape[-1],
@@ -208,10 +243,57 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
                tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
                mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
                tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
+               tn=tn.data_ptr(), s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2],
+               pos_out=ptrs[3],
                found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
     if _LIB.torchrefract_march(ctypes.byref(job), torch.get_num_threads()) != 0:
         return None  # a thread could not be started: march in torch
-    return found, tri, layer
+    return (found, tri, layer) + extra
 
 
-__all__ = ["available", "build", "library_path", "march", "native_enabled", "set_native"]
+def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
+          tri_vertices: torch.Tensor, tri_normals: torch.Tensor, tri_uvs: torch.Tensor,
+          tri_neighbors: torch.Tensor, back: bool, tol: float, keep_tol: float
+          ) -> dict[str, torch.Tensor] | None:
+    """``gbuffer._layer``'s exact attributes of one layer (with its edge repair), or
+    ``None`` where the kernel is unavailable or an input is not float32 / int64 on the CPU.
+
+    Args:
+        ids: (B, H, W) int64 rasterized global face ids (-1 empty). eye, forward: (B, 3).
+        dirs: (B, H, W, 3) pixel rays. tri_vertices, tri_normals: (F, 3, 3); tri_uvs:
+            (F, 3, 2); tri_neighbors: (F, 3) int64 (``MeshBatch``).
+        back: the back-face layer. tol, keep_tol: ``_repair_edge_ids``' tolerances.
+
+    Returns:
+        The ``Layer`` fields: mask (B, H, W) bool, tri (B, H, W) int64, position, bary,
+        geo_normal, normal (B, H, W, 3), dist, depth (B, H, W), uv (B, H, W, 2), float32.
+    """
+    if not available():
+        return None
+    f32 = (eye, dirs, forward, tri_vertices, tri_normals, tri_uvs)
+    i64 = (ids, tri_neighbors)
+    if (any(x.dtype != torch.float32 for x in f32) or any(x.dtype != torch.int64 for x in i64)
+            or any(x.device.type != "cpu" for x in f32 + i64)):
+        return None
+    (eye, dirs, forward, tri_vertices, tri_normals, tri_uvs, ids, tri_neighbors) = [
+        x.detach().contiguous() for x in f32 + i64]
+    b, h, w = ids.shape
+    out = {"mask": torch.empty(b, h, w, dtype=torch.bool),
+           "tri": torch.empty(b, h, w, dtype=torch.int64),
+           "position": torch.empty(b, h, w, 3), "dist": torch.empty(b, h, w),
+           "depth": torch.empty(b, h, w), "bary": torch.empty(b, h, w, 3),
+           "geo_normal": torch.empty(b, h, w, 3), "normal": torch.empty(b, h, w, 3),
+           "uv": torch.empty(b, h, w, 2)}
+    job = _LayerJob(b=b, h=h, w=w, ids=ids.data_ptr(), eye=eye.data_ptr(),
+                    dirs=dirs.data_ptr(), forward=forward.data_ptr(),
+                    tv=tri_vertices.data_ptr(), tn=tri_normals.data_ptr(),
+                    tuv=tri_uvs.data_ptr(), neighbors=tri_neighbors.data_ptr(),
+                    back=int(back), tol=tol, keep_tol=keep_tol,
+                    **{k: v.data_ptr() for k, v in out.items()})
+    if _LIB.torchrefract_layer(ctypes.byref(job), torch.get_num_threads()) != 0:
+        return None
+    return out
+
+
+__all__ = ["available", "build", "layer", "library_path", "march", "native_enabled",
+           "set_native"]

@@ -43,6 +43,11 @@ typedef struct {
     const float *tv;        /* (T, 3, 3) triangle vertices */
     const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
     int walk_steps;
+    const float *tn;        /* (T, 3, 3) corner shading normals (for the exits below) */
+    /* out, optional (NULL: not wanted; march.py then computes them in torch, with
+     * gradients): the exit distance (N,), barycentrics (N, 3), unit shading normal (N, 3)
+     * and position (N, 3), as march._exit computes them */
+    float *s_out, *bary_out, *normal_out, *pos_out;
     uint8_t *found;         /* out (N,) */
     int64_t *tri;           /* out (N,) exit triangle or -1 */
     int64_t *layer;         /* out (N,) 0 front, 1 back, -1 */
@@ -213,6 +218,48 @@ static void search_block(const Job *j, int64_t r0, int m, float *lo_out, float *
     }
 }
 
+/* Tensor.norm of a float32 3-vector as torch's CPU kernel computes it (measured): the
+ * squares accumulated by fused multiply-adds, then the square root. */
+static inline float norm3(const float *a) {
+    float acc = a[0] * a[0];
+    acc = fmaf(a[1], a[1], acc);
+    acc = fmaf(a[2], a[2], acc);
+    return sqrtf(acc);
+}
+
+/* march._exit's values for ray r leaving through ``tri`` (-1: not found): the hit with
+ * the triangle, the clamped barycentric interpolation of its corner normals, normalized,
+ * and the position p1 + s t. */
+static void exit_values(const Job *j, int64_t r, int64_t tri) {
+    float s = 0.0f, bt[3] = {0.0f, 0.0f, 0.0f}, n[3] = {0.0f, 0.0f, 0.0f};
+    const float *p1 = j->p1 + 3 * r, *t = j->t + 3 * r;
+    if (tri >= 0) {
+        s = intersect(p1, t, j->tv + 9 * tri, bt);
+        float w[3];
+        for (int i = 0; i < 3; i++) w[i] = bt[i] < 0.0f ? 0.0f : bt[i];
+        for (int i = 0; i < 3; i++)
+            if (bt[i] != bt[i]) w[i] = bt[i];  /* clamp propagates NaN */
+        float sum = (w[0] + w[1]) + w[2];
+        if (sum < 1e-12f) sum = 1e-12f;
+        for (int i = 0; i < 3; i++) w[i] = w[i] / sum;
+        const float *c = j->tn + 9 * tri;
+        for (int m = 0; m < 3; m++) {
+            float a = w[0] * c[m], b = w[1] * c[3 + m], z = w[2] * c[6 + m];
+            n[m] = (a + b) + z;
+        }
+        float len = norm3(n);
+        if (len < 1e-20f) len = 1e-20f;
+        for (int m = 0; m < 3; m++) n[m] = n[m] / len;
+    }
+    j->s_out[r] = s;
+    for (int m = 0; m < 3; m++) {
+        j->bary_out[3 * r + m] = bt[m];
+        j->normal_out[3 * r + m] = n[m];
+        float st = s * t[m];
+        j->pos_out[3 * r + m] = p1[m] + st;
+    }
+}
+
 /* The exit of ray r bracketed by [lo, hi]. */
 static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     float smax = j->s_max[r];
@@ -279,6 +326,7 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     j->found[r] = tri >= 0;
     j->tri[r] = tri;
     j->layer[r] = layer;
+    if (j->s_out) exit_values(j, r, tri);
 }
 
 static void *run_range(void *arg) {
