@@ -4,17 +4,19 @@ layer (``csrc/gbuffer.c``), built on first use.
 Where each marched ray crosses the back-face layer, and which triangle it leaves through,
 is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
 elementwise ops and gathers per sample over all rays, bound by memory traffic; the C
-kernel makes the same choices one ray at a time, in the same float32 arithmetic, and
-``march.py`` then intersects each ray with its chosen triangle in torch (positions,
-normals and gradients come from the same tensor code either way; tests/test_native.py
-checks that the exits are identical).
+kernel makes the same choices one ray at a time, in the same float32 arithmetic. Where a
+gradient is wanted, ``march.py`` then intersects each ray with its chosen triangle in
+torch; elsewhere the kernel returns the exits' values too, computed as ``march._exit``
+computes them. The G-buffer kernel computes ``gbuffer._layer``'s float64 attributes per
+pixel (the G-buffer carries no gradient). tests/test_native.py checks that exits, layers
+and images are identical to the tensor code's.
 
-The kernel is plain C with pthreads (no Python or torch headers). The first call of a
-machine compiles it with the system C compiler (``$CC``, else ``cc``/``gcc``; about a
+The kernels are plain C with pthreads (no Python or torch headers). The first call of a
+machine compiles them with the system C compiler (``$CC``, else ``cc``/``gcc``; about a
 second) into the cache folder (``$TORCHREFRACT_CACHE`` or ``~/.cache/torchrefract``,
-``native/``), keyed by the source, the flags and the platform. Where no compiler is found
-or the build fails, a warning names the reason once and the tensor code marches instead
-(the same images, slower). On by default; turn it off with::
+``native/``), keyed by the sources, the flags and the platform. Where no compiler is found
+or the build fails, a warning names the reason once and the tensor code runs instead (the
+same images, slower). On by default; turn them off with::
 
     torchrefract.set_native(False)     # Python
     TORCHREFRACT_NATIVE=0              # environment, read at import
@@ -50,13 +52,13 @@ _FAILED: str | None = None
 
 
 def set_native(enabled: bool) -> None:
-    """March with the native kernel (``True``, the default) or the tensor code."""
+    """Use the native kernels (``True``, the default) or the tensor code."""
     global _ENABLED
     _ENABLED = bool(enabled)
 
 
 def native_enabled() -> bool:
-    """Whether marches use the native kernel where it builds."""
+    """Whether the march and the G-buffer use the native kernels where they build."""
     return _ENABLED
 
 
@@ -112,17 +114,17 @@ def _compiler() -> str | None:
 
 
 def library_path(cache_dir: str | Path | None = None) -> Path:
-    """Where the built kernel lives for this source, flags and platform."""
+    """Where the built kernels live for these sources, flags and platform."""
     from .sgfit import default_cache_dir
 
     h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES))
     h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    return root / "native" / f"march_{h.hexdigest()[:16]}.so"
+    return root / "native" / f"kernels_{h.hexdigest()[:16]}.so"
 
 
 def build(cache_dir: str | Path | None = None) -> Path:
-    """Compile the kernel into the cache (if not there yet); returns the library's path.
+    """Compile the kernels into the cache (if not there yet); returns the library's path.
 
     Raises:
         RuntimeError: no C compiler, or the compile failed (its output quoted).
@@ -177,8 +179,8 @@ def _load() -> ctypes.CDLL | None:
 
 
 def available() -> bool:
-    """Whether marches run natively now: enabled, and the kernel built and loaded (the
-    first call builds it)."""
+    """Whether the kernels run now: enabled, built and loaded (the first call builds
+    them)."""
     return _ENABLED and _load() is not None
 
 
