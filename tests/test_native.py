@@ -6,6 +6,7 @@ warning where they cannot be built."""
 from __future__ import annotations
 
 import dataclasses
+import os
 import warnings
 
 import pytest
@@ -223,3 +224,20 @@ def test_native_is_on_by_default_and_switchable():
     assert not native.native_enabled() and not native.available()
     tr.set_native(True)
     assert native.native_enabled()
+
+
+def test_cli_no_native_flag_sets_it_for_this_and_worker_processes(monkeypatch, tmp_path):
+    """``--no-native`` turns the kernels off here and in the environment that worker
+    processes inherit (a scene that fails validation stops the run before rendering)."""
+    from torchrefract.cli import main
+
+    monkeypatch.setenv("TORCHREFRACT_NATIVE", "1")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("mesh: nowhere.ply\n")
+    try:
+        assert main(["render", str(bad), "--out", str(tmp_path / "out"), "--no-native",
+                     "--quiet"]) == 1
+        assert not native.native_enabled()
+        assert os.environ["TORCHREFRACT_NATIVE"] == "0"
+    finally:
+        native.set_native(True)

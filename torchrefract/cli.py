@@ -34,6 +34,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--compile", action="store_true",
                    help="torch.compile the ray march (same images; pays off on long runs: "
                         "seconds of start-up, README 'Compiled march')")
+    r.add_argument("--no-native", action="store_true",
+                   help="the tensor code instead of the C kernels for the march and the "
+                        "G-buffer (same images, slower; README 'Native kernels')")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -64,6 +67,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--compile", action="store_true",
                    help="torch.compile the ray march in every rendering process (same "
                         "images; seconds of start-up per process)")
+    w.add_argument("--no-native", action="store_true",
+                   help="the tensor code instead of the C kernels in every rendering "
+                        "process (same images, slower)")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -197,6 +203,11 @@ def main(argv: list[str] | None = None) -> int:
         # the environment carries it to worker processes (local and Ray) as well
         os.environ["TORCHREFRACT_COMPILE"] = "1"
         accel.set_compile(True)
+    if getattr(args, "no_native", False):
+        from . import native  # noqa: PLC0415
+
+        os.environ["TORCHREFRACT_NATIVE"] = "0"  # for worker processes too
+        native.set_native(False)
     if args.command == "render":
         return _render_cmd(args)
     if args.command == "compare":
