@@ -70,7 +70,11 @@ def _assert_same(a, b):
     ("suzanne.ply", 48, 64, 10, (0.4, 0.3, 3.0)),   # non-convex: rays lost and found
     ("suzanne.ply", 48, 7, 0, (0.1, 0.0, 1.2)),     # camera close: rays leave the frame
 ])
-def test_back_exits_are_identical(mesh, size, steps, refine, eye, tensor_code):
+@pytest.mark.parametrize("simd", [True, False])
+def test_back_exits_are_identical(mesh, size, steps, refine, eye, simd, tensor_code,
+                                  monkeypatch):
+    """Both searches of the kernel (AVX2 where the CPU has it, and scalar)."""
+    monkeypatch.setattr(native, "_SIMD", simd)
     g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / mesh), size, eye)
     fast = march_back(g, batch, p1, t1, steps=steps, refine=refine)
     slow = tensor_code(lambda: march_back(g, batch, p1, t1, steps=steps, refine=refine))
@@ -90,9 +94,11 @@ def test_walk_over_triangles_smaller_than_pixels_is_identical(sphere_ply, tensor
 
 
 @needs_native
-def test_inside_exits_through_both_layers_are_identical(tensor_code):
+@pytest.mark.parametrize("simd", [True, False])
+def test_inside_exits_through_both_layers_are_identical(simd, tensor_code, monkeypatch):
     """march_inside (8 plane terms, four candidate tries): internal reflections at the
-    front surface of suzanne, which leave through either layer."""
+    back surface of suzanne, which leave through either layer."""
+    monkeypatch.setattr(native, "_SIMD", simd)
     g, batch, p1, t1, n = _entries(str(ASSETS / "meshes" / "suzanne.ply"), 48,
                                    eye=(0.4, 0.3, 3.0))
     ex = march_back(g, batch, p1, t1, steps=24, refine=8)

@@ -46,6 +46,9 @@ FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-
 
 _ENABLED = os.environ.get("TORCHREFRACT_NATIVE", "1").strip().lower() not in ("0", "false",
                                                                               "no", "off")
+_SIMD = os.environ.get("TORCHREFRACT_NATIVE_SIMD", "1").strip() != "0"
+"""The march's AVX2 search where the CPU has it (``TORCHREFRACT_NATIVE_SIMD=0``: the
+scalar one; the same values either way, tests/test_native.py)."""
 _LOCK = threading.Lock()
 _LIB: ctypes.CDLL | None = None
 _FAILED: str | None = None
@@ -80,6 +83,7 @@ class _Job(ctypes.Structure):
         ("mask_front", ctypes.c_void_p), ("mask_back", ctypes.c_void_p),
         ("tv", ctypes.c_void_p), ("across", ctypes.c_void_p),
         ("walk_steps", ctypes.c_int),
+        ("simd", ctypes.c_int),
         ("tn", ctypes.c_void_p),
         ("s_out", ctypes.c_void_p), ("bary_out", ctypes.c_void_p),
         ("normal_out", ctypes.c_void_p), ("pos_out", ctypes.c_void_p),
@@ -245,7 +249,7 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
                tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
                mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
                tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
-               tn=tn.data_ptr(), s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2],
+               simd=int(_SIMD), tn=tn.data_ptr(), s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2],
                pos_out=ptrs[3],
                found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
     if _LIB.torchrefract_march(ctypes.byref(job), torch.get_num_threads()) != 0:

@@ -43,6 +43,7 @@ typedef struct {
     const float *tv;        /* (T, 3, 3) triangle vertices */
     const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
     int walk_steps;
+    int simd;               /* 1: the AVX2 search where the CPU has it (0: scalar only) */
     const float *tn;        /* (T, 3, 3) corner shading normals (for the exits below) */
     /* out, optional (NULL: not wanted; march.py then computes them in torch, with
      * gradients): the exit distance (N,), barycentrics (N, 3), unit shading normal (N, 3)
@@ -260,6 +261,129 @@ static void exit_values(const Job *j, int64_t r, int64_t tri) {
     }
 }
 
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define HAVE_AVX2_PATH 1
+
+/* search_block with AVX2, 8 rays per vector and two vectors per pass (BLOCK = 16 rays,
+ * a full block only): the same operations lane by lane (IEEE add, multiply, divide,
+ * floor, compare: the same values as the scalar code, which stays the path for partial
+ * blocks and CPUs without AVX2). Plane indices are 32-bit (the caller checks the size). */
+typedef struct { __m256 c0x, c0y, c0z, ctx, cty, ctz, sx, sy; __m256i base; } Lanes;
+
+__attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, const Lanes *L,
+                                                              __m256 s) {
+    __m256 cx = _mm256_add_ps(L->c0x, _mm256_mul_ps(s, L->ctx));
+    __m256 cy = _mm256_add_ps(L->c0y, _mm256_mul_ps(s, L->cty));
+    __m256 cz = _mm256_add_ps(L->c0z, _mm256_mul_ps(s, L->ctz));
+    const __m256 eps = _mm256_set1_ps(1e-12f);
+    __m256 zs = _mm256_max_ps(cz, eps);  /* NaN z: eps (the lane is outside anyway) */
+    __m256 hw = _mm256_set1_ps(0.5f * (float)j->w), hh = _mm256_set1_ps(0.5f * (float)j->h);
+    __m256 px = _mm256_floor_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_div_ps(cx, zs), L->sx),
+                                              hw));
+    __m256 py = _mm256_floor_ps(_mm256_sub_ps(hh, _mm256_mul_ps(_mm256_div_ps(cy, zs),
+                                                                L->sy)));
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 wm = _mm256_set1_ps((float)(j->w - 1)), hm = _mm256_set1_ps((float)(j->h - 1));
+    __m256 inside = _mm256_and_ps(
+        _mm256_and_ps(_mm256_cmp_ps(cz, eps, _CMP_GT_OQ),
+                      _mm256_and_ps(_mm256_cmp_ps(px, zero, _CMP_GE_OQ),
+                                    _mm256_cmp_ps(px, wm, _CMP_LE_OQ))),
+        _mm256_and_ps(_mm256_cmp_ps(py, zero, _CMP_GE_OQ), _mm256_cmp_ps(py, hm, _CMP_LE_OQ)));
+    /* clamped into the frame (max(x, 0) gives 0 for NaN x): always a valid index */
+    __m256 pxc = _mm256_min_ps(_mm256_max_ps(px, zero), wm);
+    __m256 pyc = _mm256_min_ps(_mm256_max_ps(py, zero), hm);
+    __m256i flat = _mm256_add_epi32(L->base, _mm256_add_epi32(
+        _mm256_mullo_epi32(_mm256_cvttps_epi32(pyc), _mm256_set1_epi32((int)j->w)),
+        _mm256_cvttps_epi32(pxc)));
+    __m256i idx = _mm256_mullo_epi32(flat, _mm256_set1_epi32(j->pw));
+    const float *pl = j->planes;
+    __m256 n0 = _mm256_i32gather_ps(pl, idx, 4);
+    __m256 n1 = _mm256_i32gather_ps(pl + 1, idx, 4);
+    __m256 n2 = _mm256_i32gather_ps(pl + 2, idx, 4);
+    __m256 d = _mm256_i32gather_ps(pl + 3, idx, 4);
+    __m256 dt = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(n0, cx), _mm256_mul_ps(n1, cy)),
+                              _mm256_mul_ps(n2, cz));
+    __m256 beyond = _mm256_cmp_ps(_mm256_sub_ps(dt, d), zero, _CMP_GT_OQ);
+    if (j->pw == 8) {
+        __m256 f0 = _mm256_i32gather_ps(pl + 4, idx, 4);
+        __m256 f1 = _mm256_i32gather_ps(pl + 5, idx, 4);
+        __m256 f2 = _mm256_i32gather_ps(pl + 6, idx, 4);
+        __m256 fd = _mm256_i32gather_ps(pl + 7, idx, 4);
+        __m256 ft = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(f0, cx), _mm256_mul_ps(f1, cy)),
+                                  _mm256_mul_ps(f2, cz));
+        beyond = _mm256_or_ps(beyond, _mm256_cmp_ps(_mm256_sub_ps(ft, fd), zero, _CMP_GT_OQ));
+    }
+    /* crossed = ~inside | beyond (all-ones lanes) */
+    return _mm256_or_ps(_mm256_andnot_ps(inside, _mm256_castsi256_ps(_mm256_set1_epi32(-1))),
+                        beyond);
+}
+
+__attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int64_t r0,
+                                                              float *lo_out, float *hi_out) {
+    Lanes L[2];
+    float tmp[9][16];
+    int bi[16];
+    for (int i = 0; i < 16; i++) {
+        int64_t r = r0 + i, b = j->batch[r];
+        for (int k = 0; k < 3; k++) {
+            tmp[k][i] = j->c0[3 * r + k];
+            tmp[3 + k][i] = j->ct[3 * r + k];
+        }
+        tmp[6][i] = j->sx_v[b];
+        tmp[7][i] = j->sy_v[b];
+        tmp[8][i] = j->s_max[r];
+        bi[i] = (int)(b * j->h * j->w);
+    }
+    __m256 smax[2], lo[2], hi[2], last[2], done[2];
+    for (int v = 0; v < 2; v++) {
+        L[v].c0x = _mm256_loadu_ps(tmp[0] + 8 * v);
+        L[v].c0y = _mm256_loadu_ps(tmp[1] + 8 * v);
+        L[v].c0z = _mm256_loadu_ps(tmp[2] + 8 * v);
+        L[v].ctx = _mm256_loadu_ps(tmp[3] + 8 * v);
+        L[v].cty = _mm256_loadu_ps(tmp[4] + 8 * v);
+        L[v].ctz = _mm256_loadu_ps(tmp[5] + 8 * v);
+        L[v].sx = _mm256_loadu_ps(tmp[6] + 8 * v);
+        L[v].sy = _mm256_loadu_ps(tmp[7] + 8 * v);
+        L[v].base = _mm256_loadu_si256((const __m256i *)(bi + 8 * v));
+        smax[v] = _mm256_loadu_ps(tmp[8] + 8 * v);
+        lo[v] = _mm256_setzero_ps();
+        hi[v] = smax[v];
+        last[v] = _mm256_setzero_ps();
+        done[v] = _mm256_setzero_ps();
+    }
+    for (int k = 1; k <= j->steps; k++) {
+        __m256 frac = _mm256_set1_ps((float)((double)k / (double)j->steps));
+        int all = 1;
+        for (int v = 0; v < 2; v++) {
+            __m256 s = _mm256_mul_ps(smax[v], frac);
+            __m256 c = _mm256_andnot_ps(done[v], crossed8(j, &L[v], s));  /* newly crossed */
+            hi[v] = _mm256_blendv_ps(hi[v], s, c);
+            lo[v] = _mm256_blendv_ps(lo[v], last[v], c);
+            done[v] = _mm256_or_ps(done[v], c);
+            last[v] = _mm256_blendv_ps(s, last[v], done[v]);
+            all &= _mm256_movemask_ps(done[v]) == 0xff;
+        }
+        if (all) break;
+    }
+    for (int v = 0; v < 2; v++) lo[v] = _mm256_blendv_ps(last[v], lo[v], done[v]);
+    const __m256 half = _mm256_set1_ps(0.5f);
+    for (int b = 0; b < j->refine; b++) {
+        for (int v = 0; v < 2; v++) {
+            __m256 mid = _mm256_mul_ps(half, _mm256_add_ps(lo[v], hi[v]));
+            __m256 c = crossed8(j, &L[v], mid);
+            hi[v] = _mm256_blendv_ps(hi[v], mid, c);
+            lo[v] = _mm256_blendv_ps(mid, lo[v], c);
+        }
+    }
+    for (int v = 0; v < 2; v++) {
+        _mm256_storeu_ps(lo_out + 8 * v, lo[v]);
+        _mm256_storeu_ps(hi_out + 8 * v, hi[v]);
+    }
+}
+#endif
+
 /* The exit of ray r bracketed by [lo, hi]. */
 static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     float smax = j->s_max[r];
@@ -332,9 +456,23 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
 static void *run_range(void *arg) {
     const Range *rg = (const Range *)arg;
     float lo[BLOCK], hi[BLOCK];
+    const Job *j = rg->job;
+#ifdef HAVE_AVX2_PATH
+    /* 32-bit gather indices: the planes must have fewer than 2^31 floats */
+    int64_t planes_floats = 0;
+    for (int64_t r = rg->begin; r < rg->end; r++)
+        if (j->batch[r] + 1 > planes_floats) planes_floats = j->batch[r] + 1;
+    planes_floats *= j->h * j->w * j->pw;
+    int avx2 = j->simd && planes_floats < ((int64_t)1 << 31) && __builtin_cpu_supports("avx2");
+#endif
     for (int64_t r = rg->begin; r < rg->end; r += BLOCK) {
         int m = rg->end - r < BLOCK ? (int)(rg->end - r) : BLOCK;
-        search_block(rg->job, r, m, lo, hi);
+#ifdef HAVE_AVX2_PATH
+        if (avx2 && m == BLOCK) search_block_avx2(j, r, lo, hi);
+        else search_block(j, r, m, lo, hi);
+#else
+        search_block(j, r, m, lo, hi);
+#endif
         for (int i = 0; i < m; i++) exit_ray(rg->job, r + i, lo[i], hi[i]);
     }
     return NULL;
