@@ -5,9 +5,11 @@
  * elementwise ops do): the uniform search over the bounding chord, the bisections, the
  * exit candidates (the triangle seen at the crossing pixel, then at the last pixel still
  * inside, per marched layer) and the walk to the triangle that contains the hit. It
- * returns which triangle each ray leaves through; march.py then intersects the ray with
- * that triangle in torch (the differentiable part), so the exits' positions, normals and
- * gradients are computed by the same tensor code either way.
+ * returns which triangle each ray leaves through; where a gradient is wanted, march.py
+ * then intersects the ray with that triangle in torch (the differentiable part), and
+ * elsewhere this kernel also returns the exit's values as march._exit computes them
+ * (exit_values). The search and bisections run 16 rays in lockstep, as AVX2 vectors
+ * where the CPU has them (search_block_avx2: the same operations per lane).
  *
  * Why by hand: the tensor form is a chain of ~20 elementwise ops and a gather per sample
  * over all rays (memory traffic, compactions); here each ray's state stays in registers
@@ -18,13 +20,13 @@
  * The formulas mirror, line by line:
  *   march._pixel_of_camera, march._crossed_at (the plane test), march._march's search
  *   and bisections, its ``candidates`` and ``tries``, march._walk_to_containing, and
- *   gbuffer.intersect_triangles and optics.dot ((a0 b0 + a1 b1) + a2 b2).
+ *   gbuffer.intersect_triangles, optics.dot ((a0 b0 + a1 b1) + a2 b2), gbuffer.interpolate
+ *   and march._exit.
  */
 
 #include <math.h>
 #include <pthread.h>
 #include <stdint.h>
-#include <stdlib.h>
 
 typedef struct {
     int64_t n;
