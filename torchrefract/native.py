@@ -40,6 +40,7 @@ import torch
 
 SOURCES = (Path(__file__).with_name("csrc") / "march.c",
            Path(__file__).with_name("csrc") / "gbuffer.c")
+HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache key
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
@@ -121,7 +122,7 @@ def library_path(cache_dir: str | Path | None = None) -> Path:
     """Where the built kernels live for these sources, flags and platform."""
     from .sgfit import default_cache_dir
 
-    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES))
+    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES + HEADERS))
     h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     return root / "native" / f"kernels_{h.hexdigest()[:16]}.so"
@@ -188,6 +189,16 @@ def available() -> bool:
     return _ENABLED and _load() is not None
 
 
+def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],
+            b8: tuple[torch.Tensor, ...] = ()) -> list[torch.Tensor] | None:
+    """The kernels' inputs, detached and contiguous, in order (float32, int64, bool
+    tensors on the CPU); ``None`` where one is of another dtype or device."""
+    ok = (all(x.dtype == torch.float32 for x in f32) and all(x.dtype == torch.int64 for x in i64)
+          and all(x.dtype == torch.bool for x in b8)
+          and all(x.device.type == "cpu" for x in f32 + i64 + b8))
+    return [x.detach().contiguous() for x in f32 + i64 + b8] if ok else None
+
+
 def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.Tensor,
           sx_v: torch.Tensor, sy_v: torch.Tensor, batch: torch.Tensor, planes: torch.Tensor,
           h: int, w: int, steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor,
@@ -223,14 +234,10 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
         return None
     values = tri_normals is not None
     tn = tri_normals if values else tv  # (not read without values)
-    f32 = (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn)
-    i64 = (batch, tri_front, tri_back, across)
-    if (any(x.dtype != torch.float32 for x in f32) or any(x.dtype != torch.int64 for x in i64)
-            or mask_front.dtype != torch.bool or mask_back.dtype != torch.bool
-            or any(x.device.type != "cpu" for x in f32 + i64)
-            or planes.shape[-1] not in (4, 8)):
+    keep = _inputs((c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn),
+                   (batch, tri_front, tri_back, across), (mask_front, mask_back))
+    if keep is None or planes.shape[-1] not in (4, 8):
         return None
-    keep = [x.detach().contiguous() for x in f32 + i64 + (mask_front, mask_back)]
     (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn,
      batch, tri_front, tri_back, across, mask_front, mask_back) = keep
     n = c0.shape[0]
@@ -249,8 +256,9 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
                tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
                mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
                tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
-               simd=int(_SIMD), tn=tn.data_ptr(), s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2],
-               pos_out=ptrs[3],
+               # the AVX2 search gathers with 32-bit indices
+               simd=int(_SIMD and planes.numel() < 2**31), tn=tn.data_ptr(),
+               s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2], pos_out=ptrs[3],
                found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
     if _LIB.torchrefract_march(ctypes.byref(job), torch.get_num_threads()) != 0:
         return None  # a thread could not be started: march in torch
@@ -276,13 +284,11 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
     """
     if not available():
         return None
-    f32 = (eye, dirs, forward, tri_vertices, tri_normals, tri_uvs)
-    i64 = (ids, tri_neighbors)
-    if (any(x.dtype != torch.float32 for x in f32) or any(x.dtype != torch.int64 for x in i64)
-            or any(x.device.type != "cpu" for x in f32 + i64)):
+    keep = _inputs((eye, dirs, forward, tri_vertices, tri_normals, tri_uvs),
+                   (ids, tri_neighbors))
+    if keep is None:
         return None
-    (eye, dirs, forward, tri_vertices, tri_normals, tri_uvs, ids, tri_neighbors) = [
-        x.detach().contiguous() for x in f32 + i64]
+    eye, dirs, forward, tri_vertices, tri_normals, tri_uvs, ids, tri_neighbors = keep
     b, h, w = ids.shape
     out = {"mask": torch.empty(b, h, w, dtype=torch.bool),
            "tri": torch.empty(b, h, w, dtype=torch.int64),

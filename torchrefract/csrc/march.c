@@ -24,9 +24,7 @@
  *   and march._exit.
  */
 
-#include <math.h>
-#include <pthread.h>
-#include <stdint.h>
+#include "common.h"
 
 typedef struct {
     int64_t n;
@@ -45,7 +43,8 @@ typedef struct {
     const float *tv;        /* (T, 3, 3) triangle vertices */
     const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
     int walk_steps;
-    int simd;               /* 1: the AVX2 search where the CPU has it (0: scalar only) */
+    int simd;               /* 1: the AVX2 search where the CPU has it (0: scalar only; the
+                             * caller sets 0 where the plane indices exceed 32 bits) */
     const float *tn;        /* (T, 3, 3) corner shading normals (for the exits below) */
     /* out, optional (NULL: not wanted; march.py then computes them in torch, with
      * gradients): the exit distance (N,), barycentrics (N, 3), unit shading normal (N, 3)
@@ -56,54 +55,7 @@ typedef struct {
     int64_t *layer;         /* out (N,) 0 front, 1 back, -1 */
 } Job;
 
-typedef struct { const Job *job; int64_t begin, end; } Range;
-
-static inline float dot3(const float *a, const float *b) {
-    float x = a[0] * b[0];
-    float y = a[1] * b[1];
-    float z = a[2] * b[2];
-    return (x + y) + z;
-}
-
-/* torch.cross as torch's CPU kernel computes it (measured: each component is one fused
- * multiply-add, a1 b2 - (a2 b1) with the second product rounded first). */
-static inline void cross3(const float *a, const float *b, float *out) {
-    out[0] = fmaf(a[1], b[2], -(a[2] * b[1]));
-    out[1] = fmaf(a[2], b[0], -(a[0] * b[2]));
-    out[2] = fmaf(a[0], b[1], -(a[1] * b[0]));
-}
-
-/* gbuffer.intersect_triangles for one ray and one triangle: returns t (inf where the ray
- * is parallel to the plane), writes the barycentrics (1 - u - v, u, v). */
-static float intersect(const float *o, const float *d, const float *v, float *bary) {
-    float e1[3], e2[3], p[3], s[3], q[3];
-    for (int i = 0; i < 3; i++) {
-        e1[i] = v[3 + i] - v[i];
-        e2[i] = v[6 + i] - v[i];
-    }
-    cross3(d, e2, p);
-    float det = dot3(e1, p);
-    int ok = fabsf(det) > 1e-30f;
-    float inv = ok ? 1.0f / det : 0.0f;
-    for (int i = 0; i < 3; i++) s[i] = o[i] - v[i];
-    float u = dot3(s, p) * inv;
-    cross3(s, e1, q);
-    float vv = dot3(d, q) * inv;
-    float t = dot3(e2, q) * inv;
-    if (!ok) t = INFINITY;
-    float one_u = 1.0f - u;
-    bary[0] = one_u - vv;
-    bary[1] = u;
-    bary[2] = vv;
-    return t;
-}
-
-static inline float min3(const float *b) {
-    float m = b[0];
-    if (b[1] < m) m = b[1];
-    if (b[2] < m) m = b[2];
-    return m;
-}
+TR_DEFINE_VEC3(float, , fmaf, fabsf, sqrtf, 1e-30f)
 
 static inline int argmin3(const float *b) {  /* torch.argmin: the first of equal minima */
     int k = 0;
@@ -221,15 +173,6 @@ static void search_block(const Job *j, int64_t r0, int m, float *lo_out, float *
     }
 }
 
-/* Tensor.norm of a float32 3-vector as torch's CPU kernel computes it (measured): the
- * squares accumulated by fused multiply-adds, then the square root. */
-static inline float norm3(const float *a) {
-    float acc = a[0] * a[0];
-    acc = fmaf(a[1], a[1], acc);
-    acc = fmaf(a[2], a[2], acc);
-    return sqrtf(acc);
-}
-
 /* march._exit's values for ray r leaving through ``tri`` (-1: not found): the hit with
  * the triangle, the clamped barycentric interpolation of its corner normals, normalized,
  * and the position p1 + s t. */
@@ -238,18 +181,7 @@ static void exit_values(const Job *j, int64_t r, int64_t tri) {
     const float *p1 = j->p1 + 3 * r, *t = j->t + 3 * r;
     if (tri >= 0) {
         s = intersect(p1, t, j->tv + 9 * tri, bt);
-        float w[3];
-        for (int i = 0; i < 3; i++) w[i] = bt[i] < 0.0f ? 0.0f : bt[i];
-        for (int i = 0; i < 3; i++)
-            if (bt[i] != bt[i]) w[i] = bt[i];  /* clamp propagates NaN */
-        float sum = (w[0] + w[1]) + w[2];
-        if (sum < 1e-12f) sum = 1e-12f;
-        for (int i = 0; i < 3; i++) w[i] = w[i] / sum;
-        const float *c = j->tn + 9 * tri;
-        for (int m = 0; m < 3; m++) {
-            float a = w[0] * c[m], b = w[1] * c[3 + m], z = w[2] * c[6 + m];
-            n[m] = (a + b) + z;
-        }
+        interpolate(bt, j->tn + 9 * tri, 3, n);
         float len = norm3(n);
         if (len < 1e-20f) len = 1e-20f;
         for (int m = 0; m < 3; m++) n[m] = n[m] / len;
@@ -455,59 +387,30 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     if (j->s_out) exit_values(j, r, tri);
 }
 
-static void *run_range(void *arg) {
-    const Range *rg = (const Range *)arg;
+static void march_range(const void *job, int64_t begin, int64_t end) {
+    const Job *j = (const Job *)job;
     float lo[BLOCK], hi[BLOCK];
-    const Job *j = rg->job;
+    for (int64_t r = begin; r < end; r += BLOCK) {
+        int m = end - r < BLOCK ? (int)(end - r) : BLOCK;
 #ifdef HAVE_AVX2_PATH
-    /* 32-bit gather indices: the planes must have fewer than 2^31 floats */
-    int64_t planes_floats = 0;
-    for (int64_t r = rg->begin; r < rg->end; r++)
-        if (j->batch[r] + 1 > planes_floats) planes_floats = j->batch[r] + 1;
-    planes_floats *= j->h * j->w * j->pw;
-    int avx2 = j->simd && planes_floats < ((int64_t)1 << 31) && __builtin_cpu_supports("avx2");
-#endif
-    for (int64_t r = rg->begin; r < rg->end; r += BLOCK) {
-        int m = rg->end - r < BLOCK ? (int)(rg->end - r) : BLOCK;
-#ifdef HAVE_AVX2_PATH
-        if (avx2 && m == BLOCK) search_block_avx2(j, r, lo, hi);
+        if (j->simd && m == BLOCK) search_block_avx2(j, r, lo, hi);
         else search_block(j, r, m, lo, hi);
 #else
         search_block(j, r, m, lo, hi);
 #endif
-        for (int i = 0; i < m; i++) exit_ray(rg->job, r + i, lo[i], hi[i]);
+        for (int i = 0; i < m; i++) exit_ray(j, r + i, lo[i], hi[i]);
     }
-    return NULL;
 }
 
 /* Entry point (ctypes, native.py): march all rays of ``job`` on ``threads`` threads.
- * Returns 0, or -1 where a thread could not be started (then nothing is guaranteed). */
-int torchrefract_march(const Job *job, int threads) {
-    if (threads < 1) threads = 1;
-    if (threads > 64) threads = 64;
-    int64_t n = job->n;
-    if (n < 4096 || threads == 1) {
-        Range rg = {job, 0, n};
-        run_range(&rg);
-        return 0;
-    }
-    pthread_t ids[64];
-    Range rgs[64];
-    int64_t per = (n + threads - 1) / threads;
-    int started = 0, rc = 0;
-    for (int i = 0; i < threads; i++) {
-        int64_t b = (int64_t)i * per, e = b + per < n ? b + per : n;
-        rgs[i].job = job; rgs[i].begin = b; rgs[i].end = e;
-        if (i == threads - 1) break;  /* the calling thread runs the last range */
-        if (pthread_create(&ids[i], NULL, run_range, &rgs[i]) != 0) {
-            rc = -1;
-            break;
-        }
-        started++;
-    }
-    if (rc == 0) run_range(&rgs[threads - 1]);
-    for (int i = 0; i < started; i++) pthread_join(ids[i], NULL);
-    return rc;
+ * Returns 0, or -1 where a thread could not be started (then nothing is guaranteed).
+ * The AVX2 search runs where ``job->simd`` asks for it (native.py: only where the plane
+ * indices fit its 32-bit gathers) and the CPU has AVX2. */
+int torchrefract_march(Job *job, int threads) {
+#ifdef HAVE_AVX2_PATH
+    job->simd = job->simd && __builtin_cpu_supports("avx2");
+#endif
+    return tr_parallel_for(march_range, job, job->n, 4096, threads);
 }
 
 /* The layout of Job, for native.py's check that its ctypes mirror matches. */
