@@ -1,7 +1,7 @@
-"""The native kernels (``torchrefract.native``: csrc/march.c, csrc/gbuffer.c) compute what
-the tensor code computes exactly: the same march exits (so the same images and gradients)
-and the same G-buffer layers, on real meshes; they fall back to the tensor code with a
-warning where they cannot be built."""
+"""The native kernels (``torchrefract.native``: csrc/march.c, csrc/gbuffer.c, csrc/cone.c)
+compute what the tensor code computes exactly: the same march exits (so the same images and
+gradients), the same G-buffer layers and the same cone footprints and spreads, on real
+meshes; they fall back to the tensor code with a warning where they cannot be built."""
 
 from __future__ import annotations
 
@@ -115,6 +115,7 @@ def test_inside_exits_through_both_layers_are_identical(simd, tensor_code, monke
 @needs_native
 @pytest.mark.parametrize("method, options", [
     ("rousiers", {}),
+    ("rousiers", {"cone_rays": "plane"}),  # the footprint and spread kernels, normals read
     ("rousiers", {"internal_bounces": 2}),
     ("specular", {"internal_bounces": 2}),
 ])
@@ -152,6 +153,61 @@ def test_renders_and_gradients_are_identical(method, options, tensor_code):
     # hits over the subsets of each try): equal up to the float32 order of summation
     for a, b in zip(g_fast, g_slow):
         assert (b != 0).all() and torch.allclose(a, b, rtol=1e-5, atol=0), (a, b)
+
+
+def _cone_inputs(monkeypatch, eye):
+    """The arguments rousiers passes to its footprint and spread (``_footprint``,
+    ``_ray_spread``) on suzanne, two views, recorded from a real render."""
+    from torchrefract.methods import rousiers
+
+    seen = {}
+    for name in ("_footprint", "_ray_spread"):
+        fn = getattr(rousiers, name)
+        monkeypatch.setattr(rousiers, name,
+                            lambda *a, _fn=fn, _name=name: seen.setdefault(_name, a) and _fn(*a))
+    suzanne = str(ASSETS / "meshes" / "suzanne.ply")
+    tr.render([tr.Scene(mesh=suzanne, envmap=tr.EnvMap(path=ENV),
+                        material=tr.Material(ior=1.5, roughness=a),
+                        camera=tr.Camera(eye=eye, width=48, height=40), method="rousiers")
+               for a in (0.05, 0.4)])
+    monkeypatch.undo()
+    return rousiers, seen
+
+
+@needs_native
+@pytest.mark.parametrize("eye", [(0.4, 0.3, 3.0), (0.1, 0.0, 1.2)])  # far; close: off-frame
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cone_footprint_and_spread_are_identical(eye, threads, monkeypatch, tensor_code):
+    """The bounding rays' footprint and spread of a real render, some of them lost (the
+    central exit and the fallback variance stand in), on one and two threads; with every
+    ray lost the fallback comes back as is."""
+    rousiers, seen = _cone_inputs(monkeypatch, eye)
+    q, ok4 = seen["_footprint"][:2]
+    assert (~ok4).any() and ok4.any()
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)  # what the kernels use
+    assert native.footprint(*seen["_footprint"]) is not None  # the kernel runs here
+    for name, args in seen.items():
+        fast = getattr(rousiers, name)(*args)
+        slow = tensor_code(lambda: getattr(rousiers, name)(*args))
+        for a, b in zip(fast if isinstance(fast, tuple) else (fast,),
+                        slow if isinstance(slow, tuple) else (slow,)):
+            assert torch.equal(a, b), f"{name}: {(a != b).sum().item()} values differ"
+    p, n_c, dirs, n4, ok, ior, fallback = seen["_ray_spread"]
+    lost = native.spread(p, n_c, dirs, n4, torch.zeros_like(ok), ior, fallback)
+    assert torch.equal(lost, fallback)
+
+
+@needs_native
+def test_cone_kernels_leave_gradients_to_the_tensor_code(monkeypatch):
+    """Where a gradient flows through the bounding rays the tensor code runs (the kernels
+    have no backward), and gives one."""
+    rousiers, seen = _cone_inputs(monkeypatch, (0.4, 0.3, 3.0))
+    p, n_c, dirs, n4, ok, ior, fallback = seen["_ray_spread"]
+    ior = ior.clone().requires_grad_(True)
+    monkeypatch.setattr(native, "spread", lambda *a: pytest.fail("kernel called"))
+    var = rousiers._ray_spread(p, n_c, dirs, n4, ok, ior, fallback)
+    (g,) = torch.autograd.grad(var.sum(), ior)
+    assert torch.isfinite(g).all() and (g != 0).any()
 
 
 @needs_native

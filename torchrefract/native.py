@@ -1,5 +1,6 @@
-"""Native kernels: the ray march's discrete part (``csrc/march.c``) and the exact G-buffer
-layer (``csrc/gbuffer.c``), built on first use.
+"""Native kernels: the ray march's discrete part (``csrc/march.c``), the exact G-buffer
+layer (``csrc/gbuffer.c``) and the cone's footprint and spread (``csrc/cone.c``), built on
+first use.
 
 Where each marched ray crosses the back-face layer, and which triangle it leaves through,
 is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import platform
 import shutil
@@ -38,8 +40,8 @@ from pathlib import Path
 
 import torch
 
-SOURCES = (Path(__file__).with_name("csrc") / "march.c",
-           Path(__file__).with_name("csrc") / "gbuffer.c")
+SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
+                                                                "cone.c"))
 HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache key
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
@@ -108,6 +110,33 @@ class _LayerJob(ctypes.Structure):
     ]
 
 
+class _FootprintJob(ctypes.Structure):
+    """ctypes mirror of ``FootprintJob`` in csrc/cone.c."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64), ("q", ctypes.c_void_p), ("ok", ctypes.c_void_p),
+        ("pc", ctypes.c_void_p), ("proj", ctypes.c_void_p), ("batch", ctypes.c_void_p),
+        ("xy", ctypes.c_void_p), ("xy_c", ctypes.c_void_p), ("ext", ctypes.c_void_p),
+    ]
+
+
+class _SpreadJob(ctypes.Structure):
+    """ctypes mirror of ``SpreadJob`` in csrc/cone.c."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64), ("p", ctypes.c_void_p), ("n_c", ctypes.c_void_p),
+        ("dirs", ctypes.c_void_p), ("n4", ctypes.c_void_p), ("ok", ctypes.c_void_p),
+        ("ior", ctypes.c_void_p), ("fallback", ctypes.c_void_p), ("two_ln4", ctypes.c_float),
+        ("stage", ctypes.c_int), ("root_arg", ctypes.c_void_p), ("root", ctypes.c_void_p),
+        ("var", ctypes.c_void_p),
+    ]
+
+
+_KERNELS = {"march": _Job, "layer": _LayerJob, "footprint": _FootprintJob,
+            "spread": _SpreadJob}
+"""Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
+
+
 def _compiler() -> str | None:
     cc = os.environ.get("CC")
     if cc and shutil.which(cc.split()[0]):
@@ -145,8 +174,14 @@ def build(cache_dir: str | Path | None = None) -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        cmd = cc.split() + list(FLAGS) + ["-o", tmp] + [str(src) for src in SOURCES] + ["-lm"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        # With OpenMP where the compiler has it (csrc/common.h: torch's thread pool), else
+        # with pthreads alone.
+        for extra in (["-fopenmp"], []):
+            cmd = (cc.split() + list(FLAGS) + extra + ["-o", tmp]
+                   + [str(src) for src in SOURCES] + ["-lm"])
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+            if proc.returncode == 0:
+                break
         if proc.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
                                f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
@@ -165,19 +200,19 @@ def _load() -> ctypes.CDLL | None:
         if _LIB is None and _FAILED is None:
             try:
                 lib = ctypes.CDLL(str(build()))
-                lib.torchrefract_march.argtypes = [ctypes.POINTER(_Job), ctypes.c_int]
-                lib.torchrefract_march.restype = ctypes.c_int
-                lib.torchrefract_march_job_size.restype = ctypes.c_int64
-                lib.torchrefract_layer.argtypes = [ctypes.POINTER(_LayerJob), ctypes.c_int]
-                lib.torchrefract_layer.restype = ctypes.c_int
-                lib.torchrefract_layer_job_size.restype = ctypes.c_int64
-                if (lib.torchrefract_march_job_size() != ctypes.sizeof(_Job)
-                        or lib.torchrefract_layer_job_size() != ctypes.sizeof(_LayerJob)):
-                    raise RuntimeError("the library's job layouts differ from native.py's")
+                for name, job in _KERNELS.items():
+                    fn = getattr(lib, f"torchrefract_{name}")
+                    fn.argtypes = [ctypes.POINTER(job), ctypes.c_int]
+                    fn.restype = ctypes.c_int
+                    size = getattr(lib, f"torchrefract_{name}_job_size")
+                    size.restype = ctypes.c_int64
+                    if size() != ctypes.sizeof(job):
+                        raise RuntimeError(f"the library's {name} job layout differs from "
+                                           f"native.py's")
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
                 _FAILED = f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"torchrefract: the native kernels (march, G-buffer) are "
+                warnings.warn(f"torchrefract: the native kernels (march, G-buffer, cone) are "
                               f"unavailable, using the tensor code (same images, slower): "
                               f"{_FAILED}", RuntimeWarning, stacklevel=3)
     return _LIB
@@ -307,5 +342,74 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
     return out
 
 
-__all__ = ["available", "build", "layer", "library_path", "march", "native_enabled",
-           "set_native"]
+def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
+              batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """``rousiers._footprint``: the screen footprint of the four bounding rays' exits, or
+    ``None`` where the kernel is unavailable or an input is not a float32 / int64 / bool
+    CPU tensor.
+
+    Args:
+        q: (N, 4, 3) the bounding rays' exits; ok: (N, 4) bool, found.
+        center: (N, 3) the central ray's exit. proj: (B, 16)
+            ``camera.projection_params`` per view; batch: (N,) int64 view per pixel.
+
+    Returns:
+        xy (N, 4, 2) the exits' pixel coordinates (the center's where ``ok`` is false),
+        xy_c (N, 2) the center's, ext (N, 2) the bounding box's extent in x and y.
+    """
+    if not available():
+        return None
+    keep = _inputs((q, center, proj), (batch,), (ok,))
+    if keep is None:
+        return None
+    q, center, proj, batch, ok = keep
+    n = q.shape[0]
+    xy, xy_c, ext = torch.empty(n, 4, 2), torch.empty(n, 2), torch.empty(n, 2)
+    job = _FootprintJob(n=n, q=q.data_ptr(), ok=ok.data_ptr(), pc=center.data_ptr(),
+                        proj=proj.data_ptr(), batch=batch.data_ptr(), xy=xy.data_ptr(),
+                        xy_c=xy_c.data_ptr(), ext=ext.data_ptr())
+    if n and _LIB.torchrefract_footprint(ctypes.byref(job), torch.get_num_threads()) != 0:
+        return None
+    return xy, xy_c, ext
+
+
+def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Tensor,
+           ok: torch.Tensor, ior: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor | None:
+    """``rousiers._ray_spread``: the exit lobe's geometric variance from the four bounding
+    rays refracted out at their exit normals, or ``None`` where the kernel is unavailable
+    or an input is not a float32 / bool CPU tensor.
+
+    Args:
+        p, n_c: (N, 3) the central ray and its exit normal. dirs, n4: (N, 4, 3) the
+            bounding rays and their exit normals; ok: (N, 4) bool, found.
+        ior: (N,). fallback: (N,) the variance where none of the four found its exit.
+
+    Returns:
+        (N,) the variance.
+    """
+    if not available():
+        return None
+    keep = _inputs((p, n_c, dirs, n4, ior, fallback), (), (ok,))
+    if keep is None:
+        return None
+    p, n_c, dirs, n4, ior, fallback, ok = keep
+    n = p.shape[0]
+    var, arg = torch.empty(n), torch.empty(n, 5)
+    job = _SpreadJob(n=n, p=p.data_ptr(), n_c=n_c.data_ptr(), dirs=dirs.data_ptr(),
+                     n4=n4.data_ptr(), ok=ok.data_ptr(), ior=ior.data_ptr(),
+                     fallback=fallback.data_ptr(), two_ln4=2.0 * math.log(4.0), stage=0,
+                     root_arg=arg.data_ptr(), var=var.data_ptr())
+    if n == 0:
+        return var
+    if _LIB.torchrefract_spread(ctypes.byref(job), torch.get_num_threads()) != 0:
+        return None
+    # The refractions' square roots by torch, as optics.refract takes them (csrc/cone.c).
+    root = torch.sqrt(arg)
+    job.stage, job.root = 1, root.data_ptr()
+    if _LIB.torchrefract_spread(ctypes.byref(job), torch.get_num_threads()) != 0:
+        return None
+    return var
+
+
+__all__ = ["available", "build", "footprint", "layer", "library_path", "march",
+           "native_enabled", "set_native", "spread"]

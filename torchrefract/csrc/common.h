@@ -15,6 +15,9 @@
 #include <math.h>
 #include <pthread.h>
 #include <stdint.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 
 #define TR_DEFINE_VEC3(T, S, FMA, FABS, SQRT, DET_EPS)                                     \
     static inline T dot3##S(const T *a, const T *b) {                                      \
@@ -107,6 +110,20 @@ static int tr_parallel_for(tr_range_fn fn, const void *job, int64_t n, int64_t m
         fn(job, 0, n);
         return 0;
     }
+#ifdef _OPENMP
+    /* Built with -fopenmp (native.py, where the compiler has it): the same ranges on the
+     * OpenMP runtime's threads. Loaded into a process whose torch brought libgomp.so.1,
+     * that is torch's own pool: its workers, still spinning after the last tensor op,
+     * take the ranges at once instead of competing with threads of ours for the cores
+     * (measured: the cone kernels ran 2x slower right after tensor ops with pthreads). */
+#pragma omp parallel num_threads(threads)
+    {
+        int64_t nt = omp_get_num_threads(), i = omp_get_thread_num();
+        int64_t per = (n + nt - 1) / nt, b = i * per, e = b + per < n ? b + per : n;
+        if (b < e) fn(job, b, e);
+    }
+    return 0;
+#endif
     pthread_t ids[64];
     TrRange rgs[64];
     int64_t per = (n + threads - 1) / threads;

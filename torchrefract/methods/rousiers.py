@@ -69,6 +69,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from .. import microfacet as mf
+from .. import native
 from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 from ..camera import project
 from ..checks import check_choice, check_number, check_option_keys
@@ -228,6 +229,53 @@ def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
     return e
 
 
+def _no_grad(*tensors: torch.Tensor) -> bool:
+    """Whether no gradient flows through ``tensors`` (then the native kernels may run)."""
+    return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
+
+
+def _footprint(q: torch.Tensor, ok4: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
+               bi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Screen footprint of the four bounding rays' exits q (N, 4, 3) (found: ok4 (N, 4)),
+    with the central exit (N, 3) standing in for those not found; proj (B, 16) per view.
+
+    Returns xy (N, 4, 2), the central exit's xy_c (N, 2) and the bounding box's extent
+    (N, 2) in pixels (the native kernel where no gradient flows: the same values)."""
+    if _no_grad(q, center):
+        res = native.footprint(q, ok4, center, proj, bi)
+        if res is not None:
+            return res
+    pr = take(proj, bi)
+    xy, _ = project(q, pr)  # (N, 4, 2)
+    xy_c, _ = project(center[:, None, :], pr)
+    xy_c = xy_c[:, 0]
+    xy = torch.where(ok4[..., None], xy, xy_c[:, None, :])
+    return xy, xy_c, xy.max(1).values - xy.min(1).values
+
+
+def _ray_spread(p_t1: torch.Tensor, exact_n: torch.Tensor, dirs: torch.Tensor,
+                n4: torch.Tensor, ok4: torch.Tensor, ior: torch.Tensor,
+                fallback: torch.Tensor) -> torch.Tensor:
+    """The geometric part of the exit lobe's per-axis variance (N,) (``spread: rays``): the
+    bounding rays dirs (N, 4, 3) refracted out at their exit normals n4 (found: ok4), and
+    their squared angles to the central ray p_t1 refracted out at exact_n; ``fallback``
+    where none found its exit (the native kernel where no gradient flows: the same
+    values)."""
+    if _no_grad(p_t1, exact_n, dirs, n4, ior, fallback):
+        res = native.spread(p_t1, exact_n, dirs, n4, ok4, ior, fallback)
+        if res is not None:
+            return res
+    t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
+    t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
+    # squared chord |t_k - t_c|^2 = 2 (1 - cos a) ~ a^2: smooth (acos' diverges at 0)
+    dk = t_k - t_c[:, None, :]
+    chord2 = dot(dk, dk)
+    ang2 = torch.where(ok4, chord2, torch.zeros_like(chord2))
+    cnt = ok4.sum(-1)
+    var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
+    return torch.where(cnt > 0, var_geo, fallback)
+
+
 def _level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
     """(B, n) roughness levels spanning each scene's roughness_range (or its uniform value)."""
     t = torch.linspace(0.0, 1.0, n)
@@ -331,12 +379,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         ok4 = (denom > 1e-6) & ex.found[:, None]
         n4 = None  # read from the back layer below, at the exits' pixels
     # Footprint in pixels: screen bounding box of the four exits.
-    proj = take(g.proj, bi)
-    xy, _ = project(q, proj)  # (N, 4, 2)
-    xy_c, _ = project(ex.position[:, None, :], proj)
-    xy_c = xy_c[:, 0]
-    xy = torch.where(ok4[..., None], xy, xy_c[:, None, :])
-    ext_raw = xy.max(1).values - xy.min(1).values  # (N, 2)
+    xy, xy_c, ext_raw = _footprint(q, ok4, ex.position, g.proj, bi)
     ext = ext_raw.clamp(min=1.0)
     major = ext.max(-1).values
     minor = ext.min(-1).values
@@ -402,16 +445,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                                         + xy[..., 0].floor().clamp(0, w - 1).long())
             n4 = take(g.back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
             ok4 = ok4 & take(g.back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
-        t_c, _ = refract(p_t1, face_forward(-exact_n, p_t1), ior)
-        t_k, _ = refract(dirs, face_forward(-n4, dirs), ior[:, None])
-        # squared chord |t_k - t_c|^2 = 2 (1 - cos a) ~ a^2: smooth (acos' diverges at 0)
-        dk = t_k - t_c[:, None, :]
-        chord2 = dot(dk, dk)
-        ang2 = torch.where(ok4, chord2, torch.zeros_like(chord2))
-        cnt = ok4.sum(-1)
-        var_geo = ang2.sum(-1) / cnt.clamp(min=1) / (2.0 * math.log(4.0))
         # No bounding ray found its exit: fall back to the front lobe's magnified spread.
-        var_geo = torch.where(cnt > 0, var_geo, mag2 / k_t1)
+        var_geo = _ray_spread(p_t1, exact_n, dirs, n4, ok4, ior, mag2 / k_t1)
     p2 = torch.where(ex.found[:, None], ex.position, p1)
     path = torch.where(ex.found, ex.dist,
                        take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0))
