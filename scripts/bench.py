@@ -12,7 +12,12 @@ as ``baseline_rss_mb``.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
-        [--no-native] [--in-process] [--views shared distinct] [--out outputs/bench]
+        [--no-native] [--no-heap-reuse] [--in-process] [--views shared distinct]
+        [--out outputs/bench]
+
+Heap reuse (``torchrefract.set_heap_reuse``) is on, as in the ``torchrefract`` command:
+freed tensor memory is reused instead of faulted in again (``--no-heap-reuse``: glibc's
+default).
 
 The batch items differ by their environment map's rotation (10 degrees apart). ``--views``:
 ``distinct`` (default) also turns each item's camera 3 degrees further around the object,
@@ -116,7 +121,7 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
                                for k, v in stages.items()},
         "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
         "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
-        "native": tr.native.available(),
+        "native": tr.native.available(), "heap_reuse": tr.heap.heap_reuse(),
     }
 
 
@@ -131,6 +136,8 @@ def run_row(args: argparse.Namespace, method: str, size: int, batch: int, views:
         cmd.append("--compile")
     if args.no_native:
         cmd.append("--no-native")
+    if args.no_heap_reuse:
+        cmd.append("--no-heap-reuse")
     proc = subprocess.run(cmd, capture_output=True, text=True)
     for line in proc.stdout.splitlines():
         if line.startswith("ROW "):
@@ -153,6 +160,9 @@ def main() -> None:
     ap.add_argument("--no-native", action="store_true",
                     help="march with the tensor code instead of the native kernel "
                          "(torchrefract.set_native(False); the same images)")
+    ap.add_argument("--no-heap-reuse", action="store_true",
+                    help="leave glibc's allocator as it is (torchrefract.set_heap_reuse: on "
+                         "by default here, as in the torchrefract command)")
     ap.add_argument("--views", nargs="+", choices=("distinct", "shared"), default=["distinct"],
                     help="batch items each with its own camera (distinct) or all with one "
                          "(shared: its G-buffer is built once)")
@@ -166,6 +176,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     tr.set_compile(args.compile)
     tr.set_native(not args.no_native)
+    heap_reuse = tr.set_heap_reuse(not args.no_heap_reuse)
     base = tr.load_scene(args.scene)
     if args.row:
         r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats,
@@ -175,7 +186,8 @@ def main() -> None:
     rows = []
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.machine()}"
           f"{', compiled march' if args.compile else ''}"
-          f"{', tensor-code march' if args.no_native else ''}")
+          f"{', tensor-code march' if args.no_native else ''}"
+          f"{', heap reuse' if heap_reuse else ''}")
     print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}"
           f"{'shading':>9}{'(mips':>7}{'march':>7}{'rest)':>7}{'peakMB':>8}")
     for method, views, size, batch in itertools.product(args.methods, args.views, args.sizes,
@@ -194,6 +206,7 @@ def main() -> None:
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.platform(),
             "compiled": args.compile, "native": not args.no_native,
+            "heap_reuse": heap_reuse,
             "scene": args.scene, "results": rows}
     (out / "bench.json").write_text(json.dumps(meta, indent=2) + "\n")
     print(f"saved {out / 'bench.json'}")

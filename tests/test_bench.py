@@ -24,6 +24,7 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
         ("specular", {}, "distinct", 1), ("specular", {}, "distinct", 2),
         ("specular", {}, "shared", 2), ("rousiers", plane, "distinct", 1),
         ("rousiers", plane, "distinct", 2), ("rousiers", plane, "shared", 2)]
+    assert meta["heap_reuse"] is True and all(r["heap_reuse"] for r in rows)  # on by default
     for r in rows:
         st = r["ms_per_frame_stage"]
         assert st["march"] > 0 and st["mips"] == 0

@@ -10,6 +10,7 @@ Public API::
 """
 
 from .accel import set_compile
+from .heap import set_heap_reuse
 from .native import set_native
 from .checks import ConfigError
 from .render import RenderResult, render
@@ -20,4 +21,4 @@ __version__ = "0.1.0"
 
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "Scene",
            "SphereLight", "Transform", "load_scene", "render", "scene_from_dict", "set_compile",
-           "set_native", "__version__"]
+           "set_heap_reuse", "set_native", "__version__"]

@@ -197,6 +197,13 @@ def _compare_cmd(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from . import heap  # noqa: PLC0415
+
+    # Reuse freed tensor memory (heap.py): here, and in worker processes through the
+    # environment (TORCHREFRACT_HEAP_REUSE=0 set by the user keeps it off everywhere).
+    if os.environ.get("TORCHREFRACT_HEAP_REUSE", "").strip() != "0":
+        os.environ["TORCHREFRACT_HEAP_REUSE"] = "1"
+        heap.set_heap_reuse(True)
     if getattr(args, "compile", False):
         from . import accel  # noqa: PLC0415
 
