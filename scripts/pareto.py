@@ -21,7 +21,9 @@ Writes under ``--out`` (default outputs/pareto):
 - ``gallery.png``: per scene, truth, the main variants and their FLIP error maps;
 - ``meta.json``: arguments, versions, threads, machine, skipped variants.
 
-Measure with the machine quiet; times are of ``torchrefract.render`` (mesh cache warm,
+Heap reuse (``torchrefract.set_heap_reuse``) is on, as in the ``torchrefract`` command
+(``--no-heap-reuse``: glibc's default). Measure with the machine quiet; times are of
+``torchrefract.render`` (mesh cache warm,
 G-buffer included). Mitsuba variants render at the output resolution with ``spp`` samples
 per pixel (its own box-filtered pixel sampling replaces the scene's sub-pixel grid) and
 include the coverage pass of ``torchrefract.reference``; ``denoise`` adds Intel Open Image
@@ -375,6 +377,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=None,
                     help="timed renders per variant after the warm-up (default 3; --quick 1)")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    ap.add_argument("--no-heap-reuse", action="store_true",
+                    help="leave glibc's allocator as it is (torchrefract.set_heap_reuse: on "
+                         "by default here, as in the torchrefract command and bench.py)")
     ap.add_argument("--variants", nargs="*", default=None,
                     help="only these variant names (default: all of the table)")
     ap.add_argument("--append", action="store_true",
@@ -396,6 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.threads:
         torch.set_num_threads(args.threads)
+    heap_reuse = tr.set_heap_reuse(not args.no_heap_reuse)
     size = args.size or (32 if args.quick else None)
     truth_spp = args.truth_spp or (16 if args.quick else 1024)
     repeats = args.repeats or (1 if args.quick else 3)
@@ -415,9 +421,10 @@ def main(argv: list[str] | None = None) -> int:
     common = {"truth_spp": truth_spp, "threads": torch.get_num_threads(),
               "machine": machine(), "torch": torch.__version__,
               "torchrefract": tr.__version__, "mitsuba_variant": choose_variant(),
-              "repeats": repeats}
+              "repeats": repeats, "heap_reuse": heap_reuse}
     print(f"torch threads {common['threads']}, {common['machine']}, truth spp {truth_spp}, "
-          f"Mitsuba {common['mitsuba_variant']}, {repeats} repeats")
+          f"Mitsuba {common['mitsuba_variant']}, {repeats} repeats"
+          f"{', heap reuse' if heap_reuse else ''}")
     rows: list[dict] = []
     skipped: list[dict] = []
     gallery: dict[str, dict] = {}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import subprocess
 import warnings
 
 import pytest
@@ -258,6 +259,25 @@ def test_a_compile_error_is_reported_with_the_compiler_output(monkeypatch, tmp_p
     with pytest.raises(RuntimeError, match="undefined_name"):
         native.build(tmp_path / "cache")
     assert not list((tmp_path / "cache").rglob("*.so*"))  # no half-written library left
+
+
+@needs_native
+def test_a_compiler_without_openmp_builds_the_pthread_kernels(monkeypatch, tmp_path):
+    """``-fopenmp`` is tried first (csrc/common.h: torch's thread pool); a compiler that
+    rejects it still builds the kernels, with threads of their own."""
+    cc = tmp_path / "cc-no-openmp"
+    cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && exit 1; done\n'
+                  'exec cc "$@"\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    path = native.build(tmp_path / "cache")
+    assert b"GOMP_parallel" not in path.read_bytes()
+    monkeypatch.delenv("CC")
+    probe = tmp_path / "probe.c"
+    probe.write_text("int f(void) { return 0; }\n")
+    if subprocess.run([native._compiler(), "-fopenmp", "-shared", "-fPIC", "-o",
+                       str(tmp_path / "probe.so"), str(probe)]).returncode == 0:
+        assert b"GOMP_parallel" in native.build(tmp_path / "cache2").read_bytes()
 
 
 @needs_native

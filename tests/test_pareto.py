@@ -8,6 +8,7 @@ import csv
 import importlib.util
 import json
 import math
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,7 @@ def test_quick_run_writes_rows_and_figures(tmp_path):
         rows = list(csv.DictReader(f))
     assert tuple(rows[0]) == p.COLUMNS
     meta = json.loads((out / "meta.json").read_text())
+    assert meta["heap_reuse"] is (platform.libc_ver()[0] == "glibc")  # on by default
     skipped = {s["variant"] for s in meta["skipped"]}
     variants = [r["variant"] for r in rows]
     expected = ["truth seed 1", "max_depth 3", "max_depth 4", "max_depth 5",

@@ -9,12 +9,15 @@ kernel makes the same choices one ray at a time, in the same float32 arithmetic.
 gradient is wanted, ``march.py`` then intersects each ray with its chosen triangle in
 torch; elsewhere the kernel returns the exits' values too, computed as ``march._exit``
 computes them. The G-buffer kernel computes ``gbuffer._layer``'s float64 attributes per
-pixel (the G-buffer carries no gradient). tests/test_native.py checks that exits, layers
-and images are identical to the tensor code's.
+pixel (the G-buffer carries no gradient). The cone kernels compute what ``rousiers``
+derives from its four marched bounding rays (their screen footprint, and the spread they
+give the exit lobe) where no gradient flows through them. tests/test_native.py checks that
+exits, layers, footprints, spreads and images are identical to the tensor code's.
 
-The kernels are plain C with pthreads (no Python or torch headers). The first call of a
-machine compiles them with the system C compiler (``$CC``, else ``cc``/``gcc``; about a
-second) into the cache folder (``$TORCHREFRACT_CACHE`` or ``~/.cache/torchrefract``,
+The kernels are plain C (no Python or torch headers), threaded with OpenMP where the
+compiler has it (then on torch's own thread pool, csrc/common.h), else with pthreads. The
+first call of a machine compiles them with the system C compiler (``$CC``, else
+``cc``/``gcc``; about a second) into the cache folder (``$TORCHREFRACT_CACHE`` or ``~/.cache/torchrefract``,
 ``native/``), keyed by the sources, the flags and the platform. Where no compiler is found
 or the build fails, a warning names the reason once and the tensor code runs instead (the
 same images, slower). On by default; turn them off with::

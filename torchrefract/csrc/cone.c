@@ -12,7 +12,7 @@
  * (measured: AVX-512 with MKL, 4% of the values 1 ulp off the C library's), and this way
  * the images are the same bit for bit (tests/test_native.py). In tensor code
  * these are ~40 elementwise ops over (N, 4, 3) arrays, bound by memory traffic; here each
- * pixel's values stay in registers. Plain C with pthreads; built and loaded by native.py.
+ * pixel's values stay in registers. Plain C (threads: common.h); built and loaded by native.py.
  */
 
 #include "common.h"

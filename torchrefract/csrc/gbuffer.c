@@ -9,7 +9,7 @@
  * interpolated shading normals and UVs, stored as float32. The same operations in the
  * same order as the tensor code (built with -ffp-contract=off and no fast-math; the fused
  * multiply-adds of torch.cross written out as fma), so the layers are identical
- * (tests/test_native.py). Plain C with pthreads; built and loaded by native.py.
+ * (tests/test_native.py). Plain C (threads: common.h); built and loaded by native.py.
  */
 
 #include "common.h"

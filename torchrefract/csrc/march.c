@@ -13,7 +13,7 @@
  *
  * Why by hand: the tensor form is a chain of ~20 elementwise ops and a gather per sample
  * over all rays (memory traffic, compactions); here each ray's state stays in registers
- * and only its plane and triangle reads touch memory. Plain C and pthreads, no Python or
+ * and only its plane and triangle reads touch memory. Plain C (threads: common.h), no Python or
  * torch headers: torchrefract/native.py builds it with the system C compiler on first use
  * and falls back to the tensor code when that fails.
  *
