@@ -458,3 +458,17 @@ def test_build_time_of_shipped_map(capsys):
     assert torch.allclose(sg_lookup_env(pyr, d, math.inf), lookup(tex, d), rtol=1e-5,
                           atol=1e-5)
     assert torch.isfinite(pyr.atlas).all() and float(pyr.atlas.min()) >= 0
+
+
+def test_the_pyramid_cache_is_the_package_cache_folder(monkeypatch, tmp_path):
+    """Pyramids, the SG table and the native kernels share one folder:
+    ``$TORCHREFRACT_CACHE``, else ``$XDG_CACHE_HOME/torchrefract``, else ~/.cache."""
+    from torchrefract import native, sgenv, sgfit
+
+    monkeypatch.delenv("TORCHREFRACT_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert sgenv._cache_dir(None) == sgfit.default_cache_dir() == tmp_path / "xdg" / "torchrefract"
+    assert native.library_path().parent == tmp_path / "xdg" / "torchrefract" / "native"
+    monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path / "c"))
+    assert sgenv._cache_dir(True) == tmp_path / "c"
+    assert sgenv._cache_dir(False) is None and sgenv._cache_dir(tmp_path) == tmp_path

@@ -65,6 +65,7 @@ from . import envmap
 from .checks import ConfigError, check_tensor_shape, file_version
 from .envmap import direction_to_uv, rotate_y
 from .index import take
+from .sgfit import default_cache_dir
 
 # Bump when the pyramid's contents change for the same parameters (disk cache key).
 _FORMAT_VERSION = 2
@@ -591,11 +592,13 @@ def sg_lookup_env(pyramid: SGPyramid, directions: torch.Tensor,
 # --------------------------------------------------------------------------------------
 
 def _cache_dir(cache_dir: str | Path | bool | None) -> Path | None:
+    """``False``: no disk cache; ``None`` / ``True``: the package's cache folder
+    (:func:`torchrefract.sgfit.default_cache_dir`, shared with the SG table and the native
+    kernels); else that folder."""
     if cache_dir is False:
         return None
     if cache_dir is None or cache_dir is True:
-        env = os.environ.get("TORCHREFRACT_CACHE")
-        return Path(env) if env else Path.home() / ".cache" / "torchrefract"
+        return default_cache_dir()
     return Path(cache_dir)
 
 
