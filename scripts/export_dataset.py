@@ -86,7 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(ROOT))  # run from a checkout without installing
     from torchrefract.checks import ConfigError  # noqa: PLC0415
     from torchrefract.dataset_run import run_sweep  # noqa: PLC0415
+    from torchrefract.heap import reuse_here_and_in_workers  # noqa: PLC0415
     from torchrefract.sweep import load_sweep  # noqa: PLC0415
+
+    reuse_here_and_in_workers()  # as `torchrefract sweep` (README, "Heap reuse")
 
     try:
         cfg = load_sweep(args.config)

@@ -15,6 +15,8 @@ from torchrefract.checks import ConfigError
 from torchrefract.mesh import load_mesh, rotation_matrix, transform_matrix
 from torchrefract.scene import Transform
 
+from conftest import ASSETS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # An asymmetric tetrahedron (outward winding) so that any wrong axis or order shows.
@@ -237,3 +239,35 @@ def test_across_on_an_open_mesh_is_minus_one_at_the_border(tmp_path):
         warnings.simplefilter("ignore")  # not watertight
         m = load_mesh(path, Transform())
     assert m.across.tolist() == [[1, -1, -1], [-1, 0, -1]]
+
+
+def _neighbors_by_loop(adjacency: np.ndarray, num_faces: int) -> np.ndarray:
+    """The reference: trimesh's pairs in order, (a, b) then (b, a), three per face."""
+    out = np.full((num_faces, 3), -1, dtype=np.int64)
+    fill = np.zeros(num_faces, dtype=np.int64)
+    for a, b in adjacency:
+        for f, g in ((a, b), (b, a)):
+            if fill[f] < 3:
+                out[f, fill[f]] = g
+                fill[f] += 1
+    return out
+
+
+@pytest.mark.parametrize("name", ["spot.ply", "suzanne.ply", "torus.ply", "vgroove.ply"])
+def test_face_neighbors_match_the_pairs_in_order(name):
+    from torchrefract.mesh import face_neighbors
+
+    tm = trimesh.load(str(ASSETS / "meshes" / name), process=False)
+    adj = np.asarray(tm.face_adjacency, dtype=np.int64)
+    assert np.array_equal(face_neighbors(adj, len(tm.faces)),
+                          _neighbors_by_loop(adj, len(tm.faces)))
+
+
+def test_face_neighbors_keep_three_of_a_non_manifold_edge():
+    from torchrefract.mesh import face_neighbors
+
+    adj = np.array([[0, 1], [0, 2], [0, 3], [0, 4], [1, 2], [4, 0]])
+    got = face_neighbors(adj, 6)
+    assert np.array_equal(got, _neighbors_by_loop(adj, 6))
+    assert got[0].tolist() == [1, 2, 3] and got[5].tolist() == [-1, -1, -1]
+    assert (face_neighbors(np.zeros((0, 2), dtype=np.int64), 2) == -1).all()

@@ -201,9 +201,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # Reuse freed tensor memory (heap.py): here, and in worker processes through the
     # environment (TORCHREFRACT_HEAP_REUSE=0 set by the user keeps it off everywhere).
-    if os.environ.get("TORCHREFRACT_HEAP_REUSE", "").strip() != "0":
-        os.environ["TORCHREFRACT_HEAP_REUSE"] = "1"
-        heap.set_heap_reuse(True)
+    heap.reuse_here_and_in_workers()
     if getattr(args, "compile", False):
         from . import accel  # noqa: PLC0415
 

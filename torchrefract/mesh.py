@@ -3,7 +3,9 @@
 Shading normals follow SCENE_SPEC.md: the file's own vertex normals when it has them
 (rotated with the object), otherwise trimesh's ``vertex_normals`` computed after the
 transform. Degenerate triangles are dropped; a mesh that is not watertight loads with a
-warning (the two-layer methods assume closed objects).
+warning (the two-layer methods assume closed objects). What does not depend on the pose
+(the faces kept, watertightness, the edge-neighbour tables) is computed once per file, in
+object space; each transform then only moves positions and normals.
 """
 
 from __future__ import annotations
@@ -113,8 +115,22 @@ def load_mesh(path: str, transform: Transform = Transform()) -> MeshData:
     return _load_mesh_cached(*file_version(path, "mesh"), transform)
 
 
+@dataclass(frozen=True)
+class _Topology:
+    """What a mesh file gives independently of its pose (object space, float64): computed
+    once per file version, so a sweep over random poses pays only for the transform."""
+
+    verts: np.ndarray           # (V, 3) object-space positions
+    faces: np.ndarray           # (F, 3) the faces kept (degenerate ones dropped)
+    file_normals: np.ndarray | None
+    uvs: np.ndarray | None
+    watertight: bool
+    neighbors: np.ndarray       # (F, 3) int64
+    across: np.ndarray          # (F, 3) int64
+
+
 @functools.lru_cache(maxsize=16)
-def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) -> MeshData:
+def _topology(path: str, _mtime: int, _size: int) -> _Topology:
     tm = _load_trimesh(path)
     verts = np.asarray(tm.vertices, dtype=np.float64)
     faces = np.asarray(tm.faces, dtype=np.int64)
@@ -129,13 +145,10 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
     uv = getattr(tm.visual, "uv", None)
     uvs = None if uv is None or len(uv) != len(verts) else np.asarray(uv, dtype=np.float64)
 
-    m = transform_matrix(transform)
-    verts = verts @ m[:3, :3].T + m[:3, 3]
-
     # Drop degenerate triangles (repeated indices or zero area): they have no normal and
     # would give the visibility pass ids that no exact intersection can reproduce.
     # The test is relative to each triangle's longest edge, so a float32-rounded collinear
-    # triangle (a sliver with no defined normal) is caught at any scale.
+    # triangle (a sliver with no defined normal) is caught at any scale (and any pose).
     tri = verts[faces]  # (F, 3, 3)
     area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     edge2 = np.max(np.stack([((tri[:, i] - tri[:, (i + 1) % 3]) ** 2).sum(-1)
@@ -146,18 +159,8 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
         raise ConfigError(f"mesh {path!r}: every triangle is degenerate (zero area)")
     if not keep.all():
         warnings.warn(f"mesh {path!r}: dropped {int((~keep).sum())} degenerate triangles",
-                      stacklevel=2)
+                      stacklevel=3)
     faces = faces[keep]
-
-    world = trimesh.Trimesh(verts, faces, process=False)
-    if file_normals is not None:
-        normals = file_normals @ rotation_matrix(transform.rotate_deg).T
-    else:
-        normals = np.asarray(world.vertex_normals, dtype=np.float64)
-    n = np.linalg.norm(normals, axis=1, keepdims=True)
-    # Vertices used by no kept face (or with a zero normal in the file) get any unit vector;
-    # they are never interpolated.
-    normals = np.where(n > 1e-12, normals / np.maximum(n, 1e-30), np.array([0.0, 0.0, 1.0]))
     # Watertight as a surface: vertices split only to carry normals or UVs (a flat-shaded
     # box) still close the volume, so check on a copy with coincident vertices merged.
     closed = trimesh.Trimesh(verts, faces, process=False)
@@ -165,24 +168,60 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
     watertight = bool(closed.is_watertight)
     if not watertight:
         warnings.warn(f"mesh {path!r} is not watertight: methods that assume a closed object "
-                      "may show holes or wrong exits", stacklevel=2)
-    neighbors = np.full((len(faces), 3), -1, dtype=np.int64)
-    fill = np.zeros(len(faces), dtype=np.int64)
-    for a, b in np.asarray(world.face_adjacency, dtype=np.int64):
-        for f, g in ((a, b), (b, a)):
-            if fill[f] < 3:  # non-manifold edges may list more; three are plenty
-                neighbors[f, fill[f]] = g
-                fill[f] += 1
-    v32 = verts.astype(np.float32)
+                      "may show holes or wrong exits", stacklevel=3)
+    adjacency = trimesh.Trimesh(verts, faces, process=False).face_adjacency
+    neighbors = face_neighbors(np.asarray(adjacency, dtype=np.int64), len(faces))
+    across = across_edges(verts.astype(np.float32)[faces], neighbors)
+    return _Topology(verts, faces, file_normals, uvs, watertight, neighbors, across)
+
+
+@functools.lru_cache(maxsize=16)
+def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) -> MeshData:
+    top = _topology(path, _mtime, _size)
+    faces = top.faces
+    m = transform_matrix(transform)
+    verts = top.verts @ m[:3, :3].T + m[:3, 3]
+    if top.file_normals is not None:
+        normals = top.file_normals @ rotation_matrix(transform.rotate_deg).T
+    else:
+        normals = np.asarray(trimesh.Trimesh(verts, faces, process=False).vertex_normals,
+                             dtype=np.float64)
+    n = np.linalg.norm(normals, axis=1, keepdims=True)
+    # Vertices used by no kept face (or with a zero normal in the file) get any unit vector;
+    # they are never interpolated.
+    normals = np.where(n > 1e-12, normals / np.maximum(n, 1e-30), np.array([0.0, 0.0, 1.0]))
     return MeshData(
-        vertices=torch.from_numpy(v32),
+        vertices=torch.from_numpy(verts.astype(np.float32)),
         faces=torch.from_numpy(faces),
         normals=torch.from_numpy(normals.astype(np.float32)),
-        uvs=None if uvs is None else torch.from_numpy(uvs.astype(np.float32)),
-        watertight=watertight,
-        neighbors=torch.from_numpy(neighbors),
-        across=torch.from_numpy(across_edges(v32[faces], neighbors)),
+        uvs=None if top.uvs is None else torch.from_numpy(top.uvs.astype(np.float32)),
+        watertight=top.watertight,
+        neighbors=torch.from_numpy(top.neighbors),
+        across=torch.from_numpy(top.across),
     )
+
+
+def face_neighbors(adjacency: np.ndarray, num_faces: int) -> np.ndarray:
+    """(F, 3) int64 edge neighbours per face, -1 padded, from trimesh's ``face_adjacency``
+    pairs (P, 2): each pair (a, b) lists b for a, then a for b, in the pairs' order, and a
+    face keeps its first three (non-manifold edges may list more; three are plenty).
+
+    Vectorized (a loop over the pairs took 40 ms per load of suzanne and 169 of the bunny,
+    paid for every new pose in a sweep; now 4 and 16); the same table as that loop
+    (tests/test_mesh.py)."""
+    neighbors = np.full((num_faces, 3), -1, dtype=np.int64)
+    if len(adjacency) == 0:
+        return neighbors
+    a, b = adjacency[:, 0], adjacency[:, 1]
+    src = np.stack([a, b], 1).reshape(-1)  # in the loop's order: (a, b), then (b, a)
+    dst = np.stack([b, a], 1).reshape(-1)
+    order = np.argsort(src, kind="stable")  # by face, keeping the listing order
+    src, dst = src[order], dst[order]
+    start = np.searchsorted(src, src, side="left")  # first entry of each face's group
+    rank = np.arange(len(src)) - start
+    keep = rank < 3
+    neighbors[src[keep], rank[keep]] = dst[keep]
+    return neighbors
 
 
 def across_edges(tri_vertices: np.ndarray, neighbors: np.ndarray, tol: float = 1e-6
