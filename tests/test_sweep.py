@@ -253,3 +253,16 @@ def test_shipped_demo_sweep_expands():
     assert len(s) == 12
     assert {x.scene.camera.width for x in s} == {64}
     assert len({x.params["envmap.rotate_deg"] for x in s}) == 12
+
+
+def test_the_throughput_config_is_what_docs_datasets_md_measures():
+    """configs/sweep_throughput.yaml: 48 random samples at 256x256, two meshes in random
+    poses, two maps, rousiers at 1 spp (docs/datasets.md, section 4)."""
+    cfg = load_sweep(ROOT / "configs" / "sweep_throughput.yaml")
+    samples = list(cfg.samples())
+    assert len(samples) == 48
+    scenes = [s.scene for s in samples]
+    assert {(s.camera.width, s.camera.height, s.camera.samples_per_pixel, s.method)
+            for s in scenes} == {(256, 256, 1, "rousiers")}
+    assert len({s.mesh for s in scenes}) == 2 and len({s.envmap.path for s in scenes}) == 2
+    assert len({s.transform.rotate_deg for s in scenes}) == 48  # a new pose per sample
