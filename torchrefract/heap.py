@@ -36,6 +36,11 @@ _ENV = "TORCHREFRACT_HEAP_REUSE"
 _enabled = False
 
 
+def _forbidden() -> bool:
+    """``TORCHREFRACT_HEAP_REUSE=0``: the user keeps glibc's default everywhere."""
+    return os.environ.get(_ENV, "").strip() == "0"
+
+
 def _mallopt():
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
@@ -52,7 +57,7 @@ def set_heap_reuse(enabled: bool = True) -> bool:
     initial threshold, ``False``). Returns whether the allocator took the setting (``False``
     where it is not glibc's, or where ``TORCHREFRACT_HEAP_REUSE=0`` forbids it)."""
     global _enabled
-    if enabled and os.environ.get(_ENV, "").strip() == "0":
+    if enabled and _forbidden():
         return False
     fn = _mallopt()
     if fn is None:
@@ -68,7 +73,7 @@ def reuse_here_and_in_workers() -> bool:
     """Heap reuse in this process and, through the environment, in the worker processes it
     starts (what the ``torchrefract`` command and scripts/export_dataset.py do), unless
     ``TORCHREFRACT_HEAP_REUSE=0`` says no. Returns whether it is on here."""
-    if os.environ.get(_ENV, "").strip() == "0":
+    if _forbidden():
         return False
     os.environ[_ENV] = "1"
     return set_heap_reuse(True)

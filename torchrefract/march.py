@@ -369,7 +369,7 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         # Where no gradient is wanted, the kernel also returns the exits' values (the same
         # as _exit's); else the hit is taken again below, in torch.
         c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
-        grad = torch.is_grad_enabled() and (p1.requires_grad or t.requires_grad)
+        grad = not native.no_grad_through(p1, t)
         res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
                            0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
                            td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),

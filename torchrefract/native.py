@@ -17,10 +17,11 @@ exits, layers, footprints, spreads and images are identical to the tensor code's
 The kernels are plain C (no Python or torch headers), threaded with OpenMP where the
 compiler has it (then on torch's own thread pool, csrc/common.h), else with pthreads. The
 first call of a machine compiles them with the system C compiler (``$CC``, else
-``cc``/``gcc``; about a second) into the cache folder (``$TORCHREFRACT_CACHE`` or ``~/.cache/torchrefract``,
-``native/``), keyed by the sources, the flags and the platform. Where no compiler is found
-or the build fails, a warning names the reason once and the tensor code runs instead (the
-same images, slower). On by default; turn them off with::
+``cc``/``gcc``; about a second) into the cache folder (``$TORCHREFRACT_CACHE`` or
+``~/.cache/torchrefract``, ``native/``), keyed by the sources, the flags and the
+platform. Where no compiler is found or the build fails, a warning names the reason once
+and the tensor code runs instead (the same images, slower). On by default; turn them off
+with::
 
     torchrefract.set_native(False)     # Python
     TORCHREFRACT_NATIVE=0              # environment, read at import
@@ -227,6 +228,19 @@ def available() -> bool:
     return _ENABLED and _load() is not None
 
 
+def no_grad_through(*tensors: torch.Tensor) -> bool:
+    """Whether no gradient is wanted through ``tensors`` (the kernels have no backward:
+    where one is, the callers run their tensor code)."""
+    return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
+
+
+def _call(name: str, job: ctypes.Structure) -> bool:
+    """Run kernel ``torchrefract_<name>`` on ``job`` with torch's thread count; ``False``
+    where a thread could not be started (the caller then runs its tensor code)."""
+    return getattr(_LIB, f"torchrefract_{name}")(ctypes.byref(job),
+                                                 torch.get_num_threads()) == 0
+
+
 def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],
             b8: tuple[torch.Tensor, ...] = ()) -> list[torch.Tensor] | None:
     """The kernels' inputs, detached and contiguous, in order (float32, int64, bool
@@ -298,7 +312,7 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
                simd=int(_SIMD and planes.numel() < 2**31), tn=tn.data_ptr(),
                s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2], pos_out=ptrs[3],
                found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
-    if _LIB.torchrefract_march(ctypes.byref(job), torch.get_num_threads()) != 0:
+    if not _call("march", job):
         return None  # a thread could not be started: march in torch
     return (found, tri, layer) + extra
 
@@ -340,7 +354,7 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
                     tuv=tri_uvs.data_ptr(), neighbors=tri_neighbors.data_ptr(),
                     back=int(back), tol=tol, keep_tol=keep_tol,
                     **{k: v.data_ptr() for k, v in out.items()})
-    if _LIB.torchrefract_layer(ctypes.byref(job), torch.get_num_threads()) != 0:
+    if not _call("layer", job):
         return None
     return out
 
@@ -371,7 +385,7 @@ def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: tor
     job = _FootprintJob(n=n, q=q.data_ptr(), ok=ok.data_ptr(), pc=center.data_ptr(),
                         proj=proj.data_ptr(), batch=batch.data_ptr(), xy=xy.data_ptr(),
                         xy_c=xy_c.data_ptr(), ext=ext.data_ptr())
-    if n and _LIB.torchrefract_footprint(ctypes.byref(job), torch.get_num_threads()) != 0:
+    if n and not _call("footprint", job):
         return None
     return xy, xy_c, ext
 
@@ -404,15 +418,15 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
                      root_arg=arg.data_ptr(), var=var.data_ptr())
     if n == 0:
         return var
-    if _LIB.torchrefract_spread(ctypes.byref(job), torch.get_num_threads()) != 0:
+    if not _call("spread", job):
         return None
     # The refractions' square roots by torch, as optics.refract takes them (csrc/cone.c).
     root = torch.sqrt(arg)
     job.stage, job.root = 1, root.data_ptr()
-    if _LIB.torchrefract_spread(ctypes.byref(job), torch.get_num_threads()) != 0:
+    if not _call("spread", job):
         return None
     return var
 
 
 __all__ = ["available", "build", "footprint", "layer", "library_path", "march",
-           "native_enabled", "set_native", "spread"]
+           "native_enabled", "no_grad_through", "set_native", "spread"]

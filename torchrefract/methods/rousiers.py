@@ -229,11 +229,6 @@ def _true_angle_transmit(table, e_t_clamped: torch.Tensor, tir: torch.Tensor,
     return e
 
 
-def _no_grad(*tensors: torch.Tensor) -> bool:
-    """Whether no gradient flows through ``tensors`` (then the native kernels may run)."""
-    return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
-
-
 def _footprint(q: torch.Tensor, ok4: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
                bi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Screen footprint of the four bounding rays' exits q (N, 4, 3) (found: ok4 (N, 4)),
@@ -241,7 +236,7 @@ def _footprint(q: torch.Tensor, ok4: torch.Tensor, center: torch.Tensor, proj: t
 
     Returns xy (N, 4, 2), the central exit's xy_c (N, 2) and the bounding box's extent
     (N, 2) in pixels (the native kernel where no gradient flows: the same values)."""
-    if _no_grad(q, center):
+    if native.no_grad_through(q, center):
         res = native.footprint(q, ok4, center, proj, bi)
         if res is not None:
             return res
@@ -261,7 +256,7 @@ def _ray_spread(p_t1: torch.Tensor, exact_n: torch.Tensor, dirs: torch.Tensor,
     their squared angles to the central ray p_t1 refracted out at exact_n; ``fallback``
     where none found its exit (the native kernel where no gradient flows: the same
     values)."""
-    if _no_grad(p_t1, exact_n, dirs, n4, ior, fallback):
+    if native.no_grad_through(p_t1, exact_n, dirs, n4, ior, fallback):
         res = native.spread(p_t1, exact_n, dirs, n4, ok4, ior, fallback)
         if res is not None:
             return res
