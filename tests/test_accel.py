@@ -10,9 +10,8 @@ import torch
 
 import torchrefract as tr
 from torchrefract import accel
-from torchrefract.cli import main
 
-from conftest import ASSETS
+from conftest import ASSETS, render_invalid_scene
 
 SUZANNE = str(ASSETS / "meshes" / "suzanne.ply")
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
@@ -87,11 +86,8 @@ def test_cli_compile_flag_sets_it_for_this_and_worker_processes(monkeypatch, tmp
     """``--compile`` turns compiling on here and in the environment that worker processes
     inherit (a scene that fails validation stops the run before anything is compiled)."""
     monkeypatch.setenv("TORCHREFRACT_COMPILE", "0")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("mesh: nowhere.ply\n")
     try:
-        assert main(["render", str(bad), "--out", str(tmp_path / "out"), "--compile",
-                     "--quiet"]) == 1
+        assert render_invalid_scene(tmp_path, "--compile") == 1
         assert accel.compile_enabled()
         assert os.environ["TORCHREFRACT_COMPILE"] == "1"
     finally:

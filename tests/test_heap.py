@@ -12,6 +12,8 @@ import pytest
 
 from torchrefract import heap
 
+from conftest import render_invalid_scene
+
 glibc = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
 
 
@@ -61,19 +63,15 @@ def test_the_environment_turns_it_on_at_import_or_forbids_it(monkeypatch):
 
 
 def test_the_cli_turns_it_on_here_and_for_worker_processes(monkeypatch, tmp_path):
-    from torchrefract.cli import main
-
     monkeypatch.delenv("TORCHREFRACT_HEAP_REUSE", raising=False)
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("mesh: nowhere.ply\n")
     was = heap.heap_reuse()
     try:
-        assert main(["render", str(bad), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+        assert render_invalid_scene(tmp_path) == 1
         assert os.environ["TORCHREFRACT_HEAP_REUSE"] == "1"
         assert heap.heap_reuse() == (platform.libc_ver()[0] == "glibc")
         monkeypatch.setenv("TORCHREFRACT_HEAP_REUSE", "0")  # the user's no is kept
         heap.set_heap_reuse(False)
-        assert main(["render", str(bad), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+        assert render_invalid_scene(tmp_path) == 1
         assert os.environ["TORCHREFRACT_HEAP_REUSE"] == "0" and not heap.heap_reuse()
     finally:
         monkeypatch.delenv("TORCHREFRACT_HEAP_REUSE", raising=False)

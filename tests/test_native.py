@@ -23,7 +23,7 @@ from torchrefract.mesh import load_mesh
 from torchrefract.methods import METHODS
 from torchrefract.optics import face_forward, reflect, refract
 
-from conftest import ASSETS
+from conftest import ASSETS, render_invalid_scene
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 
@@ -311,14 +311,9 @@ def test_native_is_on_by_default_and_switchable():
 def test_cli_no_native_flag_sets_it_for_this_and_worker_processes(monkeypatch, tmp_path):
     """``--no-native`` turns the kernels off here and in the environment that worker
     processes inherit (a scene that fails validation stops the run before rendering)."""
-    from torchrefract.cli import main
-
     monkeypatch.setenv("TORCHREFRACT_NATIVE", "1")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("mesh: nowhere.ply\n")
     try:
-        assert main(["render", str(bad), "--out", str(tmp_path / "out"), "--no-native",
-                     "--quiet"]) == 1
+        assert render_invalid_scene(tmp_path, "--no-native") == 1
         assert not native.native_enabled()
         assert os.environ["TORCHREFRACT_NATIVE"] == "0"
     finally:
