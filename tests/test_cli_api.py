@@ -104,6 +104,16 @@ def test_api_rejects_mixed_resolutions_and_unknown_method(tmp_path):
         tr.render([s.replace(method_options={"march_stepz": 3})])
 
 
+def test_api_method_override_checks_its_own_options(tmp_path):
+    """``render(..., method=M)`` checks the options against M, not the scenes' own method."""
+    s = tr.load_scene(_small_scene_yaml(tmp_path)).replace(
+        method="specular", method_options={"cone_rays": "plane"})  # a rousiers option
+    out = tr.render([s], method="rousiers")
+    assert torch.isfinite(out.radiance).all()
+    with pytest.raises(tr.ConfigError, match="'cone_rays' for method 'specular'"):
+        tr.render([s])
+
+
 def test_supersampling_box_filters_edges(tmp_path):
     s = tr.load_scene(_small_scene_yaml(tmp_path))
     one = tr.render([s])

@@ -129,6 +129,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     for s in scenes:
         if not isinstance(s, Scene):
             raise ConfigError(f"render: expected Scene objects, got {type(s).__name__}")
+    if method in METHODS:  # the options are checked against the method that renders
+        scenes = [s if s.method == method else s.replace(method=method) for s in scenes]
     # Scenes built in Python get the same checks as loaded files (cheap: no file reads).
     scenes = [s.validated() for s in scenes]
     if method is None:
