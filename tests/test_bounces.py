@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import torchrefract as tr
+from torchrefract.bounces import split_lobe
 from torchrefract.checks import ConfigError
 from torchrefract.image_files import write_exr
 
@@ -184,3 +185,45 @@ def test_bad_bounce_options_are_named():
                   method="rousiers")
     with pytest.raises(ConfigError, match="internal_bounces"):  # not a bouncing method
         tr.render([_scene(env, bounces=1, cam=cam)], method="prefiltered")
+    for bad in (2, 0, "4", True):
+        with pytest.raises(ConfigError, match="bounce_rays"):
+            tr.render([_scene(env, bounces=2, bounce_rays=bad, cam=cam)], method="rousiers")
+
+
+def test_split_lobe_moments():
+    """The four rays of a lobe: unit, centred on its axis, per-axis second moment half the
+    lobe's variance (small angles), the other half kept by each ray."""
+    g = torch.Generator().manual_seed(0)
+    t = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64),
+                                      dim=-1)
+    t[0] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)  # the helper switch
+    var = torch.rand(64, generator=g, dtype=torch.float64) * 1e-4
+    d, v = split_lobe(t, var)
+    d = d.view(64, 4, 3)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(64, 4, dtype=torch.float64))
+    mean = torch.nn.functional.normalize(d.mean(1), dim=-1)
+    assert torch.allclose(mean, t, atol=1e-12)
+    off = d - (d * t[:, None]).sum(-1, keepdim=True) * t[:, None]  # tangential parts
+    m2 = (off[..., None] * off[..., None, :]).mean(1)  # (64, 3, 3) second moment
+    # in the tangent plane: isotropic with var / 2 per axis (trace = var)
+    assert torch.allclose(m2.diagonal(dim1=-2, dim2=-1).sum(-1), var, rtol=1e-3)
+    assert torch.allclose(v, (0.5 * var).repeat_interleave(4))
+    d0, _ = split_lobe(t, torch.zeros(64, dtype=torch.float64))  # a ray stays a ray
+    assert torch.allclose(d0.view(64, 4, 3), t[:, None].expand(64, 4, 3), atol=1e-15)
+
+
+@pytest.mark.parametrize("mesh", [SPHERE, SUZANNE])
+def test_bounce_rays_split(white, mesh):
+    """``bounce_rays: 4`` moves the image of rough glass but keeps its energy (white furnace:
+    object mean within 0.01 of one ray per lobe, no pixel above 1) and the bounce count (fractional: a quarter per ray);
+    ``specular``'s lobes are rays, so it refuses the option."""
+    rough = [_scene(white, mesh=mesh, bounces=2, roughness=0.3, bounce_rays=r) for r in (1, 4)]
+    a, b = (tr.render([s], method="rousiers") for s in rough)
+    obj = _obj(a)
+    assert abs(a.radiance[0][obj].mean() - b.radiance[0][obj].mean()) < 0.01
+    assert b.radiance[0][obj].max() <= 1.0 + 1e-4
+    assert not torch.allclose(a.radiance, b.radiance, atol=1e-3)
+    nb = b.passes["bounces"][0][obj]  # a quarter per ray after the split: 0 .. 2 per path
+    assert (nb >= 0).all() and (nb <= 2 + 1e-5).all() and nb.mean() > 1.0
+    with pytest.raises(ConfigError, match="bounce_rays"):
+        tr.render([rough[1]], method="specular")

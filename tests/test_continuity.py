@@ -53,9 +53,12 @@ import torchrefract as tr
 from torchrefract.image_files import write_exr
 
 from conftest import smooth_env_texels
-from test_stability import MESHES, METHODS, params, render
+from test_stability import AUTO, MESHES, METHODS, params, render
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+
+#: Every variant of the stability suite, and the adaptive bounce budget.
+VARIANTS = METHODS + AUTO
 
 K_NB = 3.0
 K_MED = 4.0
@@ -127,7 +130,18 @@ ROUGHNESS_FAILS = {
                                                 "leaves along its own direction (with the "
                                                 "escape fraction, which halved the median "
                                                 "from 0.107; the worst steps are where the "
-                                                "escape fraction is ~1, at low roughness)",
+                                                "escape fraction is ~1, at low roughness); "
+                                                "bounce_rays: 4 (one of METHODS) splits those "
+                                                "jumps in four: 0.125, within the bound",
+    ("rousiers+internal_bounces=auto", "suzanne"): "99th-pct pixel step 0.332 at alpha "
+                                                   "0.05->0.075, median 0.071 (bound 0.15): "
+                                                   "besides the folds of one ray per lobe "
+                                                   "(bounce_rays: 4 still gives 0.263), a "
+                                                   "path's bounce count jumps (11 -> 3) as "
+                                                   "its throughput crosses "
+                                                   "bounce_tolerance, and where it stops the "
+                                                   "end rule sends the rest out along that "
+                                                   "interface's lobe instead",
 }
 IOR_ONE_FAILS: dict = {}
 IOR_FAILS = {
@@ -137,7 +151,7 @@ IOR_FAILS = {
 }
 
 
-@pytest.mark.parametrize("m, mesh", params([(m, mesh) for mesh in MESHES for m in METHODS],
+@pytest.mark.parametrize("m, mesh", params([(m, mesh) for mesh in MESHES for m in VARIANTS],
                                            ROUGHNESS_FAILS))
 def test_roughness_sweep_is_continuous(m, mesh, smooth_env):
     out = sweep(smooth_env, mesh, [tr.Material(ior=1.5, roughness=float(a)) for a in ROUGHNESS],
@@ -152,7 +166,7 @@ def test_roughness_sweep_is_continuous(m, mesh, smooth_env):
 
 
 @pytest.mark.parametrize("m, mesh, alpha", params(
-    [(m, mesh, a) for mesh in MESHES for a in (0.0, 0.5) for m in METHODS], IOR_FAILS))
+    [(m, mesh, a) for mesh in MESHES for a in (0.0, 0.5) for m in VARIANTS], IOR_FAILS))
 def test_ior_sweep_is_continuous(m, mesh, alpha, smooth_env):
     out = sweep(smooth_env, mesh, [tr.Material(ior=float(n), roughness=alpha) for n in IORS], m)
     s, _ = steps(out)
@@ -161,7 +175,7 @@ def test_ior_sweep_is_continuous(m, mesh, alpha, smooth_env):
 
 
 @pytest.mark.parametrize("m, alpha", params(
-    [(m, a) for a in (0.0, 0.5, 1.0) for m in METHODS], IOR_ONE_FAILS))
+    [(m, a) for a in (0.0, 0.5, 1.0) for m in VARIANTS], IOR_ONE_FAILS))
 def test_ior_one_is_a_continuous_limit(m, alpha, smooth_env):
     """IOR 1 is the end of the IOR sweep and must be its limit: the step 1 -> 1.0001 is no
     larger than K_NB times the next 1e-4 step (first order: both are |dL/d ior| 1e-4)."""

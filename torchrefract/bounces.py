@@ -27,6 +27,12 @@ be audited: in a white furnace without absorption, image + (1 - F_entry) residua
 pixel for smooth glass (with ``clamp``; ``conserve`` leaves no residual).
 Rays lost by the march (they leave the frame or both layers) leave along their current
 direction (the environment there), never garbage.
+
+``bounce_rays: 4`` splits the first internal reflection into four rays around its lobe
+(:func:`split_lobe`), each followed on its own with a quarter of the throughput: one ray per
+lobe turns a fold or a near miss of the march crossed by the lobe's axis into one jump of a
+pixel; four rays cross it one at a time, in four smaller steps (and read the lobe's spread
+from the geometry, not only from its variance).
 """
 
 from __future__ import annotations
@@ -57,9 +63,13 @@ class BounceSettings:
     """``auto``: the most internal reflections followed."""
     bounce_march_steps: int = 16
     """Coarse samples of each internal segment's march."""
+    bounce_rays: int = 1
+    """Rays the first internal reflection is split into (1 or 4): four rays around the
+    reflected lobe's axis carry half its variance (:func:`split_lobe`), each followed with a
+    quarter of the throughput."""
 
     FIELDS = ("internal_bounces", "bounce_tolerance", "max_internal_bounces",
-              "bounce_march_steps")
+              "bounce_march_steps", "bounce_rays")
 
     @classmethod
     def from_dict(cls, d: dict, source: str | None = None) -> "BounceSettings":
@@ -81,11 +91,37 @@ class BounceSettings:
             bounce_march_steps=check_number(d.get("bounce_march_steps", 16),
                                             "method_options.bounce_march_steps", source,
                                             minimum=1, maximum=4096, integer=True),
+            bounce_rays=_check_rays(d.get("bounce_rays", 1), source),
         )
 
     @property
     def enabled(self) -> bool:
         return self.internal_bounces == AUTO or self.internal_bounces > 0
+
+
+def _check_rays(v, source):
+    if v not in (1, 4) or isinstance(v, bool):
+        raise ConfigError(f"{where(source, 'method_options.bounce_rays')}: expected 1 or 4, "
+                          f"got {v!r}")
+    return int(v)
+
+
+def split_lobe(t: torch.Tensor, var: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Four rays standing for a lobe of axis ``t`` (M, 3) and per-axis angular variance
+    ``var`` (M,): the axis tilted by +-s along two tangents, s = sqrt(var), so the four
+    directions' per-axis second moment is var / 2; each ray keeps the other half.
+
+    Returns (M * 4, 3) unit directions (the four of ray i at rows 4i .. 4i + 3) and their
+    (M * 4,) variance."""
+    helper = torch.where(t[:, :1].abs() < 0.9, t.new_tensor([1.0, 0.0, 0.0]),
+                         t.new_tensor([0.0, 1.0, 0.0]))
+    u = torch.nn.functional.normalize(torch.cross(t, helper, dim=-1), dim=-1)
+    v = torch.cross(t, u, dim=-1)
+    s = var.clamp(min=0.0).sqrt()[:, None, None]
+    off = t.new_tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # (4, 2)
+    d = t[:, None] + s * (off[None, :, :1] * u[:, None] + off[None, :, 1:] * v[:, None])
+    d = torch.nn.functional.normalize(d, dim=-1).reshape(-1, 3)
+    return d, (0.5 * var).repeat_interleave(4)
 
 
 @dataclass(frozen=True)
@@ -176,6 +212,7 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
     residual = torch.zeros(n_paths, dtype=dtype)
     alive_counts = []
     cur = first
+    share = torch.ones(first.pix.shape[0], dtype=dtype)  # each ray's part of its path
     k = 0
     planes = None
     while cur.pix.numel() > 0:
@@ -194,6 +231,12 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
         sel = go.nonzero(as_tuple=True)[0]
         nxt = cur.take(sel)
         t = take(sh.direction, sel)
+        w_sel, var_sel, share = take(w_next, sel), take(sh.var, sel), take(share, sel)
+        if k == 0 and settings.bounce_rays > 1:  # the first internal reflection, split
+            t, var_sel = split_lobe(t, var_sel)
+            rep = torch.arange(sel.numel()).repeat_interleave(4)
+            nxt = nxt.take(rep)
+            w_sel, share = take(w_sel, rep) * 0.25, take(share, rep) * 0.25
         if planes is None:  # the slab between the layers, built once for every bounce
             planes = camera_planes(g, both=True)
         ex = march_inside(g, nxt.batch, nxt.p, t, steps=settings.bounce_march_steps,
@@ -201,10 +244,9 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
         dist = torch.where(ex.found, ex.dist, torch.zeros_like(ex.dist))
         att = torch.exp(-absorption[nxt.batch] * dist[:, None])
         uv = interpolate(ex.bary, take(g.meshes.tri_uvs, ex.tri.clamp(min=0)))
-        bounces.index_add_(0, nxt.pix, torch.ones_like(nxt.pix, dtype=dtype))
+        bounces.index_add_(0, nxt.pix, share)
         cur = replace(nxt, p=torch.where(ex.found[:, None], ex.position, nxt.p), t=t,
-                      normal=ex.normal, uv=uv, found=ex.found, w=take(w_next, sel) * att,
-                      var=take(sh.var, sel))
+                      normal=ex.normal, uv=uv, found=ex.found, w=w_sel * att, var=var_sel)
         k += 1
     return BounceResult(radiance=out, bounces=bounces, residual=residual, alive=alive_counts)
 

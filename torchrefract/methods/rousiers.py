@@ -120,7 +120,7 @@ class RousiersOptions:
     (coverage ratios, sec. 5.1)."""
     bounces: BounceSettings = BounceSettings()
     """Internal reflections (keys ``internal_bounces``, ``bounce_tolerance``,
-    ``max_internal_bounces``, ``bounce_march_steps``)."""
+    ``max_internal_bounces``, ``bounce_march_steps``, ``bounce_rays``)."""
 
     METHOD = "rousiers"
 

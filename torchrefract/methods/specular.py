@@ -78,8 +78,8 @@ class SpecularOptions:
     @classmethod
     def from_dict(cls, d: dict, source: str | None = None) -> "SpecularOptions":
         keys = [f.name for f in fields(cls) if f.name != "bounces"]
-        if cls.BOUNCES:
-            keys += list(BounceSettings.FIELDS)
+        if cls.BOUNCES:  # its lobes are rays: nothing for ``bounce_rays`` to split
+            keys += [k for k in BounceSettings.FIELDS if k != "bounce_rays"]
         check_option_keys(d, keys, cls.METHOD, source)
         return cls(
             bounces=BounceSettings.from_dict(d, source),
