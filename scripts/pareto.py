@@ -85,6 +85,10 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers ib2", "rousiers", {"internal_bounces": 2}, 1, True),
     ("specular ib auto", "specular", {"internal_bounces": "auto"}, 1, False),
     ("rousiers ib auto", "rousiers", {"internal_bounces": "auto"}, 1, False),
+    # the first internal reflection split into four rays around its lobe
+    ("rousiers ib2 rays4", "rousiers", {"internal_bounces": 2, "bounce_rays": 4}, 1, False),
+    ("rousiers ib auto rays4", "rousiers", {"internal_bounces": "auto", "bounce_rays": 4}, 1,
+     False),
     # tir: conserve is the default; the papers' clamp:
     ("specular tir clamp", "specular", {"tir": "clamp"}, 1, False),
     ("prefiltered tir clamp", "prefiltered", {"tir": "clamp"}, 1, False),
