@@ -795,6 +795,34 @@ def _coordinates(table: SGTable, cos_theta_o, eta, alpha, distribution):
     return grid, shape, d_idx, log_a, dtype, dev
 
 
+#: Points per thread below which a table lookup stays one ``grid_sample`` call.
+_SPLIT_MIN_POINTS = 16384
+
+
+def _trilinear(vol: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` of one (C, T, E, A) volume at (1, P, 1, 1, 3) coordinates -> (C, P)
+    (trilinear, border padding, aligned corners).
+
+    torch's CPU kernel for 5-D inputs runs one thread per batch item, so a single batch
+    item of P points runs on one core; the points are split into one batch item per
+    thread over the same volume (expanded, not copied). Each point's arithmetic is the
+    same, so the values are the same, bit for bit; gradients flow as before."""
+    p = grid.shape[1]
+    k = min(torch.get_num_threads(), p // _SPLIT_MIN_POINTS)
+    if k < 2:
+        v = torch.nn.functional.grid_sample(vol[None], grid, mode="bilinear",
+                                            padding_mode="border", align_corners=True)
+        return v.reshape(vol.shape[0], p)
+    m = -(-p // k)  # points per chunk; the last chunk is padded with the first point
+    g = grid.reshape(p, 3)
+    if m * k > p:
+        g = torch.cat([g, g[:1].expand(m * k - p, 3)])
+    v = torch.nn.functional.grid_sample(vol[None].expand(k, *vol.shape),
+                                        g.view(k, m, 1, 1, 3), mode="bilinear",
+                                        padding_mode="border", align_corners=True)
+    return v.reshape(k, vol.shape[0], m).permute(1, 0, 2).reshape(vol.shape[0], m * k)[:, :p]
+
+
 def _per_distribution(distribution, d_idx: torch.Tensor, sample) -> torch.Tensor:
     """``sample(d)`` for the distribution(s) present: one lookup when every point has the
     same one (the usual batch), both blended by ``torch.where`` otherwise."""
@@ -824,9 +852,7 @@ def _energy_lookup(table: SGTable, cos_theta_o, eta, alpha, distribution, change
     vol = table.energy_change_volume(dtype, dev) if change else table.energy_volume(dtype, dev)
 
     def sample(d: int) -> torch.Tensor:
-        v = torch.nn.functional.grid_sample(vol[d][None], grid, mode="bilinear",
-                                            padding_mode="border", align_corners=True)
-        return v.reshape(2, -1).t().reshape(*shape, 2)
+        return _trilinear(vol[d], grid).t().reshape(*shape, 2)
 
     out = _per_distribution(distribution, d_idx, sample)
     if not change:
@@ -878,9 +904,7 @@ def sg_lookup(table: SGTable, cos_theta_o: torch.Tensor | float, eta: torch.Tens
     vol = table.volume(dtype, dev, sharpness)  # (2 * 2, 3, T, E, A)
 
     def sample(d: int) -> torch.Tensor:  # trilinear, one fused kernel -> (..., 3)
-        v = torch.nn.functional.grid_sample(vol[d * 2 + l_idx][None], grid, mode="bilinear",
-                                            padding_mode="border", align_corners=True)
-        return v.reshape(3, -1).t().reshape(*shape, 3)
+        return _trilinear(vol[d * 2 + l_idx], grid).t().reshape(*shape, 3)
 
     out = _per_distribution(distribution, d_idx, sample)
     energy, log_k, sin_angle = out.unbind(-1)
