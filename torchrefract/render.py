@@ -16,7 +16,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 
 from .checks import ConfigError
 from .gbuffer import GBuffer, build_gbuffer
@@ -54,31 +53,61 @@ class RenderResult:
 
 
 def _box(x: torch.Tensor, n: int) -> torch.Tensor:
-    """Average n x n blocks of a (B, H, W, C) tensor -> (B, H/n, W/n, C)."""
+    """Average n x n blocks of a (B, H, W, C) tensor -> (B, H/n, W/n, C).
+
+    The sub-pixels are summed in row-major order and divided by n * n: the operations of
+    ``F.avg_pool2d`` (the same bits, tests/test_box_filter.py), without its cost on this layout
+    (8 x 512 x 512 x 1 floats, 2 threads: 1.0 ms against 6.0)."""
     if n == 1:
         return x
-    return F.avg_pool2d(x.permute(0, 3, 1, 2), n).permute(0, 2, 3, 1).contiguous()
+    b, h, w, c = x.shape
+    y = x.reshape(b, h // n, n, w // n, n, c)  # (B, H/n, n, W/n, n, C)
+    s = y[:, :, 0, :, 0]
+    for i in range(n):
+        for j in range(n):
+            if i or j:
+                s = s + y[:, :, i, :, j]
+    return s / (n * n)
 
 
-def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int) -> torch.Tensor:
+BoxCache = dict
+"""Per render pass: each mask as a float tensor and its box average (the covered fraction),
+keyed by (id(mask), dtype), shared by the passes averaged over the same mask."""
+
+
+def _mask_box(mask: torch.Tensor, n: int, dtype: torch.dtype, cache: BoxCache | None
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, H, W, 1) ``mask`` as ``dtype``, and its box average."""
+    key = (id(mask), dtype)
+    if cache is not None and key in cache:
+        return cache[key]
+    m = mask[..., None].to(dtype)
+    out = (m, _box(m, n))
+    if cache is not None:
+        cache[key] = out
+    return out
+
+
+def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int, cache: BoxCache | None = None
+                ) -> torch.Tensor:
     """Average of x over the covered sub-pixels of each pixel (0 where none is covered)."""
     if n == 1:  # one sub-pixel per pixel: x where covered (x * 1 / 1 is x), else 0
         return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype))
-    m = mask[..., None].to(x.dtype)
-    num, den = _box(x * m, n), _box(m, n)
+    m, den = _mask_box(mask, n, x.dtype, cache)
+    num = _box(x * m, n)
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
 
 
-def _geometry_passes(g: GBuffer) -> dict[str, torch.Tensor]:
+def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, torch.Tensor]:
     n = g.supersample
     thick = (g.back.dist - g.front.dist).clamp(min=0.0)
     both = g.front.mask & g.back.mask
     return {
-        "depth_front": _masked_box(g.front.depth[..., None], g.front.mask, n),
-        "depth_back": _masked_box(g.back.depth[..., None], g.back.mask, n),
-        "normal_front": _masked_box(g.front.normal, g.front.mask, n),
-        "normal_back": _masked_box(g.back.normal, g.back.mask, n),
-        "thickness": _masked_box(thick[..., None], both, n),
+        "depth_front": _masked_box(g.front.depth[..., None], g.front.mask, n, cache),
+        "depth_back": _masked_box(g.back.depth[..., None], g.back.mask, n, cache),
+        "normal_front": _masked_box(g.front.normal, g.front.mask, n, cache),
+        "normal_back": _masked_box(g.back.normal, g.back.mask, n, cache),
+        "thickness": _masked_box(thick[..., None], both, n, cache),
     }
 
 
@@ -196,19 +225,21 @@ def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResu
         warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and were "
                       "set to 0; please report the scene", RuntimeWarning, stacklevel=2)
         radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
-    passes = _geometry_passes(g)
+    cache: BoxCache = {}  # the masks' box averages, computed once for all passes
+    passes = _geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
     fm = g.front.mask[..., None].float()  # (B, H, W, 1)
     b_, h_, w_ = g.shape
     flat_b = torch.arange(b_).repeat_interleave(h_ * w_)
     rough = materials.roughness_at(flat_b, g.front.uv.reshape(-1, 2)).view(b_, h_, w_, 1)
-    passes["roughness"] = _masked_box(fm * rough, g.front.mask, n)
-    passes["ior"] = _masked_box(fm * materials.ior[:, None, None, None], g.front.mask, n)
+    passes["roughness"] = _masked_box(fm * rough, g.front.mask, n, cache)
+    passes["ior"] = _masked_box(fm * materials.ior[:, None, None, None], g.front.mask, n,
+                                cache)
     for k, v in method_passes.items():
-        passes[k] = _masked_box(v, g.front.mask, n)
+        passes[k] = _masked_box(v, g.front.mask, n, cache)
     return RenderResult(
         radiance=_box(radiance, n).float(),
-        coverage=_box(g.front.mask[..., None].float(), n)[..., 0],
+        coverage=_mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
         timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,

@@ -1,0 +1,47 @@
+"""render._box / _masked_box: the supersampled pixels' box filter (n x n sub-pixels) is
+avg_pool2d bit for bit, and the masks' averages shared between passes change nothing."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchrefract.render import _box, _masked_box
+
+
+def _avg_pool(x: torch.Tensor, n: int) -> torch.Tensor:
+    return F.avg_pool2d(x.permute(0, 3, 1, 2), n).permute(0, 2, 3, 1).contiguous()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [2, 3, 4])
+@pytest.mark.parametrize("c", [1, 3, 4])
+def test_box_is_avg_pool_bit_for_bit(dtype, n, c):
+    g = torch.Generator().manual_seed(n * 10 + c)
+    for b, h, w in ((1, n, n), (3, n * 17, n * 9), (8, n * 40, n * 33)):
+        x = torch.randn(b, h, w, c, generator=g, dtype=dtype) * 7
+        out = _box(x, n)
+        assert out.shape == (b, h // n, w // n, c) and out.dtype == dtype
+        assert torch.equal(out, _avg_pool(x, n))
+    assert _box(x, 1) is x
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_masked_box_with_shared_masks_is_unchanged(n):
+    g = torch.Generator().manual_seed(n)
+    mask = torch.rand(2, n * 12, n * 10, generator=g) > 0.4
+    xs = [torch.randn(2, n * 12, n * 10, c, generator=g, dtype=dt)
+          for c, dt in ((1, torch.float32), (3, torch.float32), (1, torch.float64))]
+    cache: dict = {}
+    for x in xs:
+        shared = _masked_box(x, mask, n, cache)
+        alone = _masked_box(x, mask, n)
+        assert torch.equal(shared, alone)
+        if n > 1:  # the definition: covered sub-pixels' mean, 0 where none is covered
+            m = mask[..., None].to(x.dtype)
+            den = _avg_pool(m, n)
+            ref = torch.where(den > 0, _avg_pool(x * m, n) / den.clamp(min=1e-12),
+                              torch.zeros_like(den))
+            assert torch.equal(shared, ref)
+    assert len(cache) == (2 if n > 1 else 0)  # one entry per (mask, dtype)
