@@ -215,8 +215,9 @@ def test_split_lobe_moments():
 @pytest.mark.parametrize("mesh", [SPHERE, SUZANNE])
 def test_bounce_rays_split(white, mesh):
     """``bounce_rays: 4`` moves the image of rough glass but keeps its energy (white furnace:
-    object mean within 0.01 of one ray per lobe, no pixel above 1) and the bounce count (fractional: a quarter per ray);
-    ``specular``'s lobes are rays, so it refuses the option."""
+    object mean within 0.01 of one ray per lobe, no pixel above 1) and the bounce count
+    (fractional: a quarter per ray); ``specular``'s lobes are rays, so it refuses the
+    option."""
     rough = [_scene(white, mesh=mesh, bounces=2, roughness=0.3, bounce_rays=r) for r in (1, 4)]
     a, b = (tr.render([s], method="rousiers") for s in rough)
     obj = _obj(a)
