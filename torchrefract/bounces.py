@@ -47,6 +47,7 @@ from .checks import ConfigError, check_number, where
 from .gbuffer import GBuffer, interpolate
 from .index import take
 from .march import camera_planes, march_inside
+from .optics import tangent_frame
 
 AUTO = "auto"
 
@@ -113,10 +114,7 @@ def split_lobe(t: torch.Tensor, var: torch.Tensor) -> tuple[torch.Tensor, torch.
 
     Returns (M * 4, 3) unit directions (the four of ray i at rows 4i .. 4i + 3) and their
     (M * 4,) variance."""
-    helper = torch.where(t[:, :1].abs() < 0.9, t.new_tensor([1.0, 0.0, 0.0]),
-                         t.new_tensor([0.0, 1.0, 0.0]))
-    u = torch.nn.functional.normalize(torch.cross(t, helper, dim=-1), dim=-1)
-    v = torch.cross(t, u, dim=-1)
+    u, v = tangent_frame(t)
     s = var.clamp(min=0.0).sqrt()[:, None, None]
     off = t.new_tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # (4, 2)
     d = t[:, None] + s * (off[None, :, :1] * u[:, None] + off[None, :, 1:] * v[:, None])

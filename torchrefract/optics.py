@@ -26,6 +26,15 @@ def normalize(v: torch.Tensor, eps: float = 1e-20) -> torch.Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp(min=eps)
 
 
+def tangent_frame(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors orthogonal to unit p (N, 3) and to each other: u = p x h / |p x h|
+    with h the x axis (the y axis where p is within ~25 degrees of x), and v = p x u."""
+    helper = torch.where(p[:, :1].abs() < 0.9, p.new_tensor([1.0, 0.0, 0.0]),
+                         p.new_tensor([0.0, 1.0, 0.0]))
+    u = normalize(torch.cross(p, helper, dim=-1))
+    return u, torch.cross(p, u, dim=-1)
+
+
 def face_forward(n: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Flip ``n`` where needed so that it faces against ``d`` (dot(d, n) <= 0)."""
     return torch.where((dot(n, d) > 0)[..., None], -n, n)

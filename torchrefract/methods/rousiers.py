@@ -80,7 +80,7 @@ from ..march import camera_coordinates, camera_planes, march_back
 from ..materials import MaterialBatch
 from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
     kappa_from_length, sample_box_mips, sample_mips
-from ..optics import dot, face_forward, normalize, refract
+from ..optics import dot, face_forward, normalize, refract, tangent_frame
 from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_energies, sg_lookup, \
     spread_cosines, spread_mean
 from .specular import background, bounce_passes, light_in_front
@@ -161,14 +161,6 @@ def bounding_angle(k: torch.Tensor) -> torch.Tensor:
     """
     one_minus = -torch.expm1(-math.log(4.0) / (k + 1.0))
     return 2.0 * torch.asin(torch.sqrt(0.5 * one_minus))
-
-
-def _tangent_frame(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Two unit vectors orthogonal to unit p (N, 3) and to each other."""
-    helper = torch.where((p[:, :1].abs() < 0.9), torch.tensor([1.0, 0.0, 0.0]),
-                         torch.tensor([0.0, 1.0, 0.0]))
-    u = normalize(torch.cross(p, helper, dim=-1))
-    return u, torch.cross(p, u, dim=-1)
 
 
 def _lobe(table, cos_theta, eta, alpha, dist: torch.Tensor, lobe: str):
@@ -346,7 +338,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     ex = march_back(g, bi, p1, p_t1, steps=options.march_steps, refine=options.refine_steps,
                     planes=planes, camera=(c_p1, c_t1))
     theta_b = bounding_angle(k_t1)[:, None]
-    u, v = _tangent_frame(p_t1)
+    u, v = tangent_frame(p_t1)
     cos_b, sin_b = torch.cos(theta_b), torch.sin(theta_b)
     dirs = torch.stack([cos_b * p_t1 + sin_b * s * a
                         for a in (u, v) for s in (1.0, -1.0)], 1)  # (N, 4, 3)
