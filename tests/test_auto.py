@@ -9,7 +9,7 @@ import torch
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
-from torchrefract.methods.auto import AutoOptions, choose, features
+from torchrefract.methods.auto import AutoOptions, choose, features, load_table
 
 from conftest import ASSETS
 
@@ -67,6 +67,35 @@ def test_choice_follows_the_measurements_and_the_tolerance(tmp_path):
     c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=1.0,
                                                              auto_table=table))
     assert c.method == "specular"
+
+
+def test_a_smooth_surface_gets_no_cone(tmp_path):
+    """Below SMOOTH_ALPHA only specular's variants are candidates, even where the nearest
+    measured scenes are rough and favour the rough methods (the table has no smooth scene:
+    the leave-one-out case of the shipped table's smooth sphere)."""
+    rough_f = features(_scene(roughness=0.1))
+    t = {"version": 1, "scenes": [
+        {"name": f"rough_sphere_{i}", "features": {**rough_f, "ior": 1.5 + 0.1 * i},
+         "variants": [
+             {"method": "specular", "options": {}, "ms": 40, "flip": 0.30},
+             {"method": "specular", "options": {"internal_bounces": 2}, "ms": 60,
+              "flip": 0.20},
+             {"method": "rousiers", "options": {"internal_bounces": 2}, "ms": 120,
+              "flip": 0.10}]} for i in range(2)]}
+    path = tmp_path / "rough_only.json"
+    path.write_text(json.dumps(t))
+    opts = AutoOptions(auto_tolerance=0.05, auto_table=str(path))
+    assert choose(_scene(roughness=0.1), opts).method == "rousiers"  # rough: the measurements
+    c = choose(_scene(roughness=0.0), opts)
+    assert (c.method, c.options) == ("specular", {"internal_bounces": 2})  # specular's best
+    c = choose(_scene(roughness=0.0), AutoOptions(auto_tolerance=0.2, auto_table=str(path)))
+    assert (c.method, c.options) == ("specular", {})  # the fastest within the tolerance
+    # no specular variant measured on the neighbours: the rule steps aside
+    for row in t["scenes"]:
+        row["variants"] = [v for v in row["variants"] if v["method"] != "specular"]
+    path.write_text(json.dumps(t))
+    load_table.cache_clear()
+    assert choose(_scene(roughness=0.0), opts).method == "rousiers"
 
 
 def test_render_auto_groups_and_records_the_choice(tmp_path):

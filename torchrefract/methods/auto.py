@@ -15,8 +15,15 @@ Mitsuba truth (object pixels). For a new scene:
 3. For each variant, the predicted FLIP and time are those weighted means; ``auto`` picks the
    fastest variant whose predicted FLIP is at most ``auto_tolerance`` above the best
    predicted FLIP (so a tolerance of 0 asks for the most accurate; a loose one for the
-   fastest). Smooth surfaces end up on ``specular`` (no cone), thin objects on cheap
-   variants, because that is what the chart measured there.
+   fastest). Thin objects end up on cheap variants, because that is what the chart
+   measured there.
+4. A smooth surface needs no cone: below ``SMOOTH_ALPHA`` only ``specular``'s variants are
+   candidates (the rough methods' lobes collapse onto its rays there and only add cost and
+   the SG fit's own error: on the chart's smooth sphere ``specular`` with 2 bounces has
+   FLIP 0.030 at 59 ms, ``rousiers`` with 2 bounces and 4 rays 0.045 at 232 ms). The rule
+   holds without a smooth scene in the table, where the nearest measured scenes are rough
+   and would favour the rough methods (the leave-one-out check of
+   ``scripts/build_auto_table.py``).
 
 Without a table (or with an empty one) a rule stands in: alpha < 0.01 -> ``specular``,
 else ``rousiers``. The chosen method and options are written into the result's scenes (and
@@ -38,6 +45,8 @@ from ..scene import Scene
 
 DEFAULT_TABLE = Path(__file__).resolve().parent.parent / "tables" / "auto_v1.json"
 SCALES = {"log_alpha": 0.5, "thin": 0.2, "ior": 0.5}
+SMOOTH_ALPHA = 0.01
+"""Roughness below which a surface is smooth: ``specular`` only (module docstring, 4.)."""
 
 
 @dataclass(frozen=True)
@@ -118,7 +127,7 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
     rows = table["scenes"]
     f = features(scene)
     if not rows:
-        method = "specular" if 10 ** f["log_alpha"] < 0.01 else "rousiers"
+        method = "specular" if 10 ** f["log_alpha"] < SMOOTH_ALPHA else "rousiers"
         return Choice(method, {}, None, None, ())
     dist = np.array([math.sqrt(sum(((f[k] - r["features"][k]) / s) ** 2
                                    for k, s in SCALES.items())) for r in rows])
@@ -131,6 +140,8 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
     common = set(keyed[0]).intersection(*keyed[1:])
     if not common:
         raise ConfigError("auto table: the nearest scenes share no measured variant")
+    if 10 ** f["log_alpha"] < SMOOTH_ALPHA:  # no cone on a smooth surface (docstring, 4.)
+        common = {k for k in common if k[0] == "specular"} or common
     pred = {k: (sum(wi * kv[k]["flip"] for wi, kv in zip(w, keyed)),
                 sum(wi * kv[k]["ms"] for wi, kv in zip(w, keyed))) for k in common}
     best = min(p[0] for p in pred.values())
