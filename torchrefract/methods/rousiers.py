@@ -592,11 +592,17 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         cos_t = torch.where(tir, cos_crit + 1e-4, cos) \
             if last and tir_mode in ("clamp", "conserve") else cos
         _, k_t, t_t, e_t = _lobe(table, cos_t, 1.0 / ior, alpha, dist, "transmit")
-        _, k_r, t_r, e_r = _lobe(table, cos, 1.0 / ior, alpha, dist, "reflect")
+        # The reflected lobe goes on (direction and spread), except at ``conserve``'s last
+        # interface, where all of it leaves with the transmitted lobe: not looked up there.
+        goes_on = not (last and tir_mode == "conserve")
+        if goes_on:
+            _, k_r, t_r, e_r = _lobe(table, cos, 1.0 / ior, alpha, dist, "reflect")
         if not last or tir_mode == "conserve":  # the split: averaged over the lobe carried
             e_t, e_r = _energies(table, cos, a.var, 1.0 / ior, alpha, dist)
         p_t = normalize(lobe_axis(view, n_view, t_t, "transmit"))
-        p_r = normalize(lobe_axis(view, n_view, t_r, "reflect"))
+        p_r = normalize(lobe_axis(view, n_view, t_r, "reflect")) if goes_on else p_t
+        if not goes_on:
+            k_r = torch.full_like(k_t, float("inf"))  # var unchanged: nothing follows it
         sin2 = (1.0 - cos_t * cos_t).clamp(min=0.0)
         mag2 = (ior * cos_t / torch.sqrt((1.0 - ior * ior * sin2).clamp(min=1e-4))) ** 2
         # The small-angle magnification diverges at the critical angle (cos_out -> 0) and
