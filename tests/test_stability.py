@@ -56,8 +56,8 @@ METHODS = [
     ("rousiers", {}),
     ("specular", {"internal_bounces": 2}),
     ("rousiers", {"internal_bounces": 2}),
-    # the first internal reflection split into four rays around its lobe (continuous in
-    # roughness on suzanne, where one ray per lobe flickers)
+    # the first internal reflection split into four rays around its lobe (more accurate on
+    # most suite scenes, twice the time)
     ("rousiers", {"internal_bounces": 2, "bounce_rays": 4}),
     # the papers' exit rule (the default is ``conserve``: continuous at the critical angle)
     ("specular", {"tir": "clamp"}),

@@ -29,10 +29,10 @@ Rays lost by the march (they leave the frame or both layers) leave along their c
 direction (the environment there), never garbage.
 
 ``bounce_rays: 4`` splits the first internal reflection into four rays around its lobe
-(:func:`split_lobe`), each followed on its own with a quarter of the throughput: one ray per
-lobe turns a fold or a near miss of the march crossed by the lobe's axis into one jump of a
-pixel; four rays cross it one at a time, in four smaller steps (and read the lobe's spread
-from the geometry, not only from its variance).
+(:func:`split_lobe`), each followed on its own with a quarter of the throughput: they read
+the lobe's spread from the geometry, not only from its variance, and where one ray would
+cross a fold or a near miss of the march at once, four cross it one at a time, in four
+smaller steps.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ class BounceSettings:
     """Coarse samples of each internal segment's march."""
     bounce_rays: int = 1
     """Rays the first internal reflection is split into (1 or 4): four rays around the
-    reflected lobe's axis carry half its variance (:func:`split_lobe`), each followed with a
+    reflected lobe's ray carry half its variance (:func:`split_lobe`), each followed with a
     quarter of the throughput."""
 
     FIELDS = ("internal_bounces", "bounce_tolerance", "max_internal_bounces",
