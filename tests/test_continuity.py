@@ -44,10 +44,12 @@ across a few pixels per step. The truth keeps it (``scripts/continuity_truth.py`
 on suzanne its 99th-percentile pixel step is 0.130 at alpha 0 -> 0.025 (where the blur
 sets in: the steepest part of the sweep) and 0.049-0.071 per step from 0.025 to 0.175,
 seed noise (0.024-0.044) included; so a variant over the bound flickers rather than follows
-a steep truth (``auto`` bounces: 0.177 at 0.15 -> 0.175, where the truth steps 0.050).
-Two bounces stepped 0.187 there while each internal reflection's ray followed the SG fit's
-lobe axis, which swings with roughness near the critical angle; along the mirror direction
-(the lobe's mode, roughness-independent) the step is 0.138.
+a steep truth. Two bounces stepped 0.187 at 0.15 -> 0.175 (the truth: 0.050) while each
+internal reflection's ray followed the SG fit's lobe axis, which swings with roughness near
+the critical angle; along the mirror direction (the lobe's mode, roughness-independent)
+0.138. ``auto`` bounces stepped 0.332 at 0.05 -> 0.075 (truth 0.054), 0.177 with mirror
+rays (deep single-ray paths are chaotic on this non-convex mesh), and 0.134 once wide
+lobes leave in closed form (rousiers.DIFFUSE_VAR).
 (IOR sweeps get no per-pixel bound: near the silhouette the
 exit direction's derivative in IOR diverges at grazing incidence and TIR edges cross pixels;
 exact specular refraction reaches 0.53 per 0.05 step there.)
@@ -137,22 +139,6 @@ ROUGHNESS_FAILS = {
                                       "default, is continuous there)",
     ("rousiers+tir=clamp", "suzanne"): "per-pixel flicker under clamp: 99th-pct pixel step "
                                        "0.518 at alpha 0.7->0.725 (median 0.033)",
-    ("rousiers+internal_bounces=auto", "suzanne"): "99th-pct pixel step 0.177 at alpha "
-                                                   "0.15->0.175, median 0.062 (bound 0.15): "
-                                                   "the truth steps 0.050 there "
-                                                   "(scripts/continuity_truth.py). Deep "
-                                                   "single-ray paths are chaotic on this "
-                                                   "non-convex mesh: the paper's front lobe "
-                                                   "axis turns with alpha, moving the first "
-                                                   "exit, and a bounce then flips in or out "
-                                                   "of TIR or is found or lost, so the path's "
-                                                   "bounce count jumps (31 of the sweep's 35 "
-                                                   "pixel steps over 0.15). Marching the "
-                                                   "first segment along the exact refraction "
-                                                   "instead of the paper's axis gives 0.080, "
-                                                   "but departs from the paper's cone; "
-                                                   "bounce_rays: 4 gives 0.245 (at alpha "
-                                                   "0->0.025, truth 0.130)",
 }
 IOR_ONE_FAILS: dict = {}
 IOR_FAILS = {
