@@ -47,7 +47,7 @@ seed noise (0.024-0.044) included; so a variant over the bound flickers rather t
 a steep truth. Two bounces stepped 0.187 at 0.15 -> 0.175 (the truth: 0.050) while each
 internal reflection's ray followed the SG fit's lobe axis, which swings with roughness near
 the critical angle; along the mirror direction (the lobe's mode, roughness-independent)
-0.138. ``auto`` bounces stepped 0.332 at 0.05 -> 0.075 (truth 0.054), 0.177 with mirror
+0.138, and 0.127 once wide lobes leave in closed form (below). ``auto`` bounces stepped 0.332 at 0.05 -> 0.075 (truth 0.054), 0.177 with mirror
 rays (deep single-ray paths are chaotic on this non-convex mesh), and 0.134 once wide
 lobes leave in closed form (rousiers.DIFFUSE_VAR).
 (IOR sweeps get no per-pixel bound: near the silhouette the
