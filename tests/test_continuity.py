@@ -22,36 +22,37 @@ A step is a discontinuity when it is larger than
 
 each plus EPS = 1e-4 (IOR sweeps use the first rule only: the image's derivative in the IOR
 is steep near 1 and decays smoothly, so exact specular refraction's first steps are ~10x the
-sweep's median while each is only ~1.5x its neighbour; a jump is still an isolated spike) (0.01% of the image mean; below it a change is invisible and a sweep that
-does not depend on x, e.g. ``specular`` in roughness, has steps of exactly 0). Measured on
-the sweeps that pass: the largest step is at most 1.3x its neighbours and 1.7x the median for
-specular and prefiltered (IOR and roughness), 2.3x / 2.6x for rousiers (roughness on the
-sphere / IOR at alpha 0.5 on suzanne); rousiers+internal_bounces=2 at alpha 0.5 on suzanne
-reaches 7.1x the median at 1.05 -> 1.1 (1.4x its larger neighbour: the steep start of the
-sweep, where the interface fades in from IOR 1, see test_ior_one_is_a_continuous_limit;
-3.9x with its first step while reflected rays followed the SG axis). A jump smaller than about 2 grid steps' worth of change
-is below what these bounds resolve; test_the_bound_catches_a_lobe_switch shows that a lobe
-widened at a threshold by 4 steps' worth is caught (4.5x its neighbours).
+sweep's median while each is only ~1.5x its neighbour; a jump is still an isolated spike)
+(0.01% of the image mean; below it a change is invisible and a sweep that does not depend on
+x, e.g. ``specular`` in roughness, has steps of exactly 0). Measured on the sweeps that
+pass: the largest step is at most 1.3x its neighbours and 1.7x the median for specular and
+prefiltered (IOR and roughness), 2.3x / 2.6x for rousiers (roughness on the sphere / IOR at
+alpha 0.5 on suzanne); rousiers+internal_bounces=2 at alpha 0.5 on suzanne reaches 7.1x the
+median at 1.05 -> 1.1 (1.4x its larger neighbour: the steep start of the sweep, where the
+interface fades in from IOR 1, see test_ior_one_is_a_continuous_limit; 3.9x with its first
+step while reflected rays followed the SG axis). A jump smaller than about 2 grid steps'
+worth of change is below what these bounds resolve; test_the_bound_catches_a_lobe_switch
+shows that a lobe widened at a threshold by 4 steps' worth is caught (4.5x its neighbours).
 
 Roughness sweeps also bound single pixels: at most 1% of object pixels may change by more
-than P99_BOUND = 0.15 of the image mean per step (h = 0.025). First order: a pixel changes by
-(|grad L_env| |d theta/d alpha| + L |dE/d alpha|) h, with |grad L_env| <= ~0.9 per radian on
-this map (relative to its mean), a lobe axis moving <= ~1 radian per unit alpha, and an
+than P99_BOUND = 0.15 of the image mean per step (h = 0.025). First order: a pixel changes
+by (|grad L_env| |d theta/d alpha| + L |dE/d alpha|) h, with |grad L_env| <= ~0.9 per radian
+on this map (relative to its mean), a lobe axis moving <= ~1 radian per unit alpha, and an
 energy loss of at most ~0.65 per unit alpha (Mitsuba furnace: 0.91 / 0.78 / 0.52 at alpha
 0.3 / 0.5 / 1): ~0.04 per step; 0.15 leaves ~4x margin, and the 1% allows a boundary moving
 across a few pixels per step. The truth keeps it (``scripts/continuity_truth.py``: Mitsuba,
-512 spp, each pixel its centre sub-pixel of a 9x9 grid, as our pixels are point samples):
-on suzanne its 99th-percentile pixel step is 0.130 at alpha 0 -> 0.025 (where the blur
-sets in: the steepest part of the sweep) and 0.049-0.071 per step from 0.025 to 0.175,
-seed noise (0.024-0.044) included; so a variant over the bound flickers rather than follows
-a steep truth. Two bounces stepped 0.187 at 0.15 -> 0.175 (the truth: 0.050) while each
-internal reflection's ray followed the SG fit's lobe axis, which swings with roughness near
-the critical angle; along the mirror direction (the lobe's mode, roughness-independent)
-0.138, and 0.127 once wide lobes leave in closed form (below). ``auto`` bounces stepped 0.332 at 0.05 -> 0.075 (truth 0.054), 0.177 with mirror
-rays (deep single-ray paths are chaotic on this non-convex mesh), and 0.134 once wide
-lobes leave in closed form (rousiers.DIFFUSE_VAR).
-(IOR sweeps get no per-pixel bound: near the silhouette the
-exit direction's derivative in IOR diverges at grazing incidence and TIR edges cross pixels;
+512 spp, each pixel its centre sub-pixel of a 9x9 grid, as our pixels are point samples): on
+suzanne its 99th-percentile pixel step is 0.130 at alpha 0 -> 0.025 (where the blur sets in:
+the steepest part of the sweep) and 0.049-0.071 per step from 0.025 to 0.175, seed noise
+(0.024-0.044) included; so a variant over the bound flickers rather than follows a steep
+truth. Two bounces stepped 0.187 at 0.15 -> 0.175 (the truth: 0.050) while each internal
+reflection's ray followed the SG fit's lobe axis, which swings with roughness near the
+critical angle; along the mirror direction (the lobe's mode, roughness-independent) 0.138,
+and 0.127 once wide lobes leave in closed form. ``auto`` bounces stepped 0.332 at
+0.05 -> 0.075 (truth 0.054), 0.177 with mirror rays (deep single-ray paths are chaotic on
+this non-convex mesh), and 0.134 once wide lobes leave in closed form
+(rousiers.DIFFUSE_VAR). (IOR sweeps get no per-pixel bound: near the silhouette the exit
+direction's derivative in IOR diverges at grazing incidence and TIR edges cross pixels;
 exact specular refraction reaches 0.53 per 0.05 step there.)
 """
 

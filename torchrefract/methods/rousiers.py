@@ -49,26 +49,26 @@ instead.
 Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
 
 ``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`; ours, beyond the
-paper): at the exit the table's internal reflection lobe (E_ri, k_ri: leaving the glass,
-eta = 1 / ior) carries E_ri of the light back inside; one ray stands for it, along the
-mirror direction about the interface normal, and is marched to the next interface (front or
-back layer), where the table again splits it into a transmitted lobe (read from the
-pyramid) and a reflected one, K times. The ray is the lobe's mode, not the SG fit's axis:
-near the critical angle the fitted axis swings off the mirror direction with roughness and
-angle (alpha 0.3: 18 degrees at cos 0.8, 0 at 0.6, 12 at 0.4 inside IOR 1.5 glass), so a
-ray along it crossed folds of the geometry as roughness changed (per-pixel flicker in a
-roughness sweep) and, measured on the suite, landed worse on average (FLIP against 1024-spp
-truth at 64x64, mean over the 12 scenes, axis -> mirror: 2 bounces 0.153 -> 0.143, ``auto``
-bounces 0.143 -> 0.129, 2 bounces with four rays 0.140 -> 0.135). A lobe's angular variance is carried
-along: the front lobe's 1/k_t1, plus 1/k_r at each reflection (a reflection keeps angular
-spread; the curvature of the reflecting surface is not modelled), magnified by the exit
-refraction (d theta_out / d theta_in)^2 where it leaves. The ``tir`` rule applies at the
-last interface only; under ``conserve`` a lobe that has grown wide is let out before that,
-gradually: at each interface the fraction 1 - exp(-var / ``DIFFUSE_VAR``) of what it reflects
-inside leaves there as at the last interface (the bounces not followed, summed in closed
-form), the rest goes on as a ray. A bounce whose march finds no next interface (the image-space march
-lost it) leaves along its own direction with the escape fraction of trapped light
-(:func:`torchrefract.bounces.escape_fraction`; 1 for smooth glass).
+paper): at the exit the table's internal reflection lobe (E_ri, k_ri: leaving the glass, eta
+= 1 / ior) carries E_ri of the light back inside; one ray stands for it, along the mirror
+direction about the interface normal, and is marched to the next interface (front or back
+layer), where the table again splits it into a transmitted lobe (read from the pyramid) and
+a reflected one, K times. The ray is the lobe's mode, not the SG fit's axis: near the
+critical angle the fitted axis swings off the mirror direction with roughness and angle
+(alpha 0.3: 18 degrees at cos 0.8, 0 at 0.6, 12 at 0.4 inside IOR 1.5 glass), so a ray along
+it crossed folds of the geometry as roughness changed (per-pixel flicker in a roughness
+sweep) and, measured on the suite, landed worse on average (FLIP against 1024-spp truth at
+64x64, mean over the 12 scenes, axis -> mirror: 2 bounces 0.153 -> 0.143, ``auto`` bounces
+0.143 -> 0.129, 2 bounces with four rays 0.140 -> 0.135). A lobe's angular variance is
+carried along: the front lobe's 1/k_t1, plus 1/k_r at each reflection (a reflection keeps
+angular spread; the curvature of the reflecting surface is not modelled), magnified by the
+exit refraction (d theta_out / d theta_in)^2 where it leaves. The ``tir`` rule applies at
+the last interface only; under ``conserve`` a lobe that has grown wide is let out before
+that, gradually: at each interface the fraction 1 - exp(-var / ``DIFFUSE_VAR``) of what it
+reflects inside leaves there as at the last interface (the bounces not followed, summed in
+closed form), the rest goes on as a ray. A bounce whose march finds no next interface (the
+image-space march lost it) leaves along its own direction with the escape fraction of
+trapped light (:func:`torchrefract.bounces.escape_fraction`; 1 for smooth glass).
 """
 
 from __future__ import annotations
@@ -636,7 +636,8 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         mag2 = mag2.clamp(max=4.0)
         k_out = 1.0 / (1.0 / k_t.clamp(min=1e-12) + mag2 * a.var)
         # The fraction of trapped light that eventually leaves (escape_fraction), looked up
-        # once where ``conserve``'s last interface or a lost ray needs it.
+        # once where ``conserve`` (its last interface, the diffuse part at every other) or a
+        # lost ray needs it.
         lost_any = bool((~a.found).any())
         esc = escape_fraction(table, materials.ior, dist_b, alpha, bi) \
             if lost_any or tir_mode == "conserve" else None
