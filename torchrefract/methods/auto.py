@@ -126,8 +126,9 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
     table = load_table(options.auto_table or str(DEFAULT_TABLE))
     rows = table["scenes"]
     f = features(scene)
+    smooth = 10 ** f["log_alpha"] < SMOOTH_ALPHA
     if not rows:
-        method = "specular" if 10 ** f["log_alpha"] < SMOOTH_ALPHA else "rousiers"
+        method = "specular" if smooth else "rousiers"
         return Choice(method, {}, None, None, ())
     dist = np.array([math.sqrt(sum(((f[k] - r["features"][k]) / s) ** 2
                                    for k, s in SCALES.items())) for r in rows])
@@ -140,7 +141,7 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
     common = set(keyed[0]).intersection(*keyed[1:])
     if not common:
         raise ConfigError("auto table: the nearest scenes share no measured variant")
-    if 10 ** f["log_alpha"] < SMOOTH_ALPHA:  # no cone on a smooth surface (docstring, 4.)
+    if smooth:  # no cone on a smooth surface (docstring, 4.)
         common = {k for k in common if k[0] == "specular"} or common
     pred = {k: (sum(wi * kv[k]["flip"] for wi, kv in zip(w, keyed)),
                 sum(wi * kv[k]["ms"] for wi, kv in zip(w, keyed))) for k in common}

@@ -642,26 +642,25 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
         esc = escape_fraction(table, materials.ior, dist_b, alpha, bi) \
             if lost_any or tir_mode == "conserve" else None
         w_out, refl = e_t, e_r
-        if tir_mode == "conserve" and not last:
-            # The reflected lobe's diffuse part leaves here, in closed form (DIFFUSE_VAR):
-            # a single ray cannot stand for a lobe that wide, and following it through a
-            # non-convex shape is chaotic (per-pixel flicker as roughness changes).
-            go_on = torch.exp(-(a.var + 1.0 / k_r.clamp(min=1e-12)) / DIFFUSE_VAR)
+        if tir_mode == "conserve":
+            # What this interface reflects inside leaves here too, in closed form, after the
+            # losses of the bounces not followed (escape_fraction): all of it at the last
+            # interface, elsewhere the reflected lobe's diffuse part (DIFFUSE_VAR: a single
+            # ray cannot stand for a lobe that wide, and following it through a non-convex
+            # shape is chaotic, per-pixel flicker as roughness changes). It leaves with the
+            # transmitted lobe (at the critical angle under TIR, ``cos_t``).
+            go_on = torch.zeros_like(e_r) if last else \
+                torch.exp(-(a.var + 1.0 / k_r.clamp(min=1e-12)) / DIFFUSE_VAR)
             w_out = (e_t + (1.0 - go_on) * e_r * esc).clamp(max=1.0)
             refl = go_on * e_r
-        if last:
+        elif last:
             refl_part = e_r
-            if tir_mode in ("clamp", "conserve"):  # TIR light leaves at the critical
-                # angle: all that this interface keeps at the true angle (the model loses
-                # some to masking); ``conserve``: the reflected part leaves too, always,
-                # after the losses of the bounces not followed (escape_fraction)
-                e_rest = e_r * esc if tir_mode == "conserve" else e_r
-                e_true = e_t if tir_mode == "conserve" else _true_angle_transmit(
-                    table, e_t, tir, cos, 1.0 / ior, alpha, dist)
-                e_keep = (e_true + e_rest).clamp(max=1.0)
-                leave_all = tir | (tir_mode == "conserve")
-                w_out = torch.where(leave_all, e_keep, e_t)
-                refl_part = torch.where(leave_all, torch.zeros_like(e_r), e_r)
+            if tir_mode == "clamp":  # TIR light leaves at the critical angle: all that
+                # this interface keeps at the true angle (the model loses some to masking)
+                e_keep = (_true_angle_transmit(table, e_t, tir, cos, 1.0 / ior, alpha, dist)
+                          + e_r).clamp(max=1.0)
+                w_out = torch.where(tir, e_keep, e_t)
+                refl_part = torch.where(tir, torch.zeros_like(e_r), e_r)
             else:  # reflect: under TIR the internal reflection lobe is read instead
                 p_r = normalize(lobe_axis(view, n_view, t_r, "reflect"))
                 p_t = torch.where(tir[:, None], p_r, p_t)
