@@ -57,16 +57,24 @@ def test_features_tell_a_slab_from_a_sphere():
 def test_choice_follows_the_measurements_and_the_tolerance(tmp_path):
     table = _table(tmp_path)
     # Smooth sphere: specular is within 0.05 of the best and the cheapest.
-    c = choose(_scene(roughness=0.0), AutoOptions(auto_table=table))
+    c = choose(_scene(roughness=0.0), AutoOptions(auto_table=table, auto_blend=False))
     assert (c.method, c.options) == ("specular", {})
+    assert c.blend == (("specular", {}, 1.0),)
     # Rough slab, tight tolerance: the most accurate (rousiers + 1 bounce).
     c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=0.0,
-                                                             auto_table=table))
+                                                             auto_table=table,
+                                                             auto_blend=False))
     assert (c.method, c.options) == ("rousiers", {"internal_bounces": 1})
     # Loose tolerance: the fastest variant measured on both neighbours.
     c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=1.0,
-                                                             auto_table=table))
+                                                             auto_table=table,
+                                                             auto_blend=False))
     assert c.method == "specular"
+    # The blend, far from any threshold (the slab's neighbourhood is all rough, the two
+    # measured scenes are far apart in thinness): one variant, all the weight.
+    c = choose(_scene(mesh=SLAB, roughness=0.3), AutoOptions(auto_tolerance=0.0,
+                                                             auto_table=table))
+    assert c.blend == (("rousiers", {"internal_bounces": 1}, 1.0),)
 
 
 def test_a_smooth_surface_gets_no_cone(tmp_path):
@@ -84,12 +92,17 @@ def test_a_smooth_surface_gets_no_cone(tmp_path):
               "flip": 0.10}]} for i in range(2)]}
     path = tmp_path / "rough_only.json"
     path.write_text(json.dumps(t))
-    opts = AutoOptions(auto_tolerance=0.05, auto_table=str(path))
+    opts = AutoOptions(auto_tolerance=0.05, auto_table=str(path), auto_blend=False)
     assert choose(_scene(roughness=0.1), opts).method == "rousiers"  # rough: the measurements
     c = choose(_scene(roughness=0.0), opts)
     assert (c.method, c.options) == ("specular", {"internal_bounces": 2})  # specular's best
-    c = choose(_scene(roughness=0.0), AutoOptions(auto_tolerance=0.2, auto_table=str(path)))
+    c = choose(_scene(roughness=0.0), AutoOptions(auto_tolerance=0.2, auto_table=str(path),
+                                                  auto_blend=False))
     assert (c.method, c.options) == ("specular", {})  # the fastest within the tolerance
+    # Blended: smooth glass is specular's alone; the blend's kernel reaches the rough
+    # measurements only from alpha ~0.01 on.
+    assert choose(_scene(roughness=0.0), AutoOptions(auto_table=str(path))).blend == (
+        ("specular", {"internal_bounces": 2}, 1.0),)
     # no specular variant measured on the neighbours: the rule steps aside
     for row in t["scenes"]:
         row["variants"] = [v for v in row["variants"] if v["method"] != "specular"]
@@ -124,9 +137,100 @@ def test_mixed_choices_in_one_batch_keep_their_order(tmp_path):
     assert out.passes["lobe_sigma"][1].abs().sum() == 0  # a rousiers-only pass: zeros
 
 
+def _weights(c) -> dict:
+    return {(m, json.dumps(o, sort_keys=True)): w for m, o, w in c.blend}
+
+
+@pytest.mark.parametrize("mesh", ["sphere", "suzanne"])
+def test_the_blend_changes_continuously_with_roughness_and_ior(mesh):
+    """With the shipped table, a fine sweep of roughness (and of IOR) moves the blend's
+    weights by little per step, while the single pick (auto_blend: false) switches outright
+    somewhere along the same sweep (the jumps the blend removes).
+
+    Bound: a step of alpha moves the box kernel by du <= d alpha / BLEND_A0 (0.1 for 0.01),
+    so a share changes by at most du / (2 * half-width) plus one point; letting go of
+    BLEND_MIN of each share and renormalizing scales that by 1 / (1 - n BLEND_MIN) for n
+    variants in the blend (n = 3: 1.8): 0.24 per 0.01 of alpha. An IOR step of 0.01 moves
+    the kernel by a twentieth of its width: (0.05 + 1 / 16) * 1.8 = 0.20 at most; a single
+    pick's switch is 1."""
+    from torchrefract.methods.auto import (BLEND_A0, BLEND_HALF_WIDTH, BLEND_MIN,
+                                           BLEND_POINTS)
+
+    amp = 1 / (1 - 3 * BLEND_MIN)
+    alpha_bound = (0.01 / BLEND_A0 / (2 * BLEND_HALF_WIDTH[0]) + 1 / BLEND_POINTS[0]) * amp
+    ior_bound = (0.01 / (2 * BLEND_HALF_WIDTH[1]) + 1 / BLEND_POINTS[1]) * amp
+    path = str(ASSETS / "meshes" / f"{mesh}.ply")
+
+    def sweep(blend, **mats):
+        out = []
+        for m in [dict(zip(mats, v)) for v in zip(*mats.values())]:
+            c = choose(_scene(mesh=path, roughness=m.get("roughness", 0.1)).replace(
+                material=tr.Material(ior=m.get("ior", 1.5), roughness=m.get("roughness", 0.1))),
+                AutoOptions(auto_blend=blend))
+            w = _weights(c)
+            assert abs(sum(w.values()) - 1) < 1e-9 and min(w.values()) > 0
+            out.append(w)
+        return out
+
+    def largest_change(ws):
+        return max(max(abs(a.get(k, 0) - b.get(k, 0)) for k in {*a, *b})
+                   for a, b in zip(ws, ws[1:]))
+
+    alphas = [round(0.01 * i, 2) for i in range(41)]
+    assert largest_change(sweep(True, roughness=alphas)) <= alpha_bound
+    assert largest_change(sweep(False, roughness=alphas)) == 1.0
+    iors = [round(1.3 + 0.01 * i, 2) for i in range(111)]
+    for a in (0.0, 0.1):
+        assert largest_change(sweep(True, ior=iors, roughness=[a] * len(iors))) <= ior_bound
+
+
+def test_a_blended_render_is_the_weighted_sum_of_its_variants(tmp_path):
+    """The alpha-0.05 sphere sits between specular (smooth) and rousiers (rough) in the
+    shipped table: auto renders both and adds them with their weights; the result's scene
+    carries the largest share, ``blends`` and the exported sidecar every share."""
+    from torchrefract.export import save_render
+
+    scene = _scene(roughness=0.05)
+    c = choose(scene)
+    assert len(c.blend) >= 2, c.blend
+    out = tr.render([scene])
+    parts = [tr.render([scene.replace(method=m, method_options=o)]) for m, o, _ in c.blend]
+    expect = sum(w * p.radiance for (_, _, w), p in zip(c.blend, parts))
+    assert torch.allclose(out.radiance, expect, rtol=1e-5, atol=1e-6)
+    assert torch.equal(out.coverage, parts[0].coverage)
+    assert (out.scenes[0].method, out.scenes[0].method_options) == (c.method, c.options)
+    assert out.blends == (c.blend,)
+    meta = json.loads(save_render(out, 0, tmp_path)["json"].read_text())
+    assert [(b["method"], b["options"]) for b in meta["auto_blend"]] == [
+        (m, o) for m, o, _ in c.blend]
+    assert abs(sum(b["weight"] for b in meta["auto_blend"]) - 1) < 1e-9
+    # auto_blend: false renders the largest share's variant alone
+    single = tr.render([scene.replace(method_options={"auto_blend": False})])
+    assert len(single.blends[0]) == 1
+
+
+def test_without_measurements_a_rule_stands_in_blended(tmp_path):
+    """An empty table: specular below SMOOTH_ALPHA, rousiers above, the switch blended over
+    alpha ~0-0.1 (a mirror is specular's alone, alpha 0.2 rousiers' alone)."""
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"version": 1, "scenes": []}))
+    opts = AutoOptions(auto_table=str(empty))
+    mix = {a: {m: w for m, _, w in choose(_scene(roughness=a), opts).blend}
+           for a in (0.0, 0.02, 0.04, 0.06, 0.2)}
+    assert mix[0.0] == {"specular": 1.0} and mix[0.2] == {"rousiers": 1.0}
+    assert 0 < mix[0.04].get("rousiers", 0) < 1
+    rough = [mix[a].get("rousiers", 0.0) for a in (0.0, 0.02, 0.04, 0.06, 0.2)]
+    assert rough == sorted(rough) and max(b - a for a, b in zip(rough, rough[1:])) < 0.6
+    crisp = AutoOptions(auto_table=str(empty), auto_blend=False)
+    assert choose(_scene(roughness=0.03), crisp).blend == (("specular", {}, 1.0),)
+    assert choose(_scene(roughness=0.05), crisp).blend == (("rousiers", {}, 1.0),)
+
+
 def test_bad_auto_options_are_named(tmp_path):
     with pytest.raises(ConfigError, match="auto_tolerance"):
         tr.render([_scene(auto_tolerance=-1)])
+    with pytest.raises(ConfigError, match="auto_blend.*'yes'"):
+        tr.render([_scene(auto_blend="yes")])
     with pytest.raises(ConfigError, match="auto_table"):
         tr.render([_scene(auto_table=str(tmp_path / "missing.json"))])
     bad = tmp_path / "bad.json"

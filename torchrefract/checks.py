@@ -57,6 +57,13 @@ def check_vector(value: Any, key: str, source: str | None = None, *, length: int
                  for i, v in enumerate(value))
 
 
+def check_bool(value: Any, key: str, source: str | None = None) -> bool:
+    """Return ``value`` if it is a boolean (YAML ``true`` / ``false``)."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where(source, key)}: expected true or false, got {value!r}")
+    return value
+
+
 def check_choice(value: Any, key: str, choices: Sequence[str], source: str | None = None) -> str:
     loc = where(source, key)
     if not isinstance(value, str) or value not in choices:

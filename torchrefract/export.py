@@ -42,7 +42,7 @@ def metadata(result: RenderResult, i: int) -> dict:
     """How scene ``i`` was rendered (Kubric-style ``metadata.json``)."""
     from . import __version__  # noqa: PLC0415
 
-    return {
+    meta = {
         "torchrefract_version": __version__,
         "scene": result.scenes[i].to_dict(),
         "batch_size": int(result.radiance.shape[0]),
@@ -51,6 +51,10 @@ def metadata(result: RenderResult, i: int) -> dict:
         "torch_threads": torch.get_num_threads(),
         "machine": platform.platform(),
     }
+    if result.blends is not None:  # auto: every variant in the image, with its weight
+        meta["auto_blend"] = [{"method": m, "options": o, "weight": w}
+                              for m, o, w in result.blends[i]]
+    return meta
 
 
 def _write_text_atomic(path: Path, text: str) -> None:

@@ -10,6 +10,8 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
+
 import functools
 import time
 import warnings
@@ -43,6 +45,8 @@ class RenderResult:
         timings: seconds per stage for the whole batch: ``load`` (meshes, maps), ``gbuffer``,
             ``shading`` (the method, which includes ``march``, the ray marches, and ``mips``,
             the back layer's mip pyramids; :mod:`torchrefract.stages`), ``total``.
+        blends: ``auto`` only: per scene the (method, options, weight) of every variant
+            whose image went into it (weights add up to 1; passes are blended alike).
     """
 
     radiance: torch.Tensor
@@ -50,6 +54,7 @@ class RenderResult:
     passes: dict[str, torch.Tensor]
     scenes: tuple[Scene, ...]
     timings: dict[str, float] = field(default_factory=dict)
+    blends: tuple[tuple[tuple[str, dict, float], ...], ...] | None = None
 
 
 def _box(x: torch.Tensor, n: int) -> torch.Tensor:
@@ -249,46 +254,56 @@ def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResu
 
 
 def _render_auto(scenes: list[Scene], options) -> RenderResult:
-    """``auto``: pick a method per scene (:func:`torchrefract.methods.auto.choose`), render
-    the scenes that share a choice together, and put the batch back in order. The result's
-    scenes carry the chosen method and options."""
+    """``auto``: pick the variants of each scene (:func:`torchrefract.methods.auto.choose`:
+    one, or a weighted blend near the choice's thresholds), render the scenes that share a
+    variant together, and sum each scene's images with their weights in batch order. The
+    result's scenes carry the largest share's method and options; ``blends`` all of them."""
     import json  # noqa: PLC0415
 
     from .methods.auto import choose  # noqa: PLC0415
 
     t0 = time.perf_counter()
     picked = [choose(s, options) for s in scenes]
-    groups: dict[tuple[str, str], list[int]] = {}
+    groups: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for i, c in enumerate(picked):
-        groups.setdefault((c.method, json.dumps(c.options, sort_keys=True)), []).append(i)
+        for method, opts, w in c.blend:
+            groups.setdefault((method, json.dumps(opts, sort_keys=True)), []).append((i, w))
     parts = []
-    for (method, opts), idx in groups.items():
+    for (method, opts), members in groups.items():
+        idx = [i for i, _ in members]
         sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
-        parts.append((idx, render(sub)))
+        parts.append((idx, render(sub), [w for _, w in members]))
     out = _merge(len(scenes), parts)
     out.timings["total"] = time.perf_counter() - t0
-    return out
+    return dataclasses.replace(
+        out, scenes=tuple(scenes[i].replace(method=c.method, method_options=c.options)
+                          for i, c in enumerate(picked)),
+        blends=tuple(c.blend for c in picked))
 
 
-def _merge(b: int, parts: list[tuple[list[int], RenderResult]]) -> RenderResult:
-    """One RenderResult of B scenes from parts rendered apart, each with the batch positions
-    of its scenes (``auto``'s method groups, a large batch's chunks). A pass that only some
-    parts have (another method's, or a part without object pixels) is zero elsewhere;
-    timings are summed."""
+def _merge(b: int, parts: list[tuple]) -> RenderResult:
+    """One RenderResult of B scenes from parts rendered apart: ``(idx, result)``, the batch
+    positions of the part's scenes (a large batch's chunks), or ``(idx, result, weights)``,
+    each image added to its position's with its weight (``auto``'s variants). A pass that
+    only some parts have (another method's, or a part without object pixels) is zero
+    elsewhere (it adds 0); the scenes are the last part's at each position; timings are
+    summed."""
     first = parts[0][1]
     radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype)
     coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype)
     passes: dict[str, torch.Tensor] = {}
     out_scenes: list[Scene | None] = [None] * b
     timings: dict[str, float] = {}
-    for idx, res in parts:
+    for idx, res, *weights in parts:
         sel = torch.tensor(idx)
-        radiance[sel] = res.radiance
-        coverage[sel] = res.coverage
+        # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
+        w = torch.tensor(weights[0] if weights else [1.0] * len(idx))[:, None, None, None]
+        radiance.index_add_(0, sel, w * res.radiance)
+        coverage[sel] = res.coverage  # the geometry's: the same for every variant
         for k, v in res.passes.items():
             if k not in passes:
                 passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype)
-            passes[k][sel] = v
+            passes[k].index_add_(0, sel, w.to(v.dtype) * v)
         for j, i in enumerate(idx):
             out_scenes[i] = res.scenes[j]
         for k, v in res.timings.items():
