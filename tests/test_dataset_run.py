@@ -326,6 +326,27 @@ def test_shipped_demo_sweep_renders(tmp_path):
     assert np.allclose(ch["roughness"][ch["A"] == 1], 0.05)
 
 
+def test_auto_records_what_it_rendered(tmp_path):
+    """method auto in a sweep: each sample's manifest line (and its record in a shard)
+    names the variants whose images it is, with their weights."""
+    d = small_sweep()
+    d["base"]["method"] = "auto"
+    d["sweep"] = {"material": {"roughness": [0.0, 0.05, 0.3]}}
+    cfg = write_config(tmp_path / "c.yaml", d)
+    assert run_sweep(cfg, tmp_path / "o", quiet=True).ok == 3
+    lines = _manifest(tmp_path / "o")
+    assert all(e["method"] == "auto" for e in lines)
+    for e in lines:
+        assert abs(sum(b["weight"] for b in e["auto_blend"]) - 1) < 1e-9
+    assert lines[0]["auto_blend"][0]["method"] == "specular"  # smooth: no cone
+    assert lines[2]["auto_blend"][0]["method"] == "rousiers"
+    run_sweep(cfg, tmp_path / "w", fmt="webdataset", quiet=True)
+    with tarfile.open(next((tmp_path / "w").glob("*.tar"))) as tar:
+        meta = [json.loads(tar.extractfile(m).read()) for m in tar.getmembers()
+                if m.name.endswith(".json")]
+    assert [m["auto_blend"] for m in meta] == [e["auto_blend"] for e in lines]
+
+
 def test_batches_keep_the_samples_of_one_view_together():
     """_plan_batches puts the samples of one view (mesh, transform, camera) side by side
     (views in first-seen order, samples in index order within a view), so a batch's

@@ -202,6 +202,9 @@ def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None
                 rec["timings"]["render_s"] = res.timings["total"] / len(ks)
                 rec["timings"]["batch"] = dict(res.timings)
                 rec["channels"] = channel_layout(res)
+                if res.blends is not None:  # auto: the variants in the image, weighted
+                    rec["auto_blend"] = [{"method": m, "options": o, "weight": w}
+                                         for m, o, w in res.blends[j]]
                 if encode:
                     t0 = time.perf_counter()
                     try:
@@ -961,6 +964,8 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
             records.append(dict(meta, status="failed", reason=res["reason"],
                                 timings=timings, worker=run))
             continue
+        if "auto_blend" in res:
+            meta["auto_blend"] = res["auto_blend"]
         rec = dict(meta, channels=res["channels"], status="ok", reason=None,
                    sha256=res["sha256"],
                    bytes={"exr": len(res["exr"]), "png": len(res["png"])},
