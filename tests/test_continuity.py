@@ -55,9 +55,10 @@ this non-convex mesh), and 0.134 once wide lobes leave in closed form
 alpha when it picked one per scene (sphere 0.1 -> 0.125: an L1 step of 0.018 between
 neighbours of ~0.005; suzanne 0 -> 0.025: 0.033, from specular with 1 bounce to rousiers with
 2); it blends its picks around the scene's roughness and IOR now (methods/auto.py, 6.):
-suzanne's largest 1% step 0.132 at 0 -> 0.025, the sphere's 0.060. (IOR sweeps get no per-pixel bound: near the silhouette the exit
-direction's derivative in IOR diverges at grazing incidence and TIR edges cross pixels;
-exact specular refraction reaches 0.53 per 0.05 step there.)
+suzanne's largest 1% step 0.132 at 0 -> 0.025, the sphere's 0.060. (IOR sweeps get no
+per-pixel bound: near the silhouette the exit direction's derivative in IOR diverges at
+grazing incidence and TIR edges cross pixels; exact specular refraction reaches 0.53 per
+0.05 step there.)
 """
 
 from __future__ import annotations

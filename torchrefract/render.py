@@ -11,7 +11,6 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-
 import functools
 import time
 import warnings
@@ -40,7 +39,8 @@ class RenderResult:
         passes: name -> (B, H, W, C) float32: ``depth_front``, ``depth_back`` (camera-space
             depth), ``normal_front``, ``normal_back`` (world, unit before filtering),
             ``thickness`` (distance between the layers along the view ray), ``roughness`` and
-            ``ior`` (the material on object pixels), and the method's own buffers. Passes are averaged over the covered sub-pixels; 0 where uncovered.
+            ``ior`` (the material on object pixels), and the method's own buffers. Passes
+            are averaged over the covered sub-pixels; 0 where uncovered.
         scenes: the B scenes, as rendered.
         timings: seconds per stage for the whole batch: ``load`` (meshes, maps), ``gbuffer``,
             ``shading`` (the method, which includes ``march``, the ray marches, and ``mips``,

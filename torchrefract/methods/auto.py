@@ -41,10 +41,10 @@ Mitsuba truth (object pixels). For a new scene:
    variants' images (each rendered in full: a blend of two costs both). As the scene's
    roughness or IOR moves, the shares move by single kernel points (1/512 each), so a
    switch is spread over the kernel's width in small steps instead of one jump; away from
-   thresholds one variant has all the kernel and nothing is blended. A mirror (alpha 0) stays specular's
-   alone: the kernel's part above SMOOTH_ALPHA is under BLEND_MIN. Cost, on a uniform
-   roughness sweep 0-1 (41 scenes, predicted from the table's times): +25% on the sphere,
-   +10% on suzanne; ``auto_blend: false`` gives the single picks.
+   thresholds one variant has all the kernel and nothing is blended. A mirror (alpha 0)
+   stays specular's alone: the kernel's part above SMOOTH_ALPHA is under BLEND_MIN. Cost,
+   on a uniform roughness sweep 0-1 (41 scenes, predicted from the table's times): +25% on
+   the sphere, +10% on suzanne; ``auto_blend: false`` gives the single picks.
 
 Without a table (or with an empty one) a rule stands in for 1.-4.: alpha < SMOOTH_ALPHA ->
 ``specular``, else ``rousiers`` (blended alike). The largest share's method and options are
