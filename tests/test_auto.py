@@ -187,7 +187,7 @@ def test_the_blend_changes_continuously_with_roughness_and_ior(mesh):
 def test_a_blended_render_is_the_weighted_sum_of_its_variants(tmp_path):
     """The alpha-0.05 sphere sits between specular (smooth) and rousiers (rough) in the
     shipped table: auto renders both and adds them with their weights; the result's scene
-    carries the largest share, ``blends`` and the exported sidecar every share."""
+    stays auto, ``blends`` and the exported sidecar carry every share."""
     from torchrefract.export import save_render
 
     scene = _scene(roughness=0.05)
@@ -198,15 +198,17 @@ def test_a_blended_render_is_the_weighted_sum_of_its_variants(tmp_path):
     expect = sum(w * p.radiance for (_, _, w), p in zip(c.blend, parts))
     assert torch.allclose(out.radiance, expect, rtol=1e-5, atol=1e-6)
     assert torch.equal(out.coverage, parts[0].coverage)
-    assert (out.scenes[0].method, out.scenes[0].method_options) == (c.method, c.options)
+    assert out.scenes[0] == scene  # a blend is recorded as auto: it renders the same again
+    assert torch.equal(tr.render([out.scenes[0]]).radiance, out.radiance)
     assert out.blends == (c.blend,)
     meta = json.loads(save_render(out, 0, tmp_path)["json"].read_text())
     assert [(b["method"], b["options"]) for b in meta["auto_blend"]] == [
         (m, o) for m, o, _ in c.blend]
     assert abs(sum(b["weight"] for b in meta["auto_blend"]) - 1) < 1e-9
-    # auto_blend: false renders the largest share's variant alone
+    # auto_blend: false renders one variant, recorded as the scene's method
     single = tr.render([scene.replace(method_options={"auto_blend": False})])
     assert len(single.blends[0]) == 1
+    assert single.scenes[0].method == single.blends[0][0][0] != "auto"
 
 
 def test_without_measurements_a_rule_stands_in_blended(tmp_path):

@@ -257,7 +257,8 @@ def _render_auto(scenes: list[Scene], options) -> RenderResult:
     """``auto``: pick the variants of each scene (:func:`torchrefract.methods.auto.choose`:
     one, or a weighted blend near the choice's thresholds), render the scenes that share a
     variant together, and sum each scene's images with their weights in batch order. The
-    result's scenes carry the largest share's method and options; ``blends`` all of them."""
+    result's scenes carry the picked method and options (a blend's: ``auto`` itself);
+    ``blends`` every variant and weight."""
     import json  # noqa: PLC0415
 
     from .methods.auto import choose  # noqa: PLC0415
@@ -275,9 +276,11 @@ def _render_auto(scenes: list[Scene], options) -> RenderResult:
         parts.append((idx, render(sub), [w for _, w in members]))
     out = _merge(len(scenes), parts)
     out.timings["total"] = time.perf_counter() - t0
+    # A single pick is recorded as the scene (re-rendering it gives the same image); a blend
+    # keeps the auto scene (re-rendering it with the same table gives the same image).
     return dataclasses.replace(
         out, scenes=tuple(scenes[i].replace(method=c.method, method_options=c.options)
-                          for i, c in enumerate(picked)),
+                          if len(c.blend) == 1 else scenes[i] for i, c in enumerate(picked)),
         blends=tuple(c.blend for c in picked))
 
 

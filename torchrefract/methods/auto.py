@@ -47,9 +47,10 @@ Mitsuba truth (object pixels). For a new scene:
    the sphere, +10% on suzanne; ``auto_blend: false`` gives the single picks.
 
 Without a table (or with an empty one) a rule stands in for 1.-4.: alpha < SMOOTH_ALPHA ->
-``specular``, else ``rousiers`` (blended alike). The largest share's method and options are
-written into the result's scenes, every share into ``RenderResult.blends`` (and both into
-the JSON sidecar of every exported frame).
+``specular``, else ``rousiers`` (blended alike). A single pick's method and options are
+written into the result's scene (a blend keeps ``auto`` there: re-rendering either gives the
+same image), every share into ``RenderResult.blends`` (and both into the JSON sidecar of
+every exported frame and a sweep's manifest).
 """
 
 from __future__ import annotations
@@ -123,7 +124,7 @@ class Choice:
     neighbours: tuple[str, ...]
     blend: tuple[tuple[str, dict, float], ...] = ()
     """(method, options, weight) of every variant rendered, weights adding up to 1, the
-    largest first (``method`` and ``options`` are its); one entry without blending."""
+    largest first (``method`` and ``options`` are its); one entry away from thresholds."""
 
 
 def features(scene: Scene) -> dict[str, float]:
