@@ -1,7 +1,8 @@
 """Stability where methods fail (issue #4, part 5: the stability suite), every method.
 
 Every method (the internal-bounce variants of ``specular`` and ``rousiers``, ``auto``, and
-Mitsuba's ``reference`` at 4 spp for the extreme, view and mesh cases) must give
+Mitsuba's ``reference``: 4 spp for the extreme, view and mesh cases, 256 spp for the smooth
+furnace; it is the rough furnace's truth) must give
 finite, non-negative output bounded by the brightest environment texel times a small factor
 for: roughness in {0, 1e-4, 0.5, 1} x IOR in {1.0, 1.0001, 1.33, 2.4, 4.0}, grazing views, an
 object partly outside the frame, a camera very close, tiny and huge object scales, a
@@ -232,11 +233,15 @@ def _furnace_scene(white, mesh, roughness):
     return _scene(mesh=MESHES[mesh], env=white, cam=cam, ior=1.5, roughness=roughness)
 
 
-@pytest.mark.parametrize("m, mesh", params([(m, mesh) for mesh in MESHES
-                                            for m in METHODS + AUTO], SMOOTH_FURNACE_FAILS))
+@pytest.mark.parametrize("m, mesh", params(
+    [(m, mesh) for mesh in MESHES for m in METHODS + AUTO + [("reference", {"spp": 256})]],
+    SMOOTH_FURNACE_FAILS))
 def test_white_furnace_smooth(m, mesh, white):
     """Smooth glass in a uniform environment of radiance 1 conserves energy: every fully
-    covered object pixel in [0.9, 1.05] (Mitsuba: 1.000 on the sphere, 0.9996 on suzanne)."""
+    covered object pixel in [0.9, 1.05] (Mitsuba: 1.000 on the sphere, 0.9996 on suzanne;
+    its own pixels at 256 spp are within [0.946, 1.029], at 64 spp up to 1.059 from noise)."""
+    if m[0] == "reference":
+        pytest.importorskip("mitsuba", reason="the reference extra is missing")
     out = render([_furnace_scene(white, mesh, 0.0)], *m)
     vals = out.radiance[0][out.coverage[0] > 0.99]
     assert vals.numel() > 300
