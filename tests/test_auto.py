@@ -164,8 +164,8 @@ def test_the_blend_changes_continuously_with_roughness_and_ior(mesh):
     def sweep(blend, **mats):
         out = []
         for m in [dict(zip(mats, v)) for v in zip(*mats.values())]:
-            c = choose(_scene(mesh=path, roughness=m.get("roughness", 0.1)).replace(
-                material=tr.Material(ior=m.get("ior", 1.5), roughness=m.get("roughness", 0.1))),
+            c = choose(_scene(mesh=path).replace(material=tr.Material(
+                ior=m.get("ior", 1.5), roughness=m.get("roughness", 0.1))),
                 AutoOptions(auto_blend=blend))
             w = _weights(c)
             assert abs(sum(w.values()) - 1) < 1e-9 and min(w.values()) > 0

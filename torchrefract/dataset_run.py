@@ -203,8 +203,8 @@ def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None
                 rec["timings"]["batch"] = dict(res.timings)
                 rec["channels"] = channel_layout(res)
                 if res.blends is not None:  # auto: the variants in the image, weighted
-                    rec["auto_blend"] = [{"method": m, "options": o, "weight": w}
-                                         for m, o, w in res.blends[j]]
+                    from .export import blend_records  # noqa: PLC0415
+                    rec["auto_blend"] = blend_records(res, j)
                 if encode:
                     t0 = time.perf_counter()
                     try:

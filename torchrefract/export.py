@@ -51,10 +51,14 @@ def metadata(result: RenderResult, i: int) -> dict:
         "torch_threads": torch.get_num_threads(),
         "machine": platform.platform(),
     }
-    if result.blends is not None:  # auto: every variant in the image, with its weight
-        meta["auto_blend"] = [{"method": m, "options": o, "weight": w}
-                              for m, o, w in result.blends[i]]
+    if result.blends is not None:
+        meta["auto_blend"] = blend_records(result, i)
     return meta
+
+
+def blend_records(result: RenderResult, i: int) -> list[dict]:
+    """``auto``: every variant in scene ``i``'s image, with its weight (JSON-ready)."""
+    return [{"method": m, "options": o, "weight": w} for m, o, w in result.blends[i]]
 
 
 def _write_text_atomic(path: Path, text: str) -> None:

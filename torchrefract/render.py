@@ -185,7 +185,7 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     placed = []
     for p in parts:
         placed.append((list(range(start, start + len(p))),
-                       _render_pass(p, method, shade, options)))
+                       _render_pass(p, method, shade, options), None))
         start += len(p)
     return _merge(len(scenes), placed)
 
@@ -284,23 +284,24 @@ def _render_auto(scenes: list[Scene], options) -> RenderResult:
         blends=tuple(c.blend for c in picked))
 
 
-def _merge(b: int, parts: list[tuple]) -> RenderResult:
-    """One RenderResult of B scenes from parts rendered apart: ``(idx, result)``, the batch
-    positions of the part's scenes (a large batch's chunks), or ``(idx, result, weights)``,
-    each image added to its position's with its weight (``auto``'s variants). A pass that
-    only some parts have (another method's, or a part without object pixels) is zero
-    elsewhere (it adds 0); the scenes are the last part's at each position; timings are
-    summed."""
+def _merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]]
+           ) -> RenderResult:
+    """One RenderResult of B scenes from parts rendered apart: ``(idx, result, weights)``,
+    the batch positions of the part's scenes, each image added to its position's with its
+    weight (``auto``'s variants), or copied there with ``weights`` None (a large batch's
+    chunks). A pass that only some parts have (another method's, or a part without object
+    pixels) is zero elsewhere (it adds 0); the scenes are the last part's at each position;
+    timings are summed."""
     first = parts[0][1]
     radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype)
     coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype)
     passes: dict[str, torch.Tensor] = {}
     out_scenes: list[Scene | None] = [None] * b
     timings: dict[str, float] = {}
-    for idx, res, *weights in parts:
+    for idx, res, weights in parts:
         sel = torch.tensor(idx)
         # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
-        w = torch.tensor(weights[0] if weights else [1.0] * len(idx))[:, None, None, None]
+        w = torch.tensor(weights or [1.0] * len(idx))[:, None, None, None]
         radiance.index_add_(0, sel, w * res.radiance)
         coverage[sel] = res.coverage  # the geometry's: the same for every variant
         for k, v in res.passes.items():

@@ -210,12 +210,12 @@ def _key(v: dict) -> tuple[str, str]:
     return v["method"], json.dumps(v.get("options", {}), sort_keys=True)
 
 
-def _crisp(t: _Arrays, f: np.ndarray, tolerance: float, full: bool = False
+def _crisp(t: _Arrays, f: np.ndarray, tolerance: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The rule of the module docstring (1.-4.) at P feature points ``f`` (P, 3: log10 alpha,
     thinness, IOR): per point the picked variant's column (-1: no variant measured on both
-    neighbours), its predicted FLIP and time (``full``: every variant's, (P, V)), and the
-    (P, 2) neighbour rows."""
+    neighbours), every variant's predicted FLIP and time (P, V), and the (P, 2) neighbour
+    rows."""
     x = f / np.array(list(SCALES.values()))
     dist = np.sqrt(((x[:, None, :] - t.x[None]) ** 2).sum(-1))  # (P, S)
     near = np.argsort(dist, axis=1, kind="stable")[:, :2]  # (P, k)
@@ -231,11 +231,7 @@ def _crisp(t: _Arrays, f: np.ndarray, tolerance: float, full: bool = False
     ok &= pf <= best + tolerance
     fastest = np.where(ok, pm, np.inf).min(1, keepdims=True)
     pick = np.where(ok & (pm == fastest), pf, np.inf).argmin(1)  # ties: the more accurate
-    pick = np.where(ok.any(1), pick, -1)
-    if full:
-        return pick, pf, pm, near
-    rows = np.arange(len(f))
-    return pick, pf[rows, pick], pm[rows, pick], near
+    return np.where(ok.any(1), pick, -1), pf, pm, near
 
 
 def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
@@ -250,15 +246,15 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
         blend = _shares(keys)
         return Choice(blend[0][0], blend[0][1], None, None, (), blend)
     t = _arrays(table)
-    pick, _, _, _ = _crisp(t, pts, options.auto_tolerance)
+    # the kernel's points, and the scene's own (last row: the predictions quoted)
+    pick, pf, pm, near = _crisp(t, np.concatenate([pts, centre]), options.auto_tolerance)
     if (pick < 0).any():
         raise ConfigError("auto table: the nearest scenes share no measured variant")
-    blend = _shares([t.keys[i] for i in pick])
-    _, pf, pm, near = _crisp(t, centre, options.auto_tolerance, full=True)
-    cols = [t.keys.index((m, json.dumps(o, sort_keys=True))) for m, o, _ in blend]
+    blend = _shares([t.keys[i] for i in pick[:len(pts)]])
+    cols = [t.keys.index(_key({"method": m, "options": o})) for m, o, _ in blend]
     w = np.array([b[2] for b in blend])
-    return Choice(blend[0][0], blend[0][1], float((w * pf[0, cols]).sum()),
-                  float(pm[0, cols].sum()), tuple(t.names[i] for i in near[0]), blend)
+    return Choice(blend[0][0], blend[0][1], float((w * pf[-1, cols]).sum()),
+                  float(pm[-1, cols].sum()), tuple(t.names[i] for i in near[-1]), blend)
 
 
 def _shares(keys: list[tuple[str, str]]) -> tuple[tuple[str, dict, float], ...]:
