@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 import torchrefract as tr
-from torchrefract.image_files import read_exr, write_exr, write_png
-from torchrefract.metrics import compare
+from torchrefract.output.images import read_exr, write_exr, write_png
+from torchrefract.truth.metrics import compare
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_SCENES = ["sphere_a005", "sphere_a03", "slab_a02", "bunny_a01"]
@@ -33,7 +33,7 @@ DEFAULT_SCENES = ["sphere_a005", "sphere_a03", "slab_a02", "bunny_a01"]
 def truth(scene: tr.Scene, spp: int, max_depth: int, seed: int, cache: Path
           ) -> tuple[np.ndarray, np.ndarray, float]:
     """Mitsuba render (cached by scene name, size, spp, depth, seed)."""
-    from torchrefract.reference import render_reference  # noqa: PLC0415
+    from torchrefract.truth.mitsuba import render_reference  # noqa: PLC0415
 
     c = scene.camera
     path = cache / f"{scene.name}_{c.width}x{c.height}_d{max_depth}_spp{spp}_s{seed}.exr"
@@ -104,7 +104,7 @@ def main() -> None:
             panels.append(img)
             print(f"{scene.name:<14}{m:<13}{met['relmse_object']:>9.4f}"
                   f"{met['flip_object']:>8.3f}{met['ms_per_frame']:>9.0f}")
-        from torchrefract.reference import render_reference  # noqa: PLC0415
+        from torchrefract.truth.mitsuba import render_reference  # noqa: PLC0415
 
         render_reference(scene, spp=1, seed=7)  # warm-up (JIT compilation)
         row["mitsuba"] = {}

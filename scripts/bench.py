@@ -46,6 +46,8 @@ from pathlib import Path
 import torch
 
 import torchrefract as tr
+from torchrefract import heap
+from torchrefract.kernels import compiled, native
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -120,8 +122,8 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
         "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
-        "warmup_s": warmup, "compiled": tr.accel.compile_enabled(),
-        "native": tr.native.available(), "heap_reuse": tr.heap.heap_reuse(),
+        "warmup_s": warmup, "compiled": compiled.compile_enabled(),
+        "native": native.available(), "heap_reuse": heap.heap_reuse(),
     }
 
 

@@ -3,7 +3,7 @@
     .venv/bin/python scripts/build_auto_table.py [outputs/pareto/results.csv]
         [--out torchrefract/tables/auto_v1.json] [--metric flip_object]
 
-For every suite scene in the CSV: its features (``torchrefract.methods.auto.features`` of
+For every suite scene in the CSV: its features (``torchrefract.auto.features`` of
 ``configs/suite/<scene>.yaml``) and, for each of our method variants measured at batch 1
 (``specular``, ``prefiltered``, ``rousiers``, with their options; not Mitsuba, not ``auto``
 itself), the time per frame and the error. The table is small JSON and shipped with the
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import torchrefract as tr
-from torchrefract.methods.auto import DEFAULT_TABLE, features
+from torchrefract.auto import DEFAULT_TABLE, features
 
 ROOT = Path(__file__).resolve().parent.parent
 OURS = ("specular", "prefiltered", "rousiers")
@@ -62,7 +62,7 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
 def leave_one_out(table: dict, tolerance: float = 0.05) -> list[dict]:
     """For every scene of the table, what ``auto`` picks from a table without that scene,
     and how the pick measured there against the most accurate and the fastest variant."""
-    from torchrefract.methods.auto import AutoOptions, choose, load_table  # noqa: PLC0415
+    from torchrefract.auto import AutoOptions, choose, load_table  # noqa: PLC0415
 
     out = []
     for i, row in enumerate(table["scenes"]):

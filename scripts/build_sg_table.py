@@ -6,7 +6,7 @@ Fits both lobes (transmit, reflect) for every (theta_o, eta, alpha) node and bot
     .venv/bin/python scripts/build_sg_table.py [--out torchrefract/tables/sg_table_v1.npz]
                                                [--threads 1] [--device cpu]
 
-The default spec is the one `torchrefract.sgfit.load_sg_table()` expects; the file stores
+The default spec is the one `torchrefract.optics.sgfit.load_sg_table()` expects; the file stores
 its spec and key, so a table built with other settings is never mistaken for it.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from torchrefract import sgfit
+from torchrefract.optics import sgfit
 
 
 def main() -> None:

@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 import torchrefract as tr
-from torchrefract.image_files import write_exr
-from torchrefract.reference import render_reference
+from torchrefract.output.images import write_exr
+from torchrefract.truth.mitsuba import render_reference
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))

@@ -63,7 +63,7 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def _dry_run(cfg, show: int = 5) -> None:
-    from torchrefract.dataset_run import _plan_batches  # noqa: PLC0415
+    from torchrefract.dataset.run import _plan_batches  # noqa: PLC0415
 
     samples = list(cfg.samples())
     batches = _plan_batches(samples, 8)
@@ -85,9 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _args(argv)
     sys.path.insert(0, str(ROOT))  # run from a checkout without installing
     from torchrefract.checks import ConfigError  # noqa: PLC0415
-    from torchrefract.dataset_run import run_sweep  # noqa: PLC0415
+    from torchrefract.dataset.run import run_sweep  # noqa: PLC0415
+    from torchrefract.dataset.sweep import load_sweep  # noqa: PLC0415
     from torchrefract.heap import reuse_here_and_in_workers  # noqa: PLC0415
-    from torchrefract.sweep import load_sweep  # noqa: PLC0415
 
     reuse_here_and_in_workers()  # as `torchrefract sweep` (README, "Heap reuse")
 

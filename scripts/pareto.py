@@ -5,7 +5,7 @@ rendered once (``scripts/accuracy.py``'s ``truth``: full truth at ``max_depth`` 
 seeds, and the floors, converged Mitsuba at ``max_depth`` 3, 4 and 5); then every variant of
 :data:`VARIANTS` is rendered, timed (median of ``--repeats`` after one warm-up render; batch
 > 1 is amortized per frame) and scored against full truth (FLIP of the sRGB previews,
-HDR-FLIP, relMSE, PSNR; whole image and object pixels, ``torchrefract.metrics.compare``).
+HDR-FLIP, relMSE, PSNR; whole image and object pixels, ``torchrefract.truth.metrics.compare``).
 
     .venv/bin/python scripts/pareto.py                  # all suite scenes at their size
     .venv/bin/python scripts/pareto.py --scenes sphere_a03 slab_a02 --size 128
@@ -26,7 +26,7 @@ Heap reuse (``torchrefract.set_heap_reuse``) is on, as in the ``torchrefract`` c
 ``torchrefract.render`` (mesh cache warm,
 G-buffer included). Mitsuba variants render at the output resolution with ``spp`` samples
 per pixel (its own box-filtered pixel sampling replaces the scene's sub-pixel grid) and
-include the coverage pass of ``torchrefract.reference``; ``denoise`` adds Intel Open Image
+include the coverage pass of ``torchrefract.truth.mitsuba``; ``denoise`` adds Intel Open Image
 Denoise. A variant whose options the renderer rejects (``ConfigError``, e.g. an option not
 implemented yet) is skipped with a warning.
 """
@@ -51,7 +51,7 @@ import torch
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
-from torchrefract.metrics import compare, flip_magma
+from torchrefract.truth.metrics import compare, flip_magma
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -101,7 +101,7 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers plane 1x1", "rousiers", {"cone_rays": "plane", SPP: 1}, 1, False),
     ("rousiers plane 1x1 b8", "rousiers", {"cone_rays": "plane", SPP: 1}, 8, False),
     ("rousiers ib2 1x1", "rousiers", {"internal_bounces": 2, SPP: 1}, 1, False),
-    # The compiled march (torchrefract.accel; same images, its start-up is in the warm-up):
+    # The compiled march (torchrefract.kernels.compiled; same images, its start-up is in the warm-up):
     ("rousiers compiled", "rousiers", {COMPILE: True}, 1, False),
     ("rousiers compiled b8", "rousiers", {COMPILE: True}, 8, False),
     ("rousiers plane 1x1 compiled b8", "rousiers", {"cone_rays": "plane", SPP: 1, COMPILE: True},
@@ -333,7 +333,7 @@ def plot_gallery(gallery: dict[str, dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    from torchrefract.image_files import linear_to_srgb8  # noqa: PLC0415
+    from torchrefract.output.images import linear_to_srgb8  # noqa: PLC0415
 
     if not gallery:
         return
@@ -420,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     cache = Path(args.truth_dir)
 
-    from torchrefract.reference import choose_variant  # noqa: PLC0415
+    from torchrefract.truth.mitsuba import choose_variant  # noqa: PLC0415
 
     common = {"truth_spp": truth_spp, "threads": torch.get_num_threads(),
               "machine": machine(), "torch": torch.__version__,

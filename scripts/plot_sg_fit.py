@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrefract import microfacet as mf
-from torchrefract import sgfit
+from torchrefract.optics import microfacet as mf
+from torchrefract.optics import sgfit
 
 ROOT = Path(__file__).resolve().parent.parent
 F64 = torch.float64

@@ -61,8 +61,8 @@ if [[ ! -f "$stamp" ]] || [[ "$(cat "$stamp")" != "$want" ]]; then
   "${PIP[@]}" -e ".[$EXTRAS]"
   echo "$want" > "$stamp"
 fi
-# 5. The native kernels (torchrefract/native.py: march, G-buffer), built now, not in the first
+# 5. The native kernels (torchrefract/kernels/native.py: march, G-buffer), built now, not in the first
 #    render; without a C compiler the renders use the tensor code (same images).
-.venv/bin/python -c "import torchrefract.native as n; n.build()" >/dev/null 2>&1 \
+.venv/bin/python -c "import torchrefract.kernels.native as n; n.build()" >/dev/null 2>&1 \
   || say "note: the native kernels did not build (no C compiler?); the tensor code runs instead"
 say "ready: $(.venv/bin/python -c 'import torch, torchrefract; print("torchrefract", torchrefract.__version__, "torch", torch.__version__)')"

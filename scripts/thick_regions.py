@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 import torchrefract as tr
-from torchrefract.metrics import flip_map, relmse
+from torchrefract.truth.metrics import flip_map, relmse
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))

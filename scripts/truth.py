@@ -6,7 +6,7 @@ floors (converged Mitsuba at ``max_depth`` 3, 4 and 5: what a method modelling 2
 interfaces can do at best) at seed 0. Renders go through ``accuracy.truth`` (the one truth
 renderer and cache, ``outputs/truth/<scene>_<W>x<H>_d<depth>_spp<spp>_s<seed>.exr``); what is
 cached is not rendered again. Then the truth's own noise (seed 1 against seed 0) and each
-floor against full truth (relMSE, FLIP, ...: ``torchrefract.metrics.compare``) are written
+floor against full truth (relMSE, FLIP, ...: ``torchrefract.truth.metrics.compare``) are written
 to ``outputs/truth/noise.json`` (merged with what is there, one entry per scene and size).
 
     nice -n 10 .venv/bin/python scripts/truth.py [configs/suite/x.yaml ...] [--spp 1024]
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import torchrefract as tr
-from torchrefract.metrics import compare
+from torchrefract.truth.metrics import compare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import truth  # noqa: E402  (the one truth renderer and cache)

@@ -47,7 +47,7 @@ def mi_vectorized():
     """Mitsuba 3 in a vectorized (LLVM) variant, for tests that draw millions of BSDF
     samples; skipped where Mitsuba is missing or only ``scalar_rgb`` works."""
     pytest.importorskip("mitsuba")
-    from torchrefract.reference import mitsuba  # noqa: PLC0415
+    from torchrefract.truth.mitsuba import mitsuba  # noqa: PLC0415
 
     try:
         mi = mitsuba()
@@ -80,7 +80,7 @@ def smooth_env_texels(h: int = 64, w: int = 128) -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def smooth_env_exr(tmp_path_factory) -> Path:
-    from torchrefract.image_files import write_exr
+    from torchrefract.output.images import write_exr
 
     img = smooth_env_texels()
     path = tmp_path_factory.mktemp("env") / "smooth.exr"

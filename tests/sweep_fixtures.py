@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-
 from conftest import ASSETS
 
 SPOT = str(ASSETS / "meshes" / "spot.ply")

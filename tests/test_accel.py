@@ -1,4 +1,4 @@
-"""The compiled march (``torchrefract.accel``, torch.compile) gives the eager images exactly,
+"""The compiled march (``torchrefract.kernels.compiled``, torch.compile) gives the eager images exactly,
 and falls back to eager with a warning where compiling fails."""
 
 from __future__ import annotations
@@ -7,11 +7,10 @@ import os
 
 import pytest
 import torch
+from conftest import ASSETS, render_invalid_scene
 
 import torchrefract as tr
-from torchrefract import accel
-
-from conftest import ASSETS, render_invalid_scene
+from torchrefract.kernels import compiled as accel
 
 SUZANNE = str(ASSETS / "meshes" / "suzanne.ply")
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")

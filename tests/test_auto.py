@@ -6,12 +6,11 @@ import json
 
 import pytest
 import torch
+from conftest import ASSETS
 
 import torchrefract as tr
+from torchrefract.auto import AutoOptions, choose, features, load_table
 from torchrefract.checks import ConfigError
-from torchrefract.methods.auto import AutoOptions, choose, features, load_table
-
-from conftest import ASSETS
 
 SPHERE = str(ASSETS / "meshes" / "sphere.ply")
 SLAB = str(ASSETS / "meshes" / "slab.ply")
@@ -153,8 +152,7 @@ def test_the_blend_changes_continuously_with_roughness_and_ior(mesh):
     variants in the blend (n = 3: 1.8): 0.24 per 0.01 of alpha. An IOR step of 0.01 moves
     the kernel by a twentieth of its width: (0.05 + 1 / 16) * 1.8 = 0.20 at most; a single
     pick's switch is 1."""
-    from torchrefract.methods.auto import (BLEND_A0, BLEND_HALF_WIDTH, BLEND_MIN,
-                                           BLEND_POINTS)
+    from torchrefract.auto import BLEND_A0, BLEND_HALF_WIDTH, BLEND_MIN, BLEND_POINTS
 
     amp = 1 / (1 - 3 * BLEND_MIN)
     alpha_bound = (0.01 / BLEND_A0 / (2 * BLEND_HALF_WIDTH[0]) + 1 / BLEND_POINTS[0]) * amp
@@ -188,7 +186,7 @@ def test_a_blended_render_is_the_weighted_sum_of_its_variants(tmp_path):
     """The alpha-0.05 sphere sits between specular (smooth) and rousiers (rough) in the
     shipped table: auto renders both and adds them with their weights; the result's scene
     stays auto, ``blends`` and the exported sidecar carry every share."""
-    from torchrefract.export import save_render
+    from torchrefract.output.export import save_render
 
     scene = _scene(roughness=0.05)
     c = choose(scene)
@@ -247,7 +245,8 @@ def test_shipped_table_covers_the_suite_and_its_picks_render():
     for (the scene's own pixel sampling, batch 1, method options the methods accept), and
     auto renders with it."""
     from conftest import ROOT
-    from torchrefract.methods.auto import DEFAULT_TABLE, load_table
+
+    from torchrefract.auto import DEFAULT_TABLE, load_table
     from torchrefract.render import METHODS
 
     table = load_table(str(DEFAULT_TABLE))

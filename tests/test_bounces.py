@@ -12,13 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.bounces import split_lobe
 from torchrefract.checks import ConfigError
-from torchrefract.image_files import write_exr
-
-from conftest import ASSETS
+from torchrefract.output.images import write_exr
+from torchrefract.shading.bounces import split_lobe
 
 SPHERE = str(ASSETS / "meshes" / "sphere.ply")
 SUZANNE = str(ASSETS / "meshes" / "suzanne.ply")
@@ -100,7 +99,7 @@ def test_tir_heavy_high_ior(method):
     """IOR 2.4 (critical angle 25 deg): most exits are TIR; bounces are followed, the
     output stays finite and bounded by the environment's brightest texel."""
     env = str(ASSETS / "envmaps" / "lebombo.exr")
-    from torchrefract.envmap import load_envmap
+    from torchrefract.lighting.envmap import load_envmap
 
     env_max = float(load_envmap(env).max())
     out = tr.render([_scene(env, mesh=SUZANNE, bounces="auto", ior=2.4, roughness=r)

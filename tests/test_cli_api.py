@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import ASSETS, ROOT
 from PIL import Image
 
 import torchrefract as tr
 from torchrefract.cli import main
-from torchrefract.image_files import read_exr
-
-from conftest import ASSETS, ROOT
+from torchrefract.output.images import read_exr
 
 
 def _small_scene_yaml(tmp_path, name="small", **changes):

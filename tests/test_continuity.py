@@ -76,12 +76,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
-import torchrefract as tr
-from torchrefract.image_files import write_exr
-
 from conftest import smooth_env_texels
 from test_stability import AUTO, MESHES, METHODS, params, render
+
+import torchrefract as tr
+from torchrefract.output.images import write_exr
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

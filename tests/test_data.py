@@ -9,15 +9,14 @@ import textwrap
 import numpy as np
 import pytest
 import torch
+from conftest import ROOT
+from sweep_fixtures import small_sweep, write_config
 from torch.utils.data import DataLoader
 
 from torchrefract.checks import ConfigError
-from torchrefract.data import RefractDataset, RenderStream, collate, decode_wds
-from torchrefract.dataset_run import run_sweep
-from torchrefract.image_files import read_exr
-
-from conftest import ROOT
-from sweep_fixtures import small_sweep, write_config
+from torchrefract.dataset.loaders import RefractDataset, RenderStream, collate, decode_wds
+from torchrefract.dataset.run import run_sweep
+from torchrefract.output.images import read_exr
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +180,7 @@ def test_forked_worker_after_rendering_raises_instead_of_hanging(cfg_path):
     code = textwrap.dedent(f"""
         import torch, torchrefract as tr
         from torch.utils.data import DataLoader
-        from torchrefract.data import RenderStream
+        from torchrefract.dataset.loaders import RenderStream
         s = RenderStream({str(cfg_path)!r}, batch_size=2)
         next(iter(s))  # the main process now holds an EGL context
         try:

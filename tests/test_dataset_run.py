@@ -15,17 +15,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ROOT
+from sweep_fixtures import SPOT, small_sweep, write_config
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
 from torchrefract.cli import main
-from torchrefract.dataset_run import _Lock, read_manifest, run_sweep
-from torchrefract.export import exr_channels
-from torchrefract.image_files import read_exr, write_exr
-from torchrefract.sweep import load_sweep
-
-from conftest import ROOT
-from sweep_fixtures import SPOT, small_sweep, write_config
+from torchrefract.dataset.run import _Lock, read_manifest, run_sweep
+from torchrefract.dataset.sweep import load_sweep
+from torchrefract.output.export import exr_channels
+from torchrefract.output.images import read_exr, write_exr
 
 CHANNELS = ("R", "G", "B", "A", "depth_front", "depth_back", "normal_front.X",
             "normal_front.Y", "normal_front.Z", "normal_back.X", "normal_back.Z", "thickness",
@@ -352,8 +351,8 @@ def test_batches_keep_the_samples_of_one_view_together():
     (views in first-seen order, samples in index order within a view), so a batch's
     repeated views share one G-buffer; each sample is planned exactly once."""
     import torchrefract as tr
-    from torchrefract.dataset_run import _plan_batches
-    from torchrefract.sweep import Sample
+    from torchrefract.dataset.run import _plan_batches
+    from torchrefract.dataset.sweep import Sample
     base = tr.Scene(mesh="m.ply", envmap=tr.EnvMap(path="e.exr"))
     cams = [tr.Camera(eye=(0.0, 0.0, 4.0 + k)) for k in range(3)]
     # a grid whose camera axis varies fastest: views interleaved

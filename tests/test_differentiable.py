@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.gbuffer import build_gbuffer
-from torchrefract.lighting import Lighting
-from torchrefract.materials import MaterialBatch
-from torchrefract.mesh import load_mesh
+from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.lighting.lights import Lighting
 from torchrefract.methods import METHODS
 from torchrefract.methods.rousiers import RousiersOptions, render_rousiers
-
-from conftest import ASSETS
+from torchrefract.optics.materials import MaterialBatch
 
 
 @pytest.fixture(scope="module")

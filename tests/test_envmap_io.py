@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from torchrefract.checks import ConfigError
-from torchrefract.envmap import direction_to_uv, load_envmap, lookup, validate_texels
-from torchrefract.image_files import read_exr, read_hdr, write_exr, write_hdr
+from torchrefract.lighting.envmap import direction_to_uv, load_envmap, lookup, validate_texels
+from torchrefract.output.images import read_exr, read_hdr, write_exr, write_hdr
 
 
 def uv_to_dir(u, v):
@@ -388,8 +388,8 @@ def test_lookup_keeps_the_padded_map_until_it_changes():
     """envmap.lookup keeps its padded copy of a map between calls; an in-place change of
     the map, or a map that needs gradients, is padded anew (no stale or gradient-less
     reads)."""
-    from torchrefract import envmap
-    from torchrefract.envmap import lookup
+    from torchrefract.lighting import envmap
+    from torchrefract.lighting.envmap import lookup
     tex = torch.rand(8, 16, 3)
     d = torch.randn(200, 3)
     first = lookup(tex, d, 20.0)

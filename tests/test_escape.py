@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract import sgfit
-from torchrefract.bounces import escape_fraction
-from torchrefract.optics import fresnel_dielectric
+from torchrefract.optics import sgfit
+from torchrefract.optics.smooth import fresnel_dielectric
+from torchrefract.shading.bounces import escape_fraction
 
 F64 = torch.float64
 IOR = 1.5

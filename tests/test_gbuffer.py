@@ -1,7 +1,7 @@
 """G-buffers (pyrender id passes + exact torch attributes) against trimesh ray casting.
 
 Reference: for every pixel, the camera ray of SCENE_SPEC.md (built by hand here, not with
-``torchrefract.camera``) is cast with ``trimesh`` (``multiple_hits=True``). The front layer
+``torchrefract.geometry.camera``) is cast with ``trimesh`` (``multiple_hits=True``). The front layer
 is the nearest hit whose face normal faces the camera, the back layer the nearest hit whose
 face normal faces away.
 
@@ -16,19 +16,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
 
-import torchrefract.raster as raster
-from torchrefract.camera import project
-from torchrefract.gbuffer import build_gbuffer
-from torchrefract.mesh import load_mesh
-from torchrefract.scene import Camera, Transform
-
-from pathlib import Path
+import torchrefract.geometry.raster as raster
+from torchrefract.geometry.camera import project
+from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.scene.model import Camera, Transform
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
 EDGE_TOL_PX = 1.0 / 256.0  # sub-pixel precision of the rasterizer's vertex snapping
@@ -428,7 +427,7 @@ def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, mon
         calls.append((id(mesh), cam, back))
         return real_pass(mesh, cam, n, back=back)
 
-    import torchrefract.gbuffer as gbuffer_mod
+    import torchrefract.geometry.gbuffer as gbuffer_mod
     monkeypatch.setattr(gbuffer_mod, "visibility_pass", counting)
     g = build_gbuffer(meshes, cams)
     assert len(calls) == 2 * 3  # three distinct views, two layers each
@@ -467,7 +466,7 @@ def test_cached_pass_scenes_give_the_ids_of_fresh_ones(mesh_paths):
 
 
 def test_pixel_rays_are_cached_but_each_caller_gets_its_own():
-    from torchrefract.camera import pixel_rays
+    from torchrefract.geometry.camera import pixel_rays
     cam = Camera(eye=(0.3, 0.2, 3.0), width=12, height=8, yfov_deg=33.0)
     a = pixel_rays(cam, 2)
     ref = a.clone()

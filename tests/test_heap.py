@@ -9,10 +9,9 @@ import subprocess
 import sys
 
 import pytest
+from conftest import render_invalid_scene
 
 from torchrefract import heap
-
-from conftest import render_invalid_scene
 
 glibc = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
 

@@ -1,11 +1,11 @@
-"""torchrefract.index: take / put_ / where_true give the values (and gradients) of advanced
+"""torchrefract.kernels.index: take / put_ / where_true give the values (and gradients) of advanced
 indexing, which they replace on the hot paths."""
 
 from __future__ import annotations
 
 import torch
 
-from torchrefract.index import put_, take, where_true
+from torchrefract.kernels.index import put_, take, where_true
 
 
 def test_take_and_put_match_advanced_indexing():

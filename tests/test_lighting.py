@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from torchrefract.lighting import sg_light_coverage
+from torchrefract.lighting.lights import sg_light_coverage
 
 
 def _vmf_samples(axis: torch.Tensor, k: float, n: int, gen: torch.Generator) -> torch.Tensor:
@@ -84,7 +84,7 @@ def test_slab_lit_by_a_sphere_light_against_mitsuba():
     from pathlib import Path
 
     import torchrefract as tr
-    from torchrefract.metrics import compare
+    from torchrefract.truth.metrics import compare
 
     root = Path(__file__).resolve().parent.parent
     s = tr.load_scene(root / "configs" / "suite" / "slab_light.yaml")

@@ -5,15 +5,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 import trimesh
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.gbuffer import build_gbuffer
-from torchrefract.march import march_back
-from torchrefract.mesh import load_mesh
-from torchrefract.ndf import build_ndf_mips
-from torchrefract.optics import face_forward, refract
-
-from conftest import ASSETS
+from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.kernels.march import march_back
+from torchrefract.optics.ndf import build_ndf_mips
+from torchrefract.optics.smooth import face_forward, refract
 
 
 def _setup(mesh="spot.ply", size=96):
@@ -82,7 +81,7 @@ def test_given_camera_coordinates_give_the_same_exits():
     """march_back(camera=...) with the coordinates of camera_coordinates(), or with those of
     a combination of directions combined the same way (rousiers' bounding rays), finds the
     exits it finds on its own."""
-    from torchrefract.march import camera_coordinates
+    from torchrefract.kernels.march import camera_coordinates
     _, g, p1, t1, b = _setup("spot.ply", 64)
     own = march_back(g, b, p1, t1, steps=24, refine=3)
     given = march_back(g, b, p1, t1, steps=24, refine=3,
@@ -107,8 +106,8 @@ def test_given_camera_coordinates_give_the_same_exits():
 def test_chunked_march_finds_the_same_exits(monkeypatch):
     """march_back marches more than MARCH_CHUNK rays in chunks; the exits are those of one
     pass, with and without given camera coordinates."""
-    import torchrefract.march as march_mod
-    from torchrefract.march import camera_coordinates
+    import torchrefract.kernels.march as march_mod
+    from torchrefract.kernels.march import camera_coordinates
     _, g, p1, t1, b = _setup("spot.ply", 64)
     whole = march_back(g, b, p1, t1, steps=24, refine=3)
     monkeypatch.setattr(march_mod, "MARCH_CHUNK", 300)

@@ -9,13 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from conftest import ASSETS
 from trimesh.exchange.ply import export_ply
 
 from torchrefract.checks import ConfigError
-from torchrefract.mesh import load_mesh, rotation_matrix, transform_matrix
-from torchrefract.scene import Transform
-
-from conftest import ASSETS
+from torchrefract.geometry.mesh import load_mesh, rotation_matrix, transform_matrix
+from torchrefract.scene.model import Transform
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -255,7 +254,7 @@ def _neighbors_by_loop(adjacency: np.ndarray, num_faces: int) -> np.ndarray:
 
 @pytest.mark.parametrize("name", ["spot.ply", "suzanne.ply", "torus.ply", "vgroove.ply"])
 def test_face_neighbors_match_the_pairs_in_order(name):
-    from torchrefract.mesh import face_neighbors
+    from torchrefract.geometry.mesh import face_neighbors
 
     tm = trimesh.load(str(ASSETS / "meshes" / name), process=False)
     adj = np.asarray(tm.face_adjacency, dtype=np.int64)
@@ -264,7 +263,7 @@ def test_face_neighbors_match_the_pairs_in_order(name):
 
 
 def test_face_neighbors_keep_three_of_a_non_manifold_edge():
-    from torchrefract.mesh import face_neighbors
+    from torchrefract.geometry.mesh import face_neighbors
 
     adj = np.array([[0, 1], [0, 2], [0, 3], [0, 4], [1, 2], [4, 0]])
     got = face_neighbors(adj, 6)

@@ -1,4 +1,4 @@
-"""HDR-FLIP in torchrefract.metrics: FLIP's own exposure rule, the degenerate references that
+"""HDR-FLIP in torchrefract.truth.metrics: FLIP's own exposure rule, the degenerate references that
 make FLIP exit the process, masks, and the ``compare`` / ``torchrefract compare`` outputs."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from torchrefract.cli import main
-from torchrefract.image_files import write_exr
-from torchrefract.metrics import compare, flip_map, hdr_flip_exposures, hdr_flip_map
+from torchrefract.output.images import write_exr
+from torchrefract.truth.metrics import compare, flip_map, hdr_flip_exposures, hdr_flip_map
 
 flip_evaluator = pytest.importorskip("flip_evaluator")
 

@@ -1,4 +1,4 @@
-"""Rough dielectric BSDF (torchrefract.microfacet) against Mitsuba 3's ``roughdielectric``.
+"""Rough dielectric BSDF (torchrefract.optics.microfacet) against Mitsuba 3's ``roughdielectric``.
 
 Mitsuba evaluates in float32; our reference values are float64 evaluations at the very same
 float32 inputs. Agreement is ~1e-5 relative except where the float32 problem itself is
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract import microfacet as mf
+from torchrefract.optics import microfacet as mf
 
 ALPHAS = (0.01, 0.05, 0.3, 0.7, 1.0)
 IORS = (1.5, 1 / 1.5, 1.33, 2.4)
@@ -88,7 +88,7 @@ class MiBSDF:
 @pytest.fixture(scope="module")
 def mi():
     pytest.importorskip("mitsuba")
-    from torchrefract.reference import mitsuba  # noqa: PLC0415
+    from torchrefract.truth.mitsuba import mitsuba  # noqa: PLC0415
 
     try:
         return mitsuba()
@@ -435,7 +435,7 @@ def test_blinn_phong_conversion():
 
 
 def test_fresnel_matches_optics_and_mitsuba_conventions():
-    from torchrefract.optics import fresnel_dielectric
+    from torchrefract.optics.smooth import fresnel_dielectric
 
     c = torch.linspace(0, 1, 101, dtype=F64)
     for eta in (1.5, 1 / 1.5, 2.4):

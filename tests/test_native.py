@@ -1,4 +1,4 @@
-"""The native kernels (``torchrefract.native``: csrc/march.c, csrc/gbuffer.c, csrc/cone.c)
+"""The native kernels (``torchrefract.kernels.native``: csrc/march.c, csrc/gbuffer.c, csrc/cone.c)
 compute what the tensor code computes exactly: the same march exits (so the same images and
 gradients), the same G-buffer layers and the same cone footprints and spreads, on real
 meshes; they fall back to the tensor code with a warning where they cannot be built."""
@@ -12,18 +12,17 @@ import warnings
 
 import pytest
 import torch
+from conftest import ASSETS, render_invalid_scene
 
 import torchrefract as tr
-from torchrefract import native
-from torchrefract.gbuffer import build_gbuffer
-from torchrefract.lighting import Lighting
-from torchrefract.march import camera_planes, march_back, march_inside
-from torchrefract.materials import MaterialBatch
-from torchrefract.mesh import load_mesh
+from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.kernels import native
+from torchrefract.kernels.march import camera_planes, march_back, march_inside
+from torchrefract.lighting.lights import Lighting
 from torchrefract.methods import METHODS
-from torchrefract.optics import face_forward, reflect, refract
-
-from conftest import ASSETS, render_invalid_scene
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.optics.smooth import face_forward, reflect, refract
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 

@@ -7,7 +7,12 @@ import math
 import pytest
 import torch
 
-from torchrefract.ndf import build_ndf_mips, combine_exponents, kappa_from_length, sample_mips
+from torchrefract.optics.ndf import (
+    build_ndf_mips,
+    combine_exponents,
+    kappa_from_length,
+    sample_mips,
+)
 
 
 def _random_layer(b=2, h=13, w=10, seed=0):

@@ -6,13 +6,12 @@ import dataclasses
 
 import pytest
 import torch
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.camera import pixel_rays
-from torchrefract.envmap import load_envmap, lookup
+from torchrefract.geometry.camera import pixel_rays
+from torchrefract.lighting.envmap import load_envmap, lookup
 from torchrefract.methods.prefiltered import blur_sharpness
-
-from conftest import ASSETS
 
 ENV = str(ASSETS / "envmaps" / "studio_small_03.exr")
 
@@ -46,7 +45,7 @@ def test_ior_one_is_invisible_at_any_roughness(sphere_ply):
 def checker_env_exr(tmp_path_factory):
     """A lat-long checkerboard (16 x 32 cells, values 0.2 and 1.8): detail in every
     direction, so any blur lowers the object's contrast."""
-    from torchrefract.image_files import write_exr
+    from torchrefract.output.images import write_exr
 
     v = torch.arange(128)[:, None] // 8
     u = torch.arange(256)[None, :] // 8
@@ -67,7 +66,7 @@ def test_blur_grows_with_roughness_and_stays_bounded(sphere_ply, checker_env_exr
     in; measured on studio_small_03 the object std is 1.20 / 0.91 / 1.30 / 1.52 at alpha
     0.1 / 0.2 / 0.3 / 1.0.)
     """
-    from torchrefract.image_files import write_exr
+    from torchrefract.output.images import write_exr
 
     flat = torch.ones(16, 32).numpy()
     uniform = tmp_path / "uniform.exr"

@@ -19,7 +19,7 @@ import torch
 import torchrefract as tr
 from torchrefract.checks import ConfigError
 from torchrefract.methods.reference import ReferenceOptions, denoise_oidn
-from torchrefract.metrics import relmse
+from torchrefract.truth.metrics import relmse
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "configs" / "suite" / "sphere_a03.yaml"

@@ -8,17 +8,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import ASSETS
 
 import torchrefract as tr
-
-from conftest import ASSETS
 
 pytest.importorskip("mitsuba")
 
 
 @pytest.mark.parametrize("roughness", [0.0, 0.5])
 def test_index_matched_object_is_invisible(roughness):
-    from torchrefract.reference import render_reference
+    from torchrefract.truth.mitsuba import render_reference
 
     s = tr.Scene(mesh=str(ASSETS / "meshes" / "sphere.ply"),
                  envmap=tr.EnvMap(path=str(ASSETS / "envmaps" / "lebombo.exr")),

@@ -1,4 +1,4 @@
-"""Mitsuba 3 ground truth (torchrefract.reference): conventions, conversion, and the
+"""Mitsuba 3 ground truth (torchrefract.truth.mitsuba): conventions, conversion, and the
 ``specular`` method scored against converged path tracing.
 
 (a) The camera and environment-map conventions of SCENE_SPEC.md are checked pixel by pixel
@@ -24,12 +24,12 @@ import torch
 import trimesh
 
 import torchrefract as tr
-from torchrefract.camera import pixel_rays
-from torchrefract.envmap import direction_to_uv, load_envmap, lookup, rotate_y
-from torchrefract.image_files import linear_to_srgb8, write_exr
+from torchrefract.geometry.camera import pixel_rays
+from torchrefract.lighting.envmap import direction_to_uv, load_envmap, lookup, rotate_y
+from torchrefract.output.images import linear_to_srgb8, write_exr
 
 pytest.importorskip("mitsuba")
-reference = pytest.importorskip("torchrefract.reference")
+reference = pytest.importorskip("torchrefract.truth.mitsuba")
 
 ROOT = Path(__file__).resolve().parent.parent
 ENVS = ROOT / "assets" / "envmaps"
@@ -175,8 +175,8 @@ def test_envmap_scalar_variant_subprocess(tiny_env):
     code = (
         "import sys, numpy as np, torchrefract as tr\n"
         "from torchrefract import reference\n"
-        "from torchrefract.envmap import load_envmap, lookup\n"
-        "from torchrefract.camera import pixel_rays\n"
+        "from torchrefract.lighting.envmap import load_envmap, lookup\n"
+        "from torchrefract.geometry.camera import pixel_rays\n"
         "s = tr.Scene(mesh=sys.argv[2], envmap=tr.EnvMap(path=sys.argv[1], rotate_deg=-120,"
         " scale=2.0), camera=tr.Camera(eye=(0, 0, 0), target=(0.2, 0.9, 1), width=20,"
         " height=14, yfov_deg=100))\n"
@@ -225,7 +225,7 @@ def test_dict_follows_spec(tmp_path):
     assert d["envmap"]["type"] == "envmap" and d["envmap"]["scale"] == 1.0
     # The glass mesh carries our world-space vertices and normals, untouched.
     mesh = d["glass"]
-    from torchrefract.mesh import load_mesh
+    from torchrefract.geometry.mesh import load_mesh
 
     md = load_mesh(scene.mesh, scene.transform)
     params = mi.traverse(mesh)
@@ -280,7 +280,7 @@ def test_roughness_map_texture_convention(tmp_path):
     v flip (or with a half-texel shift) the values differ by ~0.1-0.5."""
     import drjit as dr
 
-    from torchrefract.textures import load_roughness_map, sample_uv
+    from torchrefract.optics.textures import load_roughness_map, sample_uv
 
     mi = reference.mitsuba()
     rng = np.random.default_rng(0)
@@ -517,7 +517,7 @@ def test_method_reference_through_render(tmp_path):
     """``method: reference`` renders with Mitsuba through the normal API and CLI outputs."""
     pytest.importorskip("mitsuba")
     import torchrefract as tr
-    from torchrefract.reference import render_reference
+    from torchrefract.truth.mitsuba import render_reference
 
     s = tr.Scene(mesh=str(ROOT / "assets" / "meshes" / "sphere.ply"),
                  envmap=tr.EnvMap(path=str(ROOT / "assets" / "envmaps" / "lebombo.exr")),

@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from conftest import ASSETS
 from PIL import Image
 
 import torchrefract as tr
-from torchrefract.textures import load_roughness_map, sample_uv
-
-from conftest import ASSETS
+from torchrefract.optics.textures import load_roughness_map, sample_uv
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 

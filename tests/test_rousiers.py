@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.camera import pixel_rays
-from torchrefract.envmap import load_envmap, lookup
+from torchrefract.geometry.camera import pixel_rays
+from torchrefract.lighting.envmap import load_envmap, lookup
 from torchrefract.methods.rousiers import RousiersOptions, bounding_angle
-
-from conftest import ASSETS
 
 ENV = str(ASSETS / "envmaps" / "studio_small_03.exr")
 

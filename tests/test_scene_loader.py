@@ -416,8 +416,8 @@ def test_name_key_sets_the_output_stem_and_is_checked(tmp_path):
 
 
 def test_build_gbuffer_rejects_mismatched_cameras(tmp_path):
-    from torchrefract.gbuffer import build_gbuffer
-    from torchrefract.mesh import load_mesh
+    from torchrefract.geometry.gbuffer import build_gbuffer
+    from torchrefract.geometry.mesh import load_mesh
 
     s = load_scene(write(tmp_path, base(tmp_path)))
     m = load_mesh(s.mesh, s.transform)

@@ -1,4 +1,4 @@
-"""SG-pre-convolved environment pyramid (de Rousiers 2012, sec. 4.1): torchrefract.sgenv.
+"""SG-pre-convolved environment pyramid (de Rousiers 2012, sec. 4.1): torchrefract.lighting.sg_pyramid.
 
 The reference is a brute-force convolution on the sphere of the map as the renderer sees it
 (the bilinear interpolant of SCENE_SPEC.md, read with ``envmap.lookup``): a fine midpoint
@@ -16,11 +16,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract import sgenv
 from torchrefract.checks import ConfigError
-from torchrefract.envmap import load_envmap, lookup, rotate_y
-from torchrefract.sgenv import (build_sg_pyramid, clear_sg_cache, sg_lookup_env,
-                                sg_pyramid_for)
+from torchrefract.lighting import sg_pyramid as sgenv
+from torchrefract.lighting.envmap import load_envmap, lookup, rotate_y
+from torchrefract.lighting.sg_pyramid import (
+    build_sg_pyramid,
+    clear_sg_cache,
+    sg_lookup_env,
+    sg_pyramid_for,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 STUDIO = ROOT / "assets" / "envmaps" / "studio_small_03.exr"
@@ -356,7 +360,7 @@ def test_gradient_wrt_texels_matches_brute_force():
 # --------------------------------------------------------------------------------------
 
 def _write_map(path, img):
-    from torchrefract.image_files import write_exr
+    from torchrefract.output.images import write_exr
 
     img = np.asarray(img, dtype=np.float32)
     write_exr(path, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})

@@ -1,4 +1,4 @@
-"""Spherical Gaussian fit of the BTDF/BRDF lobes (torchrefract.sgfit) and its table lookup."""
+"""Spherical Gaussian fit of the BTDF/BRDF lobes (torchrefract.optics.sgfit) and its table lookup."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract import microfacet as mf
-from torchrefract import sgfit
-from torchrefract.optics import fresnel_dielectric, refract
+from torchrefract.optics import microfacet as mf
+from torchrefract.optics import sgfit
+from torchrefract.optics.smooth import fresnel_dielectric, refract
 
 F64 = torch.float64
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchrefract as tr
-from torchrefract.envmap import load_envmap, lookup
+from torchrefract.lighting.envmap import load_envmap, lookup
 
 
 def _sphere_scene(sphere_ply, env_path, **kw):
@@ -23,7 +23,7 @@ def _analytic_sphere(scene, texels, conserve=False):
     """Exact two-interface radiance of a unit sphere at the origin (float64, numpy);
     ``conserve``: the exit's reflection leaves along the refracted ray too (exit weight 1:
     smooth glass loses nothing)."""
-    from torchrefract.camera import pixel_rays
+    from torchrefract.geometry.camera import pixel_rays
 
     d = pixel_rays(scene.camera).double().numpy().reshape(-1, 3)
     o = np.asarray(scene.camera.eye, np.float64)
@@ -91,7 +91,7 @@ def test_ior_one_is_invisible(sphere_ply):
                      roughness=0.0), camera=tr.Camera(width=64, height=48))
     out = tr.render([scene])
     tex = load_envmap(env.path)
-    from torchrefract.camera import pixel_rays
+    from torchrefract.geometry.camera import pixel_rays
     bg = lookup(tex, pixel_rays(scene.camera))
     rel = (out.radiance[0] - bg).abs() / bg.abs().clamp(min=1e-3)
     assert out.coverage[0].mean() > 0.1
@@ -156,8 +156,8 @@ def test_fallback_without_back_layer_uses_refracted_direction(tmp_path, smooth_e
     assert cov.sum() > 100
     assert (out.passes["exit_found"][0, ..., 0][cov] == 0).all()
     # Expected: F1 * env(reflect) + (1 - F1) * env(T1) with the plane normal +Z.
-    from torchrefract.camera import pixel_rays
-    from torchrefract.optics import fresnel_dielectric, reflect, refract
+    from torchrefract.geometry.camera import pixel_rays
+    from torchrefract.optics.smooth import fresnel_dielectric, reflect, refract
 
     d = pixel_rays(scene.camera)
     n = torch.tensor([0.0, 0.0, 1.0]).expand_as(d)
@@ -169,7 +169,7 @@ def test_fallback_without_back_layer_uses_refracted_direction(tmp_path, smooth_e
 
 
 def test_sphere_lights_seen_directly_and_through_glass(sphere_ply, smooth_env_exr):
-    from torchrefract.camera import pixel_rays
+    from torchrefract.geometry.camera import pixel_rays
 
     bright = (50.0, 40.0, 30.0)
     lights = (tr.SphereLight(position=(1.6, 0.0, 0.0), radius=0.25, radiance=bright),  # beside
@@ -182,7 +182,7 @@ def test_sphere_lights_seen_directly_and_through_glass(sphere_ply, smooth_env_ex
     want = torch.tensor(bright)
     # Seen directly: the light beside the sphere covers background pixels with its radiance.
     d = pixel_rays(scene.camera)
-    from torchrefract.lighting import hit_lights
+    from torchrefract.lighting.lights import hit_lights
     t, _ = hit_lights(torch.tensor([scene.camera.eye]).expand(64 * 64, 3), d.reshape(-1, 3),
                       torch.tensor([l.position for l in lights])[None].expand(64 * 64, 2, 3),
                       torch.tensor([l.radius for l in lights])[None].expand(64 * 64, 2),

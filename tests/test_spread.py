@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract.bounces import escape_fraction
 from torchrefract.methods.specular import _spread_exit
-from torchrefract.optics import fresnel_dielectric
-from torchrefract.sgfit import interface_energies, load_sg_table, spread_cosines, spread_mean
+from torchrefract.optics.sgfit import interface_energies, load_sg_table, spread_cosines, spread_mean
+from torchrefract.optics.smooth import fresnel_dielectric
+from torchrefract.shading.bounces import escape_fraction
 
 
 def _vmf_samples(k: float, n: int, gen: torch.Generator) -> torch.Tensor:

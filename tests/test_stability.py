@@ -36,14 +36,13 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from conftest import ASSETS
 
 import torchrefract as tr
-from torchrefract.camera import pixel_rays
 from torchrefract.checks import ConfigError
-from torchrefract.envmap import load_envmap, lookup
-from torchrefract.image_files import write_exr
-
-from conftest import ASSETS
+from torchrefract.geometry.camera import pixel_rays
+from torchrefract.lighting.envmap import load_envmap, lookup
+from torchrefract.output.images import write_exr
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 SPHERE = str(ASSETS / "meshes" / "sphere.ply")
@@ -253,7 +252,7 @@ def mitsuba_furnace(white: str, mesh: str, roughness: float
     """Mitsuba's furnace render (max_depth 64): per-pixel truth (two seeds averaged, 16 spp
     each), its object mask, and the standard error of the object mean from the two seeds
     (var(mean) = mean((a - b)^2) / (4 n))."""
-    from torchrefract.reference import render_reference
+    from torchrefract.truth.mitsuba import render_reference
 
     scene = _furnace_scene(white, mesh, roughness)
     a, ca = render_reference(scene, spp=16, seed=1, max_depth=64)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import doctest
 import time
 
+from conftest import ASSETS
+
 import torchrefract as tr
 from torchrefract import stages
 from torchrefract.stages import collect, stage, timed
-
-from conftest import ASSETS
 
 SUZANNE = str(ASSETS / "meshes" / "suzanne.ply")
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")

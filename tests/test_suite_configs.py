@@ -56,7 +56,7 @@ def test_suite_renders_finite(suite, method, one_thread):
 
 def test_suite_converts_to_mitsuba(suite):
     pytest.importorskip("mitsuba")
-    reference = pytest.importorskip("torchrefract.reference")
+    reference = pytest.importorskip("torchrefract.truth.mitsuba")
     for s in suite:
         d = reference.to_mitsuba_dict(_tiny(s), spp=1)
         kind = "SmoothDielectric" if s.material.roughness == 0 and \

@@ -7,16 +7,15 @@ import math
 
 import numpy as np
 import pytest
-
-from torchrefract.checks import ConfigError
-from torchrefract.dataset_run import camera_metadata
-from torchrefract.camera import pixel_rays
-from torchrefract.mesh import rotation_matrix
-from torchrefract.scene import Camera
-from torchrefract.sweep import expand, load_sweep, sweep_from_dict
-
 from conftest import ROOT
 from sweep_fixtures import PARK, SPOT, STUDIO, SUZANNE, base_scene, small_sweep, write_config
+
+from torchrefract.checks import ConfigError
+from torchrefract.dataset.run import camera_metadata
+from torchrefract.dataset.sweep import expand, load_sweep, sweep_from_dict
+from torchrefract.geometry.camera import pixel_rays
+from torchrefract.geometry.mesh import rotation_matrix
+from torchrefract.scene.model import Camera
 
 
 def _cfg(data, tmp_path=None):

@@ -9,13 +9,21 @@ Public API::
     out.passes     # dict of (B, H, W, C)
 """
 
-from .accel import set_compile
-from .heap import set_heap_reuse
-from .native import set_native
-from .checks import ConfigError
-from .render import RenderResult, render
-from .scene import Camera, EnvMap, Material, Scene, SphereLight, Transform, load_scene, \
-    scene_from_dict
+from torchrefract.checks import ConfigError
+from torchrefract.heap import set_heap_reuse
+from torchrefract.kernels.compiled import set_compile
+from torchrefract.kernels.native import set_native
+from torchrefract.render import RenderResult, render
+from torchrefract.scene.model import (
+           Camera,
+           EnvMap,
+           Material,
+           Scene,
+           SphereLight,
+           Transform,
+           load_scene,
+           scene_from_dict,
+)
 
 __version__ = "0.1.0"
 

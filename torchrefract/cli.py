@@ -16,7 +16,7 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-from .checks import ConfigError
+from torchrefract.checks import ConfigError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -77,7 +77,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _sweep_cmd(args: argparse.Namespace) -> int:
-    from .dataset_run import run_sweep  # noqa: PLC0415
+    from torchrefract.dataset.run import run_sweep  # noqa: PLC0415
 
     try:
         s = run_sweep(args.config, args.out, fmt=args.format, shard_size=args.shard_size,
@@ -102,9 +102,9 @@ def _render_cmd(args: argparse.Namespace) -> int:
     import torch  # noqa: PLC0415
     from tqdm import tqdm  # noqa: PLC0415
 
-    from .export import save_render  # noqa: PLC0415
-    from .render import render  # noqa: PLC0415
-    from .scene import load_scene  # noqa: PLC0415
+    from torchrefract.output.export import save_render  # noqa: PLC0415
+    from torchrefract.render import render  # noqa: PLC0415
+    from torchrefract.scene.model import load_scene  # noqa: PLC0415
 
     if args.batch_size < 1:
         print("torchrefract: --batch-size must be >= 1", file=sys.stderr)
@@ -164,8 +164,8 @@ def _compare_cmd(args: argparse.Namespace) -> int:
     import numpy as np  # noqa: PLC0415
     from PIL import Image  # noqa: PLC0415
 
-    from .image_files import read_exr  # noqa: PLC0415
-    from .metrics import compare, flip_magma  # noqa: PLC0415
+    from torchrefract.output.images import read_exr  # noqa: PLC0415
+    from torchrefract.truth.metrics import compare, flip_magma  # noqa: PLC0415
 
     try:
         test, ref = read_exr(args.test), read_exr(args.reference)
@@ -197,19 +197,19 @@ def _compare_cmd(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from . import heap  # noqa: PLC0415
+    from torchrefract import heap  # noqa: PLC0415
 
     # Reuse freed tensor memory (heap.py): here, and in worker processes through the
     # environment (TORCHREFRACT_HEAP_REUSE=0 set by the user keeps it off everywhere).
     heap.reuse_here_and_in_workers()
     if getattr(args, "compile", False):
-        from . import accel  # noqa: PLC0415
+        from torchrefract.kernels import compiled as accel  # noqa: PLC0415
 
         # the environment carries it to worker processes (local and Ray) as well
         os.environ["TORCHREFRACT_COMPILE"] = "1"
         accel.set_compile(True)
     if getattr(args, "no_native", False):
-        from . import native  # noqa: PLC0415
+        from torchrefract.kernels import native  # noqa: PLC0415
 
         os.environ["TORCHREFRACT_NATIVE"] = "0"  # for worker processes too
         native.set_native(False)

@@ -18,15 +18,15 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .checks import ConfigError
-from .gbuffer import GBuffer, build_gbuffer
-from .lighting import Lighting
-from .materials import MaterialBatch
-from .mesh import load_mesh
-from .methods import METHODS, NEEDS_SCENES
-from .scene import METHODS as PLANNED
-from .scene import Scene
-from .stages import collect
+from torchrefract.checks import ConfigError
+from torchrefract.geometry.gbuffer import GBuffer, build_gbuffer
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.lighting.lights import Lighting
+from torchrefract.methods import METHODS, NEEDS_SCENES
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.scene.model import METHODS as PLANNED
+from torchrefract.scene.model import Scene
+from torchrefract.stages import collect
 
 
 @dataclass(frozen=True)
@@ -254,14 +254,14 @@ def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResu
 
 
 def _render_auto(scenes: list[Scene], options) -> RenderResult:
-    """``auto``: pick the variants of each scene (:func:`torchrefract.methods.auto.choose`:
+    """``auto``: pick the variants of each scene (:func:`torchrefract.auto.choose`:
     one, or a weighted blend near the choice's thresholds), render the scenes that share a
     variant together, and sum each scene's images with their weights in batch order. The
     result's scenes carry the picked method and options (a blend's: ``auto`` itself);
     ``blends`` every variant and weight."""
     import json  # noqa: PLC0415
 
-    from .methods.auto import choose  # noqa: PLC0415
+    from torchrefract.auto import choose  # noqa: PLC0415
 
     t0 = time.perf_counter()
     picked = [choose(s, options) for s in scenes]

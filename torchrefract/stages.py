@@ -3,8 +3,8 @@
 :func:`torchrefract.render` collects, around the method's shading, the time spent in
 named stages that the pipeline's functions mark with :func:`stage` or :func:`timed`:
 ``march`` (the ray
-marches through the depth layers, :mod:`torchrefract.march`) and ``mips`` (the NDF and
-coverage mip pyramids of the back layer, :mod:`torchrefract.ndf`). Outside a collection
+marches through the depth layers, :mod:`torchrefract.kernels.march`) and ``mips`` (the NDF and
+coverage mip pyramids of the back layer, :mod:`torchrefract.optics.ndf`). Outside a collection
 :func:`stage` costs one context-variable read. Stages are summed when entered several
 times; a stage entered inside another of the same name counts once.
 

@@ -5,11 +5,11 @@ Registry: name -> (options parser, render function). ``torchrefract.render`` dis
 
 from __future__ import annotations
 
-from .auto import AutoOptions, render_auto
-from .prefiltered import PrefilteredOptions, render_prefiltered
-from .reference import ReferenceOptions, render_reference_method
-from .rousiers import RousiersOptions, render_rousiers
-from .specular import SpecularOptions, render_specular
+from torchrefract.auto import AutoOptions, render_auto
+from torchrefract.methods.prefiltered import PrefilteredOptions, render_prefiltered
+from torchrefract.methods.reference import ReferenceOptions, render_reference_method
+from torchrefract.methods.rousiers import RousiersOptions, render_rousiers
+from torchrefract.methods.specular import SpecularOptions, render_specular
 
 METHODS = {
     "specular": (SpecularOptions.from_dict, render_specular),

@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import torch
 
-from ..gbuffer import GBuffer
-from ..index import put_, take
-from ..lighting import Lighting, incident_radiance_sg
-from ..materials import MaterialBatch
-from .specular import SpecularOptions, background, path_passes, trace_paths
+from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.kernels.index import put_, take
+from torchrefract.lighting.lights import Lighting, incident_radiance_sg
+from torchrefract.methods.specular import SpecularOptions, background, path_passes, trace_paths
+from torchrefract.optics.materials import MaterialBatch
 
 
 class PrefilteredOptions(SpecularOptions):

@@ -1,6 +1,6 @@
 """Method ``reference``: Mitsuba 3 path tracing of the same scene (ground truth, timing).
 
-The image comes from :func:`torchrefract.reference.render_reference` (Mitsuba's LLVM
+The image comes from :func:`torchrefract.truth.mitsuba.render_reference` (Mitsuba's LLVM
 variant when it works on the machine, else ``scalar_rgb``); the G-buffer passes come from
 our own visibility passes as for every method, so a reference render has the same channels.
 With ``samples_per_pixel = n`` Mitsuba renders the n x n sub-pixel grid (``spp`` samples
@@ -27,11 +27,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..checks import ConfigError, check_number, check_option_keys, where
-from ..gbuffer import GBuffer
-from ..lighting import Lighting
-from ..materials import MaterialBatch
-from ..scene import Camera, Scene
+from torchrefract.checks import ConfigError, check_number, check_option_keys, where
+from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.lighting.lights import Lighting
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.scene.model import Camera, Scene
 
 
 @dataclass(frozen=True)
@@ -117,7 +117,7 @@ def render_reference_method(g: GBuffer, lighting: Lighting, materials: MaterialB
     Returns:
         radiance (B, H, W, 3) and no extra passes (the geometry passes come from ``g``).
     """
-    from ..reference import render_reference  # noqa: PLC0415 (optional dependency)
+    from torchrefract.truth.mitsuba import render_reference  # noqa: PLC0415 (optional dependency)
 
     if options.denoise:
         _pyoidn()  # fail before minutes of path tracing, not after

@@ -37,10 +37,10 @@ normal, not the NDF). It costs nothing extra: the rays are marched anyway.
 The exit rule (``tir``). ``conserve`` (default; ours): what the exit reflects inside (all
 of it under total internal reflection) leaves there too, with the transmitted lobe (its
 incident angle clamped to the critical angle), times the fraction of trapped light that
-eventually escapes (:func:`torchrefract.bounces.escape_fraction`), so the image is
+eventually escapes (:func:`torchrefract.shading.bounces.escape_fraction`), so the image is
 continuous in roughness and IOR at the critical angle and a white furnace keeps what
 Mitsuba keeps. Its energies (and the split's, with internal bounces) are averaged over the
-front lobe arriving at the exit (:func:`torchrefract.sgfit.spread_cosines`, variance
+front lobe arriving at the exit (:func:`torchrefract.optics.sgfit.spread_cosines`, variance
 1/k_t1; at later bounces, the variance carried). ``clamp`` (the paper's and Wyman's choice): the incident angle is clamped to
 the critical angle and all the transmitted light leaves with that lobe (weight 1, as
 ``specular`` does, so the smooth limit matches it), the exit's reflection outside TIR is
@@ -48,7 +48,7 @@ lost; ``tir: reflect`` reads the environment with the table's internal reflectio
 instead.
 Rays whose exit is not found fall back to the front lobe alone (direction p_t1).
 
-``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`; ours, beyond the
+``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.shading.bounces`; ours, beyond the
 paper): at the exit the table's internal reflection lobe (E_ri, k_ri: leaving the glass, eta
 = 1 / ior) carries E_ri of the light back inside; one ray stands for it, along the mirror
 direction about the interface normal, and is marched to the next interface (front or back
@@ -68,7 +68,7 @@ that, gradually: at each interface the fraction 1 - exp(-var / ``DIFFUSE_VAR``) 
 reflects inside leaves there as at the last interface (the bounces not followed, summed in
 closed form), the rest goes on as a ray. A bounce whose march finds no next interface (the
 image-space march lost it) leaves along its own direction with the escape fraction of
-trapped light (:func:`torchrefract.bounces.escape_fraction`; 1 for smooth glass).
+trapped light (:func:`torchrefract.shading.bounces.escape_fraction`; 1 for smooth glass).
 """
 
 from __future__ import annotations
@@ -78,23 +78,36 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from .. import microfacet as mf
-from .. import native
-from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
-from ..camera import project
-from ..checks import check_choice, check_number, check_option_keys
-from ..gbuffer import GBuffer, interpolate
-from ..index import put_, take, where_true
-from ..lighting import Lighting, incident_radiance_sg
-from ..march import camera_coordinates, camera_planes, march_back
-from ..materials import MaterialBatch
-from ..ndf import KAPPA_MAX, build_box_mips, build_ndf_mips, combine_exponents, \
-    kappa_from_length, sample_box_mips, sample_mips
-from ..optics import dot, face_forward, normalize, reflect, refract, tangent_frame
-from ..sgfit import lobe_axis, load_sg_table, matched_fade, sg_energies, sg_lookup, \
-    spread_cosines, spread_mean
-from .specular import background, bounce_passes, light_in_front
-
+from torchrefract.checks import check_choice, check_number, check_option_keys
+from torchrefract.geometry.camera import project
+from torchrefract.geometry.gbuffer import GBuffer, interpolate
+from torchrefract.kernels import native
+from torchrefract.kernels.index import put_, take, where_true
+from torchrefract.kernels.march import camera_coordinates, camera_planes, march_back
+from torchrefract.lighting.lights import Lighting, incident_radiance_sg
+from torchrefract.methods.specular import background, bounce_passes, light_in_front
+from torchrefract.optics import microfacet as mf
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.optics.ndf import (
+    KAPPA_MAX,
+    build_box_mips,
+    build_ndf_mips,
+    combine_exponents,
+    kappa_from_length,
+    sample_box_mips,
+    sample_mips,
+)
+from torchrefract.optics.sgfit import (
+    load_sg_table,
+    lobe_axis,
+    matched_fade,
+    sg_energies,
+    sg_lookup,
+    spread_cosines,
+    spread_mean,
+)
+from torchrefract.optics.smooth import dot, face_forward, normalize, reflect, refract, tangent_frame
+from torchrefract.shading.bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 
 DIFFUSE_VAR = 0.2
 """Internal bounces under ``tir: conserve``: the angular variance (per axis, radians^2;
@@ -215,7 +228,7 @@ def _energies(table, cos_theta: torch.Tensor, var: torch.Tensor, eta: torch.Tens
               alpha: torch.Tensor, dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The transmitted and reflected lobes' energies (``_lobe``'s, faded the same way near
     IOR 1) averaged over a lobe of arriving directions of variance ``var`` around the axis
-    at ``cos_theta`` (:func:`torchrefract.sgfit.spread_cosines`), (N,) each."""
+    at ``cos_theta`` (:func:`torchrefract.optics.sgfit.spread_cosines`), (N,) each."""
     cs = spread_cosines(cos_theta, var)  # (3, N)
     args = [x.expand_as(cs) for x in (eta, alpha, dist)]
     e_t, e_r = sg_energies(table, cs, *args)

@@ -2,7 +2,7 @@
 
 Per covered pixel: refract the camera ray at the front hit (Snell, shading normal), march the
 refracted ray through the back-face buffer to its exit (Oliveira and Brauwers 2007; exact
-triangle hit, see :mod:`torchrefract.march`), refract again with the IOR ratio inverted, and
+triangle hit, see :mod:`torchrefract.kernels.march`), refract again with the IOR ratio inverted, and
 look the environment up. The front surface's Fresnel reflection is added:
 
     L = F1 L_env(reflect(d)) + (1 - F1) W2 exp(-sigma s) L_env(T2)
@@ -13,7 +13,7 @@ inside and sigma the absorption. The exit weight W2 is the ``tir`` rule's:
 - ``conserve`` (default; ours): W2 = (1 - F2) + F2 P_esc. What the exit reflects inside
   (all of it under total internal reflection) leaves there too, along the refracted
   (critical-angle) direction, times the fraction of trapped light that eventually escapes
-  (:func:`torchrefract.bounces.escape_fraction`: 1 for smooth glass, below 1 for rough
+  (:func:`torchrefract.shading.bounces.escape_fraction`: 1 for smooth glass, below 1 for rough
   glass, which loses light to masking at every bounce). The image is continuous at the
   critical angle and smooth glass keeps its energy (the white furnace).
 - ``clamp`` (Wyman's and de Rousiers' choice): W2 = 1 - F2, and under TIR the light leaves
@@ -25,17 +25,17 @@ inside and sigma the absorption. The exit weight W2 is the ``tir`` rule's:
 
 Rough glass: the rays follow the smooth surface (no blur: see ``prefiltered`` and
 ``rousiers``), but the interfaces' energies are the rough surface's
-(:func:`torchrefract.sgfit.interface_energies`: F1, 1 - F1, F2, 1 - F2 become the Walter
+(:func:`torchrefract.optics.sgfit.interface_energies`: F1, 1 - F1, F2, 1 - F2 become the Walter
 BSDF's reflected and transmitted energies, which add up to less than 1), so the object has
 the brightness of rough glass. The light reaching the exit is the entry's rough transmitted
 lobe, not the one ray: under ``tir: conserve`` and with internal bounces, the exit's
-energies are averaged over that lobe (:func:`torchrefract.sgfit.spread_cosines`, around the
+energies are averaged over that lobe (:func:`torchrefract.optics.sgfit.spread_cosines`, around the
 lobe's axis, which tilts towards grazing: ``_spread_exit``), and each internal reflection
 adds its lobe's spread to the next interface's average; the papers' ``clamp`` and
 ``reflect`` keep the one ray's. Rays whose exit is not found (they leave the frame, miss the
 back layer) fall back to the refracted direction T1, never to garbage.
 
-``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.bounces`): the exit interface
+``internal_bounces`` (K > 0 or ``auto``, :mod:`torchrefract.shading.bounces`): the exit interface
 reflects F2 of the light back inside (all of it under TIR); that part is marched to the next
 interface, where (1 - F) leaves along the refracted ray and F is reflected again, K times;
 the ``tir`` rule then applies at the last interface.
@@ -47,15 +47,20 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ..bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
-from ..checks import check_choice, check_number, check_option_keys
-from ..gbuffer import GBuffer, interpolate
-from ..index import put_, take, where_true
-from ..lighting import Lighting, hit_lights, incident_radiance
-from ..materials import MaterialBatch
-from ..march import march_back
-from ..optics import dot, face_forward, fresnel_dielectric, reflect, refract
-from ..sgfit import interface_energies, load_sg_table, sg_lookup, spread_interface_energies
+from torchrefract.checks import check_choice, check_number, check_option_keys
+from torchrefract.geometry.gbuffer import GBuffer, interpolate
+from torchrefract.kernels.index import put_, take, where_true
+from torchrefract.kernels.march import march_back
+from torchrefract.lighting.lights import Lighting, hit_lights, incident_radiance
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.optics.sgfit import (
+    interface_energies,
+    load_sg_table,
+    sg_lookup,
+    spread_interface_energies,
+)
+from torchrefract.optics.smooth import dot, face_forward, fresnel_dielectric, reflect, refract
+from torchrefract.shading.bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
 
 
 @dataclass(frozen=True)
@@ -111,7 +116,7 @@ class Paths:
             ``tir: conserve`` as the rule says; 1 in the fallback.
         e_t2, e_r2: (N,) the exit interface's transmitted and reflected energies (rough,
             ``tir: conserve`` or internal bounces: averaged over the entry's transmitted
-            lobe, :func:`torchrefract.sgfit.spread_cosines`).
+            lobe, :func:`torchrefract.optics.sgfit.spread_cosines`).
         var: (N,) per-axis angular variance of the entry's transmitted lobe (0 when smooth).
         path: (N,) length travelled inside; tir: (N,) total internal reflection somewhere.
         hidden: (N,) a sphere light between the eye and the object hides it.
@@ -225,7 +230,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
 def _spread_exit(table, cos1, eta, alpha1, dist, cos2, alpha2):
     """The exit interface's energies averaged over the light arriving there: the entry's
     transmitted lobe (the SG table's, of sharpness k), at the incident cosines of
-    :func:`torchrefract.sgfit.spread_cosines` around its axis. The table's axis tilts from
+    :func:`torchrefract.optics.sgfit.spread_cosines` around its axis. The table's axis tilts from
     the refracted ray towards grazing (Walter's off-specular peak); the ray is marched, so
     the axis's own exit is estimated: its angle there is the ray's, plus the tilt (exact in
     a slab, where the two normals are parallel, and in a sphere, where a chord meets both
@@ -375,7 +380,7 @@ def _last_interface(tir_mode: str, tir: torch.Tensor, e_t: torch.Tensor, e_r: to
     light leaving there, and the reflected part that does not (the residual).
 
     ``conserve``: the reflected part leaves too, after the losses of the bounces not
-    followed (``esc``, :func:`torchrefract.bounces.escape_fraction`; 1 when smooth), so the
+    followed (``esc``, :func:`torchrefract.shading.bounces.escape_fraction`; 1 when smooth), so the
     weight is continuous at TIR; ``reflect``: under TIR the reflected light leaves (along
     the mirror direction, which the caller sets); ``clamp``: under TIR all the interface
     keeps leaves at the critical angle.

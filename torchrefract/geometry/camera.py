@@ -1,0 +1,115 @@
+"""Pinhole camera of SCENE_SPEC.md: frame, per-pixel ray directions, projection.
+
+Pixel (i, j), column i from the left and row j from the top, has its center at
+(i + 0.5, j + 0.5); with forward f, right r = f x up, true up u = r x f, t = tan(yfov/2),
+a = width / height:
+``d = normalize(f + (2(i+0.5)/W - 1) t a r + (1 - 2(j+0.5)/H) t u)``.
+With ``samples_per_pixel = n`` the image is rendered at (n H, n W) sub-pixel centers and
+box-filtered back, which is exactly the n x n stratified grid of sub-pixel centers.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import torch
+from kornia.geometry import create_meshgrid
+
+from torchrefract.optics.smooth import dot
+from torchrefract.scene.model import Camera
+
+
+def camera_frame(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Eye, right, true up, forward as float64 (3,) arrays (Mitsuba ``look_at``)."""
+    eye = np.asarray(cam.eye, dtype=np.float64)
+    f = np.asarray(cam.target, dtype=np.float64) - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, np.asarray(cam.up, dtype=np.float64))
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    return eye, r, u, f
+
+
+def camera_pose(cam: Camera) -> np.ndarray:
+    """4x4 camera-to-world matrix in OpenGL convention (camera looks down -Z)."""
+    eye, r, u, f = camera_frame(cam)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = r, u, -f, eye
+    return pose
+
+
+def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
+    """Unit ray directions through the (sub-)pixel centers.
+
+    Args:
+        cam: the camera.
+        supersample: n; rays go through the n x n sub-pixel centers of each pixel.
+
+    Returns:
+        (n H, n W, 3) float32 world directions, row 0 at the top.
+
+    Example:
+        >>> d = pixel_rays(Camera(width=4, height=2))
+        >>> d.shape
+        torch.Size([2, 4, 3])
+    """
+    return _pixel_rays_cached(cam, supersample).clone()  # callers may write to theirs
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
+    """:func:`pixel_rays`, kept for the last cameras (a sweep renders one camera in batch
+    after batch)."""
+    n = supersample
+    h, w = cam.height * n, cam.width * n
+    eye, r, u, f = camera_frame(cam)
+    t = math.tan(math.radians(cam.yfov_deg) / 2.0)
+    a = cam.width / cam.height
+    grid = create_meshgrid(h, w, normalized_coordinates=False, dtype=torch.float64)[0]  # (h, w, 2)
+    x = (2.0 * (grid[..., 0] + 0.5) / w - 1.0) * t * a  # (h, w)
+    y = (1.0 - 2.0 * (grid[..., 1] + 0.5) / h) * t
+    d = (torch.from_numpy(f) + x[..., None] * torch.from_numpy(r)
+         + y[..., None] * torch.from_numpy(u))  # (h, w, 3)
+    return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
+
+
+def projection_params(cam: Camera) -> torch.Tensor:
+    """Packed camera for batched projection: (16,) float32.
+
+    Layout: eye (3), right (3), up (3), forward (3), t*a, t, width, height, where
+    t = tan(yfov/2), a = width/height.
+    """
+    eye, r, u, f = camera_frame(cam)
+    t = math.tan(math.radians(cam.yfov_deg) / 2.0)
+    a = cam.width / cam.height
+    return torch.tensor([*eye, *r, *u, *f, t * a, t, cam.width, cam.height],
+                        dtype=torch.float32)
+
+
+def project(points: torch.Tensor, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project world points to continuous pixel coordinates.
+
+    Args:
+        points: (B, ..., 3) world positions.
+        params: (B, 16) from :func:`projection_params` (width/height may be scaled by the
+            supersampling factor).
+
+    Returns:
+        xy: (B, ..., 2) pixel coordinates (x to the right, y down; centers at +0.5).
+        z: (B, ...) distance along the forward axis (negative behind the camera).
+    """
+    b = points.shape[0]
+    shape = (b,) + (1,) * (points.dim() - 2)
+    p = params.view(b, 16)
+    eye, r, u, f = (p[:, i:i + 3].view(*shape, 3) for i in (0, 3, 6, 9))
+    ta, t, w, h = (p[:, 12 + i].view(shape) for i in range(4))
+    rel = points - eye
+    z = dot(rel, f)
+    zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    x = dot(rel, r) / (zs * ta)  # in [-1, 1] across the image
+    y = dot(rel, u) / (zs * t)
+    px = (x + 1.0) * 0.5 * w
+    py = (1.0 - y) * 0.5 * h
+    return torch.stack([px, py], -1), z

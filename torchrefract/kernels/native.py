@@ -1,0 +1,432 @@
+"""Native kernels: the ray march's discrete part (``csrc/march.c``), the exact G-buffer
+layer (``csrc/gbuffer.c``) and the cone's footprint and spread (``csrc/cone.c``), built on
+first use.
+
+Where each marched ray crosses the back-face layer, and which triangle it leaves through,
+is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
+elementwise ops and gathers per sample over all rays, bound by memory traffic; the C
+kernel makes the same choices one ray at a time, in the same float32 arithmetic. Where a
+gradient is wanted, ``march.py`` then intersects each ray with its chosen triangle in
+torch; elsewhere the kernel returns the exits' values too, computed as ``march._exit``
+computes them. The G-buffer kernel computes ``gbuffer._layer``'s float64 attributes per
+pixel (the G-buffer carries no gradient). The cone kernels compute what ``rousiers``
+derives from its four marched bounding rays (their screen footprint, and the spread they
+give the exit lobe) where no gradient flows through them. tests/test_native.py checks that
+exits, layers, footprints, spreads and images are identical to the tensor code's.
+
+The kernels are plain C (no Python or torch headers), threaded with OpenMP where the
+compiler has it (then on torch's own thread pool, csrc/common.h), else with pthreads. The
+first call of a machine compiles them with the system C compiler (``$CC``, else
+``cc``/``gcc``; about a second) into the cache folder (``$TORCHREFRACT_CACHE`` or
+``~/.cache/torchrefract``, ``native/``), keyed by the sources, the flags and the
+platform. Where no compiler is found or the build fails, a warning names the reason once
+and the tensor code runs instead (the same images, slower). On by default; turn them off
+with::
+
+    torchrefract.set_native(False)     # Python
+    TORCHREFRACT_NATIVE=0              # environment, read at import
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
+                                                                "cone.c"))
+HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache key
+# No fast-math and no contraction: every float32 operation rounds as torch's elementwise
+# ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
+FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
+
+_ENABLED = os.environ.get("TORCHREFRACT_NATIVE", "1").strip().lower() not in ("0", "false",
+                                                                              "no", "off")
+_SIMD = os.environ.get("TORCHREFRACT_NATIVE_SIMD", "1").strip() != "0"
+"""The march's AVX2 search where the CPU has it (``TORCHREFRACT_NATIVE_SIMD=0``: the
+scalar one; the same values either way, tests/test_native.py)."""
+_LOCK = threading.Lock()
+_LIB: ctypes.CDLL | None = None
+_FAILED: str | None = None
+
+
+def set_native(enabled: bool) -> None:
+    """Use the native kernels (``True``, the default) or the tensor code."""
+    global _ENABLED
+    _ENABLED = bool(enabled)
+
+
+def native_enabled() -> bool:
+    """Whether the march and the G-buffer use the native kernels where they build."""
+    return _ENABLED
+
+
+class _Job(ctypes.Structure):
+    """ctypes mirror of ``Job`` in csrc/march.c (the field order and types must match; the
+    loader checks the size against the library's own)."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64),
+        ("c0", ctypes.c_void_p), ("ct", ctypes.c_void_p),
+        ("s_max", ctypes.c_void_p), ("s_min", ctypes.c_void_p),
+        ("sx_v", ctypes.c_void_p), ("sy_v", ctypes.c_void_p),
+        ("batch", ctypes.c_void_p),
+        ("planes", ctypes.c_void_p), ("pw", ctypes.c_int),
+        ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+        ("steps", ctypes.c_int), ("refine", ctypes.c_int),
+        ("p1", ctypes.c_void_p), ("t", ctypes.c_void_p),
+        ("tri_front", ctypes.c_void_p), ("tri_back", ctypes.c_void_p),
+        ("mask_front", ctypes.c_void_p), ("mask_back", ctypes.c_void_p),
+        ("tv", ctypes.c_void_p), ("across", ctypes.c_void_p),
+        ("walk_steps", ctypes.c_int),
+        ("simd", ctypes.c_int),
+        ("tn", ctypes.c_void_p),
+        ("s_out", ctypes.c_void_p), ("bary_out", ctypes.c_void_p),
+        ("normal_out", ctypes.c_void_p), ("pos_out", ctypes.c_void_p),
+        ("found", ctypes.c_void_p), ("tri", ctypes.c_void_p), ("layer", ctypes.c_void_p),
+    ]
+
+
+class _LayerJob(ctypes.Structure):
+    """ctypes mirror of ``LayerJob`` in csrc/gbuffer.c."""
+
+    _fields_ = [
+        ("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+        ("ids", ctypes.c_void_p), ("eye", ctypes.c_void_p), ("dirs", ctypes.c_void_p),
+        ("forward", ctypes.c_void_p), ("tv", ctypes.c_void_p), ("tn", ctypes.c_void_p),
+        ("tuv", ctypes.c_void_p), ("neighbors", ctypes.c_void_p),
+        ("back", ctypes.c_int), ("tol", ctypes.c_double), ("keep_tol", ctypes.c_double),
+        ("mask", ctypes.c_void_p), ("tri", ctypes.c_void_p),
+        ("position", ctypes.c_void_p), ("dist", ctypes.c_void_p), ("depth", ctypes.c_void_p),
+        ("bary", ctypes.c_void_p), ("geo_normal", ctypes.c_void_p),
+        ("normal", ctypes.c_void_p), ("uv", ctypes.c_void_p),
+    ]
+
+
+class _FootprintJob(ctypes.Structure):
+    """ctypes mirror of ``FootprintJob`` in csrc/cone.c."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64), ("q", ctypes.c_void_p), ("ok", ctypes.c_void_p),
+        ("pc", ctypes.c_void_p), ("proj", ctypes.c_void_p), ("batch", ctypes.c_void_p),
+        ("xy", ctypes.c_void_p), ("xy_c", ctypes.c_void_p), ("ext", ctypes.c_void_p),
+    ]
+
+
+class _SpreadJob(ctypes.Structure):
+    """ctypes mirror of ``SpreadJob`` in csrc/cone.c."""
+
+    _fields_ = [
+        ("n", ctypes.c_int64), ("p", ctypes.c_void_p), ("n_c", ctypes.c_void_p),
+        ("dirs", ctypes.c_void_p), ("n4", ctypes.c_void_p), ("ok", ctypes.c_void_p),
+        ("ior", ctypes.c_void_p), ("fallback", ctypes.c_void_p), ("two_ln4", ctypes.c_float),
+        ("stage", ctypes.c_int), ("root_arg", ctypes.c_void_p), ("root", ctypes.c_void_p),
+        ("var", ctypes.c_void_p),
+    ]
+
+
+_KERNELS = {"march": _Job, "layer": _LayerJob, "footprint": _FootprintJob,
+            "spread": _SpreadJob}
+"""Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
+
+
+def _compiler() -> str | None:
+    cc = os.environ.get("CC")
+    if cc and shutil.which(cc.split()[0]):
+        return cc
+    for name in ("cc", "gcc", "clang"):
+        if shutil.which(name):
+            return name
+    return None
+
+
+def library_path(cache_dir: str | Path | None = None) -> Path:
+    """Where the built kernels live for these sources, flags and platform."""
+    from torchrefract.optics.sgfit import default_cache_dir
+
+    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES + HEADERS))
+    h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
+    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return root / "native" / f"kernels_{h.hexdigest()[:16]}.so"
+
+
+def build(cache_dir: str | Path | None = None) -> Path:
+    """Compile the kernels into the cache (if not there yet); returns the library's path.
+
+    Raises:
+        RuntimeError: no C compiler, or the compile failed (its output quoted).
+    """
+    out = library_path(cache_dir)
+    if out.exists():
+        return out
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set $CC, or install gcc: "
+                           "apt-get install gcc)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        # With OpenMP where the compiler has it (csrc/common.h: torch's thread pool), else
+        # with pthreads alone.
+        for extra in (["-fopenmp"], []):
+            cmd = (cc.split() + list(FLAGS) + extra + ["-o", tmp]
+                   + [str(src) for src in SOURCES] + ["-lm"])
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+            if proc.returncode == 0:
+                break
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
+                               f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
+        os.replace(tmp, out)  # atomic: a concurrent process sees no half-written library
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def _load() -> ctypes.CDLL | None:
+    global _LIB, _FAILED
+    if _LIB is not None or _FAILED is not None:
+        return _LIB
+    with _LOCK:
+        if _LIB is None and _FAILED is None:
+            try:
+                lib = ctypes.CDLL(str(build()))
+                for name, job in _KERNELS.items():
+                    fn = getattr(lib, f"torchrefract_{name}")
+                    fn.argtypes = [ctypes.POINTER(job), ctypes.c_int]
+                    fn.restype = ctypes.c_int
+                    size = getattr(lib, f"torchrefract_{name}_job_size")
+                    size.restype = ctypes.c_int64
+                    if size() != ctypes.sizeof(job):
+                        raise RuntimeError(f"the library's {name} job layout differs from "
+                                           f"native.py's")
+                _LIB = lib
+            except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
+                _FAILED = f"{type(exc).__name__}: {exc}"
+                warnings.warn(f"torchrefract: the native kernels (march, G-buffer, cone) are "
+                              f"unavailable, using the tensor code (same images, slower): "
+                              f"{_FAILED}", RuntimeWarning, stacklevel=3)
+    return _LIB
+
+
+def available() -> bool:
+    """Whether the kernels run now: enabled, built and loaded (the first call builds
+    them)."""
+    return _ENABLED and _load() is not None
+
+
+def no_grad_through(*tensors: torch.Tensor) -> bool:
+    """Whether no gradient is wanted through ``tensors`` (the kernels have no backward:
+    where one is, the callers run their tensor code)."""
+    return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
+
+
+def _call(name: str, job: ctypes.Structure) -> bool:
+    """Run kernel ``torchrefract_<name>`` on ``job`` with torch's thread count; ``False``
+    where a thread could not be started (the caller then runs its tensor code)."""
+    return getattr(_LIB, f"torchrefract_{name}")(ctypes.byref(job),
+                                                 torch.get_num_threads()) == 0
+
+
+def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],
+            b8: tuple[torch.Tensor, ...] = ()) -> list[torch.Tensor] | None:
+    """The kernels' inputs, detached and contiguous, in order (float32, int64, bool
+    tensors on the CPU); ``None`` where one is of another dtype or device."""
+    ok = (all(x.dtype == torch.float32 for x in f32) and all(x.dtype == torch.int64 for x in i64)
+          and all(x.dtype == torch.bool for x in b8)
+          and all(x.device.type == "cpu" for x in f32 + i64 + b8))
+    return [x.detach().contiguous() for x in f32 + i64 + b8] if ok else None
+
+
+def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.Tensor,
+          sx_v: torch.Tensor, sy_v: torch.Tensor, batch: torch.Tensor, planes: torch.Tensor,
+          h: int, w: int, steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor,
+          tri_front: torch.Tensor, tri_back: torch.Tensor, mask_front: torch.Tensor,
+          mask_back: torch.Tensor, tv: torch.Tensor, across: torch.Tensor,
+          walk_steps: int = 16, tri_normals: torch.Tensor | None = None
+          ) -> tuple[torch.Tensor, ...] | None:
+    """The search, bisections, exit candidates and walk of ``march._march`` (its
+    ``depth_min=None`` form) for N rays; ``None`` where the kernel is unavailable or an
+    input is not a float32 / int64 / bool CPU tensor (the caller then marches in torch).
+
+    Args:
+        c0, ct: (N, 3) camera coordinates of the start and per unit s.
+        s_max, s_min: (N,) the bounding chord and the smallest accepted exit distance.
+        sx_v, sy_v: (B,) per-view pixel scales (``0.5 w / tan``, ``0.5 h / tan``).
+        batch: (N,) int64 view per ray. planes: (B*H*W, 4|8) ``march.camera_planes``.
+        h, w: the frame. steps, refine: the uniform samples and bisections.
+        p1, t: (N, 3) world start points and directions.
+        tri_front, tri_back: (B*H*W,) int64 triangle per pixel; mask_front, mask_back:
+            (B*H*W,) bool coverage. tv: (T, 3, 3) vertices; across: (T, 3) int64
+            (``MeshData.across``).
+        walk_steps: the most edges a walk crosses.
+        tri_normals: (T, 3, 3) corner shading normals: also return the exits' values
+            (for callers that need no gradient through them).
+
+    Returns:
+        found (N,) bool, tri (N,) int64 (-1 where not found), layer (N,) int64 (0 front,
+        1 back, -1); with ``tri_normals`` also the distance (N,), barycentrics (N, 3),
+        unit shading normal (N, 3) and position (N, 3) of each exit (zeros, and p1, where
+        none was found), as ``march._exit`` computes them.
+    """
+    if not available():
+        return None
+    values = tri_normals is not None
+    tn = tri_normals if values else tv  # (not read without values)
+    keep = _inputs((c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn),
+                   (batch, tri_front, tri_back, across), (mask_front, mask_back))
+    if keep is None or planes.shape[-1] not in (4, 8):
+        return None
+    (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn,
+     batch, tri_front, tri_back, across, mask_front, mask_back) = keep
+    n = c0.shape[0]
+    found = torch.empty(n, dtype=torch.bool)
+    tri = torch.empty(n, dtype=torch.int64)
+    layer = torch.empty(n, dtype=torch.int64)
+    extra = ((torch.empty(n), torch.empty(n, 3), torch.empty(n, 3), torch.empty(n, 3))
+             if values else ())
+    if n == 0:
+        return (found, tri, layer) + extra
+    ptrs = [x.data_ptr() for x in extra] if values else [None] * 4
+    job = _Job(n=n, c0=c0.data_ptr(), ct=ct.data_ptr(), s_max=s_max.data_ptr(),
+               s_min=s_min.data_ptr(), sx_v=sx_v.data_ptr(), sy_v=sy_v.data_ptr(),
+               batch=batch.data_ptr(), planes=planes.data_ptr(), pw=planes.shape[-1],
+               h=h, w=w, steps=steps, refine=refine, p1=p1.data_ptr(), t=t.data_ptr(),
+               tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
+               mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
+               tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
+               # the AVX2 search gathers with 32-bit indices
+               simd=int(_SIMD and planes.numel() < 2**31), tn=tn.data_ptr(),
+               s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2], pos_out=ptrs[3],
+               found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
+    if not _call("march", job):
+        return None  # a thread could not be started: march in torch
+    return (found, tri, layer) + extra
+
+
+def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
+          tri_vertices: torch.Tensor, tri_normals: torch.Tensor, tri_uvs: torch.Tensor,
+          tri_neighbors: torch.Tensor, back: bool, tol: float, keep_tol: float
+          ) -> dict[str, torch.Tensor] | None:
+    """``gbuffer._layer``'s exact attributes of one layer (with its edge repair), or
+    ``None`` where the kernel is unavailable or an input is not float32 / int64 on the CPU.
+
+    Args:
+        ids: (B, H, W) int64 rasterized global face ids (-1 empty). eye, forward: (B, 3).
+        dirs: (B, H, W, 3) pixel rays. tri_vertices, tri_normals: (F, 3, 3); tri_uvs:
+            (F, 3, 2); tri_neighbors: (F, 3) int64 (``MeshBatch``).
+        back: the back-face layer. tol, keep_tol: ``_repair_edge_ids``' tolerances.
+
+    Returns:
+        The ``Layer`` fields: mask (B, H, W) bool, tri (B, H, W) int64, position, bary,
+        geo_normal, normal (B, H, W, 3), dist, depth (B, H, W), uv (B, H, W, 2), float32.
+    """
+    if not available():
+        return None
+    keep = _inputs((eye, dirs, forward, tri_vertices, tri_normals, tri_uvs),
+                   (ids, tri_neighbors))
+    if keep is None:
+        return None
+    eye, dirs, forward, tri_vertices, tri_normals, tri_uvs, ids, tri_neighbors = keep
+    b, h, w = ids.shape
+    out = {"mask": torch.empty(b, h, w, dtype=torch.bool),
+           "tri": torch.empty(b, h, w, dtype=torch.int64),
+           "position": torch.empty(b, h, w, 3), "dist": torch.empty(b, h, w),
+           "depth": torch.empty(b, h, w), "bary": torch.empty(b, h, w, 3),
+           "geo_normal": torch.empty(b, h, w, 3), "normal": torch.empty(b, h, w, 3),
+           "uv": torch.empty(b, h, w, 2)}
+    job = _LayerJob(b=b, h=h, w=w, ids=ids.data_ptr(), eye=eye.data_ptr(),
+                    dirs=dirs.data_ptr(), forward=forward.data_ptr(),
+                    tv=tri_vertices.data_ptr(), tn=tri_normals.data_ptr(),
+                    tuv=tri_uvs.data_ptr(), neighbors=tri_neighbors.data_ptr(),
+                    back=int(back), tol=tol, keep_tol=keep_tol,
+                    **{k: v.data_ptr() for k, v in out.items()})
+    if not _call("layer", job):
+        return None
+    return out
+
+
+def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
+              batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """``rousiers._footprint``: the screen footprint of the four bounding rays' exits, or
+    ``None`` where the kernel is unavailable or an input is not a float32 / int64 / bool
+    CPU tensor.
+
+    Args:
+        q: (N, 4, 3) the bounding rays' exits; ok: (N, 4) bool, found.
+        center: (N, 3) the central ray's exit. proj: (B, 16)
+            ``camera.projection_params`` per view; batch: (N,) int64 view per pixel.
+
+    Returns:
+        xy (N, 4, 2) the exits' pixel coordinates (the center's where ``ok`` is false),
+        xy_c (N, 2) the center's, ext (N, 2) the bounding box's extent in x and y.
+    """
+    if not available():
+        return None
+    keep = _inputs((q, center, proj), (batch,), (ok,))
+    if keep is None:
+        return None
+    q, center, proj, batch, ok = keep
+    n = q.shape[0]
+    xy, xy_c, ext = torch.empty(n, 4, 2), torch.empty(n, 2), torch.empty(n, 2)
+    job = _FootprintJob(n=n, q=q.data_ptr(), ok=ok.data_ptr(), pc=center.data_ptr(),
+                        proj=proj.data_ptr(), batch=batch.data_ptr(), xy=xy.data_ptr(),
+                        xy_c=xy_c.data_ptr(), ext=ext.data_ptr())
+    if n and not _call("footprint", job):
+        return None
+    return xy, xy_c, ext
+
+
+def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Tensor,
+           ok: torch.Tensor, ior: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor | None:
+    """``rousiers._ray_spread``: the exit lobe's geometric variance from the four bounding
+    rays refracted out at their exit normals, or ``None`` where the kernel is unavailable
+    or an input is not a float32 / bool CPU tensor.
+
+    Args:
+        p, n_c: (N, 3) the central ray and its exit normal. dirs, n4: (N, 4, 3) the
+            bounding rays and their exit normals; ok: (N, 4) bool, found.
+        ior: (N,). fallback: (N,) the variance where none of the four found its exit.
+
+    Returns:
+        (N,) the variance.
+    """
+    if not available():
+        return None
+    keep = _inputs((p, n_c, dirs, n4, ior, fallback), (), (ok,))
+    if keep is None:
+        return None
+    p, n_c, dirs, n4, ior, fallback, ok = keep
+    n = p.shape[0]
+    var, arg = torch.empty(n), torch.empty(n, 5)
+    job = _SpreadJob(n=n, p=p.data_ptr(), n_c=n_c.data_ptr(), dirs=dirs.data_ptr(),
+                     n4=n4.data_ptr(), ok=ok.data_ptr(), ior=ior.data_ptr(),
+                     fallback=fallback.data_ptr(), two_ln4=2.0 * math.log(4.0), stage=0,
+                     root_arg=arg.data_ptr(), var=var.data_ptr())
+    if n == 0:
+        return var
+    if not _call("spread", job):
+        return None
+    # The refractions' square roots by torch, as optics.refract takes them (csrc/cone.c).
+    root = torch.sqrt(arg)
+    job.stage, job.root = 1, root.data_ptr()
+    if not _call("spread", job):
+        return None
+    return var
+
+
+__all__ = ["available", "build", "footprint", "layer", "library_path", "march",
+           "native_enabled", "no_grad_through", "set_native", "spread"]
