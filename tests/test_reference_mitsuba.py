@@ -174,7 +174,7 @@ def test_envmap_scalar_variant_subprocess(tiny_env):
     variant is chosen once per process)."""
     code = (
         "import sys, numpy as np, torchrefract as tr\n"
-        "from torchrefract import reference\n"
+        "from torchrefract.truth import mitsuba as reference\n"
         "from torchrefract.lighting.envmap import load_envmap, lookup\n"
         "from torchrefract.geometry.camera import pixel_rays\n"
         "s = tr.Scene(mesh=sys.argv[2], envmap=tr.EnvMap(path=sys.argv[1], rotate_deg=-120,"

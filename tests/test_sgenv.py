@@ -467,7 +467,9 @@ def test_build_time_of_shipped_map(capsys):
 def test_the_pyramid_cache_is_the_package_cache_folder(monkeypatch, tmp_path):
     """Pyramids, the SG table and the native kernels share one folder:
     ``$TORCHREFRACT_CACHE``, else ``$XDG_CACHE_HOME/torchrefract``, else ~/.cache."""
-    from torchrefract import native, sgenv, sgfit
+    from torchrefract.kernels import native
+    from torchrefract.lighting import sg_pyramid as sgenv
+    from torchrefract.optics import sgfit
 
     monkeypatch.delenv("TORCHREFRACT_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
