@@ -15,7 +15,7 @@ as ``baseline_rss_mb``.
         [--no-native] [--no-heap-reuse] [--in-process] [--views shared distinct]
         [--out outputs/bench]
 
-Heap reuse (``torchrefract.set_heap_reuse``) is on, as in the ``torchrefract`` command:
+Heap reuse (``RenderSettings(heap_reuse=True)``) is on, as in the ``torchrefract`` command:
 freed tensor memory is reused instead of faulted in again (``--no-heap-reuse``: glibc's
 default).
 
@@ -47,7 +47,7 @@ import torch
 
 import torchrefract as tr
 from torchrefract import heap
-from torchrefract.kernels import compiled, native
+from torchrefract.kernels import native
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -86,7 +86,7 @@ def orbit(cam: tr.Camera, deg: float) -> tr.Camera:
 
 
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
-              views: str = "distinct") -> dict:
+              views: str = "distinct", settings: tr.RenderSettings | None = None) -> dict:
     method, options = parse_method_spec(method)
     base = base.replace(method_options=options)
     cam = base.camera
@@ -102,12 +102,12 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
               for i in range(batch)]
     baseline = rss_mb("VmRSS")
     t0 = time.perf_counter()
-    tr.render(scenes, method=method)  # warm-up (context, caches, compiling)
+    tr.render(scenes, method=method, settings=settings)  # warm-up (context, caches, compiling)
     warmup = time.perf_counter() - t0
     totals, stages = [], {}
     for _ in range(repeats):
         t0 = time.perf_counter()
-        out = tr.render(scenes, method=method)
+        out = tr.render(scenes, method=method, settings=settings)
         totals.append(time.perf_counter() - t0)
         for k, v in out.timings.items():
             stages.setdefault(k, []).append(v)
@@ -122,8 +122,9 @@ def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
         "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
                                for k, v in stages.items()},
         "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
-        "warmup_s": warmup, "compiled": compiled.compile_enabled(),
-        "native": native.available(), "heap_reuse": heap.heap_reuse(),
+        "warmup_s": warmup, "compiled": bool(settings and settings.compile),
+        "native": native.available() if settings is None or settings.native else False,
+        "heap_reuse": heap.heap_reuse(), "threads": torch.get_num_threads(),
     }
 
 
@@ -157,14 +158,15 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--compile", action="store_true",
-                    help="torch.compile the march (torchrefract.set_compile); the first "
+                    help="torch.compile the march (RenderSettings.compile); the first "
                          "render of each row (warm-up, not timed) includes the compiling")
     ap.add_argument("--no-native", action="store_true",
                     help="march with the tensor code instead of the native kernel "
-                         "(torchrefract.set_native(False); the same images)")
+                         "(RenderSettings(native=False); the same images)")
     ap.add_argument("--no-heap-reuse", action="store_true",
-                    help="leave glibc's allocator as it is (torchrefract.set_heap_reuse: on "
-                         "by default here, as in the torchrefract command)")
+                    help="leave glibc's allocator as it is: plain RenderSettings() defaults, "
+                         "as a Python process calling torchrefract.render() gets (default "
+                         "here: heap reuse, as in the torchrefract command)")
     ap.add_argument("--views", nargs="+", choices=("distinct", "shared"), default=["distinct"],
                     help="batch items each with its own camera (distinct) or all with one "
                          "(shared: its G-buffer is built once)")
@@ -174,15 +176,16 @@ def main() -> None:
     ap.add_argument("--row", nargs=3, metavar=("METHOD", "SIZE", "BATCH"),
                     help=argparse.SUPPRESS)  # one row, printed as JSON (the child process)
     args = ap.parse_args()
+    settings = tr.RenderSettings(threads=args.threads, compile=args.compile,
+                                 native=not args.no_native,
+                                 heap_reuse=not args.no_heap_reuse)
+    heap_reuse = settings.heap_reuse and heap.set_heap_reuse(True)
     if args.threads:
-        torch.set_num_threads(args.threads)
-    tr.set_compile(args.compile)
-    tr.set_native(not args.no_native)
-    heap_reuse = tr.set_heap_reuse(not args.no_heap_reuse)
+        torch.set_num_threads(args.threads)  # the printed count (renders set their own)
     base = tr.load_scene(args.scene)
     if args.row:
         r = bench_one(base, args.row[0], int(args.row[1]), int(args.row[2]), args.repeats,
-                      args.views[0])
+                      args.views[0], settings)
         print("ROW " + json.dumps(r))
         return
     rows = []
@@ -196,7 +199,8 @@ def main() -> None:
                                                         args.batches):
         if batch == 1 and views == "shared" and "distinct" in args.views:
             continue  # one item: the same row
-        r = (bench_one(base, method, size, batch, args.repeats, views) if args.in_process
+        r = (bench_one(base, method, size, batch, args.repeats, views, settings)
+             if args.in_process
              else run_row(args, method, size, batch, views))
         rows.append(r)
         st = r["ms_per_frame_stage"]

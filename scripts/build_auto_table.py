@@ -46,7 +46,7 @@ def build(csv_path: Path, metric: str = "flip_object") -> dict:
         # chart's "1x1" variants) are not choices it can make
         if int(r["samples_per_pixel"] or 0) != spp[name]:
             continue
-        # compiled rows are a process setting (torchrefract.set_compile), not an option
+        # compiled rows are a render setting (RenderSettings.compile), not an option
         if "compile" in json.loads(r["options"] or "{}"):
             continue
         scenes[name]["variants"].append({

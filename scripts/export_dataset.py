@@ -87,9 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     from torchrefract.checks import ConfigError  # noqa: PLC0415
     from torchrefract.dataset.run import run_sweep  # noqa: PLC0415
     from torchrefract.dataset.sweep import load_sweep  # noqa: PLC0415
-    from torchrefract.heap import reuse_here_and_in_workers  # noqa: PLC0415
+    from torchrefract.settings import RenderSettings  # noqa: PLC0415
 
-    reuse_here_and_in_workers()  # as `torchrefract sweep` (README, "Heap reuse")
+    # heap reuse, as `torchrefract sweep` (torchrefract.heap); TORCHREFRACT_HEAP_REUSE=0: off
+    settings = RenderSettings.from_env(heap_reuse=True)
 
     try:
         cfg = load_sweep(args.config)
@@ -97,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             _dry_run(cfg)
             return 0
         out = Path(args.out) if args.out else ROOT / "outputs" / "datasets" / cfg.name
-        s = run_sweep(cfg, out, fmt=args.format, shard_size=args.shard_size,
+        s = run_sweep(cfg, out, settings=settings, fmt=args.format, shard_size=args.shard_size,
                       workers=args.workers, executor=args.executor,
                       ray_address=args.ray_address, batch_size=args.batch_size,
                       threads=args.threads, quiet=args.quiet, verify=args.verify,

@@ -21,7 +21,7 @@ Writes under ``--out`` (default outputs/pareto):
 - ``gallery.png``: per scene, truth, the main variants and their FLIP error maps;
 - ``meta.json``: arguments, versions, threads, machine, skipped variants.
 
-Heap reuse (``torchrefract.set_heap_reuse``) is on, as in the ``torchrefract`` command
+Heap reuse (``RenderSettings(heap_reuse=True)``) is on, as in the ``torchrefract`` command
 (``--no-heap-reuse``: glibc's default). Measure with the machine quiet; times are of
 ``torchrefract.render`` (mesh cache warm,
 G-buffer included). Mitsuba variants render at the output resolution with ``spp`` samples
@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 import torchrefract as tr
+from torchrefract import heap
 from torchrefract.checks import ConfigError
 from torchrefract.truth.metrics import compare, flip_magma
 
@@ -64,7 +65,7 @@ from accuracy import truth as cached_truth  # noqa: E402  (the one truth rendere
 # the first one's and the time is per frame.
 # --------------------------------------------------------------------------------------
 SPP = "samples_per_pixel"  # in a variant's options: the camera's n x n grid, not a method option
-COMPILE = "compile"  # in a variant's options: torchrefract.set_compile(True) while it runs
+COMPILE = "compile"  # in a variant's options: RenderSettings(compile=True) while it runs
 STEPS_FEWER = {"march_steps": 12, "cone_march_steps": 4, "refine_steps": 6}
 STEPS_MORE = {"march_steps": 64, "cone_march_steps": 16, "refine_steps": 12}
 VARIANTS: list[tuple[str, str, dict, int, bool]] = [
@@ -193,19 +194,19 @@ def batch_of(scene: tr.Scene, batch: int) -> list[tr.Scene]:
             for i in range(batch)]
 
 
-def time_variant(scene: tr.Scene, method: str, options: dict, batch: int, repeats: int
-                 ) -> tuple[np.ndarray, float]:
+def time_variant(scene: tr.Scene, method: str, options: dict, batch: int, repeats: int,
+                 settings: tr.RenderSettings | None = None) -> tuple[np.ndarray, float]:
     """(H, W, 3) image of the first scene and the median ms per frame after one warm-up.
 
     Raises:
         ConfigError: the renderer rejects the method or its options.
     """
     scenes = batch_of(scene.replace(method=method, method_options=dict(options)), batch)
-    out = tr.render(scenes)  # warm-up: caches, Mitsuba's JIT kernels; raises ConfigError
+    out = tr.render(scenes, settings=settings)  # warm-up: caches, Mitsuba's JIT kernels; raises ConfigError
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        out = tr.render(scenes)
+        out = tr.render(scenes, settings=settings)
         times.append(time.perf_counter() - t0)
     return out.radiance[0].numpy(), 1000.0 * statistics.median(times) / batch
 
@@ -382,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="timed renders per variant after the warm-up (default 3; --quick 1)")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     ap.add_argument("--no-heap-reuse", action="store_true",
-                    help="leave glibc's allocator as it is (torchrefract.set_heap_reuse: on "
+                    help="leave glibc's allocator as it is (RenderSettings.heap_reuse: on "
                          "by default here, as in the torchrefract command and bench.py)")
     ap.add_argument("--variants", nargs="*", default=None,
                     help="only these variant names (default: all of the table)")
@@ -405,7 +406,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.threads:
         torch.set_num_threads(args.threads)
-    heap_reuse = tr.set_heap_reuse(not args.no_heap_reuse)
+    settings = tr.RenderSettings(heap_reuse=not args.no_heap_reuse)
+    heap_reuse = settings.heap_reuse and heap.set_heap_reuse(True)
     size = args.size or (32 if args.quick else None)
     truth_spp = args.truth_spp or (16 if args.quick else 1024)
     repeats = args.repeats or (1 if args.quick else 3)
@@ -490,14 +492,12 @@ def main(argv: list[str] | None = None) -> int:
             render_options = {k: v for k, v in options.items() if k not in (SPP, COMPILE)}
             try:
                 reps = 1 if method == "reference" and options["spp"] >= LONG_SPP else repeats
-                tr.set_compile(bool(options.get(COMPILE)))
-                img, ms = time_variant(s, method, render_options, batch, reps)
+                run = settings.replace(compile=bool(options.get(COMPILE)))
+                img, ms = time_variant(s, method, render_options, batch, reps, run)
             except (ConfigError, NotImplementedError, ImportError) as exc:
                 print(f"warning: {scene.name}: variant {name!r} skipped: {exc}", flush=True)
                 skipped.append({"scene": scene.name, "variant": name, "reason": str(exc)})
                 continue
-            finally:
-                tr.set_compile(False)
             met = scored(img)
             recorded = {k: v for k, v in options.items() if k != SPP}  # compile stays
             emit({**base, "method": method, "variant": name,

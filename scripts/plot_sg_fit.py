@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrefract.optics import microfacet as mf
-from torchrefract.optics import sgfit
+from torchrefract.optics import microfacet as mf, sgfit
 
 ROOT = Path(__file__).resolve().parent.parent
 F64 = torch.float64

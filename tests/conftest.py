@@ -15,17 +15,6 @@ ROOT = Path(__file__).resolve().parent.parent
 ASSETS = ROOT / "assets"
 
 
-def render_invalid_scene(tmp_path: Path, *flags: str) -> int:
-    """``torchrefract render`` of a scene that fails validation (its mesh is missing), with
-    ``flags``: the exit status. The run stops before rendering, after the command applied
-    its process-wide settings (the flags' tests check those)."""
-    from torchrefract.cli import main  # noqa: PLC0415
-
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("mesh: nowhere.ply\n")
-    return main(["render", str(bad), "--out", str(tmp_path / "out"), *flags, "--quiet"])
-
-
 @pytest.fixture(scope="module")
 def one_thread():
     """Run a module's many small tensor ops on one thread.

@@ -7,24 +7,25 @@ import os
 
 import pytest
 import torch
-from conftest import ASSETS, render_invalid_scene
+from conftest import ASSETS
 
 import torchrefract as tr
 from torchrefract.kernels import compiled as accel
+from torchrefract.settings import using
 
 SUZANNE = str(ASSETS / "meshes" / "suzanne.ply")
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 
 
+COMPILED = tr.RenderSettings(compile=True, native=False)
+"""Compiling on, the native march off (where it is on it replaces the compiled search)."""
+
+
 @pytest.fixture
 def compiled():
-    """Compiling on for one test, and off again after it whatever happens; the native
-    march off meanwhile (where it is on it replaces the compiled search)."""
-    accel.set_compile(True)
-    tr.set_native(False)
-    yield
-    accel.set_compile(False)
-    tr.set_native(True)
+    """Compiling on for one test (its settings end with it whatever happens)."""
+    with using(COMPILED):
+        yield
 
 
 def _scenes(**options):
@@ -47,8 +48,7 @@ def test_compiled_march_gives_the_eager_image(method, options, compiled):
     compiled call of a process costs tens of seconds on a cold inductor cache.)"""
     scenes = [s.replace(method=method) for s in _scenes(**options)]
     fast = tr.render(scenes)
-    accel.set_compile(False)
-    slow = tr.render(scenes)
+    slow = tr.render(scenes, settings=COMPILED.replace(compile=False))
     assert slow.coverage.sum() > 300  # the object is in view
     assert torch.equal(fast.radiance, slow.radiance)
     for k in ("exit_found", "tir"):
@@ -73,21 +73,22 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch, compile
         assert torch.equal(twice(x), 2 * x)
 
 
-def test_compile_is_off_by_default_and_switchable():
-    assert not accel.compile_enabled() or os.environ.get("TORCHREFRACT_COMPILE") == "1"
-    tr.set_compile(True)
-    assert accel.compile_enabled()
-    tr.set_compile(False)
+def test_compile_is_off_by_default_and_a_setting(monkeypatch):
+    monkeypatch.delenv("TORCHREFRACT_COMPILE", raising=False)
     assert not accel.compile_enabled()
-
-
-def test_cli_compile_flag_sets_it_for_this_and_worker_processes(monkeypatch, tmp_path):
-    """``--compile`` turns compiling on here and in the environment that worker processes
-    inherit (a scene that fails validation stops the run before anything is compiled)."""
-    monkeypatch.setenv("TORCHREFRACT_COMPILE", "0")
-    try:
-        assert render_invalid_scene(tmp_path, "--compile") == 1
+    with using(tr.RenderSettings(compile=True)):
         assert accel.compile_enabled()
-        assert os.environ["TORCHREFRACT_COMPILE"] == "1"
-    finally:
-        accel.set_compile(False)
+    assert not accel.compile_enabled()
+    monkeypatch.setenv("TORCHREFRACT_COMPILE", "1")  # the environment's default
+    assert accel.compile_enabled()
+
+
+def test_cli_compile_flag_is_a_setting_of_its_renders(monkeypatch):
+    """``--compile`` goes into the run's RenderSettings (handed to worker processes with
+    each batch), not into this process's environment."""
+    from torchrefract.cli import _parser, _settings
+
+    monkeypatch.setenv("TORCHREFRACT_COMPILE", "0")
+    s = _settings(_parser().parse_args(["sweep", "x.yaml", "--out", "o", "--compile"]))
+    assert s.compile and os.environ["TORCHREFRACT_COMPILE"] == "0"
+    assert not accel.compile_enabled()

@@ -247,7 +247,7 @@ def test_shipped_table_covers_the_suite_and_its_picks_render():
     from conftest import ROOT
 
     from torchrefract.auto import DEFAULT_TABLE, load_table
-    from torchrefract.render import METHODS
+    from torchrefract.methods import registry
 
     table = load_table(str(DEFAULT_TABLE))
     suite = {p.stem for p in (ROOT / "configs" / "suite").glob("*.yaml")}
@@ -256,7 +256,7 @@ def test_shipped_table_covers_the_suite_and_its_picks_render():
         assert len(s["variants"]) >= 10, s["name"]
         for v in s["variants"]:
             assert v["method"] in ("specular", "prefiltered", "rousiers"), v
-            METHODS[v["method"]][0](v["options"], None)  # raises on an unknown option
+            registry.get(v["method"]).parse(v["options"])  # raises on an unknown option
             assert v["ms"] > 0 and 0 <= v["flip"] <= 1
     # a rough slab and a smooth sphere, the default table: a choice from two neighbours
     rough = _scene(mesh=SLAB, roughness=0.25)

@@ -10,9 +10,15 @@ import torchrefract as tr
 from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
-from torchrefract.methods import METHODS
+from torchrefract.methods import registry
 from torchrefract.methods.rousiers import RousiersOptions, render_rousiers
 from torchrefract.optics.materials import MaterialBatch
+
+
+def _shade(method: str):
+    """(g, lighting, materials) -> (radiance,) with the method's default options."""
+    m = registry.get(method)
+    return lambda g, lighting, mat: (m.shade(g, lighting, mat, m.Options(), None).radiance,)
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +94,7 @@ def test_ior_gradient_matches_a_small_finite_difference(method, smooth_env_exr):
                  camera=tr.Camera(width=32, height=32))
     g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
     lighting = Lighting.from_scenes([s])
-    fn = METHODS[method][1]
+    fn = _shade(method)
 
     def mean(rough, ior):
         m = MaterialBatch(ior=ior, roughness=torch.tensor([rough]),
@@ -112,7 +118,7 @@ def test_sharp_path_roughness_gradients(method, setup):
     differences (h = 1e-3; measured within 11% at alpha 0.3 and 1% at 0.8; the table's
     trilinear interpolation makes the image piecewise smooth, see above)."""
     g, lighting = setup
-    fn = METHODS[method][1]
+    fn = _shade(method)
 
     def mean(r):
         m = MaterialBatch(ior=torch.tensor([1.5]), roughness=r, absorption=torch.zeros(1, 3),

@@ -8,8 +8,6 @@ bilinear, wrapping horizontally; ``rotate_deg`` turns the map about +Y.
 from __future__ import annotations
 
 import math
-import struct
-from pathlib import Path
 
 import numpy as np
 import pytest

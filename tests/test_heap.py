@@ -1,5 +1,6 @@
 """torchrefract.heap: freed tensor memory is reused instead of faulted in again (glibc's
-mmap threshold), on where asked, in the CLI and its worker processes, off otherwise."""
+mmap threshold), on where the settings ask (the CLI and its worker processes), off
+otherwise."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import subprocess
 import sys
 
 import pytest
-from conftest import render_invalid_scene
 
 from torchrefract import heap
 
@@ -51,27 +51,35 @@ def test_reuse_saves_the_page_faults_of_fresh_blocks():
 
 
 @glibc
-def test_the_environment_turns_it_on_at_import_or_forbids_it(monkeypatch):
-    code = "import torchrefract.heap as h; print(h.heap_reuse(), h.set_heap_reuse(True))"
+def test_never_at_import_the_environment_is_the_settings_default_or_a_no():
+    code = ("import torchrefract.heap as h, torchrefract as tr; a = h.heap_reuse(); "
+            "from torchrefract.settings import using; "
+            "s = tr.RenderSettings.from_env(); "
+            "exec('with using(s): pass'); print(a, s.heap_reuse, h.heap_reuse())")
     run = lambda v: subprocess.run([sys.executable, "-c", code], capture_output=True,  # noqa: E731
                                    text=True, env={**os.environ, "TORCHREFRACT_HEAP_REUSE": v},
                                    timeout=120).stdout.split()
-    assert run("1") == ["True", "True"]
-    assert run("") == ["False", "True"]  # off by default for the Python API
-    assert run("0") == ["False", "False"]
+    assert run("1") == ["False", "True", "True"]  # asked for by the settings' default
+    assert run("") == ["False", "False", "False"]  # off for the Python API
+    assert run("0") == ["False", "False", "False"]
 
 
-def test_the_cli_turns_it_on_here_and_for_worker_processes(monkeypatch, tmp_path):
+def test_the_cli_asks_for_it_in_its_settings(monkeypatch):
+    """The command owns its process: its RenderSettings ask for heap reuse (handed to worker
+    processes with each batch), unless ``TORCHREFRACT_HEAP_REUSE=0``; the environment is
+    left as it is."""
+    from torchrefract.cli import _parser, _settings
+
+    args = _parser().parse_args(["render", "x.yaml", "--out", "o"])
     monkeypatch.delenv("TORCHREFRACT_HEAP_REUSE", raising=False)
+    assert _settings(args).heap_reuse
+    assert "TORCHREFRACT_HEAP_REUSE" not in os.environ
+    monkeypatch.setenv("TORCHREFRACT_HEAP_REUSE", "0")  # the user's no is kept
+    assert not _settings(args).heap_reuse
     was = heap.heap_reuse()
     try:
-        assert render_invalid_scene(tmp_path) == 1
-        assert os.environ["TORCHREFRACT_HEAP_REUSE"] == "1"
-        assert heap.heap_reuse() == (platform.libc_ver()[0] == "glibc")
-        monkeypatch.setenv("TORCHREFRACT_HEAP_REUSE", "0")  # the user's no is kept
         heap.set_heap_reuse(False)
-        assert render_invalid_scene(tmp_path) == 1
-        assert os.environ["TORCHREFRACT_HEAP_REUSE"] == "0" and not heap.heap_reuse()
+        assert not heap.set_heap_reuse(True) and not heap.heap_reuse()  # forbidden
     finally:
-        monkeypatch.delenv("TORCHREFRACT_HEAP_REUSE", raising=False)
+        monkeypatch.delenv("TORCHREFRACT_HEAP_REUSE")
         heap.set_heap_reuse(was)

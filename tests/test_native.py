@@ -12,7 +12,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import ASSETS, render_invalid_scene
+from conftest import ASSETS
 
 import torchrefract as tr
 from torchrefract.geometry.gbuffer import build_gbuffer
@@ -20,9 +20,10 @@ from torchrefract.geometry.mesh import load_mesh
 from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes, march_back, march_inside
 from torchrefract.lighting.lights import Lighting
-from torchrefract.methods import METHODS
+from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.smooth import face_forward, reflect, refract
+from torchrefract.settings import RenderSettings, using
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 
@@ -34,11 +35,8 @@ needs_native = pytest.mark.skipif(not native.available(),
 def tensor_code():
     """Returns a function running ``fn()`` with the native kernel off."""
     def run(fn):
-        native.set_native(False)
-        try:
+        with using(RenderSettings(native=False)):
             return fn()
-        finally:
-            native.set_native(True)
     return run
 
 
@@ -74,9 +72,9 @@ def _assert_same(a, b):
 def test_back_exits_are_identical(mesh, size, steps, refine, eye, simd, tensor_code,
                                   monkeypatch):
     """Both searches of the kernel (AVX2 where the CPU has it, and scalar)."""
-    monkeypatch.setattr(native, "_SIMD", simd)
     g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / mesh), size, eye)
-    fast = march_back(g, batch, p1, t1, steps=steps, refine=refine)
+    with using(RenderSettings(native_simd=simd)):
+        fast = march_back(g, batch, p1, t1, steps=steps, refine=refine)
     slow = tensor_code(lambda: march_back(g, batch, p1, t1, steps=steps, refine=refine))
     assert slow.found.float().mean() > 0.5
     _assert_same(fast, slow)
@@ -98,7 +96,7 @@ def test_walk_over_triangles_smaller_than_pixels_is_identical(sphere_ply, tensor
 def test_inside_exits_through_both_layers_are_identical(simd, tensor_code, monkeypatch):
     """march_inside (8 plane terms, four candidate tries): internal reflections at the
     back surface of suzanne, which leave through either layer."""
-    monkeypatch.setattr(native, "_SIMD", simd)
+    monkeypatch.setenv("TORCHREFRACT_NATIVE_SIMD", "1" if simd else "0")
     g, batch, p1, t1, n = _entries(str(ASSETS / "meshes" / "suzanne.ply"), 48,
                                    eye=(0.4, 0.3, 3.0))
     ex = march_back(g, batch, p1, t1, steps=24, refine=8)
@@ -131,7 +129,7 @@ def test_renders_and_gradients_are_identical(method, options, tensor_code):
     g = build_gbuffer([load_mesh(s.mesh, s.transform) for s in scenes],
                       [s.camera for s in scenes])
     lighting = Lighting.from_scenes(scenes)
-    parse, fn = METHODS[method]
+    meth = registry.get(method)
 
     def run():
         out = tr.render(scenes)
@@ -139,7 +137,7 @@ def test_renders_and_gradients_are_identical(method, options, tensor_code):
         rough = torch.tensor([0.1, 0.3], requires_grad=True)
         m = MaterialBatch(ior=ior, roughness=rough, absorption=torch.zeros(2, 3),
                           distribution=("beckmann", "beckmann"))
-        img = fn(g, lighting, m, parse(options))[0]
+        img = meth.shade(g, lighting, m, meth.parse(options), None).radiance
         grads = torch.autograd.grad(img.double().mean(), (ior, rough))
         return out, grads
 
@@ -234,9 +232,8 @@ def test_gbuffer_layers_are_identical(mesh, size, eye, sphere_ply, tensor_code):
 def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatch,
                                                                       tmp_path):
     g, batch, p1, t1, _ = _entries(str(ASSETS / "meshes" / "spot.ply"), 32)
-    native.set_native(False)
-    slow = march_back(g, batch, p1, t1, steps=24, refine=8)
-    native.set_native(True)
+    with using(RenderSettings(native=False)):
+        slow = march_back(g, batch, p1, t1, steps=24, refine=8)
     monkeypatch.setattr(native, "_LIB", None)
     monkeypatch.setattr(native, "_FAILED", None)
     monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path))  # nothing built there yet
@@ -299,21 +296,24 @@ def test_inputs_it_does_not_take_go_to_the_tensor_code():
                         torch.zeros(1, 3, 3), torch.zeros(1, 3, dtype=torch.long)) is None
 
 
-def test_native_is_on_by_default_and_switchable():
+def test_native_is_on_by_default_and_switchable(monkeypatch):
+    monkeypatch.delenv("TORCHREFRACT_NATIVE", raising=False)
     assert native.native_enabled()
-    tr.set_native(False)
-    assert not native.native_enabled() and not native.available()
-    tr.set_native(True)
+    with using(RenderSettings(native=False)):
+        assert not native.native_enabled() and not native.available()
     assert native.native_enabled()
+    monkeypatch.setenv("TORCHREFRACT_NATIVE", "0")  # the environment's default
+    assert not native.native_enabled()
 
 
-def test_cli_no_native_flag_sets_it_for_this_and_worker_processes(monkeypatch, tmp_path):
-    """``--no-native`` turns the kernels off here and in the environment that worker
-    processes inherit (a scene that fails validation stops the run before rendering)."""
+def test_cli_no_native_flag_is_a_setting_of_its_renders(monkeypatch):
+    """``--no-native`` goes into the run's RenderSettings (handed to worker processes with
+    each batch), not into this process's environment."""
+    from torchrefract.cli import _parser, _settings
+
     monkeypatch.setenv("TORCHREFRACT_NATIVE", "1")
-    try:
-        assert render_invalid_scene(tmp_path, "--no-native") == 1
-        assert not native.native_enabled()
-        assert os.environ["TORCHREFRACT_NATIVE"] == "0"
-    finally:
-        native.set_native(True)
+    s = _settings(_parser().parse_args(["render", "x.yaml", "--out", "o", "--no-native",
+                                        "--threads", "1"]))
+    assert s.native is False and s.threads == 1
+    assert os.environ["TORCHREFRACT_NATIVE"] == "1" and native.native_enabled()
+

@@ -19,6 +19,7 @@ import torch
 import torchrefract as tr
 from torchrefract.checks import ConfigError
 from torchrefract.methods.reference import ReferenceOptions, denoise_oidn
+from torchrefract.options import parse_options
 from torchrefract.truth.metrics import relmse
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,10 +36,10 @@ def _scene(size: int = 64, spp_grid: int = 1, **options) -> tr.Scene:
 
 
 def test_denoise_option_parsing():
-    assert ReferenceOptions.from_dict({}).denoise is False
-    assert ReferenceOptions.from_dict({"denoise": True}).denoise is True
+    assert parse_options(ReferenceOptions, {}).denoise is False
+    assert parse_options(ReferenceOptions, {"denoise": True}).denoise is True
     with pytest.raises(ConfigError, match="method_options.denoise.*true or false"):
-        ReferenceOptions.from_dict({"denoise": "yes"}, "scene.yaml")
+        parse_options(ReferenceOptions, {"denoise": "yes"}, "scene.yaml")
 
 
 def test_missing_pyoidn_names_the_extra(monkeypatch):

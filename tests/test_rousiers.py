@@ -10,6 +10,7 @@ import torchrefract as tr
 from torchrefract.geometry.camera import pixel_rays
 from torchrefract.lighting.envmap import load_envmap, lookup
 from torchrefract.methods.rousiers import RousiersOptions, bounding_angle
+from torchrefract.options import parse_options
 
 ENV = str(ASSETS / "envmaps" / "studio_small_03.exr")
 
@@ -88,14 +89,14 @@ def test_options_and_cone_variants(sphere_ply):
     assert (s_paper <= s_front + 1e-6).all() and (s_paper < 0.9 * s_front).float().mean() > 0.5
     assert not torch.allclose(a, c)
     with pytest.raises(tr.ConfigError, match="cone_rays"):
-        RousiersOptions.from_dict({"cone_rays": "cone"})
+        parse_options(RousiersOptions, {"cone_rays": "cone"})
     with pytest.raises(tr.ConfigError, match="spread"):
-        RousiersOptions.from_dict({"spread": "wide"})
-    o = RousiersOptions.from_dict({})
+        parse_options(RousiersOptions, {"spread": "wide"})
+    o = parse_options(RousiersOptions, {})
     assert (o.refine_steps, o.cone_refine_steps, o.cone_march_steps) == (8, 3, 4)
-    assert RousiersOptions.from_dict({"cone_refine_steps": 6}).cone_refine_steps == 6
+    assert parse_options(RousiersOptions, {"cone_refine_steps": 6}).cone_refine_steps == 6
     with pytest.raises(tr.ConfigError, match="cone_refine_steps"):
-        RousiersOptions.from_dict({"cone_refine_steps": -1})
+        parse_options(RousiersOptions, {"cone_refine_steps": -1})
 
 
 def test_bounding_angle_holds_75_percent_of_the_lobe():

@@ -375,13 +375,15 @@ def test_bad_method_option_values_are_rejected(tmp_path, opts, fragments):
 
 
 def test_specular_options_parse_valid_values():
+    from torchrefract.methods import registry
     from torchrefract.methods.specular import SpecularOptions
 
-    o = SpecularOptions.from_dict({"tir": "reflect", "march_steps": 16}, "x.yaml")
+    parse = registry.get("specular").parse
+    o = parse({"tir": "reflect", "march_steps": 16}, "x.yaml")
     assert o == SpecularOptions(tir="reflect", march_steps=16, refine_steps=10)
-    assert SpecularOptions.from_dict({}) == SpecularOptions()
+    assert parse({}) == SpecularOptions()
     with pytest.raises(ConfigError, match=r"x\.yaml: method_options: unknown key 'foo'"):
-        SpecularOptions.from_dict({"foo": 1}, "x.yaml")
+        parse({"foo": 1}, "x.yaml")
 
 
 def test_scene_from_dict_names_source_and_does_not_touch_input(tmp_path):

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract.optics import microfacet as mf
-from torchrefract.optics import sgfit
+from torchrefract.optics import microfacet as mf, sgfit
 from torchrefract.optics.smooth import fresnel_dielectric, refract
 
 F64 = torch.float64

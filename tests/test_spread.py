@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract.methods.specular import _spread_exit
 from torchrefract.optics.sgfit import interface_energies, load_sg_table, spread_cosines, spread_mean
 from torchrefract.optics.smooth import fresnel_dielectric
 from torchrefract.shading.bounces import escape_fraction
+from torchrefract.shading.paths import spread_exit
 
 
 def _vmf_samples(k: float, n: int, gen: torch.Generator) -> torch.Tensor:
@@ -73,7 +73,7 @@ def test_exit_weight_through_a_rough_slab_matches_mitsuba(mi_vectorized, alpha):
     """Light enters a rough slab (IOR 1.5, Beckmann) at cos theta_i; Mitsuba samples the
     transmitted direction, our exit weight is taken at each sample's own angle (the slab's
     faces are parallel) and averaged with Mitsuba's weights: the truth for a given exit
-    model. ``_spread_exit`` (the lobe's tilted axis, four points) gives it within 0.015
+    model. ``spread_exit`` (the lobe's tilted axis, four points) gives it within 0.015
     at every angle, where the sharp refracted ray is off by up to 0.18 near grazing
     (measured 0.01-0.18 at alpha 0.5)."""
     mi = mi_vectorized
@@ -101,7 +101,7 @@ def test_exit_weight_through_a_rough_slab_matches_mitsuba(mi_vectorized, alpha):
         c1 = torch.tensor([cos_i], dtype=torch.float64)
         cos2 = torch.sqrt(1.0 - (1.0 - c1 * c1) / 1.5 ** 2)  # the sharp ray's, inside
         a = torch.tensor([alpha], dtype=torch.float64)
-        e_t2, e_r2, var = _spread_exit(table, c1, torch.tensor([1.5], dtype=torch.float64), a,
+        e_t2, e_r2, var = spread_exit(table, c1, torch.tensor([1.5], dtype=torch.float64), a,
                                        torch.zeros(1, dtype=torch.long), cos2, a)
         ours = float((e_t2 + e_r2 * _escape(table, alpha)).clamp(max=1.0))
         sharp = float(_exit_weight(table, cos2, alpha))

@@ -13,20 +13,22 @@ from torchrefract.checks import ConfigError
 from torchrefract.heap import set_heap_reuse
 from torchrefract.kernels.compiled import set_compile
 from torchrefract.kernels.native import set_native
+from torchrefract.methods import register_method
 from torchrefract.render import RenderResult, render
-from torchrefract.scene.model import (
-           Camera,
-           EnvMap,
-           Material,
-           Scene,
-           SphereLight,
-           Transform,
-           load_scene,
-           scene_from_dict,
+from torchrefract.scene import (
+                                Camera,
+                                EnvMap,
+                                Material,
+                                Scene,
+                                SphereLight,
+                                Transform,
+                                load_scene,
+                                scene_from_dict,
 )
+from torchrefract.settings import RenderSettings
 
 __version__ = "0.1.0"
 
-__all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "Scene",
-           "SphereLight", "Transform", "load_scene", "render", "scene_from_dict", "set_compile",
-           "set_heap_reuse", "set_native", "__version__"]
+__all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "RenderSettings", "Scene",
+           "SphereLight", "Transform", "load_scene", "register_method", "render",
+           "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "__version__"]

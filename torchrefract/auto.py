@@ -58,12 +58,13 @@ from __future__ import annotations
 import functools
 import json
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from torchrefract.checks import ConfigError, check_bool, check_file, check_number, check_option_keys
+from torchrefract.checks import ConfigError
+from torchrefract.options import option, parse_options
 from torchrefract.scene.model import Scene
 
 DEFAULT_TABLE = Path(__file__).resolve().parent / "tables" / "auto_v1.json"
@@ -88,29 +89,14 @@ BLEND_POINTS = (32, 16)
 class AutoOptions:
     """Settings of ``auto`` (``method_options`` in a scene)."""
 
-    auto_tolerance: float = 0.05
+    auto_tolerance: float = option(0.05, minimum=0.0, maximum=1.0)
     """FLIP (object pixels, against full truth) allowed above the most accurate variant."""
-    auto_table: str | None = None
-    """Path of a table built by ``scripts/build_auto_table.py`` (default: the shipped one)."""
-    auto_blend: bool = True
+    auto_table: str | None = option(None, path=True)
+    """Path of a table built by ``scripts/build_auto_table.py`` (default: the shipped one;
+    relative to the scene file)."""
+    auto_blend: bool = option(True, boolean=True)
     """Blend the picks around the scene's roughness and IOR (continuous in both; docstring,
     6.); ``false``: one variant per scene, switching at thresholds."""
-
-    METHOD = "auto"
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str | None = None) -> "AutoOptions":
-        check_option_keys(d, [f.name for f in fields(cls)], cls.METHOD, source)
-        table = d.get("auto_table")
-        if table is not None:
-            base = Path(source).parent if source and Path(source).is_file() else Path.cwd()
-            table = check_file(table, "method_options.auto_table", base, source)
-        return cls(auto_tolerance=check_number(d.get("auto_tolerance", 0.05),
-                                               "method_options.auto_tolerance", source,
-                                               minimum=0.0, maximum=1.0),
-                   auto_table=table,
-                   auto_blend=check_bool(d.get("auto_blend", True), "method_options.auto_blend",
-                                         source))
 
 
 @dataclass(frozen=True)
@@ -285,10 +271,20 @@ def _kernel_points(f: dict[str, float]) -> np.ndarray:
                      np.full(aa.size, f["thin"]), nn.ravel()], 1)
 
 
-def render_auto(*_args, **_kwargs):
-    """``auto`` is resolved per scene in :func:`torchrefract.render` (it picks another
-    method); it has no shading of its own."""
-    raise ConfigError("method 'auto' is resolved by torchrefract.render, not called directly")
+class Auto:
+    """The ``auto`` policy: per scene, the variants to render and their weights."""
+
+    name = "auto"
+    Options = AutoOptions
+
+    def parse(self, options: dict | None, source: str | None = None) -> AutoOptions:
+        return parse_options(AutoOptions, options, source, self.name)
+
+    def resolve(self, scenes, options: AutoOptions) -> list[Choice]:
+        """One :class:`Choice` per scene (its ``blend``: (method, options, weight))."""
+        return [choose(s, options) for s in scenes]
 
 
-__all__ = ["AutoOptions", "Choice", "choose", "features", "load_table"]
+POLICY = Auto()
+
+__all__ = ["POLICY", "AutoOptions", "Choice", "choose", "features", "load_table"]

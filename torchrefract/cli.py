@@ -83,7 +83,7 @@ def _sweep_cmd(args: argparse.Namespace) -> int:
         s = run_sweep(args.config, args.out, fmt=args.format, shard_size=args.shard_size,
                       workers=args.workers, executor=args.executor,
                       ray_address=args.ray_address, batch_size=args.batch_size,
-                      threads=args.threads, quiet=args.quiet, verify=args.verify)
+                      quiet=args.quiet, verify=args.verify, settings=args.settings)
     except ConfigError as exc:
         print(f"torchrefract: {exc}", file=sys.stderr)
         return 2
@@ -104,13 +104,11 @@ def _render_cmd(args: argparse.Namespace) -> int:
 
     from torchrefract.output.export import save_render  # noqa: PLC0415
     from torchrefract.render import render  # noqa: PLC0415
-    from torchrefract.scene.model import load_scene  # noqa: PLC0415
+    from torchrefract.scene import load_scene  # noqa: PLC0415
 
     if args.batch_size < 1:
         print("torchrefract: --batch-size must be >= 1", file=sys.stderr)
         return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
     failed: list[tuple[str, str]] = []
     scenes = []
     for path in args.scenes:
@@ -138,7 +136,7 @@ def _render_cmd(args: argparse.Namespace) -> int:
         for k in range(0, len(group), args.batch_size):
             batch = group[k:k + args.batch_size]
             try:
-                result = render(batch)
+                result = render(batch, settings=args.settings)
             except (ConfigError, NotImplementedError) as exc:
                 failed.extend((s.name, str(exc)) for s in batch)
                 bar.update(len(batch))
@@ -153,7 +151,7 @@ def _render_cmd(args: argparse.Namespace) -> int:
     if not args.quiet:
         dt = time.perf_counter() - start
         print(f"rendered {done} frame(s) into {out}/ in {dt:.2f} s "
-              f"({torch.get_num_threads()} threads)" + (f", {len(failed)} failed" if failed
+              f"({args.settings.threads or torch.get_num_threads()} threads)" + (f", {len(failed)} failed" if failed
                                                          else ""))
     return 1 if failed else 0
 
@@ -195,24 +193,25 @@ def _compare_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings(args: argparse.Namespace):
+    """The run's RenderSettings: the environment's defaults, the flags, and heap reuse
+    (the command owns its process; ``TORCHREFRACT_HEAP_REUSE=0`` keeps it off)."""
+    from torchrefract.settings import RenderSettings  # noqa: PLC0415
+
+    s = RenderSettings.from_env()
+    changes = {"heap_reuse": os.environ.get("TORCHREFRACT_HEAP_REUSE", "").strip() != "0"}
+    if getattr(args, "threads", None):
+        changes["threads"] = args.threads
+    if getattr(args, "compile", False):
+        changes["compile"] = True
+    if getattr(args, "no_native", False):
+        changes["native"] = False
+    return s.replace(**changes)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from torchrefract import heap  # noqa: PLC0415
-
-    # Reuse freed tensor memory (heap.py): here, and in worker processes through the
-    # environment (TORCHREFRACT_HEAP_REUSE=0 set by the user keeps it off everywhere).
-    heap.reuse_here_and_in_workers()
-    if getattr(args, "compile", False):
-        from torchrefract.kernels import compiled as accel  # noqa: PLC0415
-
-        # the environment carries it to worker processes (local and Ray) as well
-        os.environ["TORCHREFRACT_COMPILE"] = "1"
-        accel.set_compile(True)
-    if getattr(args, "no_native", False):
-        from torchrefract.kernels import native  # noqa: PLC0415
-
-        os.environ["TORCHREFRACT_NATIVE"] = "0"  # for worker processes too
-        native.set_native(False)
+    args.settings = _settings(args)
     if args.command == "render":
         return _render_cmd(args)
     if args.command == "compare":

@@ -11,13 +11,11 @@ each free: the blocks are reused, no faults, 0.3 ms of system time per frame
 (``scripts/bench.py`` records the setting).
 
 Process-wide, and the process keeps the memory near its peak between renders instead of
-giving it back (the peak itself does not change). So it is on in the ``torchrefract``
-command (``render``, ``sweep`` and the sweep's worker processes),
-``scripts/export_dataset.py``, ``scripts/bench.py`` and ``scripts/pareto.py``, and off for
-the Python API unless asked::
-
-    torchrefract.set_heap_reuse(True)    # Python
-    TORCHREFRACT_HEAP_REUSE=1            # environment, read at import (0: never)
+giving it back (the peak itself does not change). So it is never switched on by importing
+or by default: a render asks for it with ``RenderSettings(heap_reuse=True)`` (the
+``torchrefract`` command, its worker processes and the scripts do), or a caller calls
+:func:`set_heap_reuse`. ``TORCHREFRACT_HEAP_REUSE=1`` makes it the settings' default,
+``TORCHREFRACT_HEAP_REUSE=0`` forbids it everywhere.
 
 glibc only (Linux); elsewhere it does nothing and says so by returning ``False``.
 """
@@ -69,22 +67,9 @@ def set_heap_reuse(enabled: bool = True) -> bool:
     return ok
 
 
-def reuse_here_and_in_workers() -> bool:
-    """Heap reuse in this process and, through the environment, in the worker processes it
-    starts (what the ``torchrefract`` command and scripts/export_dataset.py do), unless
-    ``TORCHREFRACT_HEAP_REUSE=0`` says no. Returns whether it is on here."""
-    if _forbidden():
-        return False
-    os.environ[_ENV] = "1"
-    return set_heap_reuse(True)
-
-
 def heap_reuse() -> bool:
     """Whether this process set heap reuse on (:func:`set_heap_reuse`)."""
     return _enabled
 
 
-if os.environ.get(_ENV, "").strip().lower() in ("1", "true", "yes", "on"):
-    set_heap_reuse(True)
-
-__all__ = ["heap_reuse", "reuse_here_and_in_workers", "set_heap_reuse"]
+__all__ = ["heap_reuse", "set_heap_reuse"]

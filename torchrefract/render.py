@@ -11,7 +11,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import functools
+import json
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -22,10 +22,10 @@ from torchrefract.checks import ConfigError
 from torchrefract.geometry.gbuffer import GBuffer, build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
-from torchrefract.methods import METHODS, NEEDS_SCENES
+from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
-from torchrefract.scene.model import METHODS as PLANNED
-from torchrefract.scene.model import Scene
+from torchrefract.scene import Scene, validate
+from torchrefract.settings import RenderSettings, using
 from torchrefract.stages import collect
 
 
@@ -116,7 +116,7 @@ def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, tor
     }
 
 
-def _check_batch(scenes: list[Scene], method: str) -> None:
+def _check_batch(scenes: list[Scene]) -> None:
     c0 = scenes[0].camera
     for i, s in enumerate(scenes[1:], 1):
         c = s.camera
@@ -130,15 +130,10 @@ def _check_batch(scenes: list[Scene], method: str) -> None:
         if s.method_options != scenes[0].method_options:
             raise ConfigError(f"render: scenes in one batch need the same method_options; "
                               f"scene {i} ({s.name}) differs from scene 0")
-    if method not in METHODS:
-        if method in PLANNED:
-            raise NotImplementedError(
-                f"method {method!r} is not implemented yet (implemented: {sorted(METHODS)}); "
-                f"render with method='specular' (CLI: --method specular) meanwhile")
-        raise ConfigError(f"render: unknown method {method!r} (available: {sorted(METHODS)})")
 
 
-def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResult:
+def render(scenes: Scene | list[Scene], method: str | None = None,
+           settings: RenderSettings | None = None) -> RenderResult:
     """Render scenes of one resolution in one batched tensor pass.
 
     Args:
@@ -146,6 +141,9 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
             samples_per_pixel, and equal ``method_options``.
         method: overrides every scene's ``method`` (default: the scenes' own, which must
             agree).
+        settings: how the render runs (threads, kernels, compilation; default: the
+            settings in force, else :meth:`RenderSettings.from_env`). Nothing it sets
+            outlives the call, except heap reuse where asked for.
 
     Returns:
         RenderResult with (B, H, W, ...) tensors.
@@ -155,6 +153,11 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
             broken mesh or environment map (file and problem named).
         NotImplementedError: a method of the design that is not implemented yet.
     """
+    with using(settings):
+        return _render(scenes, method)
+
+
+def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
     if isinstance(scenes, Scene):
         scenes = [scenes]
     scenes = list(scenes)
@@ -163,29 +166,30 @@ def render(scenes: Scene | list[Scene], method: str | None = None) -> RenderResu
     for s in scenes:
         if not isinstance(s, Scene):
             raise ConfigError(f"render: expected Scene objects, got {type(s).__name__}")
-    if method in METHODS:  # the options are checked against the method that renders
+    if method is not None:  # the options are checked against the method that renders
+        registry.get(method)  # an unknown name is a ConfigError before any work
         scenes = [s if s.method == method else s.replace(method=method) for s in scenes]
     # Scenes built in Python get the same checks as loaded files (cheap: no file reads).
-    scenes = [s.validated() for s in scenes]
+    scenes = [validate(s) for s in scenes]
     if method is None:
         methods = {s.method for s in scenes}
         if len(methods) > 1:
             raise ConfigError(f"render: scenes ask for different methods {sorted(methods)}; "
                               "pass method=... or render them separately")
         method = methods.pop()
-    _check_batch(scenes, method)
-    parse_options, shade = METHODS[method]
-    options = parse_options(scenes[0].method_options, scenes[0].name)
-    if method == "auto":
-        return _render_auto(scenes, options)
+    _check_batch(scenes)
+    entry = registry.get(method)
+    options = entry.parse(scenes[0].method_options, scenes[0].name)
+    if registry.is_policy(method):
+        return _render_policy(scenes, entry, options)
     parts = _chunks(scenes)
     if len(parts) == 1:
-        return _render_pass(scenes, method, shade, options)
+        return _render_pass(scenes, entry, options)
     start = 0
     placed = []
     for p in parts:
-        placed.append((list(range(start, start + len(p))),
-                       _render_pass(p, method, shade, options), None))
+        placed.append((list(range(start, start + len(p))), _render_pass(p, entry, options),
+                       None))
         start += len(p)
     return _merge(len(scenes), placed)
 
@@ -207,20 +211,21 @@ def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]
 
 
-def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResult:
+def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     """One tensor pass over ``scenes`` (checked: one resolution, method and options)."""
 
+    method = entry.name
     t0 = time.perf_counter()
+    state = entry.prepare(scenes, options)
     meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
     lighting = Lighting.from_scenes(scenes)
     t1 = time.perf_counter()
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     t2 = time.perf_counter()
     materials = MaterialBatch.from_scenes(scenes)
-    if method in NEEDS_SCENES:
-        shade = functools.partial(shade, scenes=tuple(scenes))
     with collect() as stage_times:
-        radiance, method_passes = shade(g, lighting, materials, options)
+        shaded = entry.shade(g, lighting, materials, options, state)
+    radiance, method_passes = shaded.radiance, shaded.passes
     t3 = time.perf_counter()
 
     n = g.supersample
@@ -253,18 +258,14 @@ def _render_pass(scenes: list[Scene], method: str, shade, options) -> RenderResu
     )
 
 
-def _render_auto(scenes: list[Scene], options) -> RenderResult:
-    """``auto``: pick the variants of each scene (:func:`torchrefract.auto.choose`:
-    one, or a weighted blend near the choice's thresholds), render the scenes that share a
-    variant together, and sum each scene's images with their weights in batch order. The
-    result's scenes carry the picked method and options (a blend's: ``auto`` itself);
-    ``blends`` every variant and weight."""
-    import json  # noqa: PLC0415
-
-    from torchrefract.auto import choose  # noqa: PLC0415
-
+def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
+    """A policy (``auto``): the variants of each scene (:meth:`resolve`: one, or a weighted
+    blend near the choice's thresholds), the scenes that share a variant rendered together,
+    and each scene's images summed with their weights in batch order. The result's scenes
+    carry the picked method and options (a blend's: the policy's scene); ``blends`` every
+    variant and weight."""
     t0 = time.perf_counter()
-    picked = [choose(s, options) for s in scenes]
+    picked = policy.resolve(scenes, options)
     groups: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for i, c in enumerate(picked):
         for method, opts, w in c.blend:
@@ -273,11 +274,11 @@ def _render_auto(scenes: list[Scene], options) -> RenderResult:
     for (method, opts), members in groups.items():
         idx = [i for i, _ in members]
         sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
-        parts.append((idx, render(sub), [w for _, w in members]))
+        parts.append((idx, _render(sub, None), [w for _, w in members]))
     out = _merge(len(scenes), parts)
     out.timings["total"] = time.perf_counter() - t0
     # A single pick is recorded as the scene (re-rendering it gives the same image); a blend
-    # keeps the auto scene (re-rendering it with the same table gives the same image).
+    # keeps the policy's scene (re-rendering it with the same table gives the same image).
     return dataclasses.replace(
         out, scenes=tuple(scenes[i].replace(method=c.method, method_options=c.options)
                           if len(c.blend) == 1 else scenes[i] for i, c in enumerate(picked)),

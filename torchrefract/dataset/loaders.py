@@ -241,12 +241,15 @@ class RenderStream(IterableDataset):
         start: first sample index (e.g. to resume a stream).
         layout: ``chw`` (default) or ``hwc``.
         on_error: ``skip`` (warn and leave a sample that cannot be rendered out) or ``raise``.
-        threads: torch threads in each worker (default: leave torch's setting).
+        threads: torch threads in each worker (default: the settings').
+        settings: how the renders run (:class:`~torchrefract.settings.RenderSettings`;
+            default: the environment's defaults, as for :func:`torchrefract.render`).
     """
 
     def __init__(self, config: str | Path | SweepConfig, batch_size: int = 4,
                  num_samples: int | None = None, start: int = 0, layout: str = "chw",
-                 on_error: str = "skip", threads: int | None = None, seed: int | None = None):
+                 on_error: str = "skip", threads: int | None = None, seed: int | None = None,
+                 settings=None):
         super().__init__()
         self.config = config if isinstance(config, SweepConfig) else load_sweep(config)
         if seed is not None:
@@ -271,7 +274,11 @@ class RenderStream(IterableDataset):
             raise ConfigError(f"start: expected an integer in [0, {n}], got {start!r}")
         self.stop, self.start = n, start
         self.batch_size, self.layout, self.on_error = batch_size, _check_layout(layout), on_error
-        self.threads = threads
+        if threads:
+            from torchrefract.settings import RenderSettings  # noqa: PLC0415
+
+            settings = (settings or RenderSettings.from_env()).replace(threads=threads)
+        self.settings = settings
 
     def __len__(self) -> int:
         return max(0, self.stop - self.start)
@@ -317,7 +324,7 @@ class RenderStream(IterableDataset):
             done: dict[int, dict] = {}
             for g in groups.values():
                 items = [(s.params["index"], s.sample_id, s.scene) for s in g]
-                for s, r in zip(g, render_items(items, self.threads, encode=False)):
+                for s, r in zip(g, render_items(items, self.settings, encode=False)):
                     if not r["ok"]:
                         self._fail(s.sample_id, r["reason"])
                         continue

@@ -148,22 +148,23 @@ def _failure(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {msg[0] if msg else ''}"[:2000]
 
 
-def _render_one_group(scenes: list[Scene]):
+def _render_one_group(scenes: list[Scene], settings):
     from torchrefract.render import render  # noqa: PLC0415
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = render(scenes)
+        result = render(scenes, settings=settings)
     return result, sorted({str(w.message) for w in caught})
 
 
-def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None,
+def render_items(items: list[tuple[int, str, Scene]], settings=None,
                  encode: bool = True) -> list[dict]:
     """Render one batch (the worker's task). Never raises for a bad sample.
 
     Args:
         items: ``(index, sample_id, scene)`` of one resolution, method and options.
-        threads: torch CPU threads for this process (None: leave as is).
+        settings: the :class:`~torchrefract.settings.RenderSettings` of the renders (None:
+            those in force; ``threads`` sets torch's thread count for each render).
         encode: encode the EXR and PNG bytes (else return the tensors in ``result``).
 
     Returns:
@@ -173,12 +174,10 @@ def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None
     """
     import torch  # noqa: PLC0415
 
-    if threads:
-        torch.set_num_threads(threads)
     scenes = [s for _, _, s in items]
     groups: list[tuple[list[int], Any, list[str], str | None]] = []
     try:
-        res, warn = _render_one_group(scenes)
+        res, warn = _render_one_group(scenes, settings)
         groups.append((list(range(len(items))), res, warn, None))
     except Exception as exc:  # noqa: BLE001 - any failure: retry alone, then report
         if len(items) == 1:
@@ -186,7 +185,7 @@ def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None
         else:
             for k, s in enumerate(scenes):
                 try:
-                    res, warn = _render_one_group([s])
+                    res, warn = _render_one_group([s], settings)
                     groups.append(([k], res, warn, None))
                 except Exception as exc1:  # noqa: BLE001
                     groups.append(([k], None, [], _failure(exc1)))
@@ -197,7 +196,9 @@ def render_items(items: list[tuple[int, str, Scene]], threads: int | None = None
             index, sid, scene = items[k]
             rec = {"index": index, "sample_id": sid, "ok": res is not None, "reason": reason,
                    "batch_size": len(ks), "warnings": warn, "host": host, "pid": pid,
-                   "torch_threads": torch.get_num_threads(), "timings": {}}
+                   "torch_threads": (settings.threads if settings is not None
+                                     and settings.threads else torch.get_num_threads()),
+                   "timings": {}}
             if res is not None:
                 rec["timings"]["render_s"] = res.timings["total"] / len(ks)
                 rec["timings"]["batch"] = dict(res.timings)
@@ -399,36 +400,31 @@ class _SerialExecutor:
 
     window = 1
 
-    def __init__(self, threads: int | None):
-        self.threads = threads
+    def __init__(self, settings):
+        self.settings = settings
 
     def submit(self, items):
         # Encoding happens in the writer thread, overlapping the next render.
-        return _Lazy(lambda: render_items(items, self.threads, encode=False))
+        return _Lazy(lambda: render_items(items, self.settings, encode=False))
 
     def close(self) -> None:
         pass
 
 
-def _init_worker(threads: int) -> None:
-    import torch  # noqa: PLC0415
-
-    torch.set_num_threads(threads)
-
-
 class _ProcessExecutor:
     """``workers`` spawned processes; each creates its own EGL context on first use."""
 
-    def __init__(self, workers: int, threads: int | None):
+    def __init__(self, workers: int, settings):
         import multiprocessing as mp  # noqa: PLC0415
         from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
 
         # 'spawn', not 'fork': an EGL context does not survive a fork, and a forked child of
         # a process that holds one hangs. (The parent never renders in this mode.)
-        threads = threads or max(1, (os.cpu_count() or 1) // workers)
+        if settings.threads is None:
+            settings = settings.replace(threads=max(1, (os.cpu_count() or 1) // workers))
+        self.settings = settings
         self._new = lambda: ProcessPoolExecutor(
-            max_workers=workers, mp_context=mp.get_context("spawn"),
-            initializer=_init_worker, initargs=(threads,))
+            max_workers=workers, mp_context=mp.get_context("spawn"))
         self.pool = self._new()
         self.window = 2 * workers
 
@@ -436,13 +432,13 @@ class _ProcessExecutor:
         from concurrent.futures.process import BrokenProcessPool  # noqa: PLC0415
 
         try:
-            return self.pool.submit(render_items, items)
+            return self.pool.submit(render_items, items, self.settings)
         except BrokenProcessPool:
             # A worker died (its batches in flight are reported failed and are retried by
             # the next run); carry on with fresh processes.
             self.pool.shutdown(wait=False, cancel_futures=True)
             self.pool = self._new()
-            return self.pool.submit(render_items, items)
+            return self.pool.submit(render_items, items, self.settings)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -461,7 +457,7 @@ class _RayRef:
 class _RayExecutor:
     """Ray tasks (one CPU each) on the cluster at ``address``, or on a local cluster."""
 
-    def __init__(self, address: str | None, workers: int, threads: int | None, quiet: bool):
+    def __init__(self, address: str | None, workers: int, settings, quiet: bool):
         try:
             import ray  # noqa: PLC0415
         except ImportError as exc:
@@ -480,10 +476,10 @@ class _RayExecutor:
         self.task = ray.remote(num_cpus=1)(render_items)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.window = 2 * max(1, cpus)
-        self.threads = threads or 1
+        self.settings = settings if settings.threads else settings.replace(threads=1)
 
     def submit(self, items):
-        return _RayRef(self.task.remote(items, self.threads))
+        return _RayRef(self.task.remote(items, self.settings))
 
     def close(self) -> None:
         import ray  # noqa: PLC0415
@@ -712,7 +708,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
               shard_size: int = 1000, workers: int = 0, executor: str = "local",
               ray_address: str | None = None, batch_size: int = 8, threads: int | None = None,
               quiet: bool = False, verify: bool = False,
-              limit: int | None = None) -> RunSummary:
+              limit: int | None = None, settings=None) -> RunSummary:
     """Render a sweep into ``out`` (resuming whatever an earlier run left).
 
     Args:
@@ -731,6 +727,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
         quiet: no progress bar.
         verify: on resume, check the sha256 of existing files (else their sizes).
         limit: render at most this many of the remaining samples (then stop cleanly).
+        settings: how every render runs (:class:`~torchrefract.settings.RenderSettings`,
+            default: the settings in force); ``threads`` above overrides its own.
 
     Returns:
         A :class:`RunSummary`; failed samples are listed in it and in the manifest.
@@ -747,6 +745,11 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
                         ("workers", workers, 0)):
         if not isinstance(v, int) or v < lo:
             raise ConfigError(f"{name}: expected an integer >= {lo}, got {v!r}")
+    from torchrefract.settings import current  # noqa: PLC0415
+
+    settings = settings if settings is not None else current()
+    if threads:
+        settings = settings.replace(threads=threads)
     cfg = config if isinstance(config, SweepConfig) else load_sweep(config)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -790,7 +793,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
 
         t_ex = time.perf_counter()
         if batches:
-            ex = _make_executor(executor, workers, threads, ray_address, quiet)
+            ex = _make_executor(executor, workers, settings, ray_address, quiet)
         _drive(cfg, out, fmt, ex, batches, manifest, shards, summary, quiet, t_ex)
         if shards is not None:
             t = time.perf_counter()
@@ -830,13 +833,13 @@ def _run_info() -> dict:
             "machine": platform.platform()}
 
 
-def _make_executor(executor: str, workers: int, threads: int | None,
-                   ray_address: str | None, quiet: bool):
+def _make_executor(executor: str, workers: int, settings, ray_address: str | None,
+                   quiet: bool):
     if executor == "ray":
-        return _RayExecutor(ray_address, workers, threads, quiet)
+        return _RayExecutor(ray_address, workers, settings, quiet)
     if workers == 0:
-        return _SerialExecutor(threads)
-    return _ProcessExecutor(workers, threads)
+        return _SerialExecutor(settings)
+    return _ProcessExecutor(workers, settings)
 
 
 class _WriterThread:

@@ -80,7 +80,8 @@ from torchrefract.checks import (
     load_yaml_file,
     where,
 )
-from torchrefract.scene.model import METHODS, Scene, scene_from_dict
+from torchrefract.methods import registry
+from torchrefract.scene import Scene, scene_from_dict
 
 SAMPLING_MODES = ("grid", "list", "random")
 ROTATIONS = ("none", "yaw", "so3")
@@ -433,7 +434,8 @@ def _parse_spec(d: Any, base_dir: Path, source: str | None) -> SweepSpec:
         samples_per_pixel=_axis(c.get("samples_per_pixel"), "sweep.camera.samples_per_pixel",
                                 source, kind="int", minimum=1, maximum=16),
     )
-    method = _axis(d.get("method"), "sweep.method", source, kind="choice", choices=METHODS)
+    method = _axis(d.get("method"), "sweep.method", source, kind="choice",
+                   choices=registry.method_names())
     return SweepSpec(mesh=mesh, material=material, envmap=env, camera=camera, method=method)
 
 

@@ -7,11 +7,8 @@ one loop each. Measured on the project's 2-core CPU (README, "Compiled march").
 
 Off by default: the first compiled call of a process costs seconds (tracing, or a full
 C++ compile when the on-disk cache is cold), which a single small render never earns back.
-Turn it on for long runs::
-
-    torchrefract.set_compile(True)         # Python
-    TORCHREFRACT_COMPILE=1                 # environment, read at import
-    torchrefract render|sweep --compile    # CLI
+Turn it on for long runs with ``RenderSettings(compile=True)`` (``--compile`` on the CLI,
+``TORCHREFRACT_COMPILE=1`` as the environment's default).
 
 Where compiling fails (no C++ compiler, an unsupported platform) a warning names the
 error once and the kernels stay eager: the images are the same either way (the kernels
@@ -27,18 +24,21 @@ from typing import Callable
 
 import torch
 
-_ENABLED = os.environ.get("TORCHREFRACT_COMPILE", "").strip().lower() in ("1", "true", "yes")
+from torchrefract import settings
 
 
 def set_compile(enabled: bool) -> None:
-    """Run :func:`kernel` functions compiled (``True``) or eager (``False``)."""
-    global _ENABLED
-    _ENABLED = bool(enabled)
+    """Deprecated: pass ``RenderSettings(compile=...)`` to the render instead. Sets the
+    environment's default (``TORCHREFRACT_COMPILE``) for this process."""
+    warnings.warn("torchrefract.set_compile is deprecated: pass "
+                  "settings=torchrefract.RenderSettings(compile=...) to render()",
+                  DeprecationWarning, stacklevel=2)
+    os.environ["TORCHREFRACT_COMPILE"] = "1" if enabled else "0"
 
 
 def compile_enabled() -> bool:
-    """Whether :func:`kernel` functions run compiled."""
-    return _ENABLED
+    """Whether the current settings run :func:`kernel` functions compiled."""
+    return settings.current().compile
 
 
 def kernel(fn: Callable) -> Callable:
@@ -51,7 +51,7 @@ def kernel(fn: Callable) -> Callable:
     @functools.wraps(fn)
     def run(*args, **kwargs):
         nonlocal compiled, failed
-        if not _ENABLED or failed:
+        if failed or not settings.current().compile:
             return fn(*args, **kwargs)
         if compiled is None:
             compiled = torch.compile(fn, dynamic=True)

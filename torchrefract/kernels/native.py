@@ -20,11 +20,8 @@ first call of a machine compiles them with the system C compiler (``$CC``, else
 ``cc``/``gcc``; about a second) into the cache folder (``$TORCHREFRACT_CACHE`` or
 ``~/.cache/torchrefract``, ``native/``), keyed by the sources, the flags and the
 platform. Where no compiler is found or the build fails, a warning names the reason once
-and the tensor code runs instead (the same images, slower). On by default; turn them off
-with::
-
-    torchrefract.set_native(False)     # Python
-    TORCHREFRACT_NATIVE=0              # environment, read at import
+and the tensor code runs instead (the same images, slower). On by default; a render's
+:class:`~torchrefract.settings.RenderSettings` (``native``, ``native_simd``) turns them off.
 """
 
 from __future__ import annotations
@@ -44,6 +41,8 @@ from pathlib import Path
 
 import torch
 
+from torchrefract import settings
+
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
                                                                 "cone.c"))
 HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache key
@@ -51,25 +50,23 @@ HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache 
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
 
-_ENABLED = os.environ.get("TORCHREFRACT_NATIVE", "1").strip().lower() not in ("0", "false",
-                                                                              "no", "off")
-_SIMD = os.environ.get("TORCHREFRACT_NATIVE_SIMD", "1").strip() != "0"
-"""The march's AVX2 search where the CPU has it (``TORCHREFRACT_NATIVE_SIMD=0``: the
-scalar one; the same values either way, tests/test_native.py)."""
 _LOCK = threading.Lock()
 _LIB: ctypes.CDLL | None = None
 _FAILED: str | None = None
 
 
 def set_native(enabled: bool) -> None:
-    """Use the native kernels (``True``, the default) or the tensor code."""
-    global _ENABLED
-    _ENABLED = bool(enabled)
+    """Deprecated: pass ``RenderSettings(native=...)`` to the render instead. Sets the
+    environment's default (``TORCHREFRACT_NATIVE``) for this process."""
+    warnings.warn("torchrefract.set_native is deprecated: pass "
+                  "settings=torchrefract.RenderSettings(native=...) to render()",
+                  DeprecationWarning, stacklevel=2)
+    os.environ["TORCHREFRACT_NATIVE"] = "1" if enabled else "0"
 
 
 def native_enabled() -> bool:
-    """Whether the march and the G-buffer use the native kernels where they build."""
-    return _ENABLED
+    """Whether the current settings ask for the native kernels."""
+    return settings.current().native
 
 
 class _Job(ctypes.Structure):
@@ -153,11 +150,9 @@ def _compiler() -> str | None:
 
 def library_path(cache_dir: str | Path | None = None) -> Path:
     """Where the built kernels live for these sources, flags and platform."""
-    from torchrefract.optics.sgfit import default_cache_dir
-
     h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES + HEADERS))
     h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler())).encode())
-    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    root = Path(cache_dir) if cache_dir is not None else settings.cache_folder()
     return root / "native" / f"kernels_{h.hexdigest()[:16]}.so"
 
 
@@ -225,7 +220,7 @@ def _load() -> ctypes.CDLL | None:
 def available() -> bool:
     """Whether the kernels run now: enabled, built and loaded (the first call builds
     them)."""
-    return _ENABLED and _load() is not None
+    return settings.current().native and _load() is not None
 
 
 def no_grad_through(*tensors: torch.Tensor) -> bool:
@@ -309,7 +304,7 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
                mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
                tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
                # the AVX2 search gathers with 32-bit indices
-               simd=int(_SIMD and planes.numel() < 2**31), tn=tn.data_ptr(),
+               simd=int(settings.current().native_simd and planes.numel() < 2**31), tn=tn.data_ptr(),
                s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2], pos_out=ptrs[3],
                found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
     if not _call("march", job):

@@ -26,15 +26,16 @@ import torch
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
-from torchrefract.methods.specular import SpecularOptions, background, path_passes, trace_paths
+from torchrefract.methods.base import Method, Shaded
+from torchrefract.methods.specular import SpecularOptions
 from torchrefract.optics.materials import MaterialBatch
+from torchrefract.options import option_keys
+from torchrefract.shading.background import background
+from torchrefract.shading.bounces import BounceSettings
+from torchrefract.shading.paths import path_passes, trace_paths
 
-
-class PrefilteredOptions(SpecularOptions):
-    """Settings of ``prefiltered`` (same as ``specular``: TIR mode and march steps)."""
-
-    METHOD = "prefiltered"
-    BOUNCES = False  # one refracted ray: no internal reflections
+PrefilteredOptions = SpecularOptions
+"""Settings of ``prefiltered``: ``specular``'s exit rule and march steps (no bounces)."""
 
 
 def blur_sharpness(alpha: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,3 +91,17 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     passes = path_passes(g, paths)
     passes["blur_sigma"] = k_pass.view(b, h, w, 1)
     return radiance.view(b, h, w, 3), passes
+
+
+class Prefiltered(Method):
+    """One refracted ray and roughness-blurred environment lookups (module docstring)."""
+
+    name = "prefiltered"
+    Options = PrefilteredOptions
+    excluded_options = tuple(option_keys(BounceSettings))  # one ray: no internal reflections
+
+    def shade(self, g, lighting, materials, options, state) -> Shaded:
+        return Shaded(*render_prefiltered(g, lighting, materials, options))
+
+
+METHOD = Prefiltered()

@@ -21,16 +21,17 @@ Needs the ``reference`` extra: ``pip install 'torchrefract[reference]'``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchrefract.checks import ConfigError, check_number, check_option_keys, where
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.lighting.lights import Lighting
+from torchrefract.methods.base import Method, Shaded
 from torchrefract.optics.materials import MaterialBatch
+from torchrefract.options import option
 from torchrefract.scene.model import Camera, Scene
 
 
@@ -38,35 +39,14 @@ from torchrefract.scene.model import Camera, Scene
 class ReferenceOptions:
     """Settings of ``reference`` (``method_options`` in a scene)."""
 
-    spp: int = 64
+    spp: int = option(64, minimum=1, maximum=1 << 20, integer=True)
     """Samples per (sub-)pixel."""
-    seed: int = 0
+    seed: int = option(0, minimum=0, integer=True)
     """Sampler seed."""
-    max_depth: int = 64
+    max_depth: int = option(64, minimum=1, maximum=1024, integer=True)
     """Longest path: 64 is the spec's truth; 3 is what a two-interface method models."""
-    denoise: bool = False
+    denoise: bool = option(False, boolean=True)
     """Denoise the image with Intel Open Image Denoise (``pyoidn``; HDR color only)."""
-
-    METHOD = "reference"
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str | None = None) -> "ReferenceOptions":
-        check_option_keys(d, [f.name for f in fields(cls)], cls.METHOD, source)
-        return cls(
-            spp=check_number(d.get("spp", 64), "method_options.spp", source, minimum=1,
-                             maximum=1 << 20, integer=True),
-            seed=check_number(d.get("seed", 0), "method_options.seed", source, minimum=0,
-                              integer=True),
-            max_depth=check_number(d.get("max_depth", 64), "method_options.max_depth",
-                                   source, minimum=1, maximum=1024, integer=True),
-            denoise=_check_bool(d.get("denoise", False), "method_options.denoise", source),
-        )
-
-
-def _check_bool(value, key: str, source: str | None) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{where(source, key)}: expected true or false, got {value!r}")
-    return value
 
 
 _PYOIDN_HINT = ("method 'reference' with denoise: true needs Intel Open Image Denoise (PyPI "
@@ -133,3 +113,19 @@ def render_reference_method(g: GBuffer, lighting: Lighting, materials: MaterialB
         img = torch.from_numpy(np.ascontiguousarray(rgb))  # (H*n, W*n, 3)
         out.append(denoise_oidn(img, n) if options.denoise else img)
     return torch.stack(out).float(), {}
+
+
+class Reference(Method):
+    """Mitsuba 3 path tracing of the same scenes (module docstring)."""
+
+    name = "reference"
+    Options = ReferenceOptions
+
+    def prepare(self, scenes, options):
+        return tuple(scenes)  # Mitsuba renders the scenes themselves
+
+    def shade(self, g, lighting, materials, options, state) -> Shaded:
+        return Shaded(*render_reference_method(g, lighting, materials, options, scenes=state))
+
+
+METHOD = Reference()

@@ -74,19 +74,19 @@ trapped light (:func:`torchrefract.shading.bounces.escape_fraction`; 1 for smoot
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 
-from torchrefract.checks import check_choice, check_number, check_option_keys
 from torchrefract.geometry.camera import project
 from torchrefract.geometry.gbuffer import GBuffer, interpolate
 from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.kernels.march import camera_coordinates, camera_planes, march_back
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
-from torchrefract.methods.specular import background, bounce_passes, light_in_front
+from torchrefract.methods.base import Method, Shaded
 from torchrefract.optics import microfacet as mf
+from torchrefract.optics.exit_rule import TIR_RULES
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.ndf import (
     KAPPA_MAX,
@@ -107,7 +107,16 @@ from torchrefract.optics.sgfit import (
     spread_mean,
 )
 from torchrefract.optics.smooth import dot, face_forward, normalize, reflect, refract, tangent_frame
-from torchrefract.shading.bounces import Arrival, BounceSettings, Shading, escape_fraction, follow
+from torchrefract.options import nested, option
+from torchrefract.shading.background import background, light_in_front
+from torchrefract.shading.bounces import (
+    Arrival,
+    BounceSettings,
+    Shading,
+    bounce_passes,
+    escape_fraction,
+    follow,
+)
 
 DIFFUSE_VAR = 0.2
 """Internal bounces under ``tir: conserve``: the angular variance (per axis, radians^2;
@@ -126,67 +135,37 @@ suzanne roughness sweep's largest 1% pixel step with ``auto`` bounces: 0.177 wit
 class RousiersOptions:
     """Settings of ``rousiers`` (``method_options`` in a scene)."""
 
-    tir: str = "conserve"
+    tir: str = option("conserve", choices=TIR_RULES)
     """Exit rule (module docstring): ``conserve``, ``clamp`` (the paper's) or ``reflect``."""
-    cone_rays: str = "march"
+    cone_rays: str = option("march", choices=("march", "plane"))
     """Footprint rays: ``march`` (the paper: march the four bounding rays) or ``plane``
     (intersect them with the exit point's tangent plane: 5x fewer march steps)."""
-    spread: str = "rays"
+    spread: str = option("rays", choices=("paper", "paper+front", "rays"))
     """How the exit lobe gets its width beyond the exit roughness (module docstring):
     ``paper`` (footprint NDF convolved with the BTDF, eq. 10), ``paper+front`` (that, plus
     the front lobe's spread magnified by the exit refraction) or ``rays`` (the four marched
     bounding rays refracted at their own exit normals)."""
-    march_steps: int = 24
+    march_steps: int = option(24, minimum=1, maximum=4096, integer=True)
     """Coarse samples of the central ray's march (fewer change nothing measurable on the
     suite: bisection refines the hit, then the exact triangle is intersected)."""
-    cone_march_steps: int = 4
+    cone_march_steps: int = option(4, minimum=1, maximum=4096, integer=True)
     """Coarse samples of each bounding ray's march (only the footprint and the lobe's
     spread need them; 4 and 8 give the same FLIP within 0.001 on the suite)."""
-    refine_steps: int = 8
+    refine_steps: int = option(8, minimum=0, maximum=64, integer=True)
     """Bisection iterations after the coarse search of the central ray and the internal
     bounces (fewer give the same FLIP on the suite, but lose more exits where the ray
     leaves near a silhouette: with 3, the 2-bounce roughness sweep on suzanne flickers
     more, 99th-percentile pixel step 0.218 against 0.191)."""
-    cone_refine_steps: int = 3
+    cone_refine_steps: int = option(3, minimum=0, maximum=64, integer=True)
     """Bisection iterations of each bounding ray's march (the exit is then the exact hit
     with the triangle found there, walked to the one containing it: 3 and 8 give the same
     FLIP within 0.001 on the suite)."""
-    roughness_levels: int = 4
+    roughness_levels: int = option(4, minimum=2, maximum=16, integer=True)
     """With a roughness map: how many roughness levels the exit interface is split into
     (coverage ratios, sec. 5.1)."""
-    bounces: BounceSettings = BounceSettings()
+    bounces: BounceSettings = nested(BounceSettings)
     """Internal reflections (keys ``internal_bounces``, ``bounce_tolerance``,
     ``max_internal_bounces``, ``bounce_march_steps``, ``bounce_rays``)."""
-
-    METHOD = "rousiers"
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str | None = None) -> "RousiersOptions":
-        keys = [f.name for f in fields(cls) if f.name != "bounces"] + list(BounceSettings.FIELDS)
-        check_option_keys(d, keys, cls.METHOD, source)
-        return cls(
-            bounces=BounceSettings.from_dict(d, source),
-            tir=check_choice(d.get("tir", "conserve"), "method_options.tir",
-                             ("clamp", "reflect", "conserve"), source),
-            cone_rays=check_choice(d.get("cone_rays", "march"), "method_options.cone_rays",
-                                   ("march", "plane"), source),
-            spread=check_choice(d.get("spread", "rays"), "method_options.spread",
-                                ("paper", "paper+front", "rays"), source),
-            march_steps=check_number(d.get("march_steps", 24), "method_options.march_steps",
-                                     source, minimum=1, maximum=4096, integer=True),
-            cone_march_steps=check_number(d.get("cone_march_steps", 4),
-                                          "method_options.cone_march_steps", source,
-                                          minimum=1, maximum=4096, integer=True),
-            refine_steps=check_number(d.get("refine_steps", 8),
-                                      "method_options.refine_steps", source, minimum=0,
-                                      maximum=64, integer=True),
-            cone_refine_steps=check_number(d.get("cone_refine_steps", 3),
-                                           "method_options.cone_refine_steps", source,
-                                           minimum=0, maximum=64, integer=True),
-            roughness_levels=check_number(d.get("roughness_levels", 4),
-                                          "method_options.roughness_levels", source,
-                                          minimum=2, maximum=16, integer=True),
-        )
 
 
 def bounding_angle(k: torch.Tensor) -> torch.Tensor:
@@ -699,4 +678,16 @@ def _interface(table, lighting: Lighting, materials: MaterialBatch, tir_mode: st
     return shade
 
 
-__all__ = ["RousiersOptions", "bounding_angle", "render_rousiers"]
+class Rousiers(Method):
+    """de Rousiers et al. 2012, rough refraction by cone tracing (module docstring)."""
+
+    name = "rousiers"
+    Options = RousiersOptions
+
+    def shade(self, g, lighting, materials, options, state) -> Shaded:
+        return Shaded(*render_rousiers(g, lighting, materials, options))
+
+
+METHOD = Rousiers()
+
+__all__ = ["METHOD", "RousiersOptions", "bounding_angle", "render_rousiers"]

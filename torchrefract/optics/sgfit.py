@@ -688,12 +688,10 @@ def read_sg_table(path: str | Path) -> SGTable:
 
 
 def default_cache_dir() -> Path:
-    """``$TORCHREFRACT_CACHE`` or ``$XDG_CACHE_HOME/torchrefract`` or ``~/.cache/torchrefract``."""
-    env = os.environ.get("TORCHREFRACT_CACHE")
-    if env:
-        return Path(env)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchrefract"
+    """The current settings' cache folder (:func:`torchrefract.settings.cache_folder`)."""
+    from torchrefract.settings import cache_folder  # noqa: PLC0415
+
+    return cache_folder()
 
 
 @functools.lru_cache(maxsize=4)

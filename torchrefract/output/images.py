@@ -1,30 +1,17 @@
 """Image files: OpenEXR read/write, Radiance .hdr (RGBE) read/write, sRGB PNG previews.
 
-EXR files hold linear float32 radiance, never tonemapped. Writes are atomic (temporary file
-in the same folder, then ``os.replace``) so an interrupted run never leaves a corrupt file.
+EXR files hold linear float32 radiance, never tonemapped. Writes are atomic
+(:mod:`torchrefract.output.atomic`) so an interrupted run never leaves a corrupt file.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from torchrefract.checks import ConfigError
-
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
-def _atomic_target(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
-                               dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; use the usual permissions
-    return Path(tmp)
+from torchrefract.output.atomic import atomic_path, write_bytes
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
@@ -38,14 +25,9 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
     path = Path(path)
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = _atomic_target(path)
-    try:
+    with atomic_path(path, suffix=path.suffix) as tmp:
         with OpenEXR.File(header, data) as f:
             f.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:
@@ -132,13 +114,7 @@ def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
     rgbe[..., 3] = np.where(m > 1e-32, exp + 128, 0).astype(np.uint8)
     head = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n".encode()
     path = Path(path)
-    tmp = _atomic_target(path)
-    try:
-        tmp.write_bytes(head + rgbe.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_bytes(path, head + rgbe.tobytes())
 
 
 def linear_to_srgb8(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
@@ -153,10 +129,5 @@ def write_png(path: str | Path, rgb: np.ndarray, exposure: float = 0.0) -> None:
     from PIL import Image  # noqa: PLC0415
 
     path = Path(path)
-    tmp = _atomic_target(path)
-    try:
+    with atomic_path(path, suffix=path.suffix) as tmp:
         Image.fromarray(linear_to_srgb8(rgb, exposure)).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

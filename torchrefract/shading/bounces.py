@@ -45,66 +45,44 @@ import torch
 
 from torchrefract.checks import ConfigError, check_number, where
 from torchrefract.geometry.gbuffer import GBuffer, interpolate
-from torchrefract.kernels.index import take
+from torchrefract.kernels.index import put_, take
 from torchrefract.kernels.march import camera_planes, march_inside
 from torchrefract.optics.smooth import tangent_frame
+from torchrefract.options import option
 
 AUTO = "auto"
+
+
+def _check_bounces(value, key: str, source: str | None):
+    """An integer >= 0 or ``auto``."""
+    if value == AUTO:
+        return value
+    if isinstance(value, str):
+        raise ConfigError(f"{where(source, key)}: expected an integer >= 0 or 'auto', "
+                          f"got {value!r}")
+    return check_number(value, key, source, minimum=0, maximum=64, integer=True)
 
 
 @dataclass(frozen=True)
 class BounceSettings:
     """``method_options`` shared by the methods that follow internal reflections."""
 
-    internal_bounces: int | str = 0
+    internal_bounces: int | str = option(0, check=_check_bounces)
     """Internal reflections followed: 0 (two interfaces), 1, 2, ... or ``auto``."""
-    bounce_tolerance: float = 0.01
+    bounce_tolerance: float = option(0.01, minimum=0.0, maximum=1.0)
     """``auto``: a ray stops once its reflected throughput (max over RGB) is at most this."""
-    max_internal_bounces: int = 16
+    max_internal_bounces: int = option(16, minimum=1, maximum=64, integer=True)
     """``auto``: the most internal reflections followed."""
-    bounce_march_steps: int = 16
+    bounce_march_steps: int = option(16, minimum=1, maximum=4096, integer=True)
     """Coarse samples of each internal segment's march."""
-    bounce_rays: int = 1
+    bounce_rays: int = option(1, choices=(1, 4))
     """Rays the first internal reflection is split into (1 or 4): four rays around the
     reflected lobe's ray carry half its variance (:func:`split_lobe`), each followed with a
     quarter of the throughput."""
 
-    FIELDS = ("internal_bounces", "bounce_tolerance", "max_internal_bounces",
-              "bounce_march_steps", "bounce_rays")
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str | None = None) -> "BounceSettings":
-        k = d.get("internal_bounces", 0)
-        if k != AUTO:
-            if isinstance(k, str):
-                raise ConfigError(f"{where(source, 'method_options.internal_bounces')}: "
-                                  f"expected an integer >= 0 or 'auto', got {k!r}")
-            k = check_number(k, "method_options.internal_bounces", source, minimum=0,
-                             maximum=64, integer=True)
-        return cls(
-            internal_bounces=k,
-            bounce_tolerance=check_number(d.get("bounce_tolerance", 0.01),
-                                          "method_options.bounce_tolerance", source,
-                                          minimum=0.0, maximum=1.0),
-            max_internal_bounces=check_number(d.get("max_internal_bounces", 16),
-                                              "method_options.max_internal_bounces", source,
-                                              minimum=1, maximum=64, integer=True),
-            bounce_march_steps=check_number(d.get("bounce_march_steps", 16),
-                                            "method_options.bounce_march_steps", source,
-                                            minimum=1, maximum=4096, integer=True),
-            bounce_rays=_check_rays(d.get("bounce_rays", 1), source),
-        )
-
     @property
     def enabled(self) -> bool:
         return self.internal_bounces == AUTO or self.internal_bounces > 0
-
-
-def _check_rays(v, source):
-    if v not in (1, 4) or isinstance(v, bool):
-        raise ConfigError(f"{where(source, 'method_options.bounce_rays')}: expected 1 or 4, "
-                          f"got {v!r}")
-    return int(v)
 
 
 def split_lobe(t: torch.Tensor, var: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -249,6 +227,17 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
     return BounceResult(radiance=out, bounces=bounces, residual=residual, alive=alive_counts)
 
 
+def bounce_passes(g: GBuffer, idx: torch.Tensor, res) -> dict[str, torch.Tensor]:
+    """``bounces`` (internal reflections followed) and ``bounce_residual`` (throughput left
+    inside, mean over RGB) per pixel, (B, H, W, 1)."""
+    b, h, w = g.shape
+    out = {k: torch.zeros(b * h * w) for k in ("bounces", "bounce_residual")}
+    if res is not None:
+        put_(out["bounces"], idx, res.bounces.float())
+        put_(out["bounce_residual"], idx, res.residual.float())
+    return {k: v.view(b, h, w, 1) for k, v in out.items()}
+
+
 def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha: torch.Tensor,
                     batch: torch.Tensor, nodes: int = 16, grid: int = 41) -> torch.Tensor:
     """Fraction of the light reflected back inside that eventually leaves the object: the
@@ -297,5 +286,5 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     return esc[batch, i0] * (1.0 - f) + esc[batch, i0 + 1] * f
 
 
-__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "escape_fraction",
-           "follow"]
+__all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "bounce_passes",
+           "escape_fraction", "follow"]

@@ -1,0 +1,115 @@
+"""RenderSettings instead of process-wide switches: importing torchrefract and rendering
+with the default settings leave the host process as it was (threads, umask, environment,
+allocator); settings hold for one call; the old switches are deprecated aliases."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import ASSETS
+
+import torchrefract as tr
+from torchrefract.checks import ConfigError
+from torchrefract.settings import RenderSettings, current, using
+
+_PROBE = r"""
+import os, resource, sys
+import torch
+
+def state():
+    umask = [l.split()[1] for l in open("/proc/self/status") if l.startswith("Umask")][0]
+    env = {k: v for k, v in os.environ.items() if k.startswith("TORCHREFRACT")}
+    return torch.get_num_threads(), umask, env
+
+def faults():  # page faults of 64 MB blocks, above glibc's largest dynamic mmap threshold
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(6):
+        y = torch.ones(16_000_000)
+        del y
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+torch.set_num_threads(1)
+s0, f0 = state(), faults()
+import torchrefract as tr
+from torchrefract import heap
+s1 = state()
+scene = tr.Scene(mesh=sys.argv[1], envmap=tr.EnvMap(path=sys.argv[2]),
+                 camera=tr.Camera(width=24, height=24), method="rousiers")
+tr.render(scene)
+s2, f2 = state(), faults()
+print(s0 == s1 == s2, heap.heap_reuse(), f0, f2, s0, s2)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads /proc")
+def test_import_and_default_render_change_no_process_state():
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TORCHREFRACT")}
+    r = subprocess.run([sys.executable, "-c", _PROBE, str(ASSETS / "meshes" / "sphere.ply"),
+                        str(ASSETS / "envmaps" / "studio_small_03.exr")],
+                       capture_output=True, text=True, timeout=180, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    same, reuse, f0, f2 = r.stdout.split()[:4]
+    assert same == "True", r.stdout
+    assert reuse == "False"
+    # the allocator still returns 64 MB blocks to the system: each one faults in again
+    assert int(f2) >= 0.5 * int(f0) > 0, r.stdout
+
+
+def test_settings_hold_for_one_call_and_threads_are_restored():
+    threads = torch.get_num_threads()
+    with using(RenderSettings(threads=1, native=False)) as s:
+        assert current() is s and torch.get_num_threads() == 1
+        assert not tr.RenderSettings().native or not current().native
+    assert torch.get_num_threads() == threads
+    assert current().native == RenderSettings.from_env().native
+
+
+def test_settings_reach_the_render(monkeypatch):
+    seen = []
+    from torchrefract.kernels import native
+
+    real = native.available
+    monkeypatch.setattr(native, "available", lambda: seen.append(current()) or real())
+    scene = tr.Scene(mesh=str(ASSETS / "meshes" / "sphere.ply"),
+                     envmap=tr.EnvMap(path=str(ASSETS / "envmaps" / "studio_small_03.exr")),
+                     camera=tr.Camera(width=16, height=16), method="specular")
+    s = RenderSettings(native=False)
+    tr.render(scene, settings=s)
+    assert seen and all(x is s for x in seen)
+
+
+def test_environment_variables_are_the_documented_defaults(monkeypatch):
+    monkeypatch.setenv("TORCHREFRACT_NATIVE", "0")
+    monkeypatch.setenv("TORCHREFRACT_COMPILE", "1")
+    monkeypatch.setenv("TORCHREFRACT_THREADS", "3")
+    monkeypatch.setenv("TORCHREFRACT_CACHE", "/tmp/x")
+    s = RenderSettings.from_env()
+    assert (s.native, s.compile, s.threads, s.cache_dir) == (False, True, 3, "/tmp/x")
+    assert RenderSettings() == RenderSettings(threads=None, native=True, compile=False,
+                                              heap_reuse=False)
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(ConfigError, match="RenderSettings.threads"):
+        RenderSettings(threads=0)
+    with pytest.raises(ConfigError, match="RenderSettings"):
+        with using({"threads": 1}):  # type: ignore[arg-type]
+            pass
+
+
+def test_old_switches_are_deprecated_aliases(monkeypatch):
+    monkeypatch.delenv("TORCHREFRACT_NATIVE", raising=False)
+    monkeypatch.delenv("TORCHREFRACT_COMPILE", raising=False)
+    with pytest.warns(DeprecationWarning, match="RenderSettings"):
+        tr.set_native(False)
+    assert current().native is False
+    with pytest.warns(DeprecationWarning, match="RenderSettings"):
+        tr.set_compile(True)
+    assert current().compile is True
+    monkeypatch.delenv("TORCHREFRACT_NATIVE")
+    monkeypatch.delenv("TORCHREFRACT_COMPILE")
+    assert current().native and not current().compile

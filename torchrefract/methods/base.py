@@ -1,0 +1,93 @@
+"""The method interface: what every renderer of a G-buffer implements.
+
+A method is an object with a ``name``, an ``Options`` dataclass (fields made with
+:func:`torchrefract.options.option`), ``prepare`` (per-scene or per-mesh work done before
+shading: Mitsuba's scene, a precomputed transfer; cached by the method) and ``shade``, a
+pure function of the G-buffer, the lighting, the materials, the options and that state.
+The registry (:mod:`torchrefract.methods.registry`) finds methods by name.
+
+Example (a method that shows the environment behind the object, unrefracted)::
+
+    class Clear(Method):
+        name = "clear"
+
+        def shade(self, g, lighting, materials, options, state):
+            ...
+            return Shaded(radiance, {})
+
+    torchrefract.register_method("clear", Clear())
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+
+from torchrefract.options import parse_options
+
+
+@dataclass(frozen=True)
+class NoOptions:
+    """A method without settings."""
+
+
+@dataclass(frozen=True)
+class Shaded:
+    """What ``shade`` returns for B views at (H, W) (sub-)pixels.
+
+    Attributes:
+        radiance: (B, H, W, 3) linear RGB, background included.
+        passes: the method's own buffers, name -> (B, H, W, C), on object pixels.
+    """
+
+    radiance: torch.Tensor
+    passes: dict[str, torch.Tensor]
+
+
+class Method:
+    """Base of every method: set ``name`` and ``Options``; implement ``shade`` (and
+    ``prepare`` where a method needs the scenes themselves or precomputes)."""
+
+    name: str = ""
+    Options: type = NoOptions
+    excluded_options: tuple[str, ...] = ()
+    """Keys of ``Options``' nested groups this method does not accept."""
+
+    def parse(self, options: dict | None, source: str | None = None) -> Any:
+        """``method_options`` checked and turned into ``Options`` (ConfigError otherwise)."""
+        return parse_options(self.Options, options, source, self.name, self.excluded_options)
+
+    def prepare(self, scenes: Sequence[Any], options: Any) -> Any:
+        """State for :meth:`shade` from the batch's scenes (default: none)."""
+        return None
+
+    def shade(self, g, lighting, materials, options, state) -> Shaded:
+        """Shade a G-buffer: radiance (B, H, W, 3) and the method's passes."""
+        raise NotImplementedError(f"method {self.name!r} has no shade()")
+
+    def __repr__(self) -> str:
+        return f"<method {self.name!r}>"
+
+
+class Planned(Method):
+    """A method of the design that is not implemented yet: its scenes load (any options),
+    and rendering raises NotImplementedError naming the issue that builds it."""
+
+    def __init__(self, name: str, issue: str):
+        self.name, self.issue = name, issue
+
+    def parse(self, options: dict | None, source: str | None = None) -> Any:
+        return dict(options or {})
+
+    def prepare(self, scenes, options):
+        raise NotImplementedError(
+            f"method {self.name!r} is not implemented yet ({self.issue}); render with "
+            f"method='rousiers' (CLI: --method rousiers) meanwhile")
+
+    def shade(self, g, lighting, materials, options, state) -> Shaded:
+        return self.prepare((), options)
+
+
+__all__ = ["Method", "NoOptions", "Planned", "Shaded"]

@@ -1,0 +1,154 @@
+"""How a render runs (not what it renders): threads, kernels, compilation, the cache folder
+and the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
+``RenderStream`` as one :class:`RenderSettings`.
+
+The settings hold for the duration of one call, through a context variable that the
+kernels' dispatch reads (:func:`current`); nothing is switched for the whole process. The
+environment variables below are only the documented defaults of :meth:`RenderSettings.from_env`
+(read when settings are made, never at import):
+
+====================================  =============================================
+``TORCHREFRACT_NATIVE=0``              ``native=False``: tensor code, not the C kernels
+``TORCHREFRACT_NATIVE_SIMD=0``         ``native_simd=False``: the march's scalar search
+``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
+``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
+``TORCHREFRACT_THREADS=N``             ``threads=N``
+``TORCHREFRACT_CACHE=DIR``             ``cache_dir=DIR``
+====================================  =============================================
+
+Only ``threads`` and ``heap_reuse`` touch process-wide state, and only when set: ``threads``
+is torch's intra-op thread count for the call (restored after it); ``heap_reuse`` tunes
+glibc's allocator for the whole process (:mod:`torchrefract.heap`), which the caller asks
+for explicitly.
+
+Example:
+    >>> import torchrefract as tr
+    >>> fast = tr.RenderSettings(threads=2)
+    >>> out = tr.render(scenes, settings=fast)            # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import contextvars
+import dataclasses
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+from torchrefract.checks import ConfigError
+
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+def _env_flag(name: str, default: bool) -> bool:
+    v = os.environ.get(name, "").strip().lower()
+    if v in _TRUE:
+        return True
+    if v in _FALSE:
+        return False
+    return default
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a render runs; every field's default is the fastest correct choice."""
+
+    threads: int | None = None
+    """torch CPU threads for the call (None: torch's own count, left as it is)."""
+    native: bool = True
+    """The C kernels (march, G-buffer, cone) where they build; the tensor code otherwise
+    (the same images)."""
+    native_simd: bool = True
+    """The march's AVX2 search where the CPU has it (the same values as the scalar one)."""
+    compile: bool = False
+    """torch.compile the march's tensor code (seconds of start-up per process)."""
+    heap_reuse: bool = False
+    """Tune glibc's allocator for the whole process (:mod:`torchrefract.heap`): asked for by
+    the ``torchrefract`` command; never by default in a host process."""
+    cache_dir: str | None = None
+    """Folder of the built kernels and tables (None: ``$XDG_CACHE_HOME/torchrefract`` or
+    ``~/.cache/torchrefract``)."""
+
+    def __post_init__(self):
+        if self.threads is not None and (isinstance(self.threads, bool)
+                                         or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise ConfigError(f"RenderSettings.threads: expected an integer >= 1 or None, "
+                              f"got {self.threads!r}")
+
+    @classmethod
+    def from_env(cls, **overrides) -> "RenderSettings":
+        """The defaults as the environment variables (module docstring) set them."""
+        threads = os.environ.get("TORCHREFRACT_THREADS", "").strip()
+        base = cls(
+            threads=int(threads) if threads.isdigit() and int(threads) > 0 else None,
+            native=_env_flag("TORCHREFRACT_NATIVE", True),
+            native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
+            compile=_env_flag("TORCHREFRACT_COMPILE", False),
+            heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
+            cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,
+        )
+        return dataclasses.replace(base, **overrides)
+
+    def replace(self, **changes) -> "RenderSettings":
+        return dataclasses.replace(self, **changes)
+
+
+def cache_folder(s: RenderSettings | None = None) -> Path:
+    """The cache folder of ``s`` (default: the current settings): ``cache_dir``, else
+    ``$TORCHREFRACT_CACHE``, ``$XDG_CACHE_HOME/torchrefract`` or ``~/.cache/torchrefract``."""
+    s = s if s is not None else current()
+    if s.cache_dir:
+        return Path(s.cache_dir)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchrefract"
+
+
+_CURRENT: contextvars.ContextVar[RenderSettings | None] = contextvars.ContextVar(
+    "torchrefract_settings", default=None)
+
+
+def current() -> RenderSettings:
+    """The settings of the render in progress (outside one: the environment's defaults)."""
+    s = _CURRENT.get()
+    return s if s is not None else RenderSettings.from_env()
+
+
+@contextmanager
+def using(settings: RenderSettings | None) -> Iterator[RenderSettings]:
+    """Run the block under ``settings`` (None: those in force, or the environment's).
+
+    Sets torch's thread count for the block where ``settings.threads`` is given (and
+    restores it), and turns heap reuse on where ``settings.heap_reuse`` asks for it."""
+    s = settings if settings is not None else current()
+    if not isinstance(s, RenderSettings):
+        raise ConfigError(f"settings: expected a torchrefract.RenderSettings, got "
+                          f"{type(s).__name__}")
+    token = _CURRENT.set(s)
+    threads_before = None
+    try:
+        if s.threads is not None:
+            import torch  # noqa: PLC0415
+
+            threads_before = torch.get_num_threads()
+            if threads_before != s.threads:
+                torch.set_num_threads(s.threads)
+            else:
+                threads_before = None
+        if s.heap_reuse:
+            from torchrefract import heap  # noqa: PLC0415
+
+            heap.set_heap_reuse(True)
+        yield s
+    finally:
+        if threads_before is not None:
+            import torch  # noqa: PLC0415
+
+            torch.set_num_threads(threads_before)
+        _CURRENT.reset(token)
+
+
+__all__ = ["RenderSettings", "cache_folder", "current", "using"]
