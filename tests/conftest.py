@@ -15,6 +15,20 @@ ROOT = Path(__file__).resolve().parent.parent
 ASSETS = ROOT / "assets"
 
 
+def small_scene_yaml(tmp_path: Path, name: str = "small", **changes) -> Path:
+    """The demo scene at 40x32, 1 spp, with ``changes`` to its top-level keys, as a file."""
+    import yaml  # noqa: PLC0415
+
+    data = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+    data["mesh"] = str(ASSETS / "meshes" / "spot.ply")
+    data["envmap"]["path"] = str(ASSETS / "envmaps" / "studio_small_03.exr")
+    data["camera"].update(width=40, height=32, samples_per_pixel=1)
+    data.update(changes)
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
 @pytest.fixture(scope="module")
 def one_thread():
     """Run a module's many small tensor ops on one thread.

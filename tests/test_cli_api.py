@@ -9,24 +9,14 @@ import sys
 import numpy as np
 import pytest
 import torch
-import yaml
-from conftest import ASSETS, ROOT
+from conftest import ROOT, small_scene_yaml
 from PIL import Image
 
 import torchrefract as tr
 from torchrefract.cli import main
 from torchrefract.output.images import read_exr
 
-
-def _small_scene_yaml(tmp_path, name="small", **changes):
-    data = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
-    data["mesh"] = str(ASSETS / "meshes" / "spot.ply")
-    data["envmap"]["path"] = str(ASSETS / "envmaps" / "studio_small_03.exr")
-    data["camera"].update(width=40, height=32, samples_per_pixel=1)
-    data.update(changes)
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+_small_scene_yaml = small_scene_yaml
 
 
 def test_cli_render_writes_exr_png_json(tmp_path):

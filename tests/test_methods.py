@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
-from conftest import ASSETS, ROOT
+from conftest import small_scene_yaml
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
@@ -28,14 +27,7 @@ TESTS = Path(__file__).resolve().parent
 
 
 def _scene_yaml(tmp_path: Path, stem: str = "plug", **changes) -> Path:
-    data = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
-    data["mesh"] = str(ASSETS / "meshes" / "spot.ply")
-    data["envmap"]["path"] = str(ASSETS / "envmaps" / "studio_small_03.exr")
-    data["camera"].update(width=40, height=32, samples_per_pixel=1)
-    data.update(changes)
-    path = tmp_path / f"{stem}.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    return small_scene_yaml(tmp_path, stem, **changes)
 
 
 def test_loading_a_scene_imports_no_method():

@@ -1,56 +1,28 @@
-"""Method ``auto``: per scene, the cheapest method whose measured error on similar scenes is
-within a tolerance of the best one (issue #4, part 6).
+"""The ``auto`` policy: per scene, the cheapest method variant whose measured error on
+similar scenes is within ``auto_tolerance`` of the best one ("model no more than a scene
+needs"). It picks methods; it shades nothing itself.
 
-The measurements are the speed/accuracy chart's (``scripts/pareto.py`` ->
-``outputs/pareto/results.csv``), condensed by ``scripts/build_auto_table.py`` into a table
-shipped with the package (``torchrefract/tables/auto_v1.json``): for every suite scene its
-features and, for each of our method variants, the time per frame and the FLIP against full
-Mitsuba truth (object pixels). For a new scene:
+The measurements are the speed/accuracy chart's (``scripts/pareto.py``), condensed by
+``scripts/build_auto_table.py`` into ``torchrefract/tables/auto_v1.json``: per suite scene
+its features and, per variant, time per frame and FLIP against Mitsuba truth. For a scene:
 
-1. Features, from the scene alone (no render needed): roughness alpha (a roughness map: the
-   middle of its range), IOR, and thinness, the ratio of the smallest to the largest
-   principal extent of the mesh's surface (area-weighted; a slab ~0.1, a sphere 1).
-2. Similar scenes: the two nearest suite scenes in (log10 alpha / 0.5, thinness / 0.2,
-   IOR / 0.5) space, weighted by inverse distance.
-3. For each variant, the predicted FLIP and time are those weighted means; ``auto`` picks the
-   fastest variant whose predicted FLIP is at most ``auto_tolerance`` above the best
-   predicted FLIP (so a tolerance of 0 asks for the most accurate; a loose one for the
-   fastest). Thin objects end up on cheap variants, because that is what the chart
-   measured there.
-4. A smooth surface needs no cone: below ``SMOOTH_ALPHA`` (0.04) only ``specular``'s
-   variants are candidates (the rough methods' lobes collapse onto its rays there and only
-   add cost and the SG fit's own error: on the chart's smooth sphere ``specular`` with 2
-   bounces has FLIP 0.030 at 59 ms, ``rousiers`` with 2 bounces and 4 rays 0.045 at 232 ms;
-   on the alpha-0.05 sphere ``specular`` with 2 bounces is still within 0.045 of the best;
-   0.04 rather than a lower threshold leaves the blend (6.) room to spread the switch from
-   specular to the rough methods over alpha 0-0.1).
-   The rule holds without a smooth scene in the table, where the nearest measured scenes are
-   rough and would favour the rough methods (the leave-one-out check of
-   ``scripts/build_auto_table.py``).
-5. Only variants that pass the stability suite are candidates: the papers' exit rule
-   ``tir: clamp`` (kept to reproduce them) loses the light the exit reflects inside and
-   fails the white furnace and the continuity tests, so ``auto`` never picks it.
-6. Blend (``auto_blend``, default on): 1.-4. switch variants at thresholds of roughness and
-   IOR, so a roughness sweep would jump where the pick changes (tests/test_continuity.py
-   measured it: steps of 3x their neighbours on the sphere and suzanne). Instead the rule is
-   evaluated on a box kernel of BLEND_POINTS feature points around the scene (alpha on
-   u = asinh(alpha / BLEND_A0), linear near 0 and logarithmic above, +-0.5 in u: alpha 0
-   reaches 0.052, alpha 0.1 spans 0.039-0.18, alpha 0.3 0.16-0.5; IOR +-0.1),
-   each variant's share of the points is its weight, shares below BLEND_MIN are let go
-   continuously (share - BLEND_MIN, renormalized), and the image is the weighted sum of the
-   variants' images (each rendered in full: a blend of two costs both). As the scene's
-   roughness or IOR moves, the shares move by single kernel points (1/512 each), so a
-   switch is spread over the kernel's width in small steps instead of one jump; away from
-   thresholds one variant has all the kernel and nothing is blended. A mirror (alpha 0)
-   stays specular's alone: the kernel's part above SMOOTH_ALPHA is under BLEND_MIN. Cost,
-   on a uniform roughness sweep 0-1 (41 scenes, predicted from the table's times): +25% on
-   the sphere, +10% on suzanne; ``auto_blend: false`` gives the single picks.
+1. Features from the scene alone: roughness alpha (a map: the middle of its range), IOR,
+   and thinness (smallest / largest principal extent of the area-weighted surface).
+2. The two nearest table scenes in (log10 alpha / 0.5, thinness / 0.2, IOR / 0.5),
+   weighted by inverse distance, predict each variant's FLIP and time.
+3. The fastest variant predicted within ``auto_tolerance`` of the best predicted FLIP.
+4. Below ``SMOOTH_ALPHA`` only ``specular``'s variants (a smooth surface needs no cone).
+5. ``tir: clamp`` is never a candidate (it fails the furnace and continuity suites).
+6. Blend (``auto_blend``, default): 1.-4. evaluated on a box kernel of ``BLEND_POINTS``
+   points around the scene (alpha on u = asinh(alpha / BLEND_A0) +- BLEND_HALF_WIDTH[0],
+   IOR +- BLEND_HALF_WIDTH[1]); each variant weighs its share of the points less
+   ``BLEND_MIN`` (renormalized) and the image is the weighted sum, so a roughness or IOR
+   sweep changes the image continuously instead of jumping where the pick changes.
 
-Without a table (or with an empty one) a rule stands in for 1.-4.: alpha < SMOOTH_ALPHA ->
-``specular``, else ``rousiers`` (blended alike). A single pick's method and options are
-written into the result's scene (a blend keeps ``auto`` there: re-rendering either gives the
-same image), every share into ``RenderResult.blends`` (and both into the JSON sidecar of
-every exported frame and a sweep's manifest).
+Without a table a rule stands in for 1.-4. (alpha < SMOOTH_ALPHA: ``specular``, else
+``rousiers``). A single pick is recorded as the result's scene, a blend keeps ``auto``; every
+share goes to ``RenderResult.blends``, the sidecar JSON and a sweep's manifest. Why each
+threshold is where it is, and what it was measured to cost: docs/decisions.md.
 """
 
 from __future__ import annotations

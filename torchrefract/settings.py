@@ -97,6 +97,16 @@ class RenderSettings:
         return dataclasses.replace(self, **changes)
 
 
+def deprecated_switch(old: str, field: str, env: str, enabled: bool) -> None:
+    """The old process-wide switches (``set_native``, ``set_compile``): a DeprecationWarning,
+    and the environment's default for ``field`` set for this process."""
+    import warnings  # noqa: PLC0415
+
+    warnings.warn(f"torchrefract.{old} is deprecated: pass settings=torchrefract."
+                  f"RenderSettings({field}=...) to render()", DeprecationWarning, stacklevel=3)
+    os.environ[env] = "1" if enabled else "0"
+
+
 def cache_folder(s: RenderSettings | None = None) -> Path:
     """The cache folder of ``s`` (default: the current settings): ``cache_dir``, else
     ``$TORCHREFRACT_CACHE``, ``$XDG_CACHE_HOME/torchrefract`` or ``~/.cache/torchrefract``."""

@@ -245,6 +245,12 @@ def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: to
                         meshes.tri_uvs, meshes.tri_neighbors, back, tol, 1e-3)
     if fast is not None:
         return Layer(**fast)
+    return _layer_tensor(ids, eye, dirs, forward, meshes, back, tol)
+
+
+def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
+                  forward: torch.Tensor, meshes: MeshBatch, back: bool, tol: float) -> Layer:
+    """:func:`_layer` in tensor code: the exact hits of the covered pixels, compacted."""
     b, h, w = ids.shape
     flat_ids = ids.reshape(-1)
     pix = where_true(flat_ids >= 0)  # (N,) covered pixels, flat

@@ -18,7 +18,6 @@ return comparisons and interval ends; tests/test_accel.py checks equality).
 from __future__ import annotations
 
 import functools
-import os
 import warnings
 from typing import Callable
 
@@ -28,12 +27,8 @@ from torchrefract import settings
 
 
 def set_compile(enabled: bool) -> None:
-    """Deprecated: pass ``RenderSettings(compile=...)`` to the render instead. Sets the
-    environment's default (``TORCHREFRACT_COMPILE``) for this process."""
-    warnings.warn("torchrefract.set_compile is deprecated: pass "
-                  "settings=torchrefract.RenderSettings(compile=...) to render()",
-                  DeprecationWarning, stacklevel=2)
-    os.environ["TORCHREFRACT_COMPILE"] = "1" if enabled else "0"
+    """Deprecated: pass ``RenderSettings(compile=...)`` to the render instead."""
+    settings.deprecated_switch("set_compile", "compile", "TORCHREFRACT_COMPILE", enabled)
 
 
 def compile_enabled() -> bool:

@@ -350,122 +350,162 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
            refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
            both: bool, planes: torch.Tensor | None = None,
            camera: tuple[torch.Tensor, torch.Tensor] | None = None) -> Exit:
+    """The march: the backend chosen here (the native kernel where it runs and no tile
+    acceleration is asked for, else the tensor code: a bracketing search, then the exact
+    hit with the triangle seen at the crossing)."""
     if planes is None:
         planes = camera_planes(g, both)  # (B*H*W, 4|8)
     elif planes.shape != (g.ray_dir[..., 0].numel(), 8 if both else 4):
         raise ValueError(f"march: planes of shape {tuple(planes.shape)} do not belong to this "
                          f"G-buffer (camera_planes(g, both={both}))")
-    tv = g.meshes.tri_vertices
     # Where each ray crosses is a discrete choice (no gradient); the gradient flows through
     # the exact intersection with the triangle found there (p1 and t below, not detached).
     p1d, td = p1.detach(), t.detach()
     s_max = _bounding_chord(g, batch, p1d, td)
-    n = p1.shape[0]
-    _, h, w = g.shape
     s_min = 1e-4 * s_max if both else torch.zeros_like(s_max)
     if depth_min is None and native.available():
-        # The native kernel (native.py): the same search, candidates and walk below, one
-        # ray at a time; the same triangles, then the same differentiable hit.
-        # Where no gradient is wanted, the kernel also returns the exits' values (the same
-        # as _exit's); else the hit is taken again below, in torch.
-        c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
-        grad = not native.no_grad_through(p1, t)
-        res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
-                           0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
-                           td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),
-                           g.front.mask.reshape(-1), g.back.mask.reshape(-1), tv,
-                           g.meshes.tri_across,
-                           tri_normals=None if grad else g.meshes.tri_normals)
-        if res is not None and not grad:
-            found, tri, layer, s_exit, bary, normal, pos = res
-            return Exit(found=found, position=pos, normal=normal, tri=tri, dist=s_exit,
-                        layer=layer, bary=bary)
-        if res is not None:
-            found, tri, layer = res
-            st, bt = intersect_triangles(p1, t, take(tv, tri.clamp(min=0)))
-            s_exit = torch.where(found, st, torch.zeros_like(st))
-            bary = torch.where(found[:, None], bt, torch.zeros_like(bt))
-            return _exit(g, p1, t, found, tri, s_exit, bary, layer)
+        ex = _march_native(g, batch, p1, t, p1d, td, s_max, s_min, steps, refine, planes,
+                           camera)
+        if ex is not None:
+            return ex
     proj = _Projector(g, batch, p1d, td, camera)
-
-    def exact_crossed(idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        return _crossed_at(take(proj.c0, idx), take(proj.ct, idx), s, take(proj.sx, idx),
-                           take(proj.sy, idx), take(proj.base, idx), planes, h, w)
-
     if depth_min is None and compile_enabled():
         # Compiled: every ray at every sample, search and bisection in one fused pass
         # (cheaper than the compaction below, which pays for gathers the fused pass does
         # not need); the same intervals, so the same exits.
+        _, h, w = g.shape
         lo, hi = _search(proj.c0, proj.ct, s_max, proj.sx, proj.sy, proj.base, planes, h, w,
                          steps, refine)
     else:
-        lo = torch.zeros(n, dtype=p1.dtype)
-        hi = s_max.clone()
         if depth_min is None:
-            # Compacted state: every per-ray quantity the step needs, packed so that
-            # dropping the rays that crossed is one gather (instead of one per array).
-            state = torch.cat([proj.c0, proj.ct, s_max[:, None], proj.sx[:, None],
-                               proj.sy[:, None]], 1)  # (N, 9)
-            base = proj.base
-            ids = torch.arange(n)
-            last = torch.zeros(n, dtype=p1.dtype)  # the last s still inside, per active ray
-            for k in range(1, steps + 1):
-                if ids.numel() == 0:
-                    break
-                s = state[:, 6] * (k / steps)
-                crossed = _crossed_at(state[:, 0:3], state[:, 3:6], s, state[:, 7],
-                                      state[:, 8], base, planes, h, w)
-                if bool(crossed.any()):
-                    done = where_true(crossed)
-                    gone = take(ids, done)
-                    put_(hi, gone, take(s, done))
-                    put_(lo, gone, take(last, done))
-                    keep = where_true(~crossed)
-                    state, base, ids = take(state, keep), take(base, keep), take(ids, keep)
-                    last = take(s, keep)
-                else:
-                    last = s
-            if ids.numel():
-                put_(lo, ids, last)
+            lo, hi = _search_compacted(g, proj, planes, s_max, steps)
         else:
-            th, tw = depth_min.shape[1:3]
-            dmin = depth_min.reshape(-1)
-            active = torch.arange(n)  # rays whose crossing is not bracketed yet
-            for k in range(1, steps + 1):
-                if active.numel() == 0:
-                    break
-                s0 = s_max[active] * ((k - 1) / steps)
-                s1 = s_max[active] * (k / steps)
-                # Coarse test at the interval's end: can the ray have crossed by s1?
-                c = proj.c0[active] + s1[:, None] * proj.ct[active]  # camera coords
-                flat, inside = proj.pixels(active, s1)
-                px = flat % w
-                py = (flat // w) % h
-                tflat = batch[active] * (th * tw) + (py // tile) * tw + (px // tile)
-                maybe = ~inside | (c[:, 2] >= dmin[tflat] * (1.0 - 1e-6))
-                # Exact search inside the intervals that may hold the crossing.
-                idx = active[maybe]
-                a, b = s0[maybe], s1[maybe]
-                found = torch.zeros(idx.numel(), dtype=torch.bool)
-                for j in range(1, fine_steps + 1):
-                    sj = a + (b - a) * (j / fine_steps)
-                    cj = exact_crossed(idx, sj) & ~found
-                    hi[idx[cj]] = sj[cj]
-                    found = found | cj
-                    lo[idx[~found]] = sj[~found]
-                lo[active[~maybe]] = s1[~maybe]
-                done = torch.zeros(n, dtype=torch.bool)
-                done[idx[found]] = True
-                active = active[~done[active]]
+            lo, hi = _search_tiles(g, batch, proj, planes, s_max, steps, depth_min, tile,
+                                   fine_steps)
+        _, h, w = g.shape
         for _ in range(refine):
             lo, hi = _bisect_step_eager(lo, hi, proj.c0, proj.ct, proj.sx, proj.sy,
                                         proj.base, planes, h, w)
+    return _exact_exit(g, p1, t, proj, planes, lo, hi, s_min, s_max, both)
 
-    # Exact exit: intersect the ray with the crossed layer's triangle at the crossing (first
-    # choice: the pixel just beyond the crossing; second: the last pixel still inside). Two
-    # layers: the layer whose plane is crossed farther at ``hi`` first, then the other.
-    tri_maps = (g.front.tri.reshape(-1), g.back.tri.reshape(-1))
-    masks = (g.front.mask.reshape(-1), g.back.mask.reshape(-1))
+
+def _march_native(g: GBuffer, batch, p1, t, p1d, td, s_max, s_min, steps: int, refine: int,
+                  planes, camera) -> Exit | None:
+    """The native kernel (native.py): the same search, candidates and walk as the tensor
+    code, one ray at a time; the same triangles, then the same differentiable hit. Where no
+    gradient is wanted the kernel also returns the exits' values (the same as _exit's);
+    else the hit is taken again here, in torch. None where the kernel did not run."""
+    _, h, w = g.shape
+    tv = g.meshes.tri_vertices
+    c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
+    grad = not native.no_grad_through(p1, t)
+    res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
+                       0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
+                       td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),
+                       g.front.mask.reshape(-1), g.back.mask.reshape(-1), tv,
+                       g.meshes.tri_across,
+                       tri_normals=None if grad else g.meshes.tri_normals)
+    if res is None:
+        return None
+    if not grad:
+        found, tri, layer, s_exit, bary, normal, pos = res
+        return Exit(found=found, position=pos, normal=normal, tri=tri, dist=s_exit,
+                    layer=layer, bary=bary)
+    found, tri, layer = res
+    st, bt = intersect_triangles(p1, t, take(tv, tri.clamp(min=0)))
+    s_exit = torch.where(found, st, torch.zeros_like(st))
+    bary = torch.where(found[:, None], bt, torch.zeros_like(bt))
+    return _exit(g, p1, t, found, tri, s_exit, bary, layer)
+
+
+def _search_compacted(g: GBuffer, proj: "_Projector", planes: torch.Tensor,
+                      s_max: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Uniform coarse search over the chord, (lo, hi) brackets of the first crossing; the
+    rays that crossed are dropped after each sample. The per-ray quantities the step needs
+    are packed so that dropping rays is one gather (instead of one per array)."""
+    _, h, w = g.shape
+    n = s_max.shape[0]
+    lo = torch.zeros(n, dtype=s_max.dtype)
+    hi = s_max.clone()
+    state = torch.cat([proj.c0, proj.ct, s_max[:, None], proj.sx[:, None],
+                       proj.sy[:, None]], 1)  # (N, 9)
+    base = proj.base
+    ids = torch.arange(n)
+    last = torch.zeros(n, dtype=s_max.dtype)  # the last s still inside, per active ray
+    for k in range(1, steps + 1):
+        if ids.numel() == 0:
+            break
+        s = state[:, 6] * (k / steps)
+        crossed = _crossed_at(state[:, 0:3], state[:, 3:6], s, state[:, 7],
+                              state[:, 8], base, planes, h, w)
+        if bool(crossed.any()):
+            done = where_true(crossed)
+            gone = take(ids, done)
+            put_(hi, gone, take(s, done))
+            put_(lo, gone, take(last, done))
+            keep = where_true(~crossed)
+            state, base, ids = take(state, keep), take(base, keep), take(ids, keep)
+            last = take(s, keep)
+        else:
+            last = s
+    if ids.numel():
+        put_(lo, ids, last)
+    return lo, hi
+
+
+def _search_tiles(g: GBuffer, batch: torch.Tensor, proj: "_Projector", planes: torch.Tensor,
+                  s_max: torch.Tensor, steps: int, depth_min: torch.Tensor, tile: int,
+                  fine_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coarse search with empty space skipped (min back depth per tile: Oliveira and
+    Brauwers 2007's min/max acceleration): only intervals that may hold the crossing are
+    searched with ``fine_steps`` exact plane tests."""
+    _, h, w = g.shape
+    n = s_max.shape[0]
+    lo = torch.zeros(n, dtype=s_max.dtype)
+    hi = s_max.clone()
+    th, tw = depth_min.shape[1:3]
+    dmin = depth_min.reshape(-1)
+    active = torch.arange(n)  # rays whose crossing is not bracketed yet
+    for k in range(1, steps + 1):
+        if active.numel() == 0:
+            break
+        s0 = s_max[active] * ((k - 1) / steps)
+        s1 = s_max[active] * (k / steps)
+        # Coarse test at the interval's end: can the ray have crossed by s1?
+        c = proj.c0[active] + s1[:, None] * proj.ct[active]  # camera coords
+        flat, inside = proj.pixels(active, s1)
+        px = flat % w
+        py = (flat // w) % h
+        tflat = batch[active] * (th * tw) + (py // tile) * tw + (px // tile)
+        maybe = ~inside | (c[:, 2] >= dmin[tflat] * (1.0 - 1e-6))
+        # Exact search inside the intervals that may hold the crossing.
+        idx = active[maybe]
+        a, b = s0[maybe], s1[maybe]
+        found = torch.zeros(idx.numel(), dtype=torch.bool)
+        for j in range(1, fine_steps + 1):
+            sj = a + (b - a) * (j / fine_steps)
+            cj = _crossed_at(take(proj.c0, idx), take(proj.ct, idx), sj, take(proj.sx, idx),
+                             take(proj.sy, idx), take(proj.base, idx), planes, h, w) & ~found
+            hi[idx[cj]] = sj[cj]
+            found = found | cj
+            lo[idx[~found]] = sj[~found]
+        lo[active[~maybe]] = s1[~maybe]
+        done = torch.zeros(n, dtype=torch.bool)
+        done[idx[found]] = True
+        active = active[~done[active]]
+    return lo, hi
+
+
+def _exact_exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, proj: "_Projector",
+                planes: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s_min: torch.Tensor,
+                s_max: torch.Tensor, both: bool) -> Exit:
+    """Exact exit: the ray intersected with the crossed layer's triangle at the crossing
+    (first choice: the pixel just beyond the crossing; second: the last pixel still
+    inside). Two layers: the layer whose plane is crossed farther at ``hi`` first, then the
+    other; the first try on every ray at once (no gathers), the others on the rays still
+    without an exit; then the walk to the triangle that contains the hit."""
+    n = p1.shape[0]
+    tv = g.meshes.tri_vertices
     if both:
         flat, _ = proj.pixels(None, hi)
         pl, x = take(planes, flat), proj.c0 + hi[:, None] * proj.ct  # camera coordinates
@@ -475,27 +515,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     else:
         back = torch.zeros(n, dtype=torch.bool)
         tries = [(hi, back), (lo, back)]
-    def candidates(todo: torch.Tensor | None, s_try: torch.Tensor, use_front: torch.Tensor):
-        """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``:
-        the triangle seen at that pixel in the chosen layer, and the hit with it."""
-        def sel(x):
-            return x if todo is None else take(x, todo)
-
-        flat, inside = proj.pixels(todo, sel(s_try))
-        uf = sel(use_front)
-        if both:
-            seen = torch.where(uf, take(masks[0], flat), take(masks[1], flat))
-            seen_tri = torch.where(uf, take(tri_maps[0], flat), take(tri_maps[1], flat))
-        else:  # the back layer only (use_front is all False)
-            seen, seen_tri = take(masks[1], flat), take(tri_maps[1], flat)
-        cand = torch.where(inside & seen, seen_tri, torch.full_like(flat, -1))
-        st, bt = intersect_triangles(sel(p1), sel(t), take(tv, cand.clamp(min=0)))
-        ok = (cand >= 0) & torch.isfinite(st) & (st > sel(s_min)) & (st <= sel(s_max) * 1.5)
-        return cand, st, bt, ok, uf
-
-    # The first try on every ray at once (no gathers), the others on the rays still
-    # without an exit.
-    tri, s_exit, bary, found, uf = candidates(None, *tries[0])
+    tri, s_exit, bary, found, uf = _candidates(g, p1, t, proj, None, *tries[0], s_min, s_max,
+                                               both)
     s_exit = torch.where(found, s_exit, torch.zeros_like(s_exit))
     tri = torch.where(found, tri, torch.full_like(tri, -1))
     bary = torch.where(found[:, None], bary, torch.zeros_like(bary))
@@ -506,7 +527,8 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
         todo = where_true(~found)  # only the rays still without an exit
         if todo.numel() == 0:
             break
-        cand, st, bt, ok, uf = candidates(todo, s_try, use_front)
+        cand, st, bt, ok, uf = _candidates(g, p1, t, proj, todo, s_try, use_front, s_min,
+                                           s_max, both)
         oi = where_true(ok)
         hit = take(todo, oi)
         put_(s_exit, hit, take(st, oi))
@@ -517,6 +539,28 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     tri, s_exit, bary = _walk_to_containing(p1, t, tv, g.meshes.tri_across, found, tri,
                                             s_exit, bary, s_min, s_max)
     return _exit(g, p1, t, found, tri, s_exit, bary, layer)
+
+
+def _candidates(g: GBuffer, p1, t, proj: "_Projector", todo: torch.Tensor | None,
+                s_try: torch.Tensor, use_front: torch.Tensor, s_min, s_max, both: bool):
+    """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``: the
+    triangle seen at that pixel in the chosen layer, and the hit with it."""
+    def sel(x):
+        return x if todo is None else take(x, todo)
+
+    flat, inside = proj.pixels(todo, sel(s_try))
+    uf = sel(use_front)
+    if both:
+        seen = torch.where(uf, take(g.front.mask.reshape(-1), flat),
+                           take(g.back.mask.reshape(-1), flat))
+        seen_tri = torch.where(uf, take(g.front.tri.reshape(-1), flat),
+                               take(g.back.tri.reshape(-1), flat))
+    else:  # the back layer only (use_front is all False)
+        seen, seen_tri = take(g.back.mask.reshape(-1), flat), take(g.back.tri.reshape(-1), flat)
+    cand = torch.where(inside & seen, seen_tri, torch.full_like(flat, -1))
+    st, bt = intersect_triangles(sel(p1), sel(t), take(g.meshes.tri_vertices, cand.clamp(min=0)))
+    ok = (cand >= 0) & torch.isfinite(st) & (st > sel(s_min)) & (st <= sel(s_max) * 1.5)
+    return cand, st, bt, ok, uf
 
 
 def _exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, found: torch.Tensor,

@@ -29,8 +29,13 @@ _TOP_KEYS = ("mesh", "transform", "material", "envmap", "lights", "camera", "met
              "method_options", "exposure", "name")
 
 
-def _resolve_path(value: Any, key: str, base_dir: Path, source: str | None) -> str:
-    return check_file(value, key, base_dir, source)
+def _section(data: dict, key: str) -> dict:
+    return {} if data.get(key) is None else data[key]
+
+
+def _get(d: dict, key: str, cls: type) -> Any:
+    """``d[key]``, else the dataclass ``cls``'s default for that field (written once)."""
+    return d.get(key, cls.__dataclass_fields__[key].default)
 
 
 def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = None,
@@ -48,51 +53,74 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
     """
     base = Path(base_dir)
     check_keys(data, "", _TOP_KEYS, source, required=("mesh", "envmap"))
-    mesh = _resolve_path(data["mesh"], "mesh", base, source)
+    mesh = check_file(data["mesh"], "mesh", base, source)
+    transform = _transform(_section(data, "transform"), source)
+    material = _material(_section(data, "material"), base, source)
+    envmap = _envmap(data["envmap"], base, source)
+    lights = _lights([] if data.get("lights") is None else data["lights"], source)
+    camera = _camera(_section(data, "camera"), source)
+    method = check_choice(_get(data, "method", Scene), "method", registry.method_names(),
+                          source)
+    opts = _section(data, "method_options")
+    check_keys(opts, "method_options", list(opts.keys()) if isinstance(opts, dict) else [],
+               source)
+    registry.get(method).parse(opts, source)  # raises ConfigError naming the bad option
+    exposure = check_number(_get(data, "exposure", Scene), "exposure", source)
+    nm = data.get("name", name if name is not None else "scene")
+    if not isinstance(nm, str) or not nm or "/" in nm or nm.startswith("."):
+        raise ConfigError(f"{where(source, 'name')}: expected a file stem, got {nm!r}")
+    return Scene(mesh=mesh, envmap=envmap, transform=transform, material=material,
+                 lights=lights, camera=camera, method=method,
+                 method_options=dict(opts), exposure=exposure, name=nm)
 
-    t = {} if data.get("transform") is None else data["transform"]
+
+def _transform(t: dict, source: str | None) -> Transform:
     check_keys(t, "transform", ("scale", "rotate_deg", "translate"), source)
-    transform = Transform(
-        scale=check_number(t.get("scale", 1.0), "transform.scale", source, minimum=0.0,
+    return Transform(
+        scale=check_number(_get(t, "scale", Transform), "transform.scale", source, minimum=0.0,
                            min_inclusive=False),
-        rotate_deg=check_vector(t.get("rotate_deg", [0, 0, 0]), "transform.rotate_deg", source),
-        translate=check_vector(t.get("translate", [0, 0, 0]), "transform.translate", source),
+        rotate_deg=check_vector(_get(t, "rotate_deg", Transform), "transform.rotate_deg",
+                                source),
+        translate=check_vector(_get(t, "translate", Transform), "transform.translate", source),
     )
 
-    m = {} if data.get("material") is None else data["material"]
+
+def _material(m: dict, base: Path, source: str | None) -> Material:
     check_keys(m, "material", ("ior", "roughness", "distribution", "roughness_map",
                                "roughness_range", "absorption"), source)
     rmap = m.get("roughness_map")
-    rrange = check_vector(m.get("roughness_range", [0.02, 0.5]), "material.roughness_range",
+    rrange = check_vector(_get(m, "roughness_range", Material), "material.roughness_range",
                           source, length=2, minimum=0.0)
     if rrange[1] < rrange[0]:
         raise ConfigError(f"{where(source, 'material.roughness_range')}: expected [lo, hi] "
                           f"with lo <= hi, got {list(rrange)}")
-    material = Material(
-        ior=check_number(m.get("ior", 1.5), "material.ior", source, minimum=0.0,
+    return Material(
+        ior=check_number(_get(m, "ior", Material), "material.ior", source, minimum=0.0,
                          min_inclusive=False),
-        roughness=check_number(m.get("roughness", 0.1), "material.roughness", source,
+        roughness=check_number(_get(m, "roughness", Material), "material.roughness", source,
                                minimum=0.0),
-        distribution=check_choice(m.get("distribution", "beckmann"), "material.distribution",
+        distribution=check_choice(_get(m, "distribution", Material), "material.distribution",
                                   ("beckmann", "ggx"), source),
-        roughness_map=None if rmap is None else _resolve_path(rmap, "material.roughness_map",
-                                                              base, source),
+        roughness_map=None if rmap is None else check_file(rmap, "material.roughness_map",
+                                                           base, source),
         roughness_range=rrange,
-        absorption=check_vector(m.get("absorption", [0, 0, 0]), "material.absorption", source,
-                                minimum=0.0),
+        absorption=check_vector(_get(m, "absorption", Material), "material.absorption",
+                                source, minimum=0.0),
     )
 
-    e = data["envmap"]
+
+def _envmap(e: Any, base: Path, source: str | None) -> EnvMap:
     if isinstance(e, str):  # shorthand: envmap: path.exr
         e = {"path": e}
     check_keys(e, "envmap", ("path", "scale", "rotate_deg"), source, required=("path",))
-    envmap = EnvMap(
-        path=_resolve_path(e["path"], "envmap.path", base, source),
-        scale=check_number(e.get("scale", 1.0), "envmap.scale", source, minimum=0.0),
-        rotate_deg=check_number(e.get("rotate_deg", 0.0), "envmap.rotate_deg", source),
+    return EnvMap(
+        path=check_file(e["path"], "envmap.path", base, source),
+        scale=check_number(_get(e, "scale", EnvMap), "envmap.scale", source, minimum=0.0),
+        rotate_deg=check_number(_get(e, "rotate_deg", EnvMap), "envmap.rotate_deg", source),
     )
 
-    lights_data = [] if data.get("lights") is None else data["lights"]
+
+def _lights(lights_data: Any, source: str | None) -> tuple[SphereLight, ...]:
     if not isinstance(lights_data, list):
         raise ConfigError(f"{where(source, 'lights')}: expected a list, got {lights_data!r}")
     lights = []
@@ -106,39 +134,28 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
                                 min_inclusive=False),
             radiance=check_vector(ld["radiance"], f"{k}.radiance", source, minimum=0.0),
         ))
+    return tuple(lights)
 
-    c = {} if data.get("camera") is None else data["camera"]
+
+def _camera(c: dict, source: str | None) -> Camera:
     check_keys(c, "camera", ("eye", "target", "up", "yfov_deg", "width", "height",
                              "samples_per_pixel"), source)
     camera = Camera(
-        eye=check_vector(c.get("eye", [0, 0, 4]), "camera.eye", source),
-        target=check_vector(c.get("target", [0, 0, 0]), "camera.target", source),
-        up=check_vector(c.get("up", [0, 1, 0]), "camera.up", source),
-        yfov_deg=check_number(c.get("yfov_deg", 40.0), "camera.yfov_deg", source, minimum=0.0,
-                              min_inclusive=False, maximum=179.0),
-        width=check_number(c.get("width", 256), "camera.width", source, minimum=1,
+        eye=check_vector(_get(c, "eye", Camera), "camera.eye", source),
+        target=check_vector(_get(c, "target", Camera), "camera.target", source),
+        up=check_vector(_get(c, "up", Camera), "camera.up", source),
+        yfov_deg=check_number(_get(c, "yfov_deg", Camera), "camera.yfov_deg", source,
+                              minimum=0.0, min_inclusive=False, maximum=179.0),
+        width=check_number(_get(c, "width", Camera), "camera.width", source, minimum=1,
                            integer=True, maximum=16384),
-        height=check_number(c.get("height", 256), "camera.height", source, minimum=1,
+        height=check_number(_get(c, "height", Camera), "camera.height", source, minimum=1,
                             integer=True, maximum=16384),
-        samples_per_pixel=check_number(c.get("samples_per_pixel", 1),
+        samples_per_pixel=check_number(_get(c, "samples_per_pixel", Camera),
                                        "camera.samples_per_pixel", source, minimum=1,
                                        integer=True, maximum=16),
     )
     _check_camera_geometry(camera, source)
-
-    method = check_choice(data.get("method", "specular"), "method", registry.method_names(),
-                          source)
-    opts = {} if data.get("method_options") is None else data["method_options"]
-    check_keys(opts, "method_options", list(opts.keys()) if isinstance(opts, dict) else [],
-               source)
-    registry.get(method).parse(opts, source)  # raises ConfigError naming the bad option
-    exposure = check_number(data.get("exposure", 0.0), "exposure", source)
-    nm = data.get("name", name if name is not None else "scene")
-    if not isinstance(nm, str) or not nm or "/" in nm or nm.startswith("."):
-        raise ConfigError(f"{where(source, 'name')}: expected a file stem, got {nm!r}")
-    return Scene(mesh=mesh, envmap=envmap, transform=transform, material=material,
-                 lights=tuple(lights), camera=camera, method=method,
-                 method_options=dict(opts), exposure=exposure, name=nm)
+    return camera
 
 
 def _check_camera_geometry(cam: Camera, source: str | None) -> None:
