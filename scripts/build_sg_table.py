@@ -18,12 +18,12 @@ from pathlib import Path
 
 import torch
 
-from torchrefract.optics import sgfit
+from torchrefract.optics import sg_fit, sg_table
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=sgfit.SHIPPED_TABLE)
+    ap.add_argument("--out", type=Path, default=sg_table.SHIPPED_TABLE)
     ap.add_argument("--threads", type=int, default=None,
                     help="torch intra-op threads (default: torch's choice)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda (float64 either way)")
@@ -31,13 +31,13 @@ def main() -> None:
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    spec = sgfit.SGTableSpec()
+    spec = sg_table.SGTableSpec()
     print(f"SG table spec {spec} (key {spec.key()}), {torch.get_num_threads()} threads, "
           f"device {args.device}", flush=True)
     t0 = time.perf_counter()
-    table = sgfit.build_sg_table(spec, device=args.device, verbose=not args.quiet)
+    table = sg_fit.build_sg_table(spec, device=args.device, verbose=not args.quiet)
     seconds = time.perf_counter() - t0
-    path = sgfit.save_sg_table(table, args.out)
+    path = sg_table.save_sg_table(table, args.out)
     size = path.stat().st_size
     print(f"built in {seconds:.1f} s; wrote {path} ({size / 1e6:.2f} MB, data "
           f"{tuple(table.data.shape)} float32)")

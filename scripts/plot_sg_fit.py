@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrefract.optics import microfacet as mf, sgfit
+from torchrefract.optics import microfacet as mf, sg_fit, sg_table, sgfit
 
 ROOT = Path(__file__).resolve().parent.parent
 F64 = torch.float64
@@ -37,7 +37,7 @@ THETA_BINS = ((0, 30), (30, 60), (60, 80), (80, 90.01))
 ALPHA_BINS = ((1e-3, 0.01), (0.01, 0.1), (0.1, 0.4), (0.4, 1.0001))
 
 
-def plot_fig3(table: sgfit.SGTable, dist: str, path: Path, alphas=(0.1, 0.3)) -> None:
+def plot_fig3(table: sg_table.SGTable, dist: str, path: Path, alphas=(0.1, 0.3)) -> None:
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -95,17 +95,17 @@ def _bin_stats(values: np.ndarray) -> str:
     return f"{np.median(v):5.3f} ({np.quantile(v, 0.9):5.3f})"
 
 
-def fit_errors(table: sgfit.SGTable, ti, ei, ai) -> dict:
+def fit_errors(table: sg_table.SGTable, ti, ei, ai) -> dict:
     """Relative L2 errors at the chosen nodes, for both lobes, NDFs and sharpness modes."""
     out = {}
-    for d, dist in enumerate(sgfit.DISTRIBUTIONS):
-        for l_idx, lobe in enumerate(sgfit.LOBES):
+    for d, dist in enumerate(sg_table.DISTRIBUTIONS):
+        for l_idx, lobe in enumerate(sg_table.LOBES):
             mom = np.full((len(ti), len(ei), len(ai)), np.nan)
             l2 = np.full_like(mom, np.nan)
             hemi = np.full_like(mom, np.nan)
             for j, a in enumerate(ai):
                 fitted = table.data[d, l_idx][ti][:, ei][:, :, a].double()
-                r = sgfit.fit_error(table.theta[ti], table.eta[ei], float(table.alpha[a]), dist,
+                r = sg_fit.fit_error(table.theta[ti], table.eta[ei], float(table.alpha[a]), dist,
                                     lobe, fitted=fitted)
                 mom[:, :, j] = r["rel_l2"].numpy()
                 l2[:, :, j] = r["rel_l2_other"].numpy()
@@ -151,10 +151,10 @@ def energy_errors(table, ti, ei, ai, n_samples: int = 2 ** 13) -> dict:
     """Table energy vs an independent MC estimate (visible-normal sampling), per NDF/lobe."""
     u = torch.quasirandom.SobolEngine(3, scramble=True, seed=17).draw(n_samples, dtype=F64)
     res = {}
-    for d, dist in enumerate(sgfit.DISTRIBUTIONS):
+    for d, dist in enumerate(sg_table.DISTRIBUTIONS):
         errs = {"transmit": [], "reflect": []}
         for a in ai:
-            th = torch.tensor(table.theta[ti], dtype=F64).clamp(max=math.acos(sgfit.COS_GRAZING))
+            th = torch.tensor(table.theta[ti], dtype=F64).clamp(max=math.acos(sg_table.COS_GRAZING))
             wi = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
             for e_idx in ei:
                 wo, w, _ = mf.sample(wi[:, None, :], float(table.alpha[a]), float(table.eta[e_idx]),
@@ -179,11 +179,11 @@ def interpolation_errors(table, ti, ei, ai) -> dict:
     th_c = 0.5 * (table.theta[ti] + table.theta[np.minimum(ti + 1, len(table.theta) - 1)])
     eta_c = np.sqrt(table.eta[ei] * table.eta[np.minimum(ei + 1, len(table.eta) - 1)])
     res = {}
-    for d, dist in enumerate(sgfit.DISTRIBUTIONS):
+    for d, dist in enumerate(sg_table.DISTRIBUTIONS):
         de, dang, dlk, dang_w = [], [], [], []
         for a in ai:
             a_c = math.sqrt(table.alpha[a] * table.alpha[min(a + 1, len(table.alpha) - 1)])
-            fit = sgfit.fit_entries(th_c, eta_c, a_c, dist)[0]  # transmit (T, E, 4)
+            fit = sg_fit.fit_entries(th_c, eta_c, a_c, dist)[0]  # transmit (T, E, 4)
             amp, k, ang, e = sgfit.sg_lookup(
                 table, torch.cos(torch.tensor(th_c, dtype=F64))[:, None],
                 torch.tensor(eta_c, dtype=F64)[None, :], torch.tensor(a_c, dtype=F64), dist)
@@ -214,7 +214,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     table = sgfit.load_sg_table()
-    print(f"table {sgfit.SHIPPED_TABLE.name}: data {tuple(table.data.shape)}, key "
+    print(f"table {sg_table.SHIPPED_TABLE.name}: data {tuple(table.data.shape)}, key "
           f"{table.spec.key()}, build time {table.build_seconds:.0f} s")
     plot_fig3(table, "beckmann", args.out / "fig3.png")
     plot_fig3(table, "ggx", args.out / "fig3_ggx.png")

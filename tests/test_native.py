@@ -156,7 +156,7 @@ def test_renders_and_gradients_are_identical(method, options, tensor_code):
 def _cone_inputs(monkeypatch, eye):
     """The arguments rousiers passes to its footprint and spread (``_footprint``,
     ``_ray_spread``) on suzanne, two views, recorded from a real render."""
-    from torchrefract.methods import rousiers
+    from torchrefract.methods.rousiers import cone as rousiers
 
     seen = {}
     for name in ("_footprint", "_ray_spread"):

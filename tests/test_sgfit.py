@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchrefract.optics import microfacet as mf, sgfit
+from torchrefract.optics import microfacet as mf, sg_fit, sg_table, sgfit
 from torchrefract.optics.smooth import fresnel_dielectric, refract
 
 F64 = torch.float64
@@ -21,10 +21,10 @@ def _one_thread(one_thread):
 
 
 @pytest.fixture(scope="module")
-def table() -> sgfit.SGTable:
-    if not sgfit.SHIPPED_TABLE.is_file():
+def table() -> sg_table.SGTable:
+    if not sg_table.SHIPPED_TABLE.is_file():
         pytest.skip("torchrefract/tables/sg_table_v1.npz missing (run scripts/build_sg_table.py)")
-    return sgfit.read_sg_table(sgfit.SHIPPED_TABLE)
+    return sg_table.read_sg_table(sg_table.SHIPPED_TABLE)
 
 
 def _frame(axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,7 +63,7 @@ def brute_force_lobe(theta: float, eta: float, alpha: float, dist: str, lobe: st
     r = m.norm()
     p = m / r
     one_minus_r = ((w * 0.5 * ((d - p) ** 2).sum(-1)).sum() / e)  # stable 1 - |m|
-    k = sgfit.sharpness_from_mean_length(one_minus_r)
+    k = sg_fit.sharpness_from_mean_length(one_minus_r)
     sign = -1.0 if lobe == "transmit" else 1.0
     return {"energy": float(e), "angle": float(torch.atan2(-p[0], sign * p[2])),
             "k": float(k)}
@@ -86,7 +86,7 @@ def test_table_matches_brute_force(table, entry):
     dist, lobe, ti, ei, ai = entry
     theta, eta, alpha = table.theta[ti], table.eta[ei], table.alpha[ai]
     ref = brute_force_lobe(theta, eta, alpha, dist, lobe)
-    e, log_k, ang, _ = table.data[sgfit.DISTRIBUTIONS.index(dist), sgfit.LOBES.index(lobe),
+    e, log_k, ang, _ = table.data[sg_table.DISTRIBUTIONS.index(dist), sg_table.LOBES.index(lobe),
                                   ti, ei, ai].double().tolist()
     k = math.exp(log_k)
     width = 1.0 / math.sqrt(ref["k"])  # angular std. dev. of the lobe per axis
@@ -122,7 +122,7 @@ def test_tir_entries_have_zero_transmitted_energy(table):
     assert torch.isfinite(d).all()
 
 
-@pytest.mark.parametrize("dist", sgfit.DISTRIBUTIONS)
+@pytest.mark.parametrize("dist", sg_table.DISTRIBUTIONS)
 def test_alpha_to_zero_is_snell_and_fresnel(table, dist):
     g = torch.Generator().manual_seed(0)
     n = 400
@@ -180,7 +180,7 @@ def test_gradcheck_lookup(table):
     c = torch.tensor([0.83, 0.37, 0.95], dtype=F64, requires_grad=True)
     e = torch.tensor([1.37, 0.71, 2.2], dtype=F64, requires_grad=True)
     a = torch.tensor([0.13, 0.41, 0.02], dtype=F64, requires_grad=True)
-    for lobe in sgfit.LOBES:
+    for lobe in sg_table.LOBES:
         for sharp in ("moment", "l2"):
             assert torch.autograd.gradcheck(
                 lambda c, e, a: sgfit.sg_lookup(table, c, e, a, "ggx", lobe, sharp), (c, e, a))
@@ -213,20 +213,20 @@ def test_lookup_batched_shapes_and_distribution_tensor(table):
 
 def test_shipped_table_equals_fresh_subtable(table):
     ei, ai = [5, 16, 22], [0, 12, 23]
-    sub = sgfit.build_sg_table(table.spec, eta_indices=ei, alpha_indices=ai)
+    sub = sg_fit.build_sg_table(table.spec, eta_indices=ei, alpha_indices=ai)
     ref = table.data[:, :, :, ei][:, :, :, :, ai]
     assert torch.allclose(sub.data, ref, rtol=2e-5, atol=1e-7)
-    assert table.spec == sgfit.SGTableSpec() and table.spec.key() == sgfit.SGTableSpec().key()
+    assert table.spec == sg_table.SGTableSpec() and table.spec.key() == sg_table.SGTableSpec().key()
 
 
 def test_sharpness_from_mean_length_inverts_coth():
     k = torch.exp(torch.linspace(math.log(1e-2), math.log(1e8), 200, dtype=F64))
     one_minus_r = 1.0 / k - 2.0 / torch.expm1(2.0 * k)
-    assert torch.allclose(sgfit.sharpness_from_mean_length(one_minus_r), k, rtol=1e-9)
+    assert torch.allclose(sg_fit.sharpness_from_mean_length(one_minus_r), k, rtol=1e-9)
 
 
 def test_build_and_cache_on_demand(tmp_path, capsys):
-    spec = sgfit.SGTableSpec(n_theta=6, n_eta=3, n_alpha=2, quad_h=0.3, quad_nphi=16)
+    spec = sg_table.SGTableSpec(n_theta=6, n_eta=3, n_alpha=2, quad_h=0.3, quad_nphi=16)
     sgfit._load_cached.cache_clear()
     t1 = sgfit.load_sg_table(spec, cache_dir=tmp_path)
     assert "building the spherical Gaussian" in capsys.readouterr().err
@@ -236,7 +236,7 @@ def test_build_and_cache_on_demand(tmp_path, capsys):
     t2 = sgfit.load_sg_table(spec, cache_dir=tmp_path)
     assert "building" not in capsys.readouterr().err
     assert torch.equal(t1.data, t2.data)
-    assert spec.key() != sgfit.SGTableSpec().key()
+    assert spec.key() != sg_table.SGTableSpec().key()
     sgfit._load_cached.cache_clear()
 
 

@@ -47,14 +47,9 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from torchrefract.checks import ConfigError
-from torchrefract.dataset.run import (
-    MANIFEST,
-    _sample_meta,
-    camera_metadata,
-    channel_layout,
-    latest_entries,
-    read_manifest,
-)
+from torchrefract.dataset.encode import channel_layout
+from torchrefract.dataset.manifest import MANIFEST, latest_entries, read_manifest
+from torchrefract.dataset.records import _sample_meta, camera_metadata
 from torchrefract.dataset.sweep import SweepConfig, load_sweep
 
 LAYOUTS = ("chw", "hwc")
@@ -298,7 +293,7 @@ class RenderStream(IterableDataset):
         return range(self.start + info.id, self.stop, info.num_workers)
 
     def __iter__(self) -> Iterator[dict[str, Any]]:
-        from torchrefract.dataset.run import render_items  # noqa: PLC0415
+        from torchrefract.dataset.executors import render_items  # noqa: PLC0415
 
         if _INHERITED_CONTEXT and get_worker_info() is not None:
             raise RuntimeError(

@@ -3,7 +3,7 @@
 The ray march (``march.py``) spends most of its time in chains of small elementwise ops
 around one gather (project a point, pick its pixel, test it against that pixel's plane),
 which are memory-bound in eager torch. Compiled (inductor, dynamic shapes) they fuse into
-one loop each. Measured on the project's 2-core CPU (README, "Compiled march").
+one loop each. Measured on the project's 2-core CPU (docs/benchmarks.md, "Compiled march").
 
 Off by default: the first compiled call of a process costs seconds (tracing, or a full
 C++ compile when the on-disk cache is cold), which a single small render never earns back.

@@ -34,7 +34,6 @@ import platform
 import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -42,6 +41,7 @@ from pathlib import Path
 import torch
 
 from torchrefract import settings
+from torchrefract.output.atomic import atomic_path
 
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
                                                                 "cone.c"))
@@ -56,12 +56,8 @@ _FAILED: str | None = None
 
 
 def set_native(enabled: bool) -> None:
-    """Deprecated: pass ``RenderSettings(native=...)`` to the render instead. Sets the
-    environment's default (``TORCHREFRACT_NATIVE``) for this process."""
-    warnings.warn("torchrefract.set_native is deprecated: pass "
-                  "settings=torchrefract.RenderSettings(native=...) to render()",
-                  DeprecationWarning, stacklevel=2)
-    os.environ["TORCHREFRACT_NATIVE"] = "1" if enabled else "0"
+    """Deprecated: pass ``RenderSettings(native=...)`` to the render instead."""
+    settings.deprecated_switch("set_native", "native", "TORCHREFRACT_NATIVE", enabled)
 
 
 def native_enabled() -> bool:
@@ -169,14 +165,13 @@ def build(cache_dir: str | Path | None = None) -> Path:
     if cc is None:
         raise RuntimeError("no C compiler found (set $CC, or install gcc: "
                            "apt-get install gcc)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
-    os.close(fd)
-    try:
+    # The compiler writes a temporary file, renamed when complete: a concurrent process sees
+    # no half-written library.
+    with atomic_path(out, suffix=".so") as tmp:
         # With OpenMP where the compiler has it (csrc/common.h: torch's thread pool), else
         # with pthreads alone.
         for extra in (["-fopenmp"], []):
-            cmd = (cc.split() + list(FLAGS) + extra + ["-o", tmp]
+            cmd = (cc.split() + list(FLAGS) + extra + ["-o", str(tmp)]
                    + [str(src) for src in SOURCES] + ["-lm"])
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if proc.returncode == 0:
@@ -184,10 +179,6 @@ def build(cache_dir: str | Path | None = None) -> Path:
         if proc.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
                                f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
-        os.replace(tmp, out)  # atomic: a concurrent process sees no half-written library
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out
 
 
@@ -356,7 +347,7 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
 
 def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
               batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-    """``rousiers._footprint``: the screen footprint of the four bounding rays' exits, or
+    """``kernels.cone.footprint``: the screen footprint of the four bounding rays' exits, or
     ``None`` where the kernel is unavailable or an input is not a float32 / int64 / bool
     CPU tensor.
 
@@ -387,7 +378,7 @@ def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: tor
 
 def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Tensor,
            ok: torch.Tensor, ior: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor | None:
-    """``rousiers._ray_spread``: the exit lobe's geometric variance from the four bounding
+    """``kernels.cone.ray_spread``: the exit lobe's geometric variance from the four bounding
     rays refracted out at their exit normals, or ``None`` where the kernel is unavailable
     or an input is not a float32 / bool CPU tensor.
 

@@ -51,8 +51,6 @@ import functools
 import hashlib
 import inspect
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -66,6 +64,7 @@ from torchrefract.kernels.index import take
 from torchrefract.lighting import envmap
 from torchrefract.lighting.envmap import direction_to_uv, rotate_y
 from torchrefract.optics.sgfit import default_cache_dir
+from torchrefract.output.atomic import atomic_path
 
 # Bump when the pyramid's contents change for the same parameters (disk cache key).
 _FORMAT_VERSION = 2
@@ -614,14 +613,14 @@ def _params_key(params: tuple) -> str:
 
 
 def _save_npz(path: Path, pyr: SGPyramid) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "wb") as fh:  # np.savez would append .npz to a str name
+    """Write a pyramid to the disk cache atomically: concurrent workers never read a
+    partial file."""
+    # An open handle: np.savez would append .npz to the temporary name.
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, base=pyr.base.detach().cpu().numpy(),
                  atlas=pyr.atlas.detach().cpu().numpy(),
                  rects=np.asarray(pyr.rects, dtype=np.int64),
                  sharpness=np.asarray(pyr.sharpness[1:], dtype=np.float64))
-    os.replace(tmp, path)  # atomic: concurrent workers never read a partial file
 
 
 def _load_npz(path: Path) -> SGPyramid | None:

@@ -17,24 +17,56 @@ import torch
 
 TIR_RULES = ("conserve", "clamp", "reflect")
 
+CRITICAL_MARGIN = 1e-4
+"""How far short of the critical angle (in cosine) a lobe clamped to it is looked up: just
+outside TIR, where the table's transmitted lobe still exists."""
+
+
+def critical_cosine(ior: torch.Tensor) -> torch.Tensor:
+    """cos theta_c = sqrt(1 - 1 / ior^2) of light leaving the glass (0 for ior <= 1)."""
+    return torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
+
+
+def clamp_to_critical(cos: torch.Tensor, tir: torch.Tensor, cos_crit: torch.Tensor
+                      ) -> torch.Tensor:
+    """The incident cosine a lobe leaves with under ``clamp`` and ``conserve``: under TIR
+    the critical angle's (Wyman 2005; de Rousiers 2012 sec. 4.3), elsewhere ``cos``."""
+    return torch.where(tir, cos_crit + CRITICAL_MARGIN, cos)
+
+
+def leaving_weight(tir_mode: str, tir: torch.Tensor, e_t: torch.Tensor,
+                   e_r: torch.Tensor | None = None, esc: torch.Tensor | None = None,
+                   kept: torch.Tensor | None = None) -> torch.Tensor:
+    """The weight of the light leaving the last interface under the ``tir`` rule (module
+    docstring), from the interface's transmitted and reflected energies ``e_t``, ``e_r``.
+
+    ``conserve``: e_t + e_r esc (at most 1; ``esc``:
+    :func:`torchrefract.shading.bounces.escape_fraction`); ``reflect``: under TIR e_r (the
+    caller sets the mirror direction); ``clamp``: under TIR ``kept``, what the interface
+    keeps, by default e_t + e_r (at most 1; ``rousiers``' cone-traced exit passes 1, the
+    paper's rule: all the light leaves at the critical angle). Outside TIR ``reflect`` and
+    ``clamp`` give e_t.
+    """
+    if tir_mode == "conserve":
+        return (e_t + e_r * esc).clamp(max=1.0)
+    if tir_mode == "reflect":
+        return torch.where(tir, e_r, e_t)
+    return torch.where(tir, (e_t + e_r).clamp(max=1.0) if kept is None else kept, e_t)
+
 
 def last_interface(tir_mode: str, tir: torch.Tensor, e_t: torch.Tensor, e_r: torch.Tensor,
-                    esc: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+                   esc: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``tir`` rule at the last interface followed (module docstring): the weight of the
-    light leaving there, and the reflected part that does not (the residual).
-
-    ``conserve``: the reflected part leaves too, after the losses of the bounces not
-    followed (``esc``, :func:`torchrefract.shading.bounces.escape_fraction`; 1 when smooth), so the
-    weight is continuous at TIR; ``reflect``: under TIR the reflected light leaves (along
-    the mirror direction, which the caller sets); ``clamp``: under TIR all the interface
-    keeps leaves at the critical angle.
+    light leaving there (:func:`leaving_weight`), and the reflected part that does not (the
+    residual: none under ``conserve``; under TIR none under ``reflect`` and ``clamp``, where
+    it leaves).
     """
     zero = torch.zeros_like(e_t)
+    weight = leaving_weight(tir_mode, tir, e_t, e_r, esc)
     if tir_mode == "conserve":
-        return (e_t + e_r * esc).clamp(max=1.0), zero
-    if tir_mode == "reflect":
-        return torch.where(tir, e_r, e_t), torch.where(tir, zero, e_r)
-    return torch.where(tir, (e_t + e_r).clamp(max=1.0), e_t), torch.where(tir, zero, e_r)
+        return weight, zero
+    return weight, torch.where(tir, zero, e_r)
 
 
-__all__ = ["TIR_RULES", "last_interface"]
+__all__ = ["CRITICAL_MARGIN", "TIR_RULES", "clamp_to_critical", "critical_cosine",
+           "last_interface", "leaving_weight"]

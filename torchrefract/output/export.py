@@ -9,14 +9,13 @@ scene, method, package version, torch threads, timings). All writes are atomic.
 from __future__ import annotations
 
 import json
-import os
 import platform
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from torchrefract.output.atomic import write_text
 from torchrefract.output.images import write_exr, write_png
 from torchrefract.render import RenderResult
 
@@ -61,18 +60,6 @@ def blend_records(result: RenderResult, i: int) -> list[dict]:
     return [{"method": m, "options": o, "weight": w} for m, o, w in result.blends[i]]
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.chmod(tmp, 0o644)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def save_render(result: RenderResult, i: int, out_dir: str | Path) -> dict[str, Path]:
     """Write scene ``i`` of a result into ``out_dir``; returns the paths written."""
     out = Path(out_dir)
@@ -82,5 +69,5 @@ def save_render(result: RenderResult, i: int, out_dir: str | Path) -> dict[str, 
              "json": out / f"{scene.name}.json"}
     write_exr(paths["exr"], exr_channels(result, i))
     write_png(paths["png"], result.radiance[i].detach().cpu().numpy(), scene.exposure)
-    _write_text_atomic(paths["json"], json.dumps(metadata(result, i), indent=2) + "\n")
+    write_text(paths["json"], json.dumps(metadata(result, i), indent=2) + "\n")
     return paths

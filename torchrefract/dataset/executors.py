@@ -1,0 +1,209 @@
+"""Executors of a sweep: render batches in this process, in spawned worker processes or as
+Ray tasks. Each returns futures (``.result()``) of :func:`render_items`, the worker's task:
+render a batch, fall back to one sample at a time when it fails, encode the files."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import warnings
+from typing import Any, Callable
+
+from torchrefract.checks import ConfigError
+from torchrefract.dataset.encode import _encode, channel_layout
+from torchrefract.scene.model import Scene
+
+
+def _failure(exc: BaseException) -> str:
+    """A failed sample's reason: the exception's type and first line (at most 2000 chars)."""
+    msg = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {msg[0] if msg else ''}"[:2000]
+
+
+def _render_one_group(scenes: list[Scene], settings):
+    """Render one batch; returns the result and the distinct warnings it raised."""
+    from torchrefract.render import render  # noqa: PLC0415
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = render(scenes, settings=settings)
+    return result, sorted({str(w.message) for w in caught})
+
+
+def render_items(items: list[tuple[int, str, Scene]], settings=None,
+                 encode: bool = True) -> list[dict]:
+    """Render one batch (the worker's task). Never raises for a bad sample.
+
+    Args:
+        items: ``(index, sample_id, scene)`` of one resolution, method and options.
+        settings: the :class:`~torchrefract.settings.RenderSettings` of the renders (None:
+            those in force; ``threads`` sets torch's thread count for each render).
+        encode: encode the EXR and PNG bytes (else return the tensors in ``result``).
+
+    Returns:
+        One dict per item: ``index``, ``sample_id``, ``ok``, ``reason``, ``exr``, ``png``
+        (bytes), ``sha256``, ``channels``, ``timings`` (seconds: this sample's share of
+        the batch render, its encoding), ``batch_size``, ``warnings``, ``host``, ``pid``.
+    """
+    import torch  # noqa: PLC0415
+
+    scenes = [s for _, _, s in items]
+    groups: list[tuple[list[int], Any, list[str], str | None]] = []
+    try:
+        res, warn = _render_one_group(scenes, settings)
+        groups.append((list(range(len(items))), res, warn, None))
+    except Exception as exc:  # noqa: BLE001 - any failure: retry alone, then report
+        if len(items) == 1:
+            groups.append(([0], None, [], _failure(exc)))
+        else:
+            for k, s in enumerate(scenes):
+                try:
+                    res, warn = _render_one_group([s], settings)
+                    groups.append(([k], res, warn, None))
+                except Exception as exc1:  # noqa: BLE001
+                    groups.append(([k], None, [], _failure(exc1)))
+    out: list[dict | None] = [None] * len(items)
+    host, pid = socket.gethostname(), os.getpid()
+    for ks, res, warn, reason in groups:
+        for j, k in enumerate(ks):
+            index, sid, scene = items[k]
+            rec = {"index": index, "sample_id": sid, "ok": res is not None, "reason": reason,
+                   "batch_size": len(ks), "warnings": warn, "host": host, "pid": pid,
+                   "torch_threads": (settings.threads if settings is not None
+                                     and settings.threads else torch.get_num_threads()),
+                   "timings": {}}
+            if res is not None:
+                rec["timings"]["render_s"] = res.timings["total"] / len(ks)
+                rec["timings"]["batch"] = dict(res.timings)
+                rec["channels"] = channel_layout(res)
+                if res.blends is not None:  # auto: the variants in the image, weighted
+                    from torchrefract.output.export import blend_records  # noqa: PLC0415
+                    rec["auto_blend"] = blend_records(res, j)
+                if encode:
+                    t0 = time.perf_counter()
+                    try:
+                        rec.update(_encode(res, j, scene))
+                    except Exception as exc:  # noqa: BLE001
+                        rec.update(ok=False, reason=_failure(exc))
+                    rec["timings"]["encode_s"] = time.perf_counter() - t0
+                else:
+                    rec["result"], rec["result_index"] = res, j
+            out[k] = rec
+    return out  # type: ignore[return-value]
+
+
+class _Lazy:
+    """A future computed when its result is asked for (the serial executor's)."""
+
+    def __init__(self, fn: Callable[[], Any]):
+        self.fn = fn
+
+    def result(self) -> Any:
+        return self.fn()
+
+
+class _SerialExecutor:
+    """Renders in this process, when the result is asked for."""
+
+    window = 1
+
+    def __init__(self, settings):
+        self.settings = settings
+
+    def submit(self, items):
+        # Encoding happens in the writer thread, overlapping the next render.
+        return _Lazy(lambda: render_items(items, self.settings, encode=False))
+
+    def close(self) -> None:
+        pass
+
+
+class _ProcessExecutor:
+    """``workers`` spawned processes; each creates its own EGL context on first use."""
+
+    def __init__(self, workers: int, settings):
+        import multiprocessing as mp  # noqa: PLC0415
+        from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
+
+        # 'spawn', not 'fork': an EGL context does not survive a fork, and a forked child of
+        # a process that holds one hangs. (The parent never renders in this mode.)
+        if settings.threads is None:
+            settings = settings.replace(threads=max(1, (os.cpu_count() or 1) // workers))
+        self.settings = settings
+        self._new = lambda: ProcessPoolExecutor(
+            max_workers=workers, mp_context=mp.get_context("spawn"))
+        self.pool = self._new()
+        self.window = 2 * workers
+
+    def submit(self, items):
+        from concurrent.futures.process import BrokenProcessPool  # noqa: PLC0415
+
+        try:
+            return self.pool.submit(render_items, items, self.settings)
+        except BrokenProcessPool:
+            # A worker died (its batches in flight are reported failed and are retried by
+            # the next run); carry on with fresh processes.
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            self.pool = self._new()
+            return self.pool.submit(render_items, items, self.settings)
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _RayRef:
+    """A future of a Ray task."""
+
+    def __init__(self, ref):
+        self.ref = ref
+
+    def result(self):
+        import ray  # noqa: PLC0415
+
+        return ray.get(self.ref)
+
+
+class _RayExecutor:
+    """Ray tasks (one CPU each) on the cluster at ``address``, or on a local cluster."""
+
+    def __init__(self, address: str | None, workers: int, settings, quiet: bool):
+        try:
+            import ray  # noqa: PLC0415
+        except ImportError as exc:
+            raise ConfigError("--executor ray needs the 'ray' package: pip install "
+                              "'torchrefract[data]' (or pip install ray)") from exc
+        self.started = False
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": not quiet,
+                                      "configure_logging": not quiet}
+            if address:
+                ray.init(address=address, **kwargs)
+            else:
+                # A local cluster; workers start in this venv (same interpreter and path).
+                ray.init(num_cpus=workers or None, **kwargs)
+            self.started = True
+        self.task = ray.remote(num_cpus=1)(render_items)
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        self.window = 2 * max(1, cpus)
+        self.settings = settings if settings.threads else settings.replace(threads=1)
+
+    def submit(self, items):
+        return _RayRef(self.task.remote(items, self.settings))
+
+    def close(self) -> None:
+        import ray  # noqa: PLC0415
+
+        if self.started:
+            ray.shutdown()
+
+
+def _make_executor(executor: str, workers: int, settings, ray_address: str | None,
+                   quiet: bool):
+    """The executor a run asked for (``local`` with 0 workers: this process)."""
+    if executor == "ray":
+        return _RayExecutor(ray_address, workers, settings, quiet)
+    if workers == 0:
+        return _SerialExecutor(settings)
+    return _ProcessExecutor(workers, settings)
+
