@@ -37,6 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-native", action="store_true",
                    help="the tensor code instead of the C kernels for the march and the "
                         "G-buffer (same images, slower; README 'Native kernels')")
+    r.add_argument("--no-fused", action="store_true",
+                   help="each method's tensor code instead of its fused shading kernel "
+                        "(the same images within float32 rounding; slower)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -70,6 +73,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--no-native", action="store_true",
                    help="the tensor code instead of the C kernels in every rendering "
                         "process (same images, slower)")
+    w.add_argument("--no-fused", action="store_true",
+                   help="each method's tensor code instead of its fused shading kernel in "
+                        "every rendering process")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -206,6 +212,8 @@ def _settings(args: argparse.Namespace):
         changes["compile"] = True
     if getattr(args, "no_native", False):
         changes["native"] = False
+    if getattr(args, "no_fused", False):
+        changes["fused"] = False
     return s.replace(**changes)
 
 

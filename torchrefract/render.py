@@ -254,6 +254,7 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
         timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
                  "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
+                 "fused": stage_times.get("fused", 0.0),
                  "total": time.perf_counter() - t0},
     )
 

@@ -10,6 +10,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ====================================  =============================================
 ``TORCHREFRACT_NATIVE=0``              ``native=False``: tensor code, not the C kernels
 ``TORCHREFRACT_NATIVE_SIMD=0``         ``native_simd=False``: the march's scalar search
+``TORCHREFRACT_FUSED=0``               ``fused=False``: the tensor code, not the fused kernels
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
@@ -63,6 +64,10 @@ class RenderSettings:
     (the same images)."""
     native_simd: bool = True
     """The march's AVX2 search where the CPU has it (the same values as the scalar one)."""
+    fused: bool = True
+    """A method's per-pixel shading as one native kernel where it covers the scene
+    (:mod:`torchrefract.kernels.fused`; the tensor code otherwise, and wherever a gradient
+    is wanted): the same images within float32 rounding."""
     compile: bool = False
     """torch.compile the march's tensor code (seconds of start-up per process)."""
     heap_reuse: bool = False
@@ -87,6 +92,7 @@ class RenderSettings:
             threads=int(threads) if threads.isdigit() and int(threads) > 0 else None,
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
+            fused=_env_flag("TORCHREFRACT_FUSED", True),
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,

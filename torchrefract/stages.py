@@ -3,8 +3,9 @@
 :func:`torchrefract.render` collects, around the method's shading, the time spent in
 named stages that the pipeline's functions mark with :func:`stage` or :func:`timed`:
 ``march`` (the ray
-marches through the depth layers, :mod:`torchrefract.kernels.march`) and ``mips`` (the NDF and
-coverage mip pyramids of the back layer, :mod:`torchrefract.optics.ndf`). Outside a collection
+marches through the depth layers, :mod:`torchrefract.kernels.march`), ``mips`` (the NDF and
+coverage mip pyramids of the back layer, :mod:`torchrefract.optics.ndf`) and ``fused`` (a
+method's fused shading kernel, its marches included, :mod:`torchrefract.kernels.fused`). Outside a collection
 :func:`stage` costs one context-variable read. Stages are summed when entered several
 times; a stage entered inside another of the same name counts once.
 

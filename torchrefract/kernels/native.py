@@ -44,8 +44,11 @@ from torchrefract import settings
 from torchrefract.output.atomic import atomic_path
 
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
-                                                                "cone.c"))
-HEADERS = (Path(__file__).with_name("csrc") / "common.h",)  # part of the cache key
+                                                                "cone.c", "specular.c",
+                                                                "background.c", "rousiers.c"))
+HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
+                for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
+                          "lighting.h", "frame.h"))
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
@@ -129,8 +132,68 @@ class _SpreadJob(ctypes.Structure):
     ]
 
 
+_p = ctypes.c_void_p
+
+
+class _Lights(ctypes.Structure):
+    """ctypes mirror of ``Lights`` in csrc/lighting.h."""
+
+    _fields_ = [("tex", _p), ("tex_h", _p), ("tex_w", _p), ("rot_cos", _p), ("rot_sin", _p),
+                ("scale", _p),
+                ("nl", ctypes.c_int64), ("light_pos", _p), ("light_r", _p), ("light_le", _p)]
+
+
+class _SgTable(ctypes.Structure):
+    """ctypes mirror of ``SgTable`` in csrc/sgtable.h."""
+
+    _fields_ = [("vol", _p), ("dvol", _p), ("vol_l2", _p), ("evol", _p),
+                ("nt", ctypes.c_int64), ("ne", ctypes.c_int64),
+                ("na", ctypes.c_int64)] + [
+        (f, ctypes.c_float) for f in ("eta_max", "la0", "la1", "alpha_min", "alpha_floor",
+                                      "log_k_min", "log_k_max")]
+
+
+class _SgEnv(ctypes.Structure):
+    """ctypes mirror of ``SgEnv`` in csrc/lighting.h."""
+
+    _fields_ = [("base", _p), ("atlas", _p), ("meta", _p), ("base_hw", _p), ("atlas_hw", _p)]
+
+
+class _Frame(ctypes.Structure):
+    """ctypes mirror of ``Frame`` in csrc/frame.h (kernels/fused.py fills it)."""
+
+    _fields_ = [("n", ctypes.c_int64), ("nb", ctypes.c_int64)] + [(f, _p) for f in (
+        "idx", "batch", "ray_dir", "front_pos", "front_normal", "front_dist", "back_dist",
+        "eye", "basis", "proj", "sphere_c", "sphere_r")] + [
+        ("march", _Job), ("ior", _p), ("alpha", _p), ("absorption", _p), ("dist", _p),
+        ("tir_mode", ctypes.c_int), ("table", _SgTable), ("esc", _p),
+        ("esc_n", ctypes.c_int64), ("lights", _Lights), ("env", _SgEnv), ("radiance", _p),
+        ("exit_found", _p), ("tir", _p)]
+
+
+class _SpecJob(ctypes.Structure):
+    """ctypes mirror of ``SpecJob`` in csrc/specular.c."""
+
+    _fields_ = [("f", _Frame), ("blur", ctypes.c_int), ("blur_sigma", _p)]
+
+
+class _RousJob(ctypes.Structure):
+    """ctypes mirror of ``RousJob`` in csrc/rousiers.c."""
+
+    _fields_ = [("f", _Frame), ("cone_steps", ctypes.c_int), ("cone_refine", ctypes.c_int),
+                ("two_ln4", ctypes.c_float), ("lobe_sigma", _p), ("footprint", _p)]
+
+
+class _BackgroundJob(ctypes.Structure):
+    """ctypes mirror of ``BackgroundJob`` in csrc/background.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("hw", ctypes.c_int64), ("ray_dir", _p), ("eye", _p),
+                ("front_mask", _p), ("front_dist", _p), ("lights", _Lights), ("out", _p)]
+
+
 _KERNELS = {"march": _Job, "layer": _LayerJob, "footprint": _FootprintJob,
-            "spread": _SpreadJob}
+            "spread": _SpreadJob, "specular": _SpecJob,
+            "background": _BackgroundJob, "rousiers": _RousJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -165,6 +228,8 @@ def build(cache_dir: str | Path | None = None) -> Path:
     if cc is None:
         raise RuntimeError("no C compiler found (set $CC, or install gcc: "
                            "apt-get install gcc)")
+    print(f"torchrefract: compiling the native kernels into {out.parent} (once per machine "
+          f"and version, a few seconds)", file=sys.stderr, flush=True)
     # The compiler writes a temporary file, renamed when complete: a concurrent process sees
     # no half-written library.
     with atomic_path(out, suffix=".so") as tmp:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.kernels import fused as kernels_fused
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.base import Method, Shaded
@@ -71,6 +72,9 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         radiance (B, H, W, 3) and passes (``exit_found``, ``tir``, ``blur_sigma``: the
         transmitted lobe's per-axis angular spread in radians).
     """
+    fused = kernels_fused.prefiltered(g, lighting, materials, options)
+    if fused is not None:
+        return fused
     b, h, w = g.shape
     radiance = background(g, lighting)
     paths = trace_paths(g, lighting, materials, options)

@@ -264,12 +264,23 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     Returns:
         (N,) fraction in [0, 1]; differentiable w.r.t. ``ior`` and ``alpha``.
     """
+    esc = escape_grid(table, ior, distribution, alpha.dtype, nodes, grid)  # (B, grid)
+    pos = alpha.clamp(0.0, 1.0) * (grid - 1)
+    i0 = pos.floor().long().clamp(max=grid - 2)
+    f = pos - i0
+    return esc[batch, i0] * (1.0 - f) + esc[batch, i0 + 1] * f
+
+
+def escape_grid(table, ior: torch.Tensor, distribution: torch.Tensor, dtype: torch.dtype,
+                nodes: int = 16, grid: int = 41) -> torch.Tensor:
+    """(B, grid) :func:`escape_fraction` of each scene at ``grid`` roughness nodes uniform in
+    [0, 1] (the first at the table's smallest), which it interpolates linearly."""
     from torchrefract.optics.sgfit import sg_energies  # noqa: PLC0415
 
     x, w = np.polynomial.legendre.leggauss(nodes)
-    mu = torch.as_tensor(0.5 * (x + 1.0), dtype=alpha.dtype)
-    wt = torch.as_tensor(0.5 * w, dtype=alpha.dtype) * 2.0 * mu  # cos-weighted, sums to 1
-    a_grid = torch.linspace(0.0, 1.0, grid, dtype=alpha.dtype)
+    mu = torch.as_tensor(0.5 * (x + 1.0), dtype=dtype)
+    wt = torch.as_tensor(0.5 * w, dtype=dtype) * 2.0 * mu  # cos-weighted, sums to 1
+    a_grid = torch.linspace(0.0, 1.0, grid, dtype=dtype)
     a_grid = torch.cat([a_grid.new_full((1,), table.spec.alpha_min), a_grid[1:]])
     shape = (ior.shape[0], grid, nodes)
     args = (mu.expand(shape), (1.0 / ior)[:, None, None].expand(shape),
@@ -279,12 +290,8 @@ def escape_fraction(table, ior: torch.Tensor, distribution: torch.Tensor, alpha:
     loss = 1.0 - e_t - e_r
     loss = (loss - loss[:, :1]).clamp(min=0.0)  # 0 at the smooth limit
     esc = e_t / (e_t + loss).clamp(min=1e-6)
-    esc = torch.where(loss > 0, esc, torch.ones_like(esc))  # (B, grid)
-    pos = alpha.clamp(0.0, 1.0) * (grid - 1)
-    i0 = pos.floor().long().clamp(max=grid - 2)
-    f = pos - i0
-    return esc[batch, i0] * (1.0 - f) + esc[batch, i0 + 1] * f
+    return torch.where(loss > 0, esc, torch.ones_like(esc))
 
 
 __all__ = ["AUTO", "Arrival", "BounceResult", "BounceSettings", "Shading", "bounce_passes",
-           "escape_fraction", "follow"]
+           "escape_fraction", "escape_grid", "follow"]

@@ -15,9 +15,7 @@
  * pixel's values stay in registers. Plain C (threads: common.h); built and loaded by native.py.
  */
 
-#include "common.h"
-
-TR_DEFINE_VEC3(float, , fmaf, fabsf, sqrtf, 1e-30f)
+#include "optics.h"
 
 typedef struct {
     int64_t n;
@@ -47,21 +45,6 @@ typedef struct {
     const float *root;    /* in of stage 1 (N, 5): their square roots, cos_t */
     float *var;           /* out (N,) */
 } SpreadJob;
-
-/* camera.project of one point: pixel coordinates (x, y). */
-static inline void project1(const float *pt, const float *pp, float *xy) {
-    float rel[3] = {pt[0] - pp[0], pt[1] - pp[1], pt[2] - pp[2]};
-    float z = dot3(rel, pp + 9);
-    float zs = fabsf(z) > 1e-12f ? z : 1e-12f;
-    float x = dot3(rel, pp + 3) / (zs * pp[12]);
-    float y = dot3(rel, pp + 6) / (zs * pp[13]);
-    xy[0] = ((x + 1.0f) * 0.5f) * pp[14];
-    xy[1] = ((1.0f - y) * 0.5f) * pp[15];
-}
-
-/* torch's max / min of a then b, in order: NaN once any is */
-static inline float tmax(float a, float b) { return a != a || b != b ? NAN : (b > a ? b : a); }
-static inline float tmin(float a, float b) { return a != a || b != b ? NAN : (b < a ? b : a); }
 
 static void footprint_range(const void *job, int64_t begin, int64_t end) {
     const FootprintJob *j = (const FootprintJob *)job;

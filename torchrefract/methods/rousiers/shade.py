@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.kernels import fused as kernels_fused
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.rousiers.bounces import follow_bounces
@@ -42,6 +43,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         passes: ``exit_found``, ``tir`` (0/1), ``lobe_sigma`` (per-axis angular spread of
             the final transmitted lobe, radians), ``footprint`` (pixels, major extent).
     """
+    fused = kernels_fused.rousiers(g, lighting, materials, options)
+    if fused is not None:
+        return fused
     b, h, w = g.shape
     radiance = background(g, lighting)
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]

@@ -1,0 +1,144 @@
+/* What the fused shading kernels (specular.c, rousiers.c) share: the batch's object pixels
+ * and G-buffer, the march's fields, the materials, the SG table, the lighting and the
+ * outputs every method writes (``Frame``), and the steps every method takes: the camera
+ * coordinates and bounding chord of a ray (march.camera_coordinates,
+ * march._bounding_chord), the march of a block of rays (march_core.h), the escape
+ * fraction (shading.bounces.escape_fraction). */
+
+#ifndef TORCHREFRACT_FRAME_H
+#define TORCHREFRACT_FRAME_H
+
+#include "lighting.h"
+#include "march_core.h"
+#include "sgtable.h"
+
+#include <stdlib.h>
+
+typedef struct {
+    int64_t n;                  /* object pixels */
+    int64_t nb;                 /* views */
+    const int64_t *idx;         /* (N,) flat (B*H*W) index of each */
+    const int64_t *batch;       /* (N,) its view */
+    /* the G-buffer, flat over B*H*W */
+    const float *ray_dir, *front_pos, *front_normal, *front_dist, *back_dist;
+    const float *eye;           /* (B, 3) */
+    const float *basis;         /* (B, 9) rows: right, up, forward (camera.proj[:, 3:12]) */
+    const float *proj;          /* (B, 16) camera.projection_params */
+    const float *sphere_c, *sphere_r; /* (B, 3), (B,) bounding spheres */
+    Job march;                  /* the march's shared fields (planes, triangles, frame) */
+    /* materials, per view */
+    const float *ior, *alpha, *absorption;  /* (B,), (B,), (B, 3) */
+    const int64_t *dist;        /* (B,) 0 beckmann, 1 ggx */
+    int tir_mode;               /* 0 conserve, 1 clamp, 2 reflect */
+    SgTable table;
+    const float *esc;           /* (B, esc_n) escape fraction over alpha in [0, 1] */
+    int64_t esc_n;
+    Lights lights;
+    SgEnv env;                  /* the SG pyramids (the rough methods' lookups) */
+    /* out */
+    float *radiance;            /* (B*H*W, 3): the background, overwritten on the object */
+    float *exit_found, *tir;    /* (B*H*W,) */
+} Frame;
+
+/* march.camera_coordinates of a point or a direction in view b. */
+static inline void camera_coords(const Frame *f, int64_t b, const float *v, int point,
+                                 float *out) {
+    const float *e = f->eye + 3 * b, *bs = f->basis + 9 * b;
+    float rel[3] = {v[0] - (point ? e[0] : 0.0f), v[1] - (point ? e[1] : 0.0f),
+                    v[2] - (point ? e[2] : 0.0f)};
+    for (int k = 0; k < 3; k++) out[k] = dot3(bs + 3 * k, rel);
+}
+
+/* march._bounding_chord: how far a ray from p along t runs inside the mesh's bounding
+ * sphere (+1%). */
+static inline float bounding_chord(const Frame *f, int64_t b, const float *p, const float *t) {
+    const float *sc = f->sphere_c + 3 * b;
+    float oc[3] = {p[0] - sc[0], p[1] - sc[1], p[2] - sc[2]};
+    float rr = f->sphere_r[b];
+    float bq = dot3(oc, t), cq = dot3(oc, oc) - rr * rr;
+    float disc = bq * bq - cq;
+    float ch = -bq + sqrtf(disc > 0.0f ? disc : 0.0f);
+    return (ch > 1e-6f ? ch : 1e-6f) * 1.01f;
+}
+
+/* Per-block ray arrays for the march (march_core.h reads rays by index). */
+typedef struct {
+    float c0[3 * BLOCK], ct[3 * BLOCK], smax[BLOCK], smin[BLOCK], p[3 * BLOCK], t[3 * BLOCK];
+    int64_t batch[BLOCK];
+    /* out: the exits (march._exit's values) */
+    float s[BLOCK], bary[3 * BLOCK], normal[3 * BLOCK], pos[3 * BLOCK];
+    uint8_t found[BLOCK];
+    int64_t tri[BLOCK], layer[BLOCK];
+} Rays;
+
+/* Set ray i of a block: from p along t in view b (camera coordinates c0, ct). */
+static inline void set_ray(const Frame *f, Rays *r, int i, int64_t b, const float *p,
+                           const float *t, const float *c0, const float *ct) {
+    for (int k = 0; k < 3; k++) {
+        r->p[3 * i + k] = p[k];
+        r->t[3 * i + k] = t[k];
+        r->c0[3 * i + k] = c0[k];
+        r->ct[3 * i + k] = ct[k];
+    }
+    r->batch[i] = b;
+    r->smax[i] = bounding_chord(f, b, p, t);
+    r->smin[i] = 0.0f;
+}
+
+/* March rays [0, m) of a block (march.march_back with the native kernel's choices). */
+static void march_rays(const Frame *f, Rays *r, int m, int steps, int refine) {
+    float lo[BLOCK], hi[BLOCK];
+    Job jm = f->march;
+    jm.n = m;
+    jm.steps = steps;
+    jm.refine = refine;
+    jm.c0 = r->c0; jm.ct = r->ct; jm.s_max = r->smax; jm.s_min = r->smin;
+    jm.batch = r->batch; jm.p1 = r->p; jm.t = r->t;
+    jm.s_out = r->s; jm.bary_out = r->bary; jm.normal_out = r->normal; jm.pos_out = r->pos;
+    jm.found = r->found; jm.tri = r->tri; jm.layer = r->layer;
+#ifdef HAVE_AVX2_PATH
+    if (jm.simd && m == BLOCK) search_block_avx2(&jm, 0, lo, hi);
+    else search_block(&jm, 0, m, lo, hi);
+#else
+    search_block(&jm, 0, m, lo, hi);
+#endif
+    for (int i = 0; i < m; i++) exit_ray(&jm, i, lo[i], hi[i]);
+}
+
+/* shading.bounces.escape_fraction's interpolation of its per-view grid over alpha. */
+static inline float escape(const Frame *f, int64_t b, float alpha) {
+    int64_t g = f->esc_n;
+    float pos = clampf(alpha, 0.0f, 1.0f) * (float)(g - 1);
+    int64_t i0 = (int64_t)floorf(pos);
+    if (i0 > g - 2) i0 = g - 2;
+    float w = pos - (float)i0;
+    const float *e = f->esc + b * g;
+    return e[i0] * (1.0f - w) + e[i0 + 1] * w;
+}
+
+/* Run shade(job, axes, begin, end) over [0, n) in chunks of 64 pixels: handed out
+ * dynamically with OpenMP (a thread whose core is busy with another process takes
+ * fewer), else one contiguous range per thread (common.h). */
+typedef void (*tr_shade_fn)(const void *job, const void *axes, int64_t begin, int64_t end);
+typedef struct { tr_shade_fn fn; const void *job, *axes; } ShadeRange;
+
+static void shade_range_cb(const void *arg, int64_t begin, int64_t end) {
+    const ShadeRange *rg = (const ShadeRange *)arg;
+    rg->fn(rg->job, rg->axes, begin, end);
+}
+
+static int shade_parallel(tr_shade_fn fn, const void *job, const void *axes, int64_t n,
+                          int threads) {
+#ifdef _OPENMP
+    int64_t chunks = (n + 63) / 64;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads > 0 ? threads : 1)
+    for (int64_t c = 0; c < chunks; c++)
+        fn(job, axes, c * 64, c * 64 + 64 < n ? c * 64 + 64 : n);
+    return 0;
+#else
+    ShadeRange rg = {fn, job, axes};
+    return tr_parallel_for(shade_range_cb, &rg, n, 256, threads);
+#endif
+}
+
+#endif

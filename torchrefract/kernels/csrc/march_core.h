@@ -1,0 +1,393 @@
+/* The discrete part of torchrefract's ray march (march.py), one ray at a time: the
+ * functions shared by the march kernel (march.c) and the fused shading (specular.c).
+ *
+ * The same decisions as march.py's tensor code, in the same float32 arithmetic (built with
+ * -ffp-contract=off and no fast-math, so every product, sum and quotient rounds as torch's
+ * elementwise ops do): the uniform search over the bounding chord, the bisections, the
+ * exit candidates (the triangle seen at the crossing pixel, then at the last pixel still
+ * inside, per marched layer) and the walk to the triangle that contains the hit. It
+ * returns which triangle each ray leaves through; where a gradient is wanted, march.py
+ * then intersects the ray with that triangle in torch (the differentiable part), and
+ * elsewhere this kernel also returns the exit's values as march._exit computes them
+ * (exit_values). The search and bisections run 16 rays in lockstep, as AVX2 vectors
+ * where the CPU has them (search_block_avx2: the same operations per lane).
+ *
+ * Why by hand: the tensor form is a chain of ~20 elementwise ops and a gather per sample
+ * over all rays (memory traffic, compactions); here each ray's state stays in registers
+ * and only its plane and triangle reads touch memory. Plain C (threads: common.h), no Python or
+ * torch headers: torchrefract/native.py builds it with the system C compiler on first use
+ * and falls back to the tensor code when that fails.
+ *
+ * The formulas mirror, line by line:
+ *   march._pixel_of_camera, march._crossed_at (the plane test), march._march's search
+ *   and bisections, its ``candidates`` and ``tries``, march._walk_to_containing, and
+ *   gbuffer.intersect_triangles, optics.dot ((a0 b0 + a1 b1) + a2 b2), gbuffer.interpolate
+ *   and march._exit.
+ */
+
+#ifndef TORCHREFRACT_MARCH_CORE_H
+#define TORCHREFRACT_MARCH_CORE_H
+
+#include "optics.h"
+
+typedef struct {
+    int64_t n;
+    const float *c0, *ct;   /* (N, 3) camera coordinates of the start and per unit s */
+    const float *s_max;     /* (N,) bounding chord */
+    const float *s_min;     /* (N,) smallest accepted exit distance */
+    const float *sx_v, *sy_v; /* (B,) per-view pixel scales */
+    const int64_t *batch;   /* (N,) view of each ray */
+    const float *planes;    /* (B*H*W, pw) camera-space planes (march.camera_planes) */
+    int pw;                 /* 4: back layer only, 8: back then front (march_inside) */
+    int64_t h, w;
+    int steps, refine;
+    const float *p1, *t;    /* (N, 3) world start and direction */
+    const int64_t *tri_front, *tri_back;    /* (B*H*W,) triangle seen per pixel */
+    const uint8_t *mask_front, *mask_back;  /* (B*H*W,) layer covered */
+    const float *tv;        /* (T, 3, 3) triangle vertices */
+    const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
+    int walk_steps;
+    int simd;               /* 1: the AVX2 search where the CPU has it (0: scalar only; the
+                             * caller sets 0 where the plane indices exceed 32 bits) */
+    const float *tn;        /* (T, 3, 3) corner shading normals (for the exits below) */
+    /* out, optional (NULL: not wanted; march.py then computes them in torch, with
+     * gradients): the exit distance (N,), barycentrics (N, 3), unit shading normal (N, 3)
+     * and position (N, 3), as march._exit computes them */
+    float *s_out, *bary_out, *normal_out, *pos_out;
+    uint8_t *found;         /* out (N,) */
+    int64_t *tri;           /* out (N,) exit triangle or -1 */
+    int64_t *layer;         /* out (N,) 0 front, 1 back, -1 */
+} Job;
+
+
+static inline int argmin3(const float *b) {  /* torch.argmin: the first of equal minima */
+    int k = 0;
+    if (b[1] < b[k]) k = 1;
+    if (b[2] < b[k]) k = 2;
+    return k;
+}
+
+/* march._pixel_of_camera: the flat pixel (clamped into the frame, as torch's clamp does)
+ * and whether the point lies in the frame, of camera coordinates c. */
+static inline int64_t pixel_of(const Job *j, int64_t r, const float *c, int *inside) {
+    int64_t b = j->batch[r];
+    float z = c[2];
+    float zs = z < 1e-12f ? 1e-12f : z;
+    if (z != z) zs = z;  /* clamp propagates NaN */
+    float hw = 0.5f * (float)j->w, hh = 0.5f * (float)j->h;
+    float px = floorf(c[0] / zs * j->sx_v[b] + hw);
+    float py = floorf(hh - c[1] / zs * j->sy_v[b]);
+    float wm = (float)(j->w - 1), hm = (float)(j->h - 1);
+    *inside = (z > 1e-12f) && px >= 0.0f && px <= wm && py >= 0.0f && py <= hm;
+    float pxc = px < 0.0f ? 0.0f : (px > wm ? wm : px);
+    float pyc = py < 0.0f ? 0.0f : (py > hm ? hm : py);
+    if (pxc != pxc) pxc = 0.0f;  /* NaN: any pixel (the caller ignores it) */
+    if (pyc != pyc) pyc = 0.0f;
+    return b * j->h * j->w + (int64_t)pyc * j->w + (int64_t)pxc;
+}
+
+static inline void point_at(const Job *j, int64_t r, float s, float *c) {
+    const float *c0 = j->c0 + 3 * r, *ct = j->ct + 3 * r;
+    for (int i = 0; i < 3; i++) {
+        float m = s * ct[i];
+        c[i] = c0[i] + m;
+    }
+}
+
+/* march._crossed_at for one ray at parameter s. */
+static int crossed_at(const Job *j, int64_t r, float s) {
+    float c[3];
+    point_at(j, r, s, c);
+    int inside;
+    int64_t flat = pixel_of(j, r, c, &inside);
+    if (!inside) return 1;
+    const float *pl = j->planes + flat * j->pw;
+    if (dot3(pl, c) - pl[3] > 0.0f) return 1;
+    if (j->pw == 8 && dot3(pl + 4, c) - pl[7] > 0.0f) return 1;
+    return 0;
+}
+
+/* One exit candidate (march._march's ``candidates``): the triangle seen at parameter s in
+ * the chosen layer, and whether the ray's hit with it is accepted. */
+static int candidate(const Job *j, int64_t r, float s, int use_front, int64_t *cand_out,
+                     float *st_out, float *bt_out) {
+    float c[3];
+    point_at(j, r, s, c);
+    int inside;
+    int64_t flat = pixel_of(j, r, c, &inside);
+    int64_t cand = -1;
+    if (inside) {
+        int seen = use_front ? j->mask_front[flat] : j->mask_back[flat];
+        if (seen) cand = use_front ? j->tri_front[flat] : j->tri_back[flat];
+    }
+    if (cand < 0) return 0;
+    float st = intersect(j->p1 + 3 * r, j->t + 3 * r, j->tv + 9 * cand, bt_out);
+    float hi = j->s_max[r] * 1.5f;
+    *cand_out = cand;
+    *st_out = st;
+    return isfinite(st) && st > j->s_min[r] && st <= hi;
+}
+
+#define BLOCK 16
+
+/* The uniform search and the bisections of rays [r0, r0 + m), m <= BLOCK, in lockstep:
+ * each pass tests one sample of every ray of the block, so their (independent) plane reads
+ * overlap instead of waiting on each other. */
+static void search_block(const Job *j, int64_t r0, int m, float *lo_out, float *hi_out) {
+    float lo[BLOCK], hi[BLOCK], last[BLOCK];
+    int done[BLOCK];
+    for (int i = 0; i < m; i++) {
+        lo[i] = 0.0f;
+        hi[i] = j->s_max[r0 + i];
+        last[i] = 0.0f;
+        done[i] = 0;
+    }
+    /* The first sample that has crossed brackets the crossing; a ray that never crosses
+     * gets lo = hi = s_max. */
+    int active = m;
+    for (int k = 1; k <= j->steps && active > 0; k++) {
+        float frac = (float)((double)k / (double)j->steps);
+        for (int i = 0; i < m; i++) {
+            if (done[i]) continue;
+            float s = j->s_max[r0 + i] * frac;
+            if (crossed_at(j, r0 + i, s)) {
+                hi[i] = s;
+                lo[i] = last[i];
+                done[i] = 1;
+                active--;
+            } else {
+                last[i] = s;
+            }
+        }
+    }
+    for (int i = 0; i < m; i++)
+        if (!done[i]) lo[i] = last[i];
+    for (int b = 0; b < j->refine; b++) {
+        for (int i = 0; i < m; i++) {
+            float mid = 0.5f * (lo[i] + hi[i]);
+            int c = crossed_at(j, r0 + i, mid);
+            hi[i] = c ? mid : hi[i];
+            lo[i] = c ? lo[i] : mid;
+        }
+    }
+    for (int i = 0; i < m; i++) {
+        lo_out[i] = lo[i];
+        hi_out[i] = hi[i];
+    }
+}
+
+/* march._exit's values for ray r leaving through ``tri`` (-1: not found): the hit with
+ * the triangle, the clamped barycentric interpolation of its corner normals, normalized,
+ * and the position p1 + s t. */
+static void exit_values(const Job *j, int64_t r, int64_t tri) {
+    float s = 0.0f, bt[3] = {0.0f, 0.0f, 0.0f}, n[3] = {0.0f, 0.0f, 0.0f};
+    const float *p1 = j->p1 + 3 * r, *t = j->t + 3 * r;
+    if (tri >= 0) {
+        s = intersect(p1, t, j->tv + 9 * tri, bt);
+        interpolate(bt, j->tn + 9 * tri, 3, n);
+        float len = norm3(n);
+        if (len < 1e-20f) len = 1e-20f;
+        for (int m = 0; m < 3; m++) n[m] = n[m] / len;
+    }
+    j->s_out[r] = s;
+    for (int m = 0; m < 3; m++) {
+        j->bary_out[3 * r + m] = bt[m];
+        j->normal_out[3 * r + m] = n[m];
+        float st = s * t[m];
+        j->pos_out[3 * r + m] = p1[m] + st;
+    }
+}
+
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define HAVE_AVX2_PATH 1
+
+/* search_block with AVX2, 8 rays per vector and two vectors per pass (BLOCK = 16 rays,
+ * a full block only): the same operations lane by lane (IEEE add, multiply, divide,
+ * floor, compare: the same values as the scalar code, which stays the path for partial
+ * blocks and CPUs without AVX2). Plane indices are 32-bit (the caller checks the size). */
+typedef struct { __m256 c0x, c0y, c0z, ctx, cty, ctz, sx, sy; __m256i base; } Lanes;
+
+__attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, const Lanes *L,
+                                                              __m256 s) {
+    __m256 cx = _mm256_add_ps(L->c0x, _mm256_mul_ps(s, L->ctx));
+    __m256 cy = _mm256_add_ps(L->c0y, _mm256_mul_ps(s, L->cty));
+    __m256 cz = _mm256_add_ps(L->c0z, _mm256_mul_ps(s, L->ctz));
+    const __m256 eps = _mm256_set1_ps(1e-12f);
+    __m256 zs = _mm256_max_ps(cz, eps);  /* NaN z: eps (the lane is outside anyway) */
+    __m256 hw = _mm256_set1_ps(0.5f * (float)j->w), hh = _mm256_set1_ps(0.5f * (float)j->h);
+    __m256 px = _mm256_floor_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_div_ps(cx, zs), L->sx),
+                                              hw));
+    __m256 py = _mm256_floor_ps(_mm256_sub_ps(hh, _mm256_mul_ps(_mm256_div_ps(cy, zs),
+                                                                L->sy)));
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 wm = _mm256_set1_ps((float)(j->w - 1)), hm = _mm256_set1_ps((float)(j->h - 1));
+    __m256 inside = _mm256_and_ps(
+        _mm256_and_ps(_mm256_cmp_ps(cz, eps, _CMP_GT_OQ),
+                      _mm256_and_ps(_mm256_cmp_ps(px, zero, _CMP_GE_OQ),
+                                    _mm256_cmp_ps(px, wm, _CMP_LE_OQ))),
+        _mm256_and_ps(_mm256_cmp_ps(py, zero, _CMP_GE_OQ), _mm256_cmp_ps(py, hm, _CMP_LE_OQ)));
+    /* clamped into the frame (max(x, 0) gives 0 for NaN x): always a valid index */
+    __m256 pxc = _mm256_min_ps(_mm256_max_ps(px, zero), wm);
+    __m256 pyc = _mm256_min_ps(_mm256_max_ps(py, zero), hm);
+    __m256i flat = _mm256_add_epi32(L->base, _mm256_add_epi32(
+        _mm256_mullo_epi32(_mm256_cvttps_epi32(pyc), _mm256_set1_epi32((int)j->w)),
+        _mm256_cvttps_epi32(pxc)));
+    __m256i idx = _mm256_mullo_epi32(flat, _mm256_set1_epi32(j->pw));
+    const float *pl = j->planes;
+    __m256 n0 = _mm256_i32gather_ps(pl, idx, 4);
+    __m256 n1 = _mm256_i32gather_ps(pl + 1, idx, 4);
+    __m256 n2 = _mm256_i32gather_ps(pl + 2, idx, 4);
+    __m256 d = _mm256_i32gather_ps(pl + 3, idx, 4);
+    __m256 dt = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(n0, cx), _mm256_mul_ps(n1, cy)),
+                              _mm256_mul_ps(n2, cz));
+    __m256 beyond = _mm256_cmp_ps(_mm256_sub_ps(dt, d), zero, _CMP_GT_OQ);
+    if (j->pw == 8) {
+        __m256 f0 = _mm256_i32gather_ps(pl + 4, idx, 4);
+        __m256 f1 = _mm256_i32gather_ps(pl + 5, idx, 4);
+        __m256 f2 = _mm256_i32gather_ps(pl + 6, idx, 4);
+        __m256 fd = _mm256_i32gather_ps(pl + 7, idx, 4);
+        __m256 ft = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(f0, cx), _mm256_mul_ps(f1, cy)),
+                                  _mm256_mul_ps(f2, cz));
+        beyond = _mm256_or_ps(beyond, _mm256_cmp_ps(_mm256_sub_ps(ft, fd), zero, _CMP_GT_OQ));
+    }
+    /* crossed = ~inside | beyond (all-ones lanes) */
+    return _mm256_or_ps(_mm256_andnot_ps(inside, _mm256_castsi256_ps(_mm256_set1_epi32(-1))),
+                        beyond);
+}
+
+__attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int64_t r0,
+                                                              float *lo_out, float *hi_out) {
+    Lanes L[2];
+    float tmp[9][16];
+    int bi[16];
+    for (int i = 0; i < 16; i++) {
+        int64_t r = r0 + i, b = j->batch[r];
+        for (int k = 0; k < 3; k++) {
+            tmp[k][i] = j->c0[3 * r + k];
+            tmp[3 + k][i] = j->ct[3 * r + k];
+        }
+        tmp[6][i] = j->sx_v[b];
+        tmp[7][i] = j->sy_v[b];
+        tmp[8][i] = j->s_max[r];
+        bi[i] = (int)(b * j->h * j->w);
+    }
+    __m256 smax[2], lo[2], hi[2], last[2], done[2];
+    for (int v = 0; v < 2; v++) {
+        L[v].c0x = _mm256_loadu_ps(tmp[0] + 8 * v);
+        L[v].c0y = _mm256_loadu_ps(tmp[1] + 8 * v);
+        L[v].c0z = _mm256_loadu_ps(tmp[2] + 8 * v);
+        L[v].ctx = _mm256_loadu_ps(tmp[3] + 8 * v);
+        L[v].cty = _mm256_loadu_ps(tmp[4] + 8 * v);
+        L[v].ctz = _mm256_loadu_ps(tmp[5] + 8 * v);
+        L[v].sx = _mm256_loadu_ps(tmp[6] + 8 * v);
+        L[v].sy = _mm256_loadu_ps(tmp[7] + 8 * v);
+        L[v].base = _mm256_loadu_si256((const __m256i *)(bi + 8 * v));
+        smax[v] = _mm256_loadu_ps(tmp[8] + 8 * v);
+        lo[v] = _mm256_setzero_ps();
+        hi[v] = smax[v];
+        last[v] = _mm256_setzero_ps();
+        done[v] = _mm256_setzero_ps();
+    }
+    for (int k = 1; k <= j->steps; k++) {
+        __m256 frac = _mm256_set1_ps((float)((double)k / (double)j->steps));
+        int all = 1;
+        for (int v = 0; v < 2; v++) {
+            __m256 s = _mm256_mul_ps(smax[v], frac);
+            __m256 c = _mm256_andnot_ps(done[v], crossed8(j, &L[v], s));  /* newly crossed */
+            hi[v] = _mm256_blendv_ps(hi[v], s, c);
+            lo[v] = _mm256_blendv_ps(lo[v], last[v], c);
+            done[v] = _mm256_or_ps(done[v], c);
+            last[v] = _mm256_blendv_ps(s, last[v], done[v]);
+            all &= _mm256_movemask_ps(done[v]) == 0xff;
+        }
+        if (all) break;
+    }
+    for (int v = 0; v < 2; v++) lo[v] = _mm256_blendv_ps(last[v], lo[v], done[v]);
+    const __m256 half = _mm256_set1_ps(0.5f);
+    for (int b = 0; b < j->refine; b++) {
+        for (int v = 0; v < 2; v++) {
+            __m256 mid = _mm256_mul_ps(half, _mm256_add_ps(lo[v], hi[v]));
+            __m256 c = crossed8(j, &L[v], mid);
+            hi[v] = _mm256_blendv_ps(hi[v], mid, c);
+            lo[v] = _mm256_blendv_ps(mid, lo[v], c);
+        }
+    }
+    for (int v = 0; v < 2; v++) {
+        _mm256_storeu_ps(lo_out + 8 * v, lo[v]);
+        _mm256_storeu_ps(hi_out + 8 * v, hi[v]);
+    }
+}
+#endif
+
+/* The exit of ray r bracketed by [lo, hi]. */
+static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
+    float smax = j->s_max[r];
+    /* The exit candidates, in march._march's order of ``tries``. */
+    float ss[4];
+    int fronts[4], ntries;
+    if (j->pw == 8) {
+        float c[3];
+        point_at(j, r, hi, c);
+        int inside;
+        int64_t flat = pixel_of(j, r, c, &inside);
+        const float *pl = j->planes + flat * j->pw;
+        int primary_front = (dot3(pl + 4, c) - pl[7]) > (dot3(pl, c) - pl[3]);
+        ss[0] = hi; fronts[0] = primary_front;
+        ss[1] = lo; fronts[1] = primary_front;
+        ss[2] = hi; fronts[2] = !primary_front;
+        ss[3] = lo; fronts[3] = !primary_front;
+        ntries = 4;
+    } else {
+        ss[0] = hi; fronts[0] = 0;
+        ss[1] = lo; fronts[1] = 0;
+        ntries = 2;
+    }
+    int64_t tri = -1;
+    int layer = -1;
+    float bary[3] = {0.0f, 0.0f, 0.0f};
+    for (int i = 0; i < ntries; i++) {
+        int64_t cand;
+        float st, bt[3];
+        if (candidate(j, r, ss[i], fronts[i], &cand, &st, bt)) {
+            tri = cand;
+            layer = fronts[i] ? 0 : 1;
+            bary[0] = bt[0]; bary[1] = bt[1]; bary[2] = bt[2];
+            break;
+        }
+    }
+
+    /* march._walk_to_containing: across the edge opposite the most negative barycentric
+     * until the hit is inside, keeping the most-inside hit seen. */
+    const float eps = -1e-6f;
+    if (tri >= 0 && min3(bary) < eps) {
+        int64_t cur = tri;
+        float cur_bary[3] = {bary[0], bary[1], bary[2]};
+        float best = min3(cur_bary);
+        float lo_s = j->s_min[r], hi_s = 1.5f * smax;
+        for (int step = 0; step < j->walk_steps; step++) {
+            int worst = argmin3(cur_bary);
+            int64_t nxt = j->across[cur * 3 + worst];
+            float bt[3];
+            float st = intersect(j->p1 + 3 * r, j->t + 3 * r,
+                                 j->tv + 9 * (nxt < 0 ? 0 : nxt), bt);
+            int ok = nxt >= 0 && isfinite(st) && st > lo_s && st <= hi_s;
+            float score = min3(bt);
+            if (!ok) break;
+            cur = nxt;
+            cur_bary[0] = bt[0]; cur_bary[1] = bt[1]; cur_bary[2] = bt[2];
+            if (score > best) {
+                tri = nxt;
+                best = score;
+            }
+            if (!(score < eps)) break;
+        }
+    }
+    j->found[r] = tri >= 0;
+    j->tri[r] = tri;
+    j->layer[r] = layer;
+    if (j->s_out) exit_values(j, r, tri);
+}
+
+#endif

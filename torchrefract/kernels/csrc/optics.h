@@ -1,0 +1,107 @@
+/* Smooth-interface optics (optics/smooth.py), line by line in float32, for the fused
+ * shading kernels. */
+
+#ifndef TORCHREFRACT_OPTICS_H
+#define TORCHREFRACT_OPTICS_H
+
+#include "common.h"
+
+TR_DEFINE_VEC3(float, , fmaf, fabsf, sqrtf, 1e-30f)
+
+#define TR_PI 3.14159265358979323846
+
+static inline float clampf(float x, float lo, float hi) {
+    return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static inline void face_forward(const float *n, const float *d, float *out) {
+    float s = dot3(n, d) > 0.0f ? -1.0f : 1.0f;
+    for (int i = 0; i < 3; i++) out[i] = s * n[i];
+}
+
+static inline float fresnel(float cos_i, float eta) {
+    cos_i = clampf(cos_i, 0.0f, 1.0f);
+    float sin2_t = eta * eta * (1.0f - cos_i * cos_i);
+    float ct = 1.0f - sin2_t;
+    float cos_t = sqrtf(ct > 0.0f ? ct : 0.0f);
+    float rs_den = eta * cos_i + cos_t, rp_den = cos_i + eta * cos_t;
+    if (rs_den < 1e-12f) rs_den = 1e-12f;
+    if (rp_den < 1e-12f) rp_den = 1e-12f;
+    float rs = (eta * cos_i - cos_t) / rs_den, rp = (cos_i - eta * cos_t) / rp_den;
+    float f = 0.5f * (rs * rs + rp * rp);
+    return sin2_t >= 1.0f ? 1.0f : clampf(f, 0.0f, 1.0f);
+}
+
+/* Snell (smooth.refract): the unit transmitted direction; returns TIR. */
+static inline int refract(const float *d, const float *n, float eta, float *t) {
+    float cos_i = clampf(-dot3(d, n), 0.0f, 1.0f);
+    float sin2_t = eta * eta * (1.0f - cos_i * cos_i);
+    float ct = 1.0f - sin2_t;
+    float cos_t = sqrtf(ct > 0.0f ? ct : 0.0f);
+    float k = eta * cos_i - cos_t;
+    for (int i = 0; i < 3; i++) t[i] = eta * d[i] + k * n[i];
+    float len = norm3(t);
+    if (len < 1e-20f) len = 1e-20f;
+    for (int i = 0; i < 3; i++) t[i] = t[i] / len;
+    return sin2_t >= 1.0f;
+}
+
+static inline void reflect(const float *d, const float *n, float *r) {
+    float k = 2.0f * dot3(d, n);
+    for (int i = 0; i < 3; i++) r[i] = d[i] - k * n[i];
+}
+
+/* smooth.normalize (eps 1e-20). */
+static inline void normalize3(float *v) {
+    float len = norm3(v);
+    if (len < 1e-20f) len = 1e-20f;
+    for (int i = 0; i < 3; i++) v[i] = v[i] / len;
+}
+
+/* smooth.tangent_frame: u = p x h / |p x h| (h the x axis, the y axis near it), v = p x u. */
+static inline void tangent_frame(const float *p, float *u, float *v) {
+    float h[3] = {0.0f, 0.0f, 0.0f};
+    h[fabsf(p[0]) < 0.9f ? 0 : 1] = 1.0f;
+    cross3(p, h, u);
+    normalize3(u);
+    cross3(p, u, v);
+}
+
+/* sgfit.lobe_axis: the lobe's unit axis -sin(t) u + sign cos(t) n from the table's signed
+ * polar angle t (u: the view's unit tangential part; sign -1 transmit, +1 reflect). */
+static inline void lobe_axis(const float *view, const float *n, float t, float sign,
+                             float *out) {
+    float dv = dot3(view, n);
+    float vt[3] = {view[0] - dv * n[0], view[1] - dv * n[1], view[2] - dv * n[2]};
+    float n2 = dot3(vt, vt), u[3];
+    if (n2 > 1e-24f) {
+        float r = sqrtf(n2);
+        for (int i = 0; i < 3; i++) u[i] = vt[i] / r;
+    } else {
+        float alt[3] = {0.0f, 0.0f, 0.0f};
+        alt[fabsf(n[0]) < 0.9f ? 0 : 1] = 1.0f;
+        float da = dot3(alt, n);
+        for (int i = 0; i < 3; i++) alt[i] = alt[i] - da * n[i];
+        float r = norm3(alt);
+        for (int i = 0; i < 3; i++) u[i] = alt[i] / r;
+    }
+    float st = sinf(t), ct = cosf(t);
+    for (int i = 0; i < 3; i++) out[i] = -st * u[i] + sign * ct * n[i];
+}
+
+/* camera.project of one point in a view (proj: camera.projection_params): pixel x, y. */
+static inline void project1(const float *pt, const float *pp, float *xy) {
+    float rel[3] = {pt[0] - pp[0], pt[1] - pp[1], pt[2] - pp[2]};
+    float z = dot3(rel, pp + 9);
+    float zs = fabsf(z) > 1e-12f ? z : 1e-12f;
+    float x = dot3(rel, pp + 3) / (zs * pp[12]);
+    float y = dot3(rel, pp + 6) / (zs * pp[13]);
+    xy[0] = ((x + 1.0f) * 0.5f) * pp[14];
+    xy[1] = ((1.0f - y) * 0.5f) * pp[15];
+}
+
+/* torch's max / min of a then b, in order: NaN once any is */
+static inline float tmax(float a, float b) { return a != a || b != b ? NAN : (b > a ? b : a); }
+static inline float tmin(float a, float b) { return a != a || b != b ? NAN : (b < a ? b : a); }
+
+#endif

@@ -1,0 +1,255 @@
+/* Fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) without
+ * internal bounces, for its default cone and spread (``cone_rays: march``, ``spread:
+ * rays``), every ``tir`` rule, uniform roughness, no sphere lights: per object pixel, in
+ * registers,
+ *   1. the front lobes (lobes.front_lobes; the SG table, eqs. 8-9),
+ *   2. the cone: the axis and its four bounding rays (eq. 12) marched to their exits
+ *      (march_core.h), their screen footprint (cone.trace_cone),
+ *   3. the exit lobe (exit.exit_interface, exit.exit_lobe) widened by the bounding rays
+ *      refracted out at their own exits (cone.geometric_variance),
+ *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
+ *      4.1), the absorption, an index-matched object left invisible (shade._index_matched).
+ * The tensor code (methods/rousiers/shade.py) is the reference and the differentiable
+ * path; tests/test_fused.py holds the two together.
+ */
+
+#include "frame.h"
+
+typedef struct {
+    Frame f;
+    int cone_steps, cone_refine;  /* the bounding rays' march (the axis': f.march) */
+    float two_ln4;                /* 2 ln 4 as float32 (kernels.cone.ray_spread) */
+    float *lobe_sigma, *footprint; /* out (B*H*W,) the passes of shade.PASSES */
+} RousJob;
+
+/* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
+ * (eta = ior) and leaving (eta = 1 / ior). */
+enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
+
+/* cone.bounding_angle: theta_b = 2 asin(sqrt(-expm1(-ln 4 / (k + 1)) / 2)) (eq. 12). */
+static inline float bounding_angle(float k) {
+    float one_minus = -expm1f(-(float)log(4.0) / (k + 1.0f));
+    return 2.0f * asinf(sqrtf(0.5f * one_minus));
+}
+
+/* The exit lobe (exit.exit_lobe, ``spread: rays``): direction, sharpness, weight. */
+static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
+                      const float *view2, const float *n_in, float cos2, float cos_crit,
+                      int tir, float var1, float var_geo, float *p_out, float *k_out,
+                      float *w_out) {
+    const Frame *j = &rj->f;
+    int64_t dist = j->dist[b];
+    const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
+    float k_t2, t_t2, e_t2, weight;
+    if (j->tir_mode == 2) {  /* reflect: the internal reflection lobe under TIR */
+        float k_ti, t_ti, e_ti;
+        sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
+        sg_lobe(&j->table, out, out0, dist, 1, cos2, &k_ti, &t_ti, &e_ti);
+        if (tir) {
+            lobe_axis(view2, n_in, t_ti, 1.0f, p_out);
+            k_t2 = k_ti;
+            weight = e_ti;
+        } else {
+            lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+            weight = e_t2;
+        }
+    } else {  /* clamp, conserve: the incident angle clamped to the critical one */
+        float cos_in = tir ? cos_crit + 1e-4f : cos2;
+        sg_lobe(&j->table, out, out0, dist, 0, cos_in, &k_t2, &t_t2, &e_t2);
+        lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+        if (j->tir_mode == 1) {
+            weight = tir ? 1.0f : e_t2;
+        } else {
+            float esc = escape(j, b, alpha), et, er;
+            spread_table_energies(&j->table, out, out0, dist, cos2, var1, &et, &er);
+            weight = et + er * esc;
+            if (weight > 1.0f) weight = 1.0f;
+        }
+    }
+    normalize3(p_out);
+    float v = 1.0f / k_t2 + var_geo;
+    *k_out = 1.0f / (v > 1e-12f ? v : 1e-12f);
+    *w_out = weight;
+}
+
+/* kernels.cone.ray_spread: the bounding rays refracted out at their exit normals, their
+ * squared chords to the central ray's (refracted at exact_n); ``fallback`` where none
+ * found its exit. */
+static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact_n,
+                        const float (*dirs)[3], const float (*n4)[3], const uint8_t *ok4,
+                        float ior, float fallback) {
+    float n[3], t_c[3], sum = 0.0f;
+    float m[3] = {-exact_n[0], -exact_n[1], -exact_n[2]};
+    face_forward(m, p_t1, n);
+    refract(p_t1, n, ior, t_c);
+    int cnt = 0;
+    for (int k = 0; k < 4; k++) {
+        float mk[3] = {-n4[k][0], -n4[k][1], -n4[k][2]}, nk[3], t_k[3], dk[3];
+        face_forward(mk, dirs[k], nk);
+        refract(dirs[k], nk, ior, t_k);
+        for (int c = 0; c < 3; c++) dk[c] = t_k[c] - t_c[c];
+        float chord2 = dot3(dk, dk);
+        sum = k == 0 ? (ok4[k] ? chord2 : 0.0f) : sum + (ok4[k] ? chord2 : 0.0f);
+        cnt += ok4[k] != 0;
+    }
+    return cnt > 0 ? (sum / (float)cnt) / rj->two_ln4 : fallback;
+}
+
+static void shade_block(const RousJob *rj, const SgAxes *axes, int64_t r0, int m) {
+    const Frame *j = &rj->f;
+    Rays axis, cone[4];
+    float view[3 * BLOCK], n1[3 * BLOCK], dirs[BLOCK][4][3], kt1[BLOCK];
+    float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
+    /* 1. The front lobes (eqs. 8-9) and the cone's rays (eq. 12). */
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i], dist = j->dist[b];
+        const SgAxes *ax = axes + AXES * b;
+        float d[3], p1[3], *vi = view + 3 * i, *ni = n1 + 3 * i;
+        for (int k = 0; k < 3; k++) {
+            d[k] = j->ray_dir[3 * px + k];
+            p1[k] = j->front_pos[3 * px + k];
+            vi[k] = -d[k];
+        }
+        face_forward(j->front_normal + 3 * px, d, ni);
+        float cos1 = clampf(dot3(vi, ni), 0.0f, 1.0f);
+        float t_r, t_t1, k_t1, p_t1[3];
+        sg_lobe(&j->table, ax + IN, ax + IN0, dist, 1, cos1, &k_r[i], &t_r, &e_r[i]);
+        lobe_axis(vi, ni, t_r, 1.0f, axis_r + 3 * i);
+        sg_lobe(&j->table, ax + IN, ax + IN0, dist, 0, cos1, &k_t1, &t_t1, &e_t1[i]);
+        lobe_axis(vi, ni, t_t1, -1.0f, p_t1);
+        normalize3(p_t1);
+        kt1[i] = k_t1;
+        float c_p1[3], c_t1[3], u[3], v[3], c_u[3], c_v[3];
+        camera_coords(j, b, p1, 1, c_p1);
+        camera_coords(j, b, p_t1, 0, c_t1);
+        set_ray(j, &axis, i, b, p1, p_t1, c_p1, c_t1);
+        float th = bounding_angle(k_t1), cb = cosf(th), sb = sinf(th);
+        tangent_frame(p_t1, u, v);
+        camera_coords(j, b, u, 0, c_u);
+        camera_coords(j, b, v, 0, c_v);
+        for (int q = 0; q < 4; q++) {  /* (u, +), (u, -), (v, +), (v, -) */
+            const float *a = q < 2 ? u : v, *ca = q < 2 ? c_u : c_v;
+            float s = (q & 1) ? -1.0f : 1.0f, dq[3], cq[3];
+            for (int k = 0; k < 3; k++) {
+                dq[k] = cb * p_t1[k] + sb * s * a[k];
+                cq[k] = cb * c_t1[k] + sb * s * ca[k];
+                dirs[i][q][k] = dq[k];
+            }
+            set_ray(j, &cone[q], i, b, p1, dq, c_p1, cq);
+        }
+    }
+    /* 2. The marches: the axis, then each bounding ray (march_core.h). */
+    march_rays(j, &axis, m, j->march.steps, j->march.refine);
+    for (int q = 0; q < 4; q++) march_rays(j, &cone[q], m, rj->cone_steps, rj->cone_refine);
+    /* 3-4. The footprint, the exit lobe, the environment. */
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i], b = axis.batch[i];
+        const SgAxes *ax = axes + AXES * b;
+        float ior = j->ior[b], alpha = j->alpha[b];
+        alpha = alpha > 1e-4f ? alpha : 1e-4f;  /* microfacet.ALPHA_MIN (pixels.py) */
+        const float *p1 = axis.p + 3 * i, *p_t1 = axis.t + 3 * i;
+        int found = axis.found[i];
+        /* the footprint (cone.trace_cone, kernels.cone.footprint) */
+        const float *pp = j->proj + 16 * b;
+        float c[2], xy[4][2], n4[4][3];
+        uint8_t ok4[4];
+        project1(axis.pos + 3 * i, pp, c);
+        for (int q = 0; q < 4; q++) {
+            ok4[q] = cone[q].found[i];
+            for (int k = 0; k < 3; k++) n4[q][k] = cone[q].normal[3 * i + k];
+            if (ok4[q]) project1(cone[q].pos + 3 * i, pp, xy[q]);
+            else { xy[q][0] = c[0]; xy[q][1] = c[1]; }
+        }
+        float ext[2];
+        for (int a = 0; a < 2; a++) {
+            float mx = xy[0][a], mn = xy[0][a];
+            for (int q = 1; q < 4; q++) { mx = tmax(mx, xy[q][a]); mn = tmin(mn, xy[q][a]); }
+            ext[a] = mx - mn;
+            if (ext[a] < 1.0f) ext[a] = 1.0f;  /* clamp(min=1), NaN kept */
+        }
+        float major = tmax(ext[0], ext[1]);
+        float exact_n[3];
+        for (int k = 0; k < 3; k++) exact_n[k] = found ? axis.normal[3 * i + k] : p_t1[k];
+        /* the exit interface (exit.exit_interface): the exact exit normal, inward */
+        float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]}, n_in[3];
+        face_forward(m_n, p_t1, n_in);
+        float view2[3] = {-p_t1[0], -p_t1[1], -p_t1[2]};
+        float cos2 = clampf(dot3(view2, n_in), 0.0f, 1.0f);
+        float cc = 1.0f - 1.0f / (ior * ior);
+        float cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+        int tir = cos2 < cos_crit && found;
+        float sin2 = 1.0f - cos2 * cos2;
+        sin2 = sin2 > 0.0f ? sin2 : 0.0f;
+        float co = 1.0f - ior * ior * sin2;
+        float cos_out = sqrtf(co > 1e-4f ? co : 1e-4f);
+        float mg = ior * cos2 / cos_out, mag2 = mg * mg;
+        float k_t1 = kt1[i];
+        float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+        float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])dirs[i],
+                                   (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
+        float p_out[3], k, weight2;
+        exit_lobe(rj, ax, b, alpha, view2, n_in, cos2, cos_crit, tir, var1, var_geo, p_out,
+                  &k, &weight2);
+        if (!found) {  /* leave with the front lobe */
+            for (int q = 0; q < 3; q++) p_out[q] = p_t1[q];
+            k = k_t1;
+            weight2 = 1.0f;
+        }
+        float path;
+        if (found) {
+            path = axis.s[i];
+        } else {
+            float thick = j->back_dist[px] - j->front_dist[px];
+            path = thick > 0.0f ? thick : 0.0f;
+        }
+        float l_refl[3], l_trans[3], er = e_r[i], et = e_t1[i];
+        sg_env_lookup(&j->lights, &j->env, b, axis_r + 3 * i, k_r[i], l_refl);
+        if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
+            float d[3] = {-view[3 * i], -view[3 * i + 1], -view[3 * i + 2]};
+            sg_env_lookup(&j->lights, &j->env, b, d, INFINITY, l_trans);
+            er = 0.0f;
+            et = 1.0f;
+        } else {
+            sg_env_lookup(&j->lights, &j->env, b, p_out, k, l_trans);
+            for (int q = 0; q < 3; q++) l_trans[q] = l_trans[q] * weight2;
+        }
+        for (int q = 0; q < 3; q++) {
+            float att = expf(-j->absorption[3 * b + q] * path);
+            j->radiance[3 * px + q] = er * l_refl[q] + et * att * l_trans[q];
+        }
+        j->exit_found[px] = found ? 1.0f : 0.0f;
+        j->tir[px] = tir ? 1.0f : 0.0f;
+        rj->lobe_sigma[px] = 1.0f / sqrtf(k > 1e-12f ? k : 1e-12f);
+        rj->footprint[px] = found ? major : 0.0f;
+    }
+}
+
+static void shade_range(const void *job, const void *axes, int64_t begin, int64_t end) {
+    for (int64_t r = begin; r < end; r += BLOCK)
+        shade_block((const RousJob *)job, (const SgAxes *)axes, r,
+                    end - r < BLOCK ? (int)(end - r) : BLOCK);
+}
+
+/* Entry point (ctypes, kernels/fused.py): shade all object pixels of ``job`` on
+ * ``threads`` threads. Returns 0, or -1 where memory or a thread could not be had. */
+int torchrefract_rousiers(RousJob *job, int threads) {
+    Frame *f = &job->f;
+#ifdef HAVE_AVX2_PATH
+    f->march.simd = f->march.simd && __builtin_cpu_supports("avx2");
+#endif
+    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * AXES * (size_t)(f->nb > 0 ? f->nb : 1));
+    if (!axes) return -1;
+    for (int64_t b = 0; b < f->nb; b++) {
+        float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+        float a0 = f->table.alpha_min;
+        sg_axes(&f->table, ior, a, axes + AXES * b + IN);
+        sg_axes(&f->table, ior, a0, axes + AXES * b + IN0);
+        sg_axes(&f->table, 1.0f / ior, a, axes + AXES * b + OUT);
+        sg_axes(&f->table, 1.0f / ior, a0, axes + AXES * b + OUT0);
+    }
+    int rc = shade_parallel(shade_range, job, axes, f->n, threads);
+    free(axes);
+    return rc;
+}
+
+int64_t torchrefract_rousiers_job_size(void) { return (int64_t)sizeof(RousJob); }

@@ -1,0 +1,254 @@
+"""Fused shading: a method's per-pixel work as one native kernel (csrc/specular.c for
+``specular`` and ``prefiltered``, csrc/rousiers.c, csrc/background.c), the one place where a
+method's shading chooses between the fused kernel and its tensor code.
+
+The tensor code stays the reference and the differentiable path. A fused kernel runs where
+it gives the same image: the native kernels are built (:mod:`.native`), the settings ask
+for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
+tensor is on the CPU, and the kernel covers the scene's features. Today: no internal
+bounces, no roughness maps; ``prefiltered`` and ``rousiers`` without sphere lights (their
+SG light coverage is not in C yet); ``rousiers`` with its default cone and spread
+(``cone_rays: march``, ``spread: rays``). Elsewhere these functions return ``None`` and the
+method runs its tensor code; tests/test_fused.py holds the two to the same images.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+
+import torch
+
+from torchrefract import settings
+from torchrefract.kernels import native
+from torchrefract.kernels.march import camera_planes
+from torchrefract.optics import microfacet as mf
+from torchrefract.optics.exit_rule import TIR_RULES
+from torchrefract.optics.sg_table import K_MAX, K_MIN
+from torchrefract.stages import stage
+
+_DIST = {"beckmann": 0, "ggx": 1}
+
+
+def _wants_grad(g, lighting, materials) -> bool:
+    if not torch.is_grad_enabled():
+        return False
+    tensors = [] if materials is None else [materials.ior, materials.roughness,
+                                            materials.absorption]
+    tensors += [lighting.scale,
+               lighting.rotate_deg, lighting.light_pos, lighting.light_radius,
+               lighting.light_radiance, g.ray_dir, g.front.position, g.front.normal,
+               g.meshes.tri_vertices, g.meshes.tri_normals, *lighting.texels]
+    return any(t.requires_grad for t in tensors)
+
+
+class _Keep(list):
+    """The tensors a job points into, kept alive until the call returns."""
+
+    def ptr(self, t: torch.Tensor, dtype: torch.dtype = torch.float32) -> int:
+        t = t.detach().to(dtype).contiguous()
+        self.append(t)
+        return t.data_ptr()
+
+
+def _runs(g, lighting, materials=None) -> bool:
+    """Whether the fused kernels may run for this batch (module docstring)."""
+    return (settings.current().fused and g.ray_dir.device.type == "cpu"
+            and g.ray_dir.dtype == torch.float32 and not _wants_grad(g, lighting, materials)
+            and native.available())
+
+
+def _lights(lighting, keep: _Keep) -> native._Lights:
+    texels = [t.detach().float().contiguous() for t in lighting.texels]
+    keep.extend(texels)
+    tex = (ctypes.c_void_p * len(texels))(*[t.data_ptr() for t in texels])
+    keep.append(tex)
+    # envmap.rotate_y's cosine and sine, one 0-d tensor at a time as it takes them (torch's
+    # vectorized and scalar kernels may round differently)
+    a = [-r * (math.pi / 180.0) for r in lighting.rotate_deg.detach().float()]
+    cos, sin = torch.stack([torch.cos(x) for x in a]), torch.stack([torch.sin(x) for x in a])
+    return native._Lights(
+        tex=ctypes.cast(tex, ctypes.c_void_p),
+        tex_h=keep.ptr(torch.tensor([t.shape[0] for t in texels]), torch.int64),
+        tex_w=keep.ptr(torch.tensor([t.shape[1] for t in texels]), torch.int64),
+        rot_cos=keep.ptr(cos), rot_sin=keep.ptr(sin),
+        scale=keep.ptr(lighting.scale),
+        nl=lighting.light_pos.shape[1], light_pos=keep.ptr(lighting.light_pos),
+        light_r=keep.ptr(lighting.light_radius), light_le=keep.ptr(lighting.light_radiance))
+
+
+def _table(keep: _Keep) -> native._SgTable:
+    from torchrefract.optics.sgfit import load_sg_table  # noqa: PLC0415
+
+    table = load_sg_table()
+    spec = table.spec
+    return native._SgTable(
+        vol=keep.ptr(table.volume(torch.float32, "cpu")),
+        dvol=keep.ptr(table.energy_change_volume(torch.float32, "cpu")),
+        vol_l2=keep.ptr(table.volume(torch.float32, "cpu", "l2")),
+        evol=keep.ptr(table.energy_volume(torch.float32, "cpu")),
+        nt=spec.n_theta, ne=spec.n_eta, na=spec.n_alpha, eta_max=spec.eta_max,
+        la0=math.log(spec.alpha_min), la1=math.log(spec.alpha_max), alpha_min=spec.alpha_min,
+        alpha_floor=mf.ALPHA_MIN, log_k_min=math.log(K_MIN), log_k_max=math.log(K_MAX))
+
+
+def background(g, lighting) -> torch.Tensor | None:
+    """``shading.background.background``'s (B*H*W, 3) radiance, or ``None`` where the fused
+    kernels do not run."""
+    if not _runs(g, lighting):
+        return None
+    b, h, w = g.shape
+    keep = _Keep()
+    out = torch.empty(b * h * w, 3)
+    job = native._BackgroundJob(
+        b=b, hw=h * w, ray_dir=keep.ptr(g.ray_dir), eye=keep.ptr(g.eye),
+        front_mask=keep.ptr(g.front.mask, torch.bool), front_dist=keep.ptr(g.front.dist),
+        lights=_lights(lighting, keep), out=out.data_ptr())
+    return out if native._call("background", job) else None
+
+
+def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
+    """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_lookup`` in
+    csrc/lighting.h, with the blend's constants as ``sg_pyramid._blend_weights`` takes
+    them."""
+    from torchrefract.lighting.sg_pyramid import _texel_angle  # noqa: PLC0415
+
+    bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
+    for b in range(len(lighting.texels)):
+        pyr = lighting.pyramid(b)
+        _, _, h0, w0 = pyr.rects[0]
+        v0 = _texel_angle(h0, w0) ** 2 / 6
+        ks = torch.tensor(pyr.sharpness[1:], dtype=torch.float32)
+        kap = torch.cat([ks.new_tensor([1 / v0]), ks / (1 + v0 * ks), ks.new_zeros(1)])
+        meta = torch.cat([torch.tensor([v0, float(len(ks))]), kap,
+                          torch.tensor(pyr.rects, dtype=torch.float32).reshape(-1), ks])
+        for t, out in ((pyr.base, bases), (pyr.atlas, atlases), (meta, metas)):
+            t = t.detach().float().contiguous()
+            keep.append(t)
+            out.append(t.data_ptr())
+        base_hw.append(pyr.base.shape[1:])
+        atlas_hw.append(pyr.atlas.shape[1:])
+
+    def array(ptrs):
+        a = (ctypes.c_void_p * len(ptrs))(*ptrs)
+        keep.append(a)
+        return ctypes.cast(a, ctypes.c_void_p)
+
+    return native._SgEnv(base=array(bases), atlas=array(atlases), meta=array(metas),
+                         base_hw=keep.ptr(torch.tensor(base_hw), torch.int64),
+                         atlas_hw=keep.ptr(torch.tensor(atlas_hw), torch.int64))
+
+
+def specular(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
+    """``render_specular``'s radiance (B, H, W, 3) and passes (``exit_found``, ``tir``),
+    or ``None`` where the fused kernel does not run (module docstring)."""
+    if options.bounces.enabled:
+        return None
+    return _paths(g, lighting, materials, options, blur=False)
+
+
+def prefiltered(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
+    """``render_prefiltered``'s radiance and passes (``blur_sigma`` too), or ``None`` where
+    the fused kernel does not run (and with sphere lights, whose SG coverage it does not
+    compute yet)."""
+    if options.bounces.enabled or lighting.light_pos.shape[1] > 0:
+        return None
+    return _paths(g, lighting, materials, options, blur=True)
+
+
+def rousiers(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
+    """``render_rousiers``' radiance and passes, or ``None`` where the fused kernel does
+    not run (module docstring)."""
+    if (options.bounces.enabled or lighting.light_pos.shape[1] > 0
+            or options.cone_rays != "march" or options.spread != "rays"):
+        return None
+    made = _frame(g, lighting, materials, options, sg_env=True)
+    if made is None:
+        return None
+    frame, keep, radiance, passes = made
+    b, h, w = g.shape
+    sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
+    passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
+    if frame.n and not _run("rousiers", native._RousJob(
+            f=frame, cone_steps=options.cone_march_steps,
+            cone_refine=options.cone_refine_steps, two_ln4=2.0 * math.log(4.0),
+            lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr())):
+        return None
+    return radiance.view(b, h, w, 3), passes
+
+
+def _paths(g, lighting, materials, options, blur: bool) -> tuple[torch.Tensor, dict] | None:
+    """csrc/specular.c over the object pixels: ``specular``, or ``prefiltered`` (``blur``)."""
+    made = _frame(g, lighting, materials, options, sg_env=blur)
+    if made is None:
+        return None
+    frame, keep, radiance, passes = made
+    b, h, w = g.shape
+    sigma = torch.zeros(b * h * w)
+    if blur:
+        passes["blur_sigma"] = sigma.view(b, h, w, 1)
+    if frame.n and not _run("specular", native._SpecJob(
+            f=frame, blur=int(blur), blur_sigma=sigma.data_ptr())):
+        return None
+    return radiance.view(b, h, w, 3), passes
+
+
+def _run(name: str, job) -> bool:
+    """Run fused kernel ``name`` on ``job``, timed as the stage ``fused``."""
+    with stage("fused"):
+        return native._call(name, job)
+
+
+def _frame(g, lighting, materials, options, sg_env: bool):
+    """The ``Frame`` of csrc/frame.h for a batch (the background already in its radiance),
+    the tensors it points into, the radiance (B*H*W, 3) and the passes every method
+    writes; ``None`` where no fused kernel runs for it."""
+    if materials.has_maps or options.tir not in TIR_RULES or not _runs(g, lighting, materials):
+        return None
+    from torchrefract.optics.sgfit import load_sg_table  # noqa: PLC0415
+    from torchrefract.shading.background import background as background_of  # noqa: PLC0415
+    from torchrefract.shading.bounces import escape_grid  # noqa: PLC0415
+
+    b, h, w = g.shape
+    radiance = background_of(g, lighting)  # (B*H*W, 3)
+    if radiance.dtype != torch.float32 or not radiance.is_contiguous():
+        return None
+    exit_found, tir = torch.zeros(b * h * w), torch.zeros(b * h * w)
+    passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
+    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
+    keep = _Keep()
+    if idx.numel() == 0:
+        return native._Frame(n=0), keep, radiance, passes
+    ptr = keep.ptr
+    dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
+    esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
+        if options.tir == "conserve" else torch.ones(b, 2)
+    planes = camera_planes(g)
+    march = native._Job(
+        planes=ptr(planes), pw=4, h=h, w=w, steps=options.march_steps,
+        refine=options.refine_steps, sx_v=ptr(0.5 * w / g.proj[:, 12]),
+        sy_v=ptr(0.5 * h / g.proj[:, 13]),
+        tri_front=ptr(g.front.tri.reshape(-1), torch.int64),
+        tri_back=ptr(g.back.tri.reshape(-1), torch.int64),
+        mask_front=ptr(g.front.mask.reshape(-1), torch.bool),
+        mask_back=ptr(g.back.mask.reshape(-1), torch.bool),
+        tv=ptr(g.meshes.tri_vertices), across=ptr(g.meshes.tri_across, torch.int64),
+        walk_steps=16, simd=int(settings.current().native_simd and planes.numel() < 2**31),
+        tn=ptr(g.meshes.tri_normals))
+    frame = native._Frame(
+        n=idx.numel(), nb=b, idx=ptr(idx, torch.int64), batch=ptr(idx // (h * w), torch.int64),
+        ray_dir=ptr(g.ray_dir), front_pos=ptr(g.front.position),
+        front_normal=ptr(g.front.normal), front_dist=ptr(g.front.dist),
+        back_dist=ptr(g.back.dist), eye=ptr(g.eye), basis=ptr(g.proj[:, 3:12]),
+        proj=ptr(g.proj), sphere_c=ptr(g.meshes.sphere_center),
+        sphere_r=ptr(g.meshes.sphere_radius), march=march, ior=ptr(materials.ior),
+        alpha=ptr(materials.roughness), absorption=ptr(materials.absorption),
+        dist=ptr(dist, torch.int64), tir_mode=TIR_RULES.index(options.tir),
+        table=_table(keep), esc=ptr(esc), esc_n=esc.shape[1],
+        lights=_lights(lighting, keep), env=_sg_env(lighting, keep) if sg_env else
+        native._SgEnv(), radiance=radiance.data_ptr(), exit_found=exit_found.data_ptr(),
+        tir=tir.data_ptr())
+    return frame, keep, radiance, passes
+
+
+__all__ = ["background", "prefiltered", "rousiers", "specular"]
