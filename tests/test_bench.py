@@ -1,12 +1,16 @@
-"""scripts/bench.py: one row per fresh process, stage columns and peak memory in the JSON."""
+"""scripts/bench.py: one row per fresh process, stage columns and peak memory in the JSON;
+the Mitsuba rows and their ratios."""
 
 from __future__ import annotations
 
 import json
+import math
 import platform
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -15,8 +19,8 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
     proc = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "bench.py"), "--methods", "specular",
          "rousiers:cone_rays=plane", "--sizes", "32", "--batches", "1", "2", "--repeats", "1",
-         "--threads", "1", "--views", "distinct", "shared", "--out", str(tmp_path)], capture_output=True, text=True,
-        timeout=600)
+         "--threads", "1", "--views", "distinct", "shared", "--no-mitsuba", "--out",
+         str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     meta = json.loads((tmp_path / "bench.json").read_text())
     rows = meta["results"]
@@ -29,13 +33,56 @@ def test_bench_rows_report_stages_and_their_own_peak_memory(tmp_path):
     assert meta["heap_reuse"] is on and all(r["heap_reuse"] is on for r in rows)
     for r in rows:
         st = r["ms_per_frame_stage"]
-        assert st["march"] > 0 and st["mips"] == 0
-        assert abs(st["shading"] - st["march"] - st["mips"] - st["shading_rest"]) < 1e-6
+        # a fused kernel marches inside its own stage; the tensor code's march is its own
+        assert (st["fused"] > 0) != (st["march"] > 0) and st["mips"] == 0
+        assert (st["fused"] > 0) == (r["method"] == "specular")  # rousiers' plane: tensor
+        assert abs(st["shading"] - st["march"] - st["mips"] - st["fused"]
+                   - st["shading_rest"]) < 1e-6
         assert 0 < st["gbuffer"] < r["ms_per_frame"]
         # a fresh process per row: its peak is above its own start, not the run's peak so far
         assert r["peak_rss_mb"] > r["baseline_rss_mb"] > 50
         assert isinstance(r["native"], bool)
     assert meta["threads"] == 1
+    # --no-mitsuba: no Mitsuba rows, the comparison's Mitsuba cells empty
+    assert meta["mitsuba"] == {"skipped": "--no-mitsuba", "rows": []}
+    assert len(meta["vs_mitsuba"]) == len(rows)
+    assert all(c["mitsuba_1spp_ms_per_frame"] is None and c["mitsuba_4spp_oidn_ratio"] is None
+               for c in meta["vs_mitsuba"])
+
+
+def test_bench_mitsuba_rows_time_the_same_scenes_and_give_ratios(tmp_path):
+    """Mitsuba at 1 spp and at 4 spp + OIDN, in the bench's own process, on the run's scenes:
+    positive finite times per frame, and ratios Mitsuba / ours that match them."""
+    pytest.importorskip("mitsuba")
+    pytest.importorskip("pyoidn")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "bench.py"), "--methods", "specular",
+         "--sizes", "32", "--batches", "2", "--repeats", "1", "--threads", "1",
+         "--mitsuba", "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "mi 4spp+oidn" in proc.stdout  # the second table
+    meta = json.loads((tmp_path / "bench.json").read_text())
+    (ours,) = meta["results"]  # the old keys are kept
+    mits = meta["mitsuba"]
+    assert mits["variant"].endswith("_rgb")  # the bridge's pick, recorded
+    assert mits["threads"] == 1 and mits["oidn_threads"] == "1"  # --threads: theirs too
+    assert [(m["spp"], m["denoise"], m["size"], m["views"], m["batch"]) for m in mits["rows"]] \
+        == [(1, False, 32, "distinct", 2), (4, True, 32, "distinct", 2)]
+    for m in mits["rows"]:
+        assert m["variant"] == mits["variant"]
+        for k in ("ms_per_frame", "render_ms_per_frame", "build_ms_per_frame"):
+            assert math.isfinite(m[k]) and m[k] > 0, (k, m)
+        assert math.isclose(m["ms_per_frame"], m["render_ms_per_frame"]
+                            + m["denoise_ms_per_frame"], rel_tol=0.5)  # medians of sums
+        assert (m["denoise_ms_per_frame"] > 0) is m["denoise"]
+    (c,) = meta["vs_mitsuba"]
+    assert (c["method"], c["size"], c["views"], c["batch"]) == ("specular", 32, "distinct", 2)
+    assert c["ms_per_frame"] == ours["ms_per_frame"] > 0
+    for key, m in zip(("mitsuba_1spp", "mitsuba_4spp_oidn"), mits["rows"]):
+        assert c[f"{key}_ms_per_frame"] == m["ms_per_frame"]
+        assert math.isfinite(c[f"{key}_ratio"]) and c[f"{key}_ratio"] > 0
+        assert math.isclose(c[f"{key}_ratio"], m["ms_per_frame"] / ours["ms_per_frame"],
+                            rel_tol=1e-12)
 
 
 def test_bench_distinct_views_orbit_the_target():
