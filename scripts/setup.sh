@@ -10,24 +10,31 @@ command -v "$PY" >/dev/null 2>&1 || PY=python3
 
 say() { echo "[setup] $*"; }
 
-# 1. Debian libraries for headless OpenGL (EGL on Mesa), only when missing.
+# 1. Debian libraries for headless OpenGL (EGL on Mesa) and the C compiler of the native
+#    and fused kernels (torchrefract/kernels/native.py), only when missing.
 need_apt=()
 for pkg in libegl1 libegl-mesa0 libgl1; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
+want_cc=0  # optional: without a compiler the tensor code runs (same images, slower)
+command -v cc >/dev/null 2>&1 || command -v gcc >/dev/null 2>&1 || want_cc=1
 # Mitsuba's fast LLVM variant needs libLLVM 19 (Mesa's libLLVM 15 crashes it); optional.
 want_llvm=0
 if [[ "$EXTRAS" == *test* || "$EXTRAS" == *reference* ]] && ! dpkg -s libllvm19 >/dev/null 2>&1; then
   want_llvm=1
 fi
-if (( ${#need_apt[@]} )) || (( want_llvm )); then
+if (( ${#need_apt[@]} )) || (( want_llvm )) || (( want_cc )); then
   SUDO=""
   [[ $(id -u) -ne 0 ]] && command -v sudo >/dev/null 2>&1 && SUDO="sudo"
   if command -v apt-get >/dev/null 2>&1 && { [[ $(id -u) -eq 0 ]] || [[ -n "$SUDO" ]]; }; then
-    say "apt-get install ${need_apt[*]} $( ((want_llvm)) && echo libllvm19 )"
+    say "apt-get install ${need_apt[*]} $( ((want_llvm)) && echo libllvm19 ) $( ((want_cc)) && echo gcc )"
     $SUDO apt-get update -qq >/dev/null
     if (( ${#need_apt[@]} )); then
       DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
+    fi
+    if (( want_cc )); then
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq gcc libc6-dev >/dev/null \
+        || say "gcc not available: the tensor code runs instead of the native kernels"
     fi
     if (( want_llvm )); then
       DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null \

@@ -1,4 +1,4 @@
-"""The fused shading kernels (``torchrefract.kernels.fused``: csrc/specular.c for
+"""The fused shading kernels (``torchrefract.shading.fused``: csrc/specular.c for
 ``specular`` and ``prefiltered``, csrc/background.c for every method's background) give the
 tensor code's images: on every suite scene and ``tir`` rule,
 within 1e-4 relative on 99.9% of the object pixels and 0.002 of FLIP, with the same passes;

@@ -66,7 +66,7 @@ class RenderSettings:
     """The march's AVX2 search where the CPU has it (the same values as the scalar one)."""
     fused: bool = True
     """A method's per-pixel shading as one native kernel where it covers the scene
-    (:mod:`torchrefract.kernels.fused`; the tensor code otherwise, and wherever a gradient
+    (:mod:`torchrefract.shading.fused`; the tensor code otherwise, and wherever a gradient
     is wanted): the same images within float32 rounding."""
     compile: bool = False
     """torch.compile the march's tensor code (seconds of start-up per process)."""

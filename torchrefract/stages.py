@@ -5,7 +5,7 @@ named stages that the pipeline's functions mark with :func:`stage` or :func:`tim
 ``march`` (the ray
 marches through the depth layers, :mod:`torchrefract.kernels.march`), ``mips`` (the NDF and
 coverage mip pyramids of the back layer, :mod:`torchrefract.optics.ndf`) and ``fused`` (a
-method's fused shading kernel, its marches included, :mod:`torchrefract.kernels.fused`). Outside a collection
+method's fused shading kernel, its marches included, :mod:`torchrefract.shading.fused`). Outside a collection
 :func:`stage` costs one context-variable read. Stages are summed when entered several
 times; a stage entered inside another of the same name counts once.
 

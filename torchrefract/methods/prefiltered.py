@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
-from torchrefract.kernels import fused as kernels_fused
+from torchrefract.shading import fused
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.base import Method, Shaded
@@ -72,11 +72,11 @@ def render_prefiltered(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         radiance (B, H, W, 3) and passes (``exit_found``, ``tir``, ``blur_sigma``: the
         transmitted lobe's per-axis angular spread in radians).
     """
-    fused = kernels_fused.prefiltered(g, lighting, materials, options)
-    if fused is not None:
-        return fused
     b, h, w = g.shape
     radiance = background(g, lighting)
+    done = fused.prefiltered(g, lighting, materials, options, radiance)
+    if done is not None:  # the fused kernel ran (shading.fused says where it does)
+        return done
     paths = trace_paths(g, lighting, materials, options)
     k_pass = torch.zeros(b * h * w)
     if paths.idx.numel() > 0:

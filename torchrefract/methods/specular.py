@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
-from torchrefract.kernels import fused as kernels_fused
+from torchrefract.shading import fused
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance
 from torchrefract.methods.base import Method, Shaded
@@ -167,11 +167,11 @@ def render_specular(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         radiance: (B, H, W, 3) float32, background included.
         passes: ``exit_found`` and ``tir`` (B, H, W, 1) floats (1 where true, object pixels).
     """
-    fused = kernels_fused.specular(g, lighting, materials, options)
-    if fused is not None:
-        return fused
     b, h, w = g.shape
     radiance = background(g, lighting)
+    done = fused.specular(g, lighting, materials, options, radiance)
+    if done is not None:  # the fused kernel ran (shading.fused says where it does)
+        return done
     paths = trace_paths(g, lighting, materials, options)
     if paths.idx.numel() > 0:
         bi = paths.batch

@@ -6,9 +6,9 @@ from __future__ import annotations
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
-from torchrefract.kernels import fused as kernels_fused
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.lighting.lights import Lighting, hit_lights, incident_radiance
+from torchrefract.shading import fused
 
 
 def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
@@ -18,9 +18,9 @@ def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
     Without sphere lights nothing can hide the object, so every object pixel's value is
     replaced by the method's and the pixels the object covers are left at zero (not looked
     up); with lights, every pixel is looked up (a light in front of the object shows)."""
-    fused = kernels_fused.background(g, lighting)
-    if fused is not None:
-        return fused
+    done = fused.background(g, lighting)
+    if done is not None:  # the fused kernel ran
+        return done
     b, h, w = g.shape
     d_all = g.ray_dir.reshape(-1, 3)
     batch_all = torch.arange(b).repeat_interleave(h * w)

@@ -147,7 +147,7 @@ static void shade_range(const void *job, const void *axes, int64_t begin, int64_
                     end - r < BLOCK ? (int)(end - r) : BLOCK);
 }
 
-/* Entry point (ctypes, kernels/fused.py): shade all object pixels of ``job`` on
+/* Entry point (ctypes, shading/fused.py): shade all object pixels of ``job`` on
  * ``threads`` threads. Returns 0, or -1 where memory or a thread could not be had (the
  * caller then runs its tensor code). */
 int torchrefract_specular(SpecJob *job, int threads) {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
-from torchrefract.kernels import fused as kernels_fused
+from torchrefract.shading import fused
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.rousiers.bounces import follow_bounces
@@ -43,11 +43,11 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         passes: ``exit_found``, ``tir`` (0/1), ``lobe_sigma`` (per-axis angular spread of
             the final transmitted lobe, radians), ``footprint`` (pixels, major extent).
     """
-    fused = kernels_fused.rousiers(g, lighting, materials, options)
-    if fused is not None:
-        return fused
     b, h, w = g.shape
     radiance = background(g, lighting)
+    done = fused.rousiers(g, lighting, materials, options, radiance)
+    if done is not None:  # the fused kernel ran (shading.fused says where it does)
+        return done
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
     bounce = options.bounces.enabled
     if idx.numel() == 0:  # the same passes as a batch with object pixels

@@ -1,4 +1,4 @@
-"""Fused shading: a method's per-pixel work as one native kernel (csrc/specular.c for
+"""Fused shading: a method's per-pixel work as one native kernel (kernels/csrc/specular.c for
 ``specular`` and ``prefiltered``, csrc/rousiers.c, csrc/background.c), the one place where a
 method's shading chooses between the fused kernel and its tensor code.
 
@@ -22,9 +22,12 @@ import torch
 from torchrefract import settings
 from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes
+from torchrefract.lighting.sg_pyramid import _texel_angle
 from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import TIR_RULES
 from torchrefract.optics.sg_table import K_MAX, K_MIN
+from torchrefract.optics.sgfit import load_sg_table
+from torchrefract.shading.bounces import escape_grid
 from torchrefract.stages import stage
 
 _DIST = {"beckmann": 0, "ggx": 1}
@@ -78,8 +81,6 @@ def _lights(lighting, keep: _Keep) -> native._Lights:
 
 
 def _table(keep: _Keep) -> native._SgTable:
-    from torchrefract.optics.sgfit import load_sg_table  # noqa: PLC0415
-
     table = load_sg_table()
     spec = table.spec
     return native._SgTable(
@@ -111,8 +112,6 @@ def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
     """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_lookup`` in
     csrc/lighting.h, with the blend's constants as ``sg_pyramid._blend_weights`` takes
     them."""
-    from torchrefract.lighting.sg_pyramid import _texel_angle  # noqa: PLC0415
-
     bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
     for b in range(len(lighting.texels)):
         pyr = lighting.pyramid(b)
@@ -139,30 +138,32 @@ def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
                          atlas_hw=keep.ptr(torch.tensor(atlas_hw), torch.int64))
 
 
-def specular(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
+def specular(g, lighting, materials, options, radiance: torch.Tensor
+             ) -> tuple[torch.Tensor, dict] | None:
     """``render_specular``'s radiance (B, H, W, 3) and passes (``exit_found``, ``tir``),
-    or ``None`` where the fused kernel does not run (module docstring)."""
+    shaded over ``radiance`` (B*H*W, 3), the background (written in place); ``None``, and
+    ``radiance`` untouched, where the fused kernel does not run (module docstring)."""
     if options.bounces.enabled:
         return None
-    return _paths(g, lighting, materials, options, blur=False)
+    return _paths(g, lighting, materials, options, radiance, blur=False)
 
 
-def prefiltered(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
-    """``render_prefiltered``'s radiance and passes (``blur_sigma`` too), or ``None`` where
-    the fused kernel does not run (and with sphere lights, whose SG coverage it does not
-    compute yet)."""
+def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
+                ) -> tuple[torch.Tensor, dict] | None:
+    """``render_prefiltered``'s radiance and passes (``blur_sigma`` too), as
+    :func:`specular`; not with sphere lights (their SG coverage is not in C yet)."""
     if options.bounces.enabled or lighting.light_pos.shape[1] > 0:
         return None
-    return _paths(g, lighting, materials, options, blur=True)
+    return _paths(g, lighting, materials, options, radiance, blur=True)
 
 
-def rousiers(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | None:
-    """``render_rousiers``' radiance and passes, or ``None`` where the fused kernel does
-    not run (module docstring)."""
+def rousiers(g, lighting, materials, options, radiance: torch.Tensor
+             ) -> tuple[torch.Tensor, dict] | None:
+    """``render_rousiers``' radiance and passes, as :func:`specular`."""
     if (options.bounces.enabled or lighting.light_pos.shape[1] > 0
             or options.cone_rays != "march" or options.spread != "rays"):
         return None
-    made = _frame(g, lighting, materials, options, sg_env=True)
+    made = _frame(g, lighting, materials, options, radiance, sg_env=True)
     if made is None:
         return None
     frame, keep, radiance, passes = made
@@ -177,9 +178,10 @@ def rousiers(g, lighting, materials, options) -> tuple[torch.Tensor, dict] | Non
     return radiance.view(b, h, w, 3), passes
 
 
-def _paths(g, lighting, materials, options, blur: bool) -> tuple[torch.Tensor, dict] | None:
+def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
+           ) -> tuple[torch.Tensor, dict] | None:
     """csrc/specular.c over the object pixels: ``specular``, or ``prefiltered`` (``blur``)."""
-    made = _frame(g, lighting, materials, options, sg_env=blur)
+    made = _frame(g, lighting, materials, options, radiance, sg_env=blur)
     if made is None:
         return None
     frame, keep, radiance, passes = made
@@ -199,20 +201,14 @@ def _run(name: str, job) -> bool:
         return native._call(name, job)
 
 
-def _frame(g, lighting, materials, options, sg_env: bool):
-    """The ``Frame`` of csrc/frame.h for a batch (the background already in its radiance),
-    the tensors it points into, the radiance (B*H*W, 3) and the passes every method
+def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool):
+    """The ``Frame`` of csrc/frame.h for a batch, shading over ``radiance`` (B*H*W, 3, the
+    background), the tensors it points into, the radiance and the passes every method
     writes; ``None`` where no fused kernel runs for it."""
-    if materials.has_maps or options.tir not in TIR_RULES or not _runs(g, lighting, materials):
+    if (materials.has_maps or options.tir not in TIR_RULES or radiance.dtype != torch.float32
+            or not radiance.is_contiguous() or not _runs(g, lighting, materials)):
         return None
-    from torchrefract.optics.sgfit import load_sg_table  # noqa: PLC0415
-    from torchrefract.shading.background import background as background_of  # noqa: PLC0415
-    from torchrefract.shading.bounces import escape_grid  # noqa: PLC0415
-
     b, h, w = g.shape
-    radiance = background_of(g, lighting)  # (B*H*W, 3)
-    if radiance.dtype != torch.float32 or not radiance.is_contiguous():
-        return None
     exit_found, tir = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
