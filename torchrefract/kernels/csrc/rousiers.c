@@ -95,132 +95,149 @@ static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact
     return cnt > 0 ? (sum / (float)cnt) / rj->two_ln4 : fallback;
 }
 
+/* What the steps of one block of pixels hand on: the axis' and the bounding rays' marches,
+ * and the front lobes. */
+typedef struct {
+    Rays axis, cone[4];
+    float view[3 * BLOCK], dirs[BLOCK][4][3], k_t1[BLOCK];
+    float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
+} Block;
+
+/* Step 1 for pixel i (lobes.front_lobes, cone.trace_cone): the front lobes (eqs. 8-9), the
+ * axis p_t1 and the four bounding rays at theta_b around it (eq. 12), set to march. */
+static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, int64_t px,
+                           int64_t b) {
+    int64_t dist = j->dist[b];
+    float d[3], p1[3], n1[3], *vi = k->view + 3 * i;
+    for (int c = 0; c < 3; c++) {
+        d[c] = j->ray_dir[3 * px + c];
+        p1[c] = j->front_pos[3 * px + c];
+        vi[c] = -d[c];
+    }
+    face_forward(j->front_normal + 3 * px, d, n1);
+    float cos1 = clampf(dot3(vi, n1), 0.0f, 1.0f);
+    float t_r, t_t1, p_t1[3];
+    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 1, cos1, &k->k_r[i], &t_r, &k->e_r[i]);
+    lobe_axis(vi, n1, t_r, 1.0f, k->axis_r + 3 * i);
+    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 0, cos1, &k->k_t1[i], &t_t1, &k->e_t1[i]);
+    lobe_axis(vi, n1, t_t1, -1.0f, p_t1);
+    normalize3(p_t1);
+    float c_p1[3], c_t1[3], u[3], v[3], c_u[3], c_v[3];
+    camera_coords(j, b, p1, 1, c_p1);
+    camera_coords(j, b, p_t1, 0, c_t1);
+    set_ray(j, &k->axis, i, b, p1, p_t1, c_p1, c_t1);
+    float th = bounding_angle(k->k_t1[i]), cb = cosf(th), sb = sinf(th);
+    tangent_frame(p_t1, u, v);
+    camera_coords(j, b, u, 0, c_u);
+    camera_coords(j, b, v, 0, c_v);
+    for (int q = 0; q < 4; q++) {  /* (u, +), (u, -), (v, +), (v, -) */
+        const float *a = q < 2 ? u : v, *ca = q < 2 ? c_u : c_v;
+        float s = (q & 1) ? -1.0f : 1.0f, dq[3], cq[3];
+        for (int c = 0; c < 3; c++) {
+            dq[c] = cb * p_t1[c] + sb * s * a[c];
+            cq[c] = cb * c_t1[c] + sb * s * ca[c];
+            k->dirs[i][q][c] = dq[c];
+        }
+        set_ray(j, &k->cone[q], i, b, p1, dq, c_p1, cq);
+    }
+}
+
+/* The footprint's larger extent in pixels (cone.trace_cone, kernels.cone.footprint): the
+ * screen bounding box of the four exits (the axis' exit where one is not found). */
+static float footprint_major(const Frame *j, const Block *k, int i, int64_t b) {
+    const float *pp = j->proj + 16 * b;
+    float c[2], xy[4][2], ext[2];
+    project1(k->axis.pos + 3 * i, pp, c);
+    for (int q = 0; q < 4; q++) {
+        if (k->cone[q].found[i]) project1(k->cone[q].pos + 3 * i, pp, xy[q]);
+        else { xy[q][0] = c[0]; xy[q][1] = c[1]; }
+    }
+    for (int a = 0; a < 2; a++) {
+        float mx = xy[0][a], mn = xy[0][a];
+        for (int q = 1; q < 4; q++) { mx = tmax(mx, xy[q][a]); mn = tmin(mn, xy[q][a]); }
+        ext[a] = mx - mn;
+        if (ext[a] < 1.0f) ext[a] = 1.0f;  /* clamp(min=1), NaN kept */
+    }
+    return tmax(ext[0], ext[1]);
+}
+
+/* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
+ * exit lobe widened by the bounding rays, the environment around it and around the
+ * reflected lobe, the absorption; the pixel and its passes written. */
+static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int i,
+                        int64_t px, int64_t b) {
+    const Frame *j = &rj->f;
+    float ior = j->ior[b], alpha = j->alpha[b];
+    alpha = alpha > 1e-4f ? alpha : 1e-4f;  /* microfacet.ALPHA_MIN (pixels.py) */
+    const float *p_t1 = k->axis.t + 3 * i;
+    int found = k->axis.found[i];
+    float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
+    uint8_t ok4[4];
+    for (int c = 0; c < 3; c++) exact_n[c] = found ? k->axis.normal[3 * i + c] : p_t1[c];
+    for (int q = 0; q < 4; q++) {
+        ok4[q] = k->cone[q].found[i];
+        for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
+    }
+    /* the exit interface: the exact exit normal, inward */
+    float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]}, n_in[3];
+    face_forward(m_n, p_t1, n_in);
+    float view2[3] = {-p_t1[0], -p_t1[1], -p_t1[2]};
+    float cos2 = clampf(dot3(view2, n_in), 0.0f, 1.0f);
+    float cc = 1.0f - 1.0f / (ior * ior);
+    float cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    int tir = cos2 < cos_crit && found;
+    float sin2 = 1.0f - cos2 * cos2;
+    float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
+    float mg = ior * cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+    float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
+                               (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
+    float p_out[3], kk, weight2;
+    exit_lobe(rj, ax, b, alpha, view2, n_in, cos2, cos_crit, tir, var1, var_geo, p_out, &kk,
+              &weight2);
+    if (!found) {  /* leave with the front lobe */
+        for (int c = 0; c < 3; c++) p_out[c] = p_t1[c];
+        kk = k_t1;
+        weight2 = 1.0f;
+    }
+    float thick = j->back_dist[px] - j->front_dist[px];
+    float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
+    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i];
+    sg_env_lookup(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i], l_refl);
+    if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
+        const float *v = k->view + 3 * i;
+        float d[3] = {-v[0], -v[1], -v[2]};
+        sg_env_lookup(&j->lights, &j->env, b, d, INFINITY, l_trans);
+        er = 0.0f;
+        et = 1.0f;
+    } else {
+        sg_env_lookup(&j->lights, &j->env, b, p_out, kk, l_trans);
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * weight2;
+    }
+    for (int c = 0; c < 3; c++) {
+        float att = expf(-j->absorption[3 * b + c] * path);
+        j->radiance[3 * px + c] = er * l_refl[c] + et * att * l_trans[c];
+    }
+    j->exit_found[px] = found ? 1.0f : 0.0f;
+    j->tir[px] = tir ? 1.0f : 0.0f;
+    rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
+    rj->footprint[px] = found ? footprint_major(j, k, i, b) : 0.0f;
+}
+
+/* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
+ * family over the block, steps 3-5 per pixel. */
 static void shade_block(const RousJob *rj, const SgAxes *axes, int64_t r0, int m) {
     const Frame *j = &rj->f;
-    Rays axis, cone[4];
-    float view[3 * BLOCK], n1[3 * BLOCK], dirs[BLOCK][4][3], kt1[BLOCK];
-    float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
-    /* 1. The front lobes (eqs. 8-9) and the cone's rays (eq. 12). */
+    Block k;
     for (int i = 0; i < m; i++) {
-        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i], dist = j->dist[b];
-        const SgAxes *ax = axes + AXES * b;
-        float d[3], p1[3], *vi = view + 3 * i, *ni = n1 + 3 * i;
-        for (int k = 0; k < 3; k++) {
-            d[k] = j->ray_dir[3 * px + k];
-            p1[k] = j->front_pos[3 * px + k];
-            vi[k] = -d[k];
-        }
-        face_forward(j->front_normal + 3 * px, d, ni);
-        float cos1 = clampf(dot3(vi, ni), 0.0f, 1.0f);
-        float t_r, t_t1, k_t1, p_t1[3];
-        sg_lobe(&j->table, ax + IN, ax + IN0, dist, 1, cos1, &k_r[i], &t_r, &e_r[i]);
-        lobe_axis(vi, ni, t_r, 1.0f, axis_r + 3 * i);
-        sg_lobe(&j->table, ax + IN, ax + IN0, dist, 0, cos1, &k_t1, &t_t1, &e_t1[i]);
-        lobe_axis(vi, ni, t_t1, -1.0f, p_t1);
-        normalize3(p_t1);
-        kt1[i] = k_t1;
-        float c_p1[3], c_t1[3], u[3], v[3], c_u[3], c_v[3];
-        camera_coords(j, b, p1, 1, c_p1);
-        camera_coords(j, b, p_t1, 0, c_t1);
-        set_ray(j, &axis, i, b, p1, p_t1, c_p1, c_t1);
-        float th = bounding_angle(k_t1), cb = cosf(th), sb = sinf(th);
-        tangent_frame(p_t1, u, v);
-        camera_coords(j, b, u, 0, c_u);
-        camera_coords(j, b, v, 0, c_v);
-        for (int q = 0; q < 4; q++) {  /* (u, +), (u, -), (v, +), (v, -) */
-            const float *a = q < 2 ? u : v, *ca = q < 2 ? c_u : c_v;
-            float s = (q & 1) ? -1.0f : 1.0f, dq[3], cq[3];
-            for (int k = 0; k < 3; k++) {
-                dq[k] = cb * p_t1[k] + sb * s * a[k];
-                cq[k] = cb * c_t1[k] + sb * s * ca[k];
-                dirs[i][q][k] = dq[k];
-            }
-            set_ray(j, &cone[q], i, b, p1, dq, c_p1, cq);
-        }
+        int64_t b = j->batch[r0 + i];
+        front_and_cone(j, axes + AXES * b, &k, i, j->idx[r0 + i], b);
     }
-    /* 2. The marches: the axis, then each bounding ray (march_core.h). */
-    march_rays(j, &axis, m, j->march.steps, j->march.refine);
-    for (int q = 0; q < 4; q++) march_rays(j, &cone[q], m, rj->cone_steps, rj->cone_refine);
-    /* 3-4. The footprint, the exit lobe, the environment. */
+    march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
+    for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     for (int i = 0; i < m; i++) {
-        int64_t px = j->idx[r0 + i], b = axis.batch[i];
-        const SgAxes *ax = axes + AXES * b;
-        float ior = j->ior[b], alpha = j->alpha[b];
-        alpha = alpha > 1e-4f ? alpha : 1e-4f;  /* microfacet.ALPHA_MIN (pixels.py) */
-        const float *p1 = axis.p + 3 * i, *p_t1 = axis.t + 3 * i;
-        int found = axis.found[i];
-        /* the footprint (cone.trace_cone, kernels.cone.footprint) */
-        const float *pp = j->proj + 16 * b;
-        float c[2], xy[4][2], n4[4][3];
-        uint8_t ok4[4];
-        project1(axis.pos + 3 * i, pp, c);
-        for (int q = 0; q < 4; q++) {
-            ok4[q] = cone[q].found[i];
-            for (int k = 0; k < 3; k++) n4[q][k] = cone[q].normal[3 * i + k];
-            if (ok4[q]) project1(cone[q].pos + 3 * i, pp, xy[q]);
-            else { xy[q][0] = c[0]; xy[q][1] = c[1]; }
-        }
-        float ext[2];
-        for (int a = 0; a < 2; a++) {
-            float mx = xy[0][a], mn = xy[0][a];
-            for (int q = 1; q < 4; q++) { mx = tmax(mx, xy[q][a]); mn = tmin(mn, xy[q][a]); }
-            ext[a] = mx - mn;
-            if (ext[a] < 1.0f) ext[a] = 1.0f;  /* clamp(min=1), NaN kept */
-        }
-        float major = tmax(ext[0], ext[1]);
-        float exact_n[3];
-        for (int k = 0; k < 3; k++) exact_n[k] = found ? axis.normal[3 * i + k] : p_t1[k];
-        /* the exit interface (exit.exit_interface): the exact exit normal, inward */
-        float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]}, n_in[3];
-        face_forward(m_n, p_t1, n_in);
-        float view2[3] = {-p_t1[0], -p_t1[1], -p_t1[2]};
-        float cos2 = clampf(dot3(view2, n_in), 0.0f, 1.0f);
-        float cc = 1.0f - 1.0f / (ior * ior);
-        float cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
-        int tir = cos2 < cos_crit && found;
-        float sin2 = 1.0f - cos2 * cos2;
-        sin2 = sin2 > 0.0f ? sin2 : 0.0f;
-        float co = 1.0f - ior * ior * sin2;
-        float cos_out = sqrtf(co > 1e-4f ? co : 1e-4f);
-        float mg = ior * cos2 / cos_out, mag2 = mg * mg;
-        float k_t1 = kt1[i];
-        float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
-        float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])dirs[i],
-                                   (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
-        float p_out[3], k, weight2;
-        exit_lobe(rj, ax, b, alpha, view2, n_in, cos2, cos_crit, tir, var1, var_geo, p_out,
-                  &k, &weight2);
-        if (!found) {  /* leave with the front lobe */
-            for (int q = 0; q < 3; q++) p_out[q] = p_t1[q];
-            k = k_t1;
-            weight2 = 1.0f;
-        }
-        float path;
-        if (found) {
-            path = axis.s[i];
-        } else {
-            float thick = j->back_dist[px] - j->front_dist[px];
-            path = thick > 0.0f ? thick : 0.0f;
-        }
-        float l_refl[3], l_trans[3], er = e_r[i], et = e_t1[i];
-        sg_env_lookup(&j->lights, &j->env, b, axis_r + 3 * i, k_r[i], l_refl);
-        if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
-            float d[3] = {-view[3 * i], -view[3 * i + 1], -view[3 * i + 2]};
-            sg_env_lookup(&j->lights, &j->env, b, d, INFINITY, l_trans);
-            er = 0.0f;
-            et = 1.0f;
-        } else {
-            sg_env_lookup(&j->lights, &j->env, b, p_out, k, l_trans);
-            for (int q = 0; q < 3; q++) l_trans[q] = l_trans[q] * weight2;
-        }
-        for (int q = 0; q < 3; q++) {
-            float att = expf(-j->absorption[3 * b + q] * path);
-            j->radiance[3 * px + q] = er * l_refl[q] + et * att * l_trans[q];
-        }
-        j->exit_found[px] = found ? 1.0f : 0.0f;
-        j->tir[px] = tir ? 1.0f : 0.0f;
-        rj->lobe_sigma[px] = 1.0f / sqrtf(k > 1e-12f ? k : 1e-12f);
-        rj->footprint[px] = found ? major : 0.0f;
+        int64_t b = j->batch[r0 + i];
+        shade_pixel(rj, axes + AXES * b, &k, i, j->idx[r0 + i], b);
     }
 }
 
