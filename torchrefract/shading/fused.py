@@ -53,6 +53,13 @@ class _Keep(list):
         self.append(t)
         return t.data_ptr()
 
+    def array(self, tensors) -> ctypes.c_void_p:
+        """A C array of the tensors' data pointers (float32, contiguous copies kept)."""
+        ptrs = [self.ptr(t) for t in tensors]
+        a = (ctypes.c_void_p * len(ptrs))(*ptrs)
+        self.append(a)
+        return ctypes.cast(a, ctypes.c_void_p)
+
 
 def _runs(g, lighting, materials=None) -> bool:
     """Whether the fused kernels may run for this batch (module docstring)."""
@@ -62,16 +69,13 @@ def _runs(g, lighting, materials=None) -> bool:
 
 
 def _lights(lighting, keep: _Keep) -> native._Lights:
-    texels = [t.detach().float().contiguous() for t in lighting.texels]
-    keep.extend(texels)
-    tex = (ctypes.c_void_p * len(texels))(*[t.data_ptr() for t in texels])
-    keep.append(tex)
+    texels = lighting.texels
     # envmap.rotate_y's cosine and sine, one 0-d tensor at a time as it takes them (torch's
     # vectorized and scalar kernels may round differently)
     a = [-r * (math.pi / 180.0) for r in lighting.rotate_deg.detach().float()]
     cos, sin = torch.stack([torch.cos(x) for x in a]), torch.stack([torch.sin(x) for x in a])
     return native._Lights(
-        tex=ctypes.cast(tex, ctypes.c_void_p),
+        tex=keep.array(texels),
         tex_h=keep.ptr(torch.tensor([t.shape[0] for t in texels]), torch.int64),
         tex_w=keep.ptr(torch.tensor([t.shape[1] for t in texels]), torch.int64),
         rot_cos=keep.ptr(cos), rot_sin=keep.ptr(sin),
@@ -119,21 +123,14 @@ def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
         v0 = _texel_angle(h0, w0) ** 2 / 6
         ks = torch.tensor(pyr.sharpness[1:], dtype=torch.float32)
         kap = torch.cat([ks.new_tensor([1 / v0]), ks / (1 + v0 * ks), ks.new_zeros(1)])
-        meta = torch.cat([torch.tensor([v0, float(len(ks))]), kap,
-                          torch.tensor(pyr.rects, dtype=torch.float32).reshape(-1), ks])
-        for t, out in ((pyr.base, bases), (pyr.atlas, atlases), (meta, metas)):
-            t = t.detach().float().contiguous()
-            keep.append(t)
-            out.append(t.data_ptr())
+        metas.append(torch.cat([torch.tensor([v0, float(len(ks))]), kap,
+                                torch.tensor(pyr.rects, dtype=torch.float32).reshape(-1), ks]))
+        bases.append(pyr.base)
+        atlases.append(pyr.atlas)
         base_hw.append(pyr.base.shape[1:])
         atlas_hw.append(pyr.atlas.shape[1:])
-
-    def array(ptrs):
-        a = (ctypes.c_void_p * len(ptrs))(*ptrs)
-        keep.append(a)
-        return ctypes.cast(a, ctypes.c_void_p)
-
-    return native._SgEnv(base=array(bases), atlas=array(atlases), meta=array(metas),
+    return native._SgEnv(base=keep.array(bases), atlas=keep.array(atlases),
+                         meta=keep.array(metas),
                          base_hw=keep.ptr(torch.tensor(base_hw), torch.int64),
                          atlas_hw=keep.ptr(torch.tensor(atlas_hw), torch.int64))
 
