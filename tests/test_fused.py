@@ -91,19 +91,25 @@ def test_fused_matches_the_tensor_code_off_the_suite(method, material):
     assert torch.equal(a.passes["exit_found"], b.passes["exit_found"])
 
 
-def test_fused_background_with_lights_and_a_batch_of_views():
-    """A light in front of the object and one behind it, maps rotated per view: every
-    method's background comes from the fused kernel, as the tensor code computes it."""
-    base = _small(ASSETS.parent / "configs" / "suite" / "slab_light.yaml", size=40)
+def test_fused_lights_and_a_batch_of_views():
+    """Sphere lights behind the slab (seen through its rough lobes: their SG coverage), in
+    front of it (hiding part of it) and beside it, maps rotated and scaled per view: the
+    fused kernels give the tensor code's images, background included."""
+    base = _small(ASSETS.parent / "configs" / "suite" / "slab_light.yaml", size=48)
+    lights = (*base.lights,
+              tr.SphereLight(position=(0.1, 0.25, 2.4), radius=0.12, radiance=(3.0, 2.0, 1.0)),
+              tr.SphereLight(position=(-1.2, 0.0, 0.3), radius=0.4, radiance=(0.5, 2.0, 4.0)))
     scenes = [base.replace(envmap=tr.EnvMap(path=base.envmap.path, rotate_deg=37.0 * i,
-                                            scale=1.0 + i),
-                           camera=tr.Camera(eye=(0.4 * i, 0.3, 4.0), width=40, height=40))
+                                            scale=1.0 + i), lights=lights,
+                           camera=tr.Camera(eye=(0.3 * i, 0.3, 4.0), width=48, height=48))
               for i in range(3)]
-    for method in ("specular", "rousiers"):
+    for method in ("specular", "prefiltered", "rousiers"):
         a = tr.render(scenes, method=method, settings=TENSOR)
         b = tr.render(scenes, method=method, settings=FUSED)
         for m in _compare(a, b):
             assert m["background"] <= 1e-4 and m["beyond"] <= 1e-3, (method, m)
+            assert m["flip"] <= 0.002, (method, m)
+        assert b.timings["fused"] > 0, method  # the kernel ran, lights and all
 
 
 def test_fused_kernel_runs_where_it_covers_the_scene(monkeypatch):

@@ -144,7 +144,8 @@ class _Lights(ctypes.Structure):
 
     _fields_ = [("tex", _p), ("tex_h", _p), ("tex_w", _p), ("rot_cos", _p), ("rot_sin", _p),
                 ("scale", _p),
-                ("nl", ctypes.c_int64), ("light_pos", _p), ("light_r", _p), ("light_le", _p)]
+                ("nl", ctypes.c_int64), ("light_pos", _p), ("light_r", _p), ("light_le", _p),
+                ("gl_x", _p), ("gl_w", _p), ("gl_n", ctypes.c_int64)]
 
 
 class _SgTable(ctypes.Structure):

@@ -6,9 +6,8 @@ The tensor code stays the reference and the differentiable path. A fused kernel 
 it gives the same image: the native kernels are built (:mod:`.native`), the settings ask
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
 tensor is on the CPU, and the kernel covers the scene's features. Today: no internal
-bounces, no roughness maps; ``prefiltered`` and ``rousiers`` without sphere lights (their
-SG light coverage is not in C yet); ``rousiers`` with its default cone and spread
-(``cone_rays: march``, ``spread: rays``). Elsewhere these functions return ``None`` and the
+bounces, no roughness maps, at most 64 sphere lights; ``rousiers`` with its default cone
+and spread (``cone_rays: march``, ``spread: rays``). Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
 
@@ -22,6 +21,7 @@ import torch
 from torchrefract import settings
 from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes
+from torchrefract.lighting.lights import _GL_W, _GL_X
 from torchrefract.lighting.sg_pyramid import _texel_angle
 from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import TIR_RULES
@@ -81,7 +81,9 @@ def _lights(lighting, keep: _Keep) -> native._Lights:
         rot_cos=keep.ptr(cos), rot_sin=keep.ptr(sin),
         scale=keep.ptr(lighting.scale),
         nl=lighting.light_pos.shape[1], light_pos=keep.ptr(lighting.light_pos),
-        light_r=keep.ptr(lighting.light_radius), light_le=keep.ptr(lighting.light_radiance))
+        light_r=keep.ptr(lighting.light_radius), light_le=keep.ptr(lighting.light_radiance),
+        gl_x=keep.ptr(_GL_X, torch.float64), gl_w=keep.ptr(_GL_W, torch.float64),
+        gl_n=_GL_X.numel())
 
 
 def _table(keep: _Keep) -> native._SgTable:
@@ -148,8 +150,8 @@ def specular(g, lighting, materials, options, radiance: torch.Tensor
 def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
                 ) -> tuple[torch.Tensor, dict] | None:
     """``render_prefiltered``'s radiance and passes (``blur_sigma`` too), as
-    :func:`specular`; not with sphere lights (their SG coverage is not in C yet)."""
-    if options.bounces.enabled or lighting.light_pos.shape[1] > 0:
+    :func:`specular`."""
+    if options.bounces.enabled or lighting.light_pos.shape[1] > 64:
         return None
     return _paths(g, lighting, materials, options, radiance, blur=True)
 
@@ -157,7 +159,7 @@ def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
 def rousiers(g, lighting, materials, options, radiance: torch.Tensor
              ) -> tuple[torch.Tensor, dict] | None:
     """``render_rousiers``' radiance and passes, as :func:`specular`."""
-    if (options.bounces.enabled or lighting.light_pos.shape[1] > 0
+    if (options.bounces.enabled or lighting.light_pos.shape[1] > 64
             or options.cone_rays != "march" or options.spread != "rays"):
         return None
     made = _frame(g, lighting, materials, options, radiance, sg_env=True)

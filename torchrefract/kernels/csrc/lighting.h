@@ -14,6 +14,8 @@ typedef struct {
     const float *scale;         /* (B,) radiance scale */
     int64_t nl;                 /* lights per view (padding has radius 0) */
     const float *light_pos, *light_r, *light_le;  /* (B, L, 3), (B, L), (B, L, 3) */
+    const double *gl_x, *gl_w;  /* Gauss-Legendre rule on [-1, 1] (lights._GL_X, _GL_W) */
+    int64_t gl_n;
 } Lights;
 
 /* envmap.direction_to_uv of a direction (normalized, turned by -rotate_deg about +Y as
@@ -134,6 +136,87 @@ static void incident(const Lights *j, int64_t b, const float *o, const float *d,
         return;
     }
     env_lookup(j, b, d, out);
+}
+
+/* torch.special.i0e: exp(-|x|) I0(x), by its power series up to 30 and its asymptotic
+ * series beyond (both to double rounding there). */
+static double i0e(double x) {
+    x = fabs(x);
+    if (x <= 30.0) {
+        double q = 0.25 * x * x, term = 1.0, sum = 1.0;
+        for (int k = 1; k < 200 && term > 1e-17 * sum; k++) {
+            term *= q / ((double)k * (double)k);
+            sum += term;
+        }
+        return sum * exp(-x);
+    }
+    double t = 1.0, sum = 1.0;
+    for (int k = 1; k < 40 && fabs(t) > 1e-17; k++) {
+        t *= (2.0 * k - 1.0) * (2.0 * k - 1.0) / (8.0 * k * x);
+        sum += t;
+    }
+    return sum / sqrt(2.0 * TR_PI * x);
+}
+
+/* lights.sg_light_coverage: the fraction of a normalized SG lobe's mass (axis dir,
+ * sharpness k, from origin o) on light l's disc, by the Rice integral on the chord map
+ * (Gauss-Legendre), in float64 as the tensor code takes it. */
+static double light_coverage(const Lights *L, int64_t b, int64_t l, const float *o,
+                             const float *dir, float k) {
+    const float *p = L->light_pos + (b * L->nl + l) * 3;
+    double r = L->light_r[b * L->nl + l];
+    if (!(r > 0.0)) return 0.0;
+    double to[3] = {(double)p[0] - o[0], (double)p[1] - o[1], (double)p[2] - o[2]};
+    double d = sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2]);
+    if (d < 1e-30) d = 1e-30;
+    if (d <= r) return 1.0;
+    double rd = r / d, ct = 1.0 - rd * rd;
+    double cos_t = sqrt(ct > 0.0 ? ct : 0.0);
+    double cg = (to[0] / d) * dir[0] + (to[1] / d) * dir[1] + (to[2] / d) * dir[2];
+    cg = cg < -1.0 ? -1.0 : (cg > 1.0 ? 1.0 : cg);
+    double big_r = sqrt(fmax(2.0 * (1.0 - cos_t), 0.0)), c_g = sqrt(fmax(2.0 * (1.0 - cg), 0.0));
+    double kk = k < 1e12f ? (double)k : 1e12;
+    double s = 1.0 / sqrt(kk > 1e-12 ? kk : 1e-12), s2 = s * s;
+    double a = fmax(c_g - 8.0 * s, 0.0), bb = fmin(big_r, c_g + 8.0 * s);
+    double half = fmax((bb - a) * 0.5, 0.0), mass = 0.0;
+    for (int64_t i = 0; i < L->gl_n; i++) {
+        double x = (a + bb) * 0.5 + half * L->gl_x[i];
+        double f = (x / s2) * exp(-((x - c_g) * (x - c_g)) / (2.0 * s2)) * i0e(x * c_g / s2);
+        mass += f * L->gl_w[i];
+    }
+    mass = mass * half / (-expm1(-2.0 * kk));
+    return mass < 0.0 ? 0.0 : (mass > 1.0 ? 1.0 : mass);
+}
+
+/* lights.incident_radiance_sg: the environment convolved with the lobe (sg_env_lookup);
+ * with sphere lights, the share of the lobe on each light's disc sees the light (a plain
+ * lookup, k = inf: the light the axis hits). */
+static void incident_sg(const Lights *L, const SgEnv *e, int64_t b, const float *o,
+                        const float *dir, float k, float *out) {
+    sg_env_lookup(L, e, b, dir, k, out);
+    if (L->nl == 0) return;
+    int64_t hit;
+    float t = hit_light(L, b, o, dir, &hit);
+    if (isinf(k)) {
+        if (isfinite(t))
+            for (int c = 0; c < 3; c++) out[c] = L->light_le[(b * L->nl + hit) * 3 + c];
+        return;
+    }
+    float cover[64], sum = 0.0f;
+    int64_t nl = L->nl < 64 ? L->nl : 64;
+    for (int64_t l = 0; l < nl; l++) {
+        cover[l] = (float)light_coverage(L, b, l, o, dir, k);
+        sum = l == 0 ? cover[l] : sum + cover[l];
+    }
+    float total = sum > 1.0f ? 1.0f : sum, scale = total / (sum > 1e-30f ? sum : 1e-30f);
+    for (int c = 0; c < 3; c++) {
+        float lights = 0.0f;
+        for (int64_t l = 0; l < nl; l++) {
+            float v = cover[l] * scale * L->light_le[(b * L->nl + l) * 3 + c];
+            lights = l == 0 ? v : lights + v;
+        }
+        out[c] = (1.0f - total) * out[c] + lights;
+    }
 }
 
 #endif

@@ -1,6 +1,6 @@
 /* Fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) without
  * internal bounces, for its default cone and spread (``cone_rays: march``, ``spread:
- * rays``), every ``tir`` rule, uniform roughness, no sphere lights: per object pixel, in
+ * rays``), every ``tir`` rule, uniform roughness: per object pixel, in
  * registers,
  *   1. the front lobes (lobes.front_lobes; the SG table, eqs. 8-9),
  *   2. the cone: the axis and its four bounding rays (eq. 12) marched to their exits
@@ -8,7 +8,8 @@
  *   3. the exit lobe (exit.exit_interface, exit.exit_lobe) widened by the bounding rays
  *      refracted out at their own exits (cone.geometric_variance),
  *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
- *      4.1), the absorption, an index-matched object left invisible (shade._index_matched).
+ *      4.1) and the sphere lights' share of each lobe, the absorption, an index-matched
+ *      object left invisible (shade._index_matched).
  * The tensor code (methods/rousiers/shade.py) is the reference and the differentiable
  * path; tests/test_fused.py holds the two together.
  */
@@ -203,18 +204,22 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int
     float thick = j->back_dist[px] - j->front_dist[px];
     float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
     float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i];
-    sg_env_lookup(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i], l_refl);
+    const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
+    float d[3] = {-v[0], -v[1], -v[2]}, p2[3];
+    for (int c = 0; c < 3; c++) p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
+    incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
     if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
-        const float *v = k->view + 3 * i;
-        float d[3] = {-v[0], -v[1], -v[2]};
-        sg_env_lookup(&j->lights, &j->env, b, d, INFINITY, l_trans);
+        incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
         er = 0.0f;
         et = 1.0f;
     } else {
-        sg_env_lookup(&j->lights, &j->env, b, p_out, kk, l_trans);
+        incident_sg(&j->lights, &j->env, b, p2, p_out, kk, l_trans);
         for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * weight2;
     }
-    for (int c = 0; c < 3; c++) {
+    int64_t l;  /* a light between the eye and the object hides it (shade._composite) */
+    int hidden = j->lights.nl > 0 &&
+                 hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
+    for (int c = 0; c < 3 && !hidden; c++) {
         float att = expf(-j->absorption[3 * b + c] * path);
         j->radiance[3 * px + c] = er * l_refl[c] + et * att * l_trans[c];
     }

@@ -102,13 +102,13 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     }
     float refl[3], l_refl[3], l_trans[3];
     reflect(d, n1, refl);
-    if (sj->blur) {  /* prefiltered.blur_sharpness; no lights (fused.py) */
+    if (sj->blur) {  /* prefiltered.blur_sharpness */
         float a2 = alpha * alpha, q = 1.0f - 1.0f / eta, p = eta - 1.0f;
         float var_t = 0.5f * a2 * (q * q + p * p), var_r = 2.0f * a2;
         float k_t = var_t > 0.0f ? 1.0f / var_t : INFINITY;
         float k_r = var_r > 0.0f ? 1.0f / var_r : INFINITY;
-        sg_env_lookup(&j->lights, &j->env, b, refl, k_r, l_refl);
-        sg_env_lookup(&j->lights, &j->env, b, t2, k_t, l_trans);
+        incident_sg(&j->lights, &j->env, b, p1, refl, k_r, l_refl);
+        incident_sg(&j->lights, &j->env, b, p2, t2, k_t, l_trans);
         sj->blur_sigma[px] = 1.0f / sqrtf(k_t);
     } else {
         incident(&j->lights, b, p1, refl, l_refl);
