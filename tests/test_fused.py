@@ -1,9 +1,9 @@
 """The fused shading kernels (``torchrefract.shading.fused``: csrc/specular.c for
-``specular`` and ``prefiltered``, csrc/background.c for every method's background) give the
-tensor code's images: on every suite scene and ``tir`` rule,
-within 1e-4 relative on 99.9% of the object pixels and 0.002 of FLIP, with the same passes;
-the background within float rounding. Where they cannot run (a gradient is wanted, a
-roughness map, internal bounces, ``fused=False``) the tensor code runs, unchanged."""
+``specular`` and ``prefiltered``, csrc/rousiers.c, csrc/background.c for every method's
+background) give the tensor code's images: on every suite scene and ``tir`` rule, within
+1e-4 relative on 99.9% of the object pixels and 0.002 of FLIP, with the same passes; the
+background within float rounding. Where they cannot run (a gradient is wanted, internal
+bounces, ``rousiers``' roughness maps, ``fused=False``) the tensor code runs, unchanged."""
 
 from __future__ import annotations
 
@@ -113,26 +113,56 @@ def test_fused_lights_and_a_batch_of_views():
 
 
 def test_fused_kernel_runs_where_it_covers_the_scene(monkeypatch):
-    """Fused only where it can give the same image: not with internal bounces, a roughness
-    map, a gradient, or fused=False (then the tensor code's image, bit for bit)."""
+    """Fused only where it can give the same image: not with internal bounces, not for
+    ``rousiers`` with a roughness map or the plane cone, not with fused=False (then the
+    tensor code's image, bit for bit)."""
     calls = []
     orig = native._call
     monkeypatch.setattr(native, "_call", lambda name, job: calls.append(name) or orig(name, job))
     sphere = _small(SUITE[[p.stem for p in SUITE].index("sphere_a03")], 32, method="specular")
-    tr.render(sphere, settings=FUSED)
-    assert "specular" in calls and "background" in calls
-    for s in (sphere.replace(method_options={"internal_bounces": 1}),
-              _small(SUITE[[p.stem for p in SUITE].index("globe_2rough")], 32,
-                     method="specular")):
+    globe = _small(SUITE[[p.stem for p in SUITE].index("globe_2rough")], 32)
+    for s, kernel in ((sphere, "specular"), (globe.replace(method="specular"), "specular"),
+                      (globe.replace(method="prefiltered"), "specular"),
+                      (sphere.replace(method="rousiers"), "rousiers")):
+        calls.clear()
+        tr.render(s, settings=FUSED)
+        assert kernel in calls and "background" in calls, s.method
+    for s, kernel in ((sphere.replace(method_options={"internal_bounces": 1}), "specular"),
+                      (globe.replace(method="rousiers"), "rousiers"),
+                      (sphere.replace(method="rousiers",
+                                      method_options={"cone_rays": "plane"}), "rousiers")):
         calls.clear()
         out = tr.render(s, settings=FUSED)
-        assert "specular" not in calls
+        assert kernel not in calls
         ref = tr.render(s, settings=TENSOR)
         obj = ref.coverage[0] > 0
         assert torch.equal(out.radiance[0][obj], ref.radiance[0][obj])
     calls.clear()
     tr.render(sphere, settings=TENSOR)
     assert "specular" not in calls and "background" not in calls
+
+
+@pytest.mark.parametrize("method", ["specular", "prefiltered"])
+def test_fused_roughness_maps_in_a_mixed_batch(method):
+    """A batch of a mapped view (its range starting at 0: smooth entry points with rough
+    exits), a smooth view and a rough uniform one: the per-pixel roughness at the entry and
+    at the exit (the map at the exit's UV), as the tensor code takes it."""
+    import dataclasses
+
+    globe = _small(SUITE[[p.stem for p in SUITE].index("globe_2rough")], 48, method=method)
+    mapped = globe.replace(material=dataclasses.replace(globe.material,
+                                                        roughness_range=(0.0, 0.5)))
+    smooth = globe.replace(material=dataclasses.replace(globe.material, roughness_map=None,
+                                                        roughness=0.0))
+    rough = globe.replace(material=dataclasses.replace(globe.material, roughness_map=None,
+                                                       roughness=0.3))
+    for batch in ([mapped, smooth, rough], [smooth, globe]):
+        a, b = tr.render(batch, settings=TENSOR), tr.render(batch, settings=FUSED)
+        for m in _compare(a, b):
+            assert m["beyond"] <= 1e-3 and m["flip"] <= 0.002, m
+        assert b.timings["fused"] > 0
+        for k in ("exit_found", "tir"):
+            assert torch.equal(a.passes[k], b.passes[k]), k
 
 
 def test_gradient_takes_the_tensor_path():

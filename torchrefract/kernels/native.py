@@ -171,7 +171,8 @@ class _Frame(ctypes.Structure):
         "idx", "batch", "ray_dir", "front_pos", "front_normal", "front_dist", "back_dist",
         "eye", "basis", "proj", "sphere_c", "sphere_r")] + [
         ("march", _Job), ("ior", _p), ("alpha", _p), ("absorption", _p), ("dist", _p),
-        ("tir_mode", ctypes.c_int), ("table", _SgTable), ("esc", _p),
+        ("tir_mode", ctypes.c_int), ("rough", ctypes.c_int), ("rmap", _p), ("rmap_hw", _p),
+        ("rrange", _p), ("front_uv", _p), ("tri_uvs", _p), ("table", _SgTable), ("esc", _p),
         ("esc_n", ctypes.c_int64), ("lights", _Lights), ("env", _SgEnv), ("radiance", _p),
         ("exit_found", _p), ("tir", _p)]
 

@@ -6,8 +6,9 @@ The tensor code stays the reference and the differentiable path. A fused kernel 
 it gives the same image: the native kernels are built (:mod:`.native`), the settings ask
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
 tensor is on the CPU, and the kernel covers the scene's features. Today: no internal
-bounces, no roughness maps, at most 64 sphere lights; ``rousiers`` with its default cone
-and spread (``cone_rays: march``, ``spread: rays``). Elsewhere these functions return ``None`` and the
+bounces, at most 64 sphere lights; ``rousiers`` with its default cone and spread
+(``cone_rays: march``, ``spread: rays``) and uniform roughness (its roughness maps' coverage
+ratios stay in the tensor code). Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
 
@@ -54,8 +55,9 @@ class _Keep(list):
         return t.data_ptr()
 
     def array(self, tensors) -> ctypes.c_void_p:
-        """A C array of the tensors' data pointers (float32, contiguous copies kept)."""
-        ptrs = [self.ptr(t) for t in tensors]
+        """A C array of the tensors' data pointers (float32, contiguous copies kept; NULL
+        for None)."""
+        ptrs = [None if t is None else self.ptr(t) for t in tensors]
         a = (ctypes.c_void_p * len(ptrs))(*ptrs)
         self.append(a)
         return ctypes.cast(a, ctypes.c_void_p)
@@ -159,7 +161,7 @@ def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
 def rousiers(g, lighting, materials, options, radiance: torch.Tensor
              ) -> tuple[torch.Tensor, dict] | None:
     """``render_rousiers``' radiance and passes, as :func:`specular`."""
-    if (options.bounces.enabled or lighting.light_pos.shape[1] > 64
+    if (options.bounces.enabled or lighting.light_pos.shape[1] > 64 or materials.has_maps
             or options.cone_rays != "march" or options.spread != "rays"):
         return None
     made = _frame(g, lighting, materials, options, radiance, sg_env=True)
@@ -204,7 +206,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     """The ``Frame`` of csrc/frame.h for a batch, shading over ``radiance`` (B*H*W, 3, the
     background), the tensors it points into, the radiance and the passes every method
     writes; ``None`` where no fused kernel runs for it."""
-    if (materials.has_maps or options.tir not in TIR_RULES or radiance.dtype != torch.float32
+    if (options.tir not in TIR_RULES or radiance.dtype != torch.float32
             or not radiance.is_contiguous() or not _runs(g, lighting, materials)):
         return None
     b, h, w = g.shape
@@ -215,6 +217,10 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     if idx.numel() == 0:
         return native._Frame(n=0), keep, radiance, passes
     ptr = keep.ptr
+    bi = idx // (h * w)
+    # paths.trace_paths' switch: the rough energies for all where any entry point is rough
+    alpha1 = materials.roughness_at(bi, g.front.uv.reshape(-1, 2).index_select(0, idx))
+    maps = list(materials.roughness_maps) or [None] * b
     dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
         if options.tir == "conserve" else torch.ones(b, 2)
@@ -231,7 +237,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         walk_steps=16, simd=int(settings.current().native_simd and planes.numel() < 2**31),
         tn=ptr(g.meshes.tri_normals))
     frame = native._Frame(
-        n=idx.numel(), nb=b, idx=ptr(idx, torch.int64), batch=ptr(idx // (h * w), torch.int64),
+        n=idx.numel(), nb=b, idx=ptr(idx, torch.int64), batch=ptr(bi, torch.int64),
         ray_dir=ptr(g.ray_dir), front_pos=ptr(g.front.position),
         front_normal=ptr(g.front.normal), front_dist=ptr(g.front.dist),
         back_dist=ptr(g.back.dist), eye=ptr(g.eye), basis=ptr(g.proj[:, 3:12]),
@@ -239,6 +245,12 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         sphere_r=ptr(g.meshes.sphere_radius), march=march, ior=ptr(materials.ior),
         alpha=ptr(materials.roughness), absorption=ptr(materials.absorption),
         dist=ptr(dist, torch.int64), tir_mode=TIR_RULES.index(options.tir),
+        rough=int(bool((alpha1 > 0).any())), rmap=keep.array(maps),
+        rmap_hw=ptr(torch.tensor([(1, 1) if m is None else m.shape for m in maps]),
+                    torch.int64),
+        rrange=ptr(materials.roughness_range if materials.roughness_range is not None
+                   else torch.zeros(b, 2)),
+        front_uv=ptr(g.front.uv), tri_uvs=ptr(g.meshes.tri_uvs),
         table=_table(keep), esc=ptr(esc), esc_n=esc.shape[1],
         lights=_lights(lighting, keep), env=_sg_env(lighting, keep) if sg_env else
         native._SgEnv(), radiance=radiance.data_ptr(), exit_found=exit_found.data_ptr(),

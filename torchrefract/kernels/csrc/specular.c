@@ -1,5 +1,6 @@
-/* Fused shading of ``specular`` (methods/specular.py, shading/paths.py) without internal
- * bounces: per object pixel, in registers, the entry refraction, the march to the exit
+/* Fused shading of ``specular`` (methods/specular.py, shading/paths.py) and
+ * ``prefiltered`` (``blur``) without internal bounces, uniform roughness or a map: per
+ * object pixel, in registers, the entry refraction, the march to the exit
  * (march_core.h, the march kernel's own search, candidates and walk), the exit
  * refraction, the interfaces' energies (smooth: Fresnel; rough: the SG table's, eq. 9 of
  * de Rousiers 2012, with the exit averaged over the entry lobe), the ``tir`` rule, the
@@ -23,20 +24,22 @@ typedef struct {
 } SpecJob;
 
 /* The exit's energies (paths.trace_paths): the smooth interface's Fresnel split, or the
- * rough one's (SG table), ``tir: conserve`` averaging over the entry lobe
- * (paths.spread_exit) with the escape fraction of the trapped light. */
-static void exit_energies(const Frame *j, const SgAxes *ax, int64_t b, float cos1,
-                          float cos2, float f2, float *e_t2, float *e_r2, float *esc) {
-    float eta = j->ior[b], alpha = j->alpha[b];
+ * rough one's (SG table: ``in`` the entry's axes at alpha1, ``out`` the exit's at alpha2),
+ * ``tir: conserve`` averaging over the entry lobe (paths.spread_exit) with the escape
+ * fraction of the trapped light. */
+static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, int64_t b,
+                          float alpha1, float alpha2, float cos1, float cos2, float f2,
+                          float *e_t2, float *e_r2, float *esc) {
+    float eta = j->ior[b];
     int64_t dist = j->dist[b];
     *esc = 1.0f;
-    if (!(alpha > 0.0f)) {
+    if (!j->rough) {
         *e_t2 = 1.0f - f2;
         *e_r2 = f2;
     } else if (j->tir_mode == 0) {
-        int rough = alpha > j->table.alpha_min;
+        int rough = alpha1 > j->table.alpha_min;
         float k1, tilt;
-        transmit_lobe(&j->table, ax, dist, cos1, &k1, &tilt);
+        transmit_lobe(&j->table, in, dist, cos1, &k1, &tilt);
         /* cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities */
         float sc1 = 1.0f - cos1 * cos1;
         float sin_t = sqrtf(sc1 > 1e-12f ? sc1 : 1e-12f) / eta;
@@ -49,11 +52,11 @@ static void exit_energies(const Frame *j, const SgAxes *ax, int64_t b, float cos
         float c_axis = cos2 * cos_d - sin2 * sin_d;
         if (c_axis < 0.0f) c_axis = 0.0f;
         if (!rough) c_axis = cos2;
-        spread_interface_energies(&j->table, ax + 1, dist, c_axis, rough ? 1.0f / k1 : 0.0f,
+        spread_interface_energies(&j->table, out, dist, c_axis, rough ? 1.0f / k1 : 0.0f,
                                   eta, e_t2, e_r2);
-        *esc = escape(j, b, alpha);
+        *esc = escape(j, b, alpha2);
     } else {
-        interface_energies(&j->table, ax + 1, dist, cos2, f2, e_t2, e_r2);
+        interface_energies(&j->table, out, dist, cos2, f2, e_t2, e_r2);
     }
 }
 
@@ -75,21 +78,33 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
                         const float *d, const float *n1, int tir1, int64_t px, int64_t b) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
-    float eta = j->ior[b], alpha = j->alpha[b];
+    float eta = j->ior[b];
     int ok = rays->found[i];
+    /* the roughness at the entry and at the exit (a map's, at their UVs) */
+    float alpha = roughness_at(j, b, j->front_uv + 2 * px), alpha2 = alpha, uv2[2];
+    SgAxes own[2];
+    if (j->rmap[b]) {
+        if (ok) {
+            interpolate(rays->bary + 3 * i, j->tri_uvs + 6 * rays->tri[i], 2, uv2);
+            alpha2 = roughness_at(j, b, uv2);
+        }
+        sg_axes(&j->table, eta, alpha, own);
+        sg_axes(&j->table, 1.0f / eta, alpha2, own + 1);
+        ax = own;
+    }
     float cos1 = -dot3(d, n1), f1 = fresnel(cos1, 1.0f / eta);
     float n2[3], t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc;
     face_forward(rays->normal + 3 * i, t1, n2);
     float cos2 = -dot3(t1, n2), f2 = fresnel(cos2, eta);
     int tir2 = refract(t1, n2, eta, t2) && ok;
     if (j->tir_mode == 2 && tir2) reflect(t1, n2, t2);
-    if (alpha > 0.0f) {
+    if (j->rough) {
         interface_energies(&j->table, ax, j->dist[b], cos1, f1, &e_t1, &e_r1);
     } else {
         e_t1 = 1.0f - f1;
         e_r1 = f1;
     }
-    exit_energies(j, ax, b, cos1, cos2, f2, &e_t2, &e_r2, &esc);
+    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, cos2, f2, &e_t2, &e_r2, &esc);
     float w2 = leaving_weight(j->tir_mode, tir2, e_t2, e_r2, esc), path;
     if (ok) {
         for (int c = 0; c < 3; c++) p2[c] = rays->pos[3 * i + c];
