@@ -153,29 +153,45 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
     return e[i0] * (1.0f - w) + e[i0 + 1] * w;
 }
 
-/* Run shade(job, axes, begin, end) over [0, n) in chunks of 64 pixels: handed out
- * dynamically with OpenMP (a thread whose core is busy with another process takes
- * fewer), else one contiguous range per thread (common.h). */
-typedef void (*tr_shade_fn)(const void *job, const void *axes, int64_t begin, int64_t end);
-typedef struct { tr_shade_fn fn; const void *job, *axes; } ShadeRange;
+/* A method's work on one block of m <= BLOCK pixels from r0, given each view's table
+ * axes; and the filling of one view's axes. */
+typedef void (*tr_block_fn)(const void *job, const SgAxes *axes, int64_t r0, int m);
+typedef void (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
 
-static void shade_range_cb(const void *arg, int64_t begin, int64_t end) {
+typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; } ShadeRange;
+
+static void shade_range(const void *arg, int64_t begin, int64_t end) {
     const ShadeRange *rg = (const ShadeRange *)arg;
-    rg->fn(rg->job, rg->axes, begin, end);
+    for (int64_t r = begin; r < end; r += BLOCK)
+        rg->fn(rg->job, rg->axes, r, end - r < BLOCK ? (int)(end - r) : BLOCK);
 }
 
-static int shade_parallel(tr_shade_fn fn, const void *job, const void *axes, int64_t n,
-                          int threads) {
+/* A method kernel's entry: each view's ``naxes`` table axes filled (``fill``), then the
+ * pixels in chunks of 64, handed out dynamically with OpenMP (a thread whose core is busy
+ * with another process takes fewer), else one contiguous range per thread (common.h).
+ * Returns 0, or -1 where memory or a thread could not be had (the caller then runs its
+ * tensor code). */
+static int run_shading(const void *job, Frame *f, int naxes, tr_axes_fn fill, tr_block_fn fn,
+                       int threads) {
+#ifdef HAVE_AVX2_PATH
+    f->march.simd = f->march.simd && __builtin_cpu_supports("avx2");
+#endif
+    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * (size_t)naxes *
+                                    (size_t)(f->nb > 0 ? f->nb : 1));
+    if (!axes) return -1;
+    for (int64_t b = 0; b < f->nb; b++) fill(f, b, axes + naxes * b);
+    ShadeRange rg = {fn, job, axes};
+    int rc = 0;
 #ifdef _OPENMP
-    int64_t chunks = (n + 63) / 64;
+    int64_t chunks = (f->n + 63) / 64;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads > 0 ? threads : 1)
     for (int64_t c = 0; c < chunks; c++)
-        fn(job, axes, c * 64, c * 64 + 64 < n ? c * 64 + 64 : n);
-    return 0;
+        shade_range(&rg, c * 64, c * 64 + 64 < f->n ? c * 64 + 64 : f->n);
 #else
-    ShadeRange rg = {fn, job, axes};
-    return tr_parallel_for(shade_range_cb, &rg, n, 256, threads);
+    rc = tr_parallel_for(shade_range, &rg, f->n, 256, threads);
 #endif
+    free(axes);
+    return rc;
 }
 
 #endif

@@ -231,7 +231,8 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int
 
 /* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
  * family over the block, steps 3-5 per pixel. */
-static void shade_block(const RousJob *rj, const SgAxes *axes, int64_t r0, int m) {
+static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
+    const RousJob *rj = (const RousJob *)job;
     const Frame *j = &rj->f;
     Block k;
     for (int i = 0; i < m; i++) {
@@ -246,32 +247,21 @@ static void shade_block(const RousJob *rj, const SgAxes *axes, int64_t r0, int m
     }
 }
 
-static void shade_range(const void *job, const void *axes, int64_t begin, int64_t end) {
-    for (int64_t r = begin; r < end; r += BLOCK)
-        shade_block((const RousJob *)job, (const SgAxes *)axes, r,
-                    end - r < BLOCK ? (int)(end - r) : BLOCK);
+/* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
+ * roughness (at least microfacet.ALPHA_MIN) and at the table's smallest (sg_lobe's fade). */
+static void rous_axes(const Frame *f, int64_t b, SgAxes *out) {
+    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+    float a0 = f->table.alpha_min;
+    sg_axes(&f->table, ior, a, out + IN);
+    sg_axes(&f->table, ior, a0, out + IN0);
+    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
+    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
 }
 
 /* Entry point (ctypes, shading/fused.py): shade all object pixels of ``job`` on
- * ``threads`` threads. Returns 0, or -1 where memory or a thread could not be had. */
+ * ``threads`` threads (frame.h's run_shading). */
 int torchrefract_rousiers(RousJob *job, int threads) {
-    Frame *f = &job->f;
-#ifdef HAVE_AVX2_PATH
-    f->march.simd = f->march.simd && __builtin_cpu_supports("avx2");
-#endif
-    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * AXES * (size_t)(f->nb > 0 ? f->nb : 1));
-    if (!axes) return -1;
-    for (int64_t b = 0; b < f->nb; b++) {
-        float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
-        float a0 = f->table.alpha_min;
-        sg_axes(&f->table, ior, a, axes + AXES * b + IN);
-        sg_axes(&f->table, ior, a0, axes + AXES * b + IN0);
-        sg_axes(&f->table, 1.0f / ior, a, axes + AXES * b + OUT);
-        sg_axes(&f->table, 1.0f / ior, a0, axes + AXES * b + OUT0);
-    }
-    int rc = shade_parallel(shade_range, job, axes, f->n, threads);
-    free(axes);
-    return rc;
+    return run_shading(job, &job->f, AXES, rous_axes, shade_block, threads);
 }
 
 int64_t torchrefract_rousiers_job_size(void) { return (int64_t)sizeof(RousJob); }

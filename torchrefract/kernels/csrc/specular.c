@@ -144,7 +144,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
 
 /* One block of pixels: 1. the entry refraction (paths.trace_paths), 2. the march to the
  * exit over the block (march_core.h), 3. the rest per pixel. */
-static void shade_block(const SpecJob *sj, const SgAxes *axes, int64_t r0, int m) {
+static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
+    const SpecJob *sj = (const SpecJob *)job;
     const Frame *j = &sj->f;
     Rays rays;
     float d[3 * BLOCK], n1[3 * BLOCK];
@@ -170,30 +171,17 @@ static void shade_block(const SpecJob *sj, const SgAxes *axes, int64_t r0, int m
     }
 }
 
-static void shade_range(const void *job, const void *axes, int64_t begin, int64_t end) {
-    for (int64_t r = begin; r < end; r += BLOCK)
-        shade_block((const SpecJob *)job, (const SgAxes *)axes, r,
-                    end - r < BLOCK ? (int)(end - r) : BLOCK);
+/* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces on the table (views
+ * with a roughness map take theirs per pixel). */
+static void spec_axes(const Frame *f, int64_t b, SgAxes *out) {
+    sg_axes(&f->table, f->ior[b], f->alpha[b], out);
+    sg_axes(&f->table, 1.0f / f->ior[b], f->alpha[b], out + 1);
 }
 
 /* Entry point (ctypes, shading/fused.py): shade all object pixels of ``job`` on
- * ``threads`` threads. Returns 0, or -1 where memory or a thread could not be had (the
- * caller then runs its tensor code). */
+ * ``threads`` threads (frame.h's run_shading). */
 int torchrefract_specular(SpecJob *job, int threads) {
-    Frame *f = &job->f;
-#ifdef HAVE_AVX2_PATH
-    f->march.simd = f->march.simd && __builtin_cpu_supports("avx2");
-#endif
-    /* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces on the table. */
-    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * 2 * (size_t)(f->nb > 0 ? f->nb : 1));
-    if (!axes) return -1;
-    for (int64_t b = 0; b < f->nb; b++) {
-        sg_axes(&f->table, f->ior[b], f->alpha[b], axes + 2 * b);
-        sg_axes(&f->table, 1.0f / f->ior[b], f->alpha[b], axes + 2 * b + 1);
-    }
-    int rc = shade_parallel(shade_range, job, axes, f->n, threads);
-    free(axes);
-    return rc;
+    return run_shading(job, &job->f, 2, spec_axes, shade_block, threads);
 }
 
 int64_t torchrefract_specular_job_size(void) { return (int64_t)sizeof(SpecJob); }
