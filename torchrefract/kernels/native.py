@@ -187,7 +187,11 @@ class _RousJob(ctypes.Structure):
     """ctypes mirror of ``RousJob`` in csrc/rousiers.c."""
 
     _fields_ = [("f", _Frame), ("cone_steps", ctypes.c_int), ("cone_refine", ctypes.c_int),
-                ("two_ln4", ctypes.c_float), ("lobe_sigma", _p), ("footprint", _p)]
+                ("two_ln4", ctypes.c_float), ("lobe_sigma", _p), ("footprint", _p),
+                ("bounce_limit", ctypes.c_int), ("bounce_rays", ctypes.c_int),
+                ("bounce_steps", ctypes.c_int), ("bounce_tol", ctypes.c_float),
+                ("diffuse_var", ctypes.c_float), ("planes_in", _p), ("bounces", _p),
+                ("residual", _p)]
 
 
 class _BackgroundJob(ctypes.Structure):

@@ -5,10 +5,10 @@ method's shading chooses between the fused kernel and its tensor code.
 The tensor code stays the reference and the differentiable path. A fused kernel runs where
 it gives the same image: the native kernels are built (:mod:`.native`), the settings ask
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
-tensor is on the CPU, and the kernel covers the scene's features. Today: no internal
-bounces, at most 64 sphere lights; ``rousiers`` with its default cone and spread
-(``cone_rays: march``, ``spread: rays``) and uniform roughness (its roughness maps' coverage
-ratios stay in the tensor code). Elsewhere these functions return ``None`` and the
+tensor is on the CPU, and the kernel covers the scene's features. Today: at most 64 sphere
+lights; ``rousiers`` with its default cone and spread (``cone_rays: march``, ``spread:
+rays``) and uniform roughness (its roughness maps' coverage ratios stay in the tensor
+code), with or without internal bounces; ``specular`` and ``prefiltered`` without them. Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
 
@@ -28,7 +28,7 @@ from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import TIR_RULES
 from torchrefract.optics.sg_table import K_MAX, K_MIN
 from torchrefract.optics.sgfit import load_sg_table
-from torchrefract.shading.bounces import escape_grid
+from torchrefract.shading.bounces import AUTO, escape_grid
 from torchrefract.stages import stage
 
 _DIST = {"beckmann": 0, "ggx": 1}
@@ -158,10 +158,11 @@ def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
     return _paths(g, lighting, materials, options, radiance, blur=True)
 
 
-def rousiers(g, lighting, materials, options, radiance: torch.Tensor
+def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_var: float
              ) -> tuple[torch.Tensor, dict] | None:
-    """``render_rousiers``' radiance and passes, as :func:`specular`."""
-    if (options.bounces.enabled or lighting.light_pos.shape[1] > 64 or materials.has_maps
+    """``render_rousiers``' radiance and passes, as :func:`specular`, internal bounces
+    included (``diffuse_var``: rousiers.options.DIFFUSE_VAR)."""
+    if (lighting.light_pos.shape[1] > 64 or materials.has_maps
             or options.cone_rays != "march" or options.spread != "rays"):
         return None
     made = _frame(g, lighting, materials, options, radiance, sg_env=True)
@@ -171,10 +172,23 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor
     b, h, w = g.shape
     sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
-    if frame.n and not _run("rousiers", native._RousJob(
-            f=frame, cone_steps=options.cone_march_steps,
-            cone_refine=options.cone_refine_steps, two_ln4=2.0 * math.log(4.0),
-            lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr())):
+    bs = options.bounces
+    limit, tol = 0, 0.0
+    if bs.enabled:  # shading.bounces.follow's budget
+        auto = bs.internal_bounces == AUTO
+        limit = bs.max_internal_bounces if auto else int(bs.internal_bounces)
+        tol = bs.bounce_tolerance if auto else 0.0
+        counts, resid = torch.zeros(b * h * w), torch.zeros(b * h * w)
+        passes.update(bounces=counts.view(b, h, w, 1), bounce_residual=resid.view(b, h, w, 1))
+    job = native._RousJob(
+        f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
+        two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
+        bounce_limit=limit, bounce_rays=bs.bounce_rays, bounce_steps=bs.bounce_march_steps,
+        bounce_tol=tol, diffuse_var=diffuse_var)
+    if limit and frame.n:
+        job.planes_in = keep.ptr(camera_planes(g, both=True))
+        job.bounces, job.residual = counts.data_ptr(), resid.data_ptr()
+    if frame.n and not _run("rousiers", job):
         return None
     return radiance.view(b, h, w, 3), passes
 
@@ -222,8 +236,9 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     alpha1 = materials.roughness_at(bi, g.front.uv.reshape(-1, 2).index_select(0, idx))
     maps = list(materials.roughness_maps) or [None] * b
     dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
+    # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
-        if options.tir == "conserve" else torch.ones(b, 2)
+        if options.tir == "conserve" or options.bounces.enabled else torch.ones(b, 2)
     planes = camera_planes(g)
     march = native._Job(
         planes=ptr(planes), pw=4, h=h, w=w, steps=options.march_steps,

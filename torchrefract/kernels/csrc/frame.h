@@ -94,10 +94,11 @@ static inline void set_ray(const Frame *f, Rays *r, int i, int64_t b, const floa
     r->smin[i] = 0.0f;
 }
 
-/* March rays [0, m) of a block (march.march_back with the native kernel's choices). */
-static void march_rays(const Frame *f, Rays *r, int m, int steps, int refine) {
+/* March rays [0, m) of a block with the march fields of ``base`` (march.march_back with
+ * the native kernel's choices; march.march_inside where base's planes hold both layers). */
+static void march_rays_on(const Job *base, Rays *r, int m, int steps, int refine) {
     float lo[BLOCK], hi[BLOCK];
-    Job jm = f->march;
+    Job jm = *base;
     jm.n = m;
     jm.steps = steps;
     jm.refine = refine;
@@ -112,6 +113,11 @@ static void march_rays(const Frame *f, Rays *r, int m, int steps, int refine) {
     search_block(&jm, 0, m, lo, hi);
 #endif
     for (int i = 0; i < m; i++) exit_ray(&jm, i, lo[i], hi[i]);
+}
+
+/* March rays [0, m) of a block through the back layer (march.march_back). */
+static inline void march_rays(const Frame *f, Rays *r, int m, int steps, int refine) {
+    march_rays_on(&f->march, r, m, steps, refine);
 }
 
 /* textures.sample_uv: bilinear, wrapping in u and v (v = 0 at the image's bottom). */

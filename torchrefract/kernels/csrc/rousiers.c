@@ -1,7 +1,6 @@
-/* Fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) without
- * internal bounces, for its default cone and spread (``cone_rays: march``, ``spread:
- * rays``), every ``tir`` rule, uniform roughness: per object pixel, in
- * registers,
+/* Fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) for its
+ * default cone and spread (``cone_rays: march``, ``spread: rays``), every ``tir`` rule,
+ * uniform roughness, with or without internal bounces: per object pixel, in registers,
  *   1. the front lobes (lobes.front_lobes; the SG table, eqs. 8-9),
  *   2. the cone: the axis and its four bounding rays (eq. 12) marched to their exits
  *      (march_core.h), their screen footprint (cone.trace_cone),
@@ -9,7 +8,12 @@
  *      refracted out at their own exits (cone.geometric_variance),
  *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
  *      4.1) and the sphere lights' share of each lobe, the absorption, an index-matched
- *      object left invisible (shade._index_matched).
+ *      object left invisible (shade._index_matched),
+ *   5. with internal bounces (shading/bounces.follow, methods/rousiers/bounces.py): the
+ *      light the first exit reflects back inside, one ray (or four, ``bounce_rays``) per
+ *      pixel marched between the layers (march.march_inside) to the next interface, where
+ *      the table splits it again (bounces.shade_inside), until the budget or the
+ *      throughput is spent; per block, the rays still alive march together.
  * The tensor code (methods/rousiers/shade.py) is the reference and the differentiable
  * path; tests/test_fused.py holds the two together.
  */
@@ -21,7 +25,17 @@ typedef struct {
     int cone_steps, cone_refine;  /* the bounding rays' march (the axis': f.march) */
     float two_ln4;                /* 2 ln 4 as float32 (kernels.cone.ray_spread) */
     float *lobe_sigma, *footprint; /* out (B*H*W,) the passes of shade.PASSES */
+    /* internal bounces (bounces.BounceSettings; limit 0: none, the first exit is the last
+     * interface): interfaces followed after the first exit (K, or max_internal_bounces
+     * under ``auto``), the throughput a ray stops at (0 for K), rays of the first internal
+     * reflection (1 or 4), the inside march's coarse steps, options.DIFFUSE_VAR */
+    int bounce_limit, bounce_rays, bounce_steps;
+    float bounce_tol, diffuse_var;
+    const float *planes_in;        /* (B*H*W, 8) camera_planes(g, both=True) */
+    float *bounces, *residual;     /* out (B*H*W,) bounces.bounce_passes */
 } RousJob;
+
+enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULES, + split */
 
 /* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
  * (eta = ior) and leaving (eta = 1 / ior). */
@@ -34,7 +48,7 @@ static inline float bounding_angle(float k) {
 }
 
 /* The exit lobe (exit.exit_lobe, ``spread: rays``): direction, sharpness, weight. */
-static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
+static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
                       const float *view2, const float *n_in, float cos2, float cos_crit,
                       int tir, float var1, float var_geo, float *p_out, float *k_out,
                       float *w_out) {
@@ -42,7 +56,12 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
     int64_t dist = j->dist[b];
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
     float k_t2, t_t2, e_t2, weight;
-    if (j->tir_mode == 2) {  /* reflect: the internal reflection lobe under TIR */
+    if (mode == SPLIT) {  /* bounces follow: the table's own split, averaged over the lobe */
+        float er;
+        sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
+        lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+        spread_table_energies(&j->table, out, out0, dist, cos2, var1, &weight, &er);
+    } else if (mode == REFLECT) {  /* the internal reflection lobe under TIR */
         float k_ti, t_ti, e_ti;
         sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
         sg_lobe(&j->table, out, out0, dist, 1, cos2, &k_ti, &t_ti, &e_ti);
@@ -58,7 +77,7 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
         float cos_in = tir ? cos_crit + 1e-4f : cos2;
         sg_lobe(&j->table, out, out0, dist, 0, cos_in, &k_t2, &t_t2, &e_t2);
         lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
-        if (j->tir_mode == 1) {
+        if (mode == CLAMP) {
             weight = tir ? 1.0f : e_t2;
         } else {
             float esc = escape(j, b, alpha), et, er;
@@ -96,12 +115,29 @@ static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact
     return cnt > 0 ? (sum / (float)cnt) / rj->two_ln4 : fallback;
 }
 
+/* The internal reflections of one block's pixels (bounces.follow's state): per pixel the
+ * light leaving through the interfaces met from inside (``acc``), the bounces followed and
+ * the residual throughput; per ray still alive its pixel, where it is (its arrival at the
+ * next interface once marched), its direction, throughput, lobe variance and share of its
+ * path. */
+#define RAYS (4 * BLOCK)
+typedef struct {
+    float acc[BLOCK][3], bounces[BLOCK], residual[BLOCK];
+    int n;
+    int pix[RAYS];
+    float p[RAYS][3], t[RAYS][3], w[RAYS][3], var[RAYS], share[RAYS], normal[RAYS][3];
+    uint8_t found[RAYS];
+} Paths;
+
 /* What the steps of one block of pixels hand on: the axis' and the bounding rays' marches,
- * and the front lobes. */
+ * the front lobes, and the internal reflections. */
 typedef struct {
     Rays axis, cone[4];
     float view[3 * BLOCK], dirs[BLOCK][4][3], k_t1[BLOCK];
     float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
+    float front[BLOCK][3];  /* with bounces: e_r times the reflected lobe's light */
+    uint8_t hidden[BLOCK];  /* a light in front of the pixel */
+    Paths paths;
 } Block;
 
 /* Step 1 for pixel i (lobes.front_lobes, cone.trace_cone): the front lobes (eqs. 8-9), the
@@ -162,10 +198,81 @@ static float footprint_major(const Frame *j, const Block *k, int i, int64_t b) {
     return tmax(ext[0], ext[1]);
 }
 
+/* bounces.follow's bookkeeping for the rays an interface reflects inside: throughput
+ * w_next = w refl goes on where the interface was found, the ray is not at the budget's
+ * last interface and w_next exceeds the tolerance (max over RGB); elsewhere its mean is
+ * residual. Returns whether it goes on. */
+static int goes_on(const RousJob *rj, Paths *ps, int pix, int found, int last, const float *w,
+                   float refl, float *w_next) {
+    for (int c = 0; c < 3; c++) w_next[c] = w[c] * refl;
+    float mx = tmax(tmax(w_next[0], w_next[1]), w_next[2]);
+    if (found && !last && mx > rj->bounce_tol && refl > 0.0f) return 1;
+    ps->residual[pix] += ((w_next[0] + w_next[1]) + w_next[2]) / 3.0f;
+    return 0;
+}
+
+/* Add a ray to the paths: from p along t with throughput w and lobe variance var. */
+static void add_ray(Paths *ps, int pix, const float *p, const float *t, const float *w,
+                    float var, float share) {
+    int r = ps->n++;
+    ps->pix[r] = pix;
+    for (int c = 0; c < 3; c++) {
+        ps->p[r][c] = p[c];
+        ps->t[r][c] = t[c];
+        ps->w[r][c] = w[c];
+    }
+    ps->var[r] = var;
+    ps->share[r] = share;
+    ps->bounces[pix] += share;
+}
+
+/* The first exit's internal reflection (rousiers.bounces.follow_bounces): the table's
+ * reflected lobe (E_ri averaged over the arriving lobe, k_ri) along the mirror direction of
+ * p_t1 about the exit normal; with ``bounce_rays: 4`` split into four rays around it
+ * (bounces.split_lobe: tilted by +-sqrt(var) along two tangents, each with half the
+ * variance and a quarter of the throughput). ``acc`` starts with w1 l_trans, the light
+ * the exit lets out. ``reflects``: the exit was found and the object is not index-matched
+ * (elsewhere nothing is reflected). */
+static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int i, int64_t b,
+                             int reflects, const float *p_t1, const float *n_in, float cos2,
+                             float var1, float alpha, const float *p2, const float *w1,
+                             const float *l_trans) {
+    const Frame *j = &rj->f;
+    int64_t dist = j->dist[b];
+    for (int c = 0; c < 3; c++) ps->acc[i][c] = w1[c] * l_trans[c];
+    ps->bounces[i] = 0.0f;
+    ps->residual[i] = 0.0f;
+    float k_ri = 0.0f, t_ri, e_ri = 0.0f, e_ti, w_next[3];
+    if (reflects) {
+        float e_unused;
+        sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
+        spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
+    }
+    (void)alpha;  /* uniform roughness: the exit point's is the pixel's */
+    if (!goes_on(rj, ps, i, reflects, 0, w1, e_ri, w_next)) return;
+    float d[3], var = var1 + 1.0f / (k_ri > 1e-12f ? k_ri : 1e-12f);
+    reflect(p_t1, n_in, d);
+    normalize3(d);
+    if (rj->bounce_rays == 1) {
+        add_ray(ps, i, p2, d, w_next, var, 1.0f);
+        return;
+    }
+    float u[3], v[3], s = sqrtf(var > 0.0f ? var : 0.0f), wq[3];
+    tangent_frame(d, u, v);
+    for (int c = 0; c < 3; c++) wq[c] = w_next[c] * 0.25f;
+    for (int q = 0; q < 4; q++) {  /* offsets (1, 0), (-1, 0), (0, 1), (0, -1) */
+        float o0 = q == 0 ? 1.0f : (q == 1 ? -1.0f : 0.0f);
+        float o1 = q == 2 ? 1.0f : (q == 3 ? -1.0f : 0.0f), dq[3];
+        for (int c = 0; c < 3; c++) dq[c] = d[c] + s * (o0 * u[c] + o1 * v[c]);
+        normalize3(dq);
+        add_ray(ps, i, p2, dq, wq, 0.5f * var, 0.25f);
+    }
+}
+
 /* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
  * exit lobe widened by the bounding rays, the environment around it and around the
  * reflected lobe, the absorption; the pixel and its passes written. */
-static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int i,
+static void shade_pixel(const RousJob *rj, const SgAxes *ax, Block *k, int i,
                         int64_t px, int64_t b) {
     const Frame *j = &rj->f;
     float ior = j->ior[b], alpha = j->alpha[b];
@@ -194,8 +301,9 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int
     float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
                                (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
     float p_out[3], kk, weight2;
-    exit_lobe(rj, ax, b, alpha, view2, n_in, cos2, cos_crit, tir, var1, var_geo, p_out, &kk,
-              &weight2);
+    int bounce = rj->bounce_limit > 0;
+    exit_lobe(rj, ax, b, alpha, bounce ? SPLIT : j->tir_mode, view2, n_in, cos2, cos_crit, tir,
+              var1, var_geo, p_out, &kk, &weight2);
     if (!found) {  /* leave with the front lobe */
         for (int c = 0; c < 3; c++) p_out[c] = p_t1[c];
         kk = k_t1;
@@ -219,14 +327,136 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, const Block *k, int
     int64_t l;  /* a light between the eye and the object hides it (shade._composite) */
     int hidden = j->lights.nl > 0 &&
                  hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
-    for (int c = 0; c < 3 && !hidden; c++) {
-        float att = expf(-j->absorption[3 * b + c] * path);
-        j->radiance[3 * px + c] = er * l_refl[c] + et * att * l_trans[c];
+    float w1[3];
+    for (int c = 0; c < 3; c++) {
+        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
+        if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
+    }
+    if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
+        k->hidden[i] = (uint8_t)hidden;
+        for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
+        first_reflection(rj, ax, &k->paths, i, b, found && ior != 1.0f, p_t1, n_in, cos2,
+                         var1, alpha, p2, w1, l_trans);
     }
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
     rj->footprint[px] = found ? footprint_major(j, k, i, b) : 0.0f;
+}
+
+/* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
+ * _split, _leaving): the table's transmitted lobe leaves (widened by the lobe carried,
+ * magnified by the refraction, at most 2x), its reflected lobe goes on along the mirror
+ * direction; the ``tir`` rule at the budget's last interface, ``conserve``'s diffuse part
+ * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
+ * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
+ * direction and variance of the reflected lobe. */
+static float shade_inside(const RousJob *rj, const SgAxes *ax, Paths *ps, int r, int64_t b,
+                          float alpha, int last, float *dir, float *var_out) {
+    const Frame *j = &rj->f;
+    const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
+    int64_t dist = j->dist[b];
+    int mode = j->tir_mode;
+    float ior = j->ior[b], var = ps->var[r], *t = ps->t[r];
+    float cc = 1.0f - 1.0f / (ior * ior), cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    float n_view[3], view[3] = {-t[0], -t[1], -t[2]};
+    face_forward(ps->normal[r], t, n_view);
+    float cos = clampf(dot3(view, n_view), 0.0f, 1.0f);
+    int tir = cos < cos_crit;
+    float cos_t = ((last && mode == CLAMP) || mode == CONSERVE) && tir ? cos_crit + 1e-4f : cos;
+    float k_t, t_t, e_t, k_r = INFINITY, t_r = 0.0f, e_r = 0.0f;
+    sg_lobe(&j->table, out, out0, dist, 0, cos_t, &k_t, &t_t, &e_t);
+    if (!(last && mode == CONSERVE)) sg_lobe(&j->table, out, out0, dist, 1, cos, &k_r, &t_r, &e_r);
+    if (!last || mode == CONSERVE)  /* the split averaged over the lobe carried */
+        spread_table_energies(&j->table, out, out0, dist, cos, var, &e_t, &e_r);
+    float p_t[3], k_out, w_out = e_t, refl = e_r, inv_kr = 1.0f / (k_r > 1e-12f ? k_r : 1e-12f);
+    lobe_axis(view, n_view, t_t, -1.0f, p_t);
+    normalize3(p_t);
+    float sin2 = 1.0f - cos_t * cos_t;
+    float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
+    float mg = ior * cos_t / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    if (mag2 > 4.0f) mag2 = 4.0f;
+    k_out = 1.0f / (1.0f / (k_t > 1e-12f ? k_t : 1e-12f) + mag2 * var);
+    if (mode == CONSERVE) {
+        float go_on = last ? 0.0f : expf(-(var + inv_kr) / rj->diffuse_var);
+        w_out = e_t + (1.0f - go_on) * e_r * escape(j, b, alpha);
+        if (w_out > 1.0f) w_out = 1.0f;
+        refl = go_on * e_r;
+    } else if (last && mode == CLAMP) {  /* TIR light leaves at the critical angle */
+        float e_true = e_t, k_u, t_u;
+        if (tir) sg_lobe(&j->table, out, out0, dist, 0, cos, &k_u, &t_u, &e_true);
+        w_out = tir ? (e_true + e_r > 1.0f ? 1.0f : e_true + e_r) : e_true;
+        refl = tir ? 0.0f : e_r;
+    } else if (last) {  /* reflect: under TIR the internal reflection lobe is read */
+        if (tir) {
+            lobe_axis(view, n_view, t_r, 1.0f, p_t);
+            normalize3(p_t);
+            k_out = 1.0f / (inv_kr + var);
+        }
+        w_out = tir ? e_r : e_t;
+        refl = tir ? 0.0f : e_r;
+    }
+    if (!ps->found[r]) {  /* lost: along its own direction, the escape fraction */
+        for (int c = 0; c < 3; c++) p_t[c] = t[c];
+        k_out = 1.0f / (var > 1e-12f ? var : 1e-12f);
+        w_out = escape(j, b, alpha);
+        refl = 0.0f;
+    }
+    float l_out[3];
+    incident_sg(&j->lights, &j->env, b, ps->p[r], p_t, k_out, l_out);
+    for (int c = 0; c < 3; c++) ps->acc[ps->pix[r]][c] += ps->w[r][c] * w_out * l_out[c];
+    reflect(t, n_view, dir);
+    normalize3(dir);
+    *var_out = var + inv_kr;
+    return refl;
+}
+
+/* Step 5 over a block (bounces.follow from its second interface on): march the rays still
+ * alive to their next interface (march_inside: both layers, from 1e-4 of the chord),
+ * attenuate them over the segment, shade it, keep the rays that go on; until none does. */
+static void follow_block(const RousJob *rj, const SgAxes *axes, Paths *ps, int64_t r0) {
+    const Frame *j = &rj->f;
+    Job inside = j->march;
+    inside.planes = rj->planes_in;
+    inside.pw = 8;
+    Rays rays;
+    for (int k = 1; ps->n > 0; k++) {
+        for (int r0m = 0; r0m < ps->n; r0m += BLOCK) {  /* the march, BLOCK rays at a time */
+            int m = ps->n - r0m < BLOCK ? ps->n - r0m : BLOCK;
+            for (int i = 0; i < m; i++) {
+                int r = r0m + i;
+                int64_t b = j->batch[r0 + ps->pix[r]];
+                float c0[3], ct[3];
+                camera_coords(j, b, ps->p[r], 1, c0);
+                camera_coords(j, b, ps->t[r], 0, ct);
+                set_ray(j, &rays, i, b, ps->p[r], ps->t[r], c0, ct);
+                rays.smin[i] = 1e-4f * rays.smax[i];
+            }
+            march_rays_on(&inside, &rays, m, rj->bounce_steps, j->march.refine);
+            for (int i = 0; i < m; i++) {
+                int r = r0m + i;
+                int64_t b = j->batch[r0 + ps->pix[r]];
+                int f = rays.found[i];
+                float s = f ? rays.s[i] : 0.0f;
+                for (int c = 0; c < 3; c++) {
+                    ps->w[r][c] = ps->w[r][c] * expf(-j->absorption[3 * b + c] * s);
+                    if (f) ps->p[r][c] = rays.pos[3 * i + c];
+                    ps->normal[r][c] = rays.normal[3 * i + c];
+                }
+                ps->found[r] = (uint8_t)f;
+            }
+        }
+        int last = k >= rj->bounce_limit, n = ps->n;
+        ps->n = 0;
+        for (int r = 0; r < n; r++) {  /* shade, and compact the rays that go on in place */
+            int pix = ps->pix[r];
+            int64_t b = j->batch[r0 + pix];
+            float alpha = j->alpha[b] > 1e-4f ? j->alpha[b] : 1e-4f, dir[3], var, w_next[3];
+            float refl = shade_inside(rj, axes + AXES * b, ps, r, b, alpha, last, dir, &var);
+            if (goes_on(rj, ps, pix, ps->found[r], last, ps->w[r], refl, w_next))
+                add_ray(ps, pix, ps->p[r], dir, w_next, var, ps->share[r]);
+        }
+    }
 }
 
 /* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
@@ -241,9 +471,19 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
     }
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
     for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
+    k.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
         shade_pixel(rj, axes + AXES * b, &k, i, j->idx[r0 + i], b);
+    }
+    if (rj->bounce_limit <= 0) return;
+    follow_block(rj, axes, &k.paths, r0);
+    for (int i = 0; i < m; i++) {  /* the pixel over the background, its bounce passes */
+        int64_t px = j->idx[r0 + i];
+        for (int c = 0; c < 3 && !k.hidden[i]; c++)
+            j->radiance[3 * px + c] = k.front[i][c] + k.paths.acc[i][c];
+        rj->bounces[px] = k.paths.bounces[i];
+        rj->residual[px] = k.paths.residual[i];
     }
 }
 

@@ -17,7 +17,7 @@ from torchrefract.methods.rousiers.cone import (
 )
 from torchrefract.methods.rousiers.exit import exit_interface, transmitted_radiance
 from torchrefract.methods.rousiers.lobes import front_lobes
-from torchrefract.methods.rousiers.options import RousiersOptions
+from torchrefract.methods.rousiers.options import DIFFUSE_VAR, RousiersOptions
 from torchrefract.methods.rousiers.pixels import Pixels, object_pixels
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
@@ -45,7 +45,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     """
     b, h, w = g.shape
     radiance = background(g, lighting)
-    done = fused.rousiers(g, lighting, materials, options, radiance)
+    done = fused.rousiers(g, lighting, materials, options, radiance, DIFFUSE_VAR)
     if done is not None:  # the fused kernel ran (shading.fused says where it does)
         return done
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
