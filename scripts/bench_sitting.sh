@@ -11,11 +11,11 @@ echo "== machine"; nproc; grep -m1 "model name" /proc/cpuinfo; date -u
 echo "== A fused, 256+512 b8, with Mitsuba"
 $B --methods specular prefiltered rousiers rousiers:internal_bounces=2 --sizes 256 512 --batches 8 --repeats 5 --out outputs/bench_sitting/A 2>&1 | grep -v saved
 echo "== B tensor code (--no-fused), 256 b8"
-$B --methods specular prefiltered rousiers --sizes 256 --batches 8 --repeats 5 --no-fused --no-mitsuba --out outputs/bench_sitting/B 2>&1 | grep -v saved
+$B --methods specular prefiltered rousiers rousiers:internal_bounces=2 --sizes 256 --batches 8 --repeats 5 --no-fused --no-mitsuba --out outputs/bench_sitting/B 2>&1 | grep -v saved
 echo "== C API defaults (--no-heap-reuse), 256 b8"
 $B --methods specular prefiltered rousiers --sizes 256 --batches 8 --repeats 5 --no-heap-reuse --no-mitsuba --out outputs/bench_sitting/C 2>&1 | grep -v saved
 echo "== D 1 thread, 256 b8"
-$B --methods specular rousiers --sizes 256 --batches 8 --repeats 5 --threads 1 --no-mitsuba --out outputs/bench_sitting/D 2>&1 | grep -v saved
+$B --methods specular rousiers rousiers:internal_bounces=2 --sizes 256 --batches 8 --repeats 5 --threads 1 --no-mitsuba --out outputs/bench_sitting/D 2>&1 | grep -v saved
 echo "== E under load (one core busy), 2 threads then 1 thread"
 ( timeout 120 python3 -c "while True: pass" ) & HOG=$!
 sleep 1
