@@ -23,6 +23,7 @@ glibc only (Linux); elsewhere it does nothing and says so by returning ``False``
 from __future__ import annotations
 
 import ctypes
+import functools
 import ctypes.util
 import os
 
@@ -39,7 +40,10 @@ def _forbidden() -> bool:
     return os.environ.get(_ENV, "").strip() == "0"
 
 
+@functools.lru_cache(maxsize=1)
 def _mallopt():
+    """glibc's ``mallopt`` (looked up once: ``find_library`` runs ``ldconfig -p``, a fork
+    of the whole process, which cost a few ms of every render)."""
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         fn = libc.mallopt

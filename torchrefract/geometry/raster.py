@@ -1,13 +1,18 @@
-"""Visibility passes with pyrender: per-pixel triangle ids of the front and back layers.
+"""Visibility passes: per-pixel triangle ids of the front and back layers, rasterized with
+OpenGL on the EGL context pyrender creates (Mesa's llvmpipe on a CPU).
 
-pyrender has no id buffer, no float readback and no back-face pass, so (DESIGN.md):
-every triangle gets its own three vertices with a flat vertex color encoding ``id + 1`` in
-24 bits (0 = background), rendered with ``RenderFlags.FLAT`` (no lighting, no gamma).
-The back layer renders the same triangles with reversed winding under back-face culling,
-which keeps the nearest back face. Multisampling must be off or edge pixels blend ids:
-pyrender's forward pass calls ``glEnable(GL_MULTISAMPLE)``, which we intercept while our
-passes run (and its offscreen framebuffer is made single-sample, which it then need not
-be resolved from). One EGL context per process is created lazily and reused.
+pyrender has no id buffer, no integer readback and no back-face pass (DESIGN.md), so the
+passes draw directly on its context: one small shader writes ``gl_PrimitiveID + 1`` into a
+32-bit integer renderbuffer (0 = background), depth-tested (24-bit depth, as pyrender's
+framebuffer), single-sample; the mesh stays resident (a vertex array per mesh, kept for the
+last few meshes), and a pass is one draw and one readback of the ids. The back layer draws
+the faces with reversed winding under back-face culling, which keeps the nearest back face.
+The vertex transform is pyrender's (``P V M inst_m``, the same matrices), so the ids are
+those its own forward pass gave (tests/test_gbuffer.py), at about 1 ms less per pass.
+Where the context lacks what this needs (OpenGL 3.3, integer renderbuffers), each pass
+renders through pyrender's own forward pass instead (flat vertex colors encoding the id,
+``RenderFlags.FLAT``), with one warning. One EGL context per process is created lazily and
+reused.
 """
 
 from __future__ import annotations
@@ -161,8 +166,181 @@ def _pass_scene(mesh: MeshData) -> _PassScene:
     return ps
 
 
+def _view_matrices(cam: Camera, sphere) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """pyrender's projection (``PerspectiveCamera.get_projection_matrix``) and view matrix
+    for ``cam``, and their near and far planes, from the mesh's bounding sphere: only the
+    ids are used, so depth precision only matters for telling overlapping surfaces
+    apart."""
+    center, radius = sphere
+    eye = np.asarray(cam.eye, dtype=np.float64)
+    dist = float(np.linalg.norm(center - eye))
+    znear = max(dist - radius, 0.0) * 0.5
+    znear = max(znear, radius * 1e-4, 1e-6)
+    zfar = dist + radius * 2.0 + znear
+    a, t = cam.width / cam.height, np.tan(np.radians(cam.yfov_deg) / 2.0)
+    proj = np.zeros((4, 4))
+    proj[0][0], proj[1][1], proj[3][2] = 1.0 / (a * t), 1.0 / t, -1.0
+    proj[2][2] = (zfar + znear) / (znear - zfar)
+    proj[2][3] = (2 * zfar * znear) / (znear - zfar)
+    return proj, np.linalg.inv(camera_pose(cam)), znear, zfar
+
+
+_VERTEX = """#version 330 core
+layout(location = 0) in vec3 position;
+uniform mat4 P;
+uniform mat4 V;
+uniform mat4 M;
+uniform mat4 inst_m;
+void main() { gl_Position = P * V * M * inst_m * vec4(position, 1); }
+"""
+_FRAGMENT = """#version 330 core
+layout(location = 0) out int id;
+void main() { id = gl_PrimitiveID + 1; }
+"""
+
+
+class _GLMesh:
+    """A mesh resident on the context: its vertices and two index buffers (the faces, and
+    reversed for the back layer), in one vertex array."""
+
+    def __init__(self, gl, mesh: MeshData):
+        self.mesh = mesh  # held, so the cache key (its id) cannot be reused
+        self.sphere = mesh.bounding_sphere()
+        verts = np.ascontiguousarray(mesh.vertices.numpy(), dtype=np.float32)
+        faces = mesh.faces.numpy().astype(np.uint32)
+        self.count = int(faces.size)
+        self.vao = gl.glGenVertexArrays(1)
+        self.buffers = gl.glGenBuffers(3)
+        gl.glBindVertexArray(self.vao)
+        gl.glBindBuffer(gl.GL_ARRAY_BUFFER, self.buffers[0])
+        gl.glBufferData(gl.GL_ARRAY_BUFFER, verts.nbytes, verts, gl.GL_STATIC_DRAW)
+        gl.glEnableVertexAttribArray(0)
+        gl.glVertexAttribPointer(0, 3, gl.GL_FLOAT, gl.GL_FALSE, 12, None)
+        for buf, f in zip(self.buffers[1:], (faces, faces[:, ::-1])):
+            f = np.ascontiguousarray(f)
+            gl.glBindBuffer(gl.GL_ELEMENT_ARRAY_BUFFER, buf)
+            gl.glBufferData(gl.GL_ELEMENT_ARRAY_BUFFER, f.nbytes, f, gl.GL_STATIC_DRAW)
+        gl.glBindVertexArray(0)
+
+    def delete(self, gl) -> None:
+        gl.glDeleteVertexArrays(1, [self.vao])
+        gl.glDeleteBuffers(3, self.buffers)
+
+
+class _GLPasses:
+    """The id passes' program, framebuffer (resized as passes ask) and resident meshes."""
+
+    KEPT = 4
+
+    def __init__(self):
+        from OpenGL import GL  # noqa: PLC0415
+        from OpenGL.GL import shaders  # noqa: PLC0415
+
+        self.gl = GL
+        self.program = shaders.compileProgram(
+            shaders.compileShader(_VERTEX, GL.GL_VERTEX_SHADER),
+            shaders.compileShader(_FRAGMENT, GL.GL_FRAGMENT_SHADER), validate=False)
+        self.uniforms = {k: GL.glGetUniformLocation(self.program, k)
+                         for k in ("P", "V", "M", "inst_m")}
+        self.fbo = GL.glGenFramebuffers(1)
+        self.rbo = GL.glGenRenderbuffers(2)
+        self.size = None
+        self.meshes: OrderedDict[int, _GLMesh] = OrderedDict()
+
+    def _resize(self, w: int, h: int) -> None:
+        gl = self.gl
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, self.fbo)
+        if self.size != (w, h):
+            for rb, fmt, att in ((self.rbo[0], gl.GL_R32I, gl.GL_COLOR_ATTACHMENT0),
+                                 (self.rbo[1], gl.GL_DEPTH_COMPONENT24,
+                                  gl.GL_DEPTH_ATTACHMENT)):
+                gl.glBindRenderbuffer(gl.GL_RENDERBUFFER, rb)
+                gl.glRenderbufferStorage(gl.GL_RENDERBUFFER, fmt, w, h)
+                gl.glFramebufferRenderbuffer(gl.GL_FRAMEBUFFER, att, gl.GL_RENDERBUFFER, rb)
+            if gl.glCheckFramebufferStatus(gl.GL_FRAMEBUFFER) != gl.GL_FRAMEBUFFER_COMPLETE:
+                self.size = None
+                raise RuntimeError(f"the id framebuffer of {w}x{h} is incomplete")
+            self.size = (w, h)
+
+    def _mesh(self, mesh: MeshData) -> _GLMesh:
+        m = self.meshes.get(id(mesh))
+        if m is None or m.mesh is not mesh:
+            if m is not None:
+                m.delete(self.gl)
+            m = _GLMesh(self.gl, mesh)
+            self.meshes[id(mesh)] = m
+            while len(self.meshes) > self.KEPT:
+                self.meshes.popitem(last=False)[1].delete(self.gl)
+        self.meshes.move_to_end(id(mesh))
+        return m
+
+    def ids(self, mesh: MeshData, cam: Camera, w: int, h: int, back: bool) -> np.ndarray:
+        """(h, w) int32 ids + 1 of the nearest front (back) face, row 0 at the top."""
+        gl = self.gl
+        m = self._mesh(mesh)
+        self._resize(w, h)
+        proj, view, _, _ = _view_matrices(cam, m.sphere)
+        gl.glUseProgram(self.program)
+        for name, mat in (("P", proj), ("V", view), ("M", np.eye(4)), ("inst_m", np.eye(4))):
+            gl.glUniformMatrix4fv(self.uniforms[name], 1, gl.GL_TRUE, mat.astype(np.float32))
+        gl.glViewport(0, 0, w, h)
+        gl.glDisable(gl.GL_SCISSOR_TEST)
+        gl.glDisable(gl.GL_BLEND)
+        gl.glDisable(gl.GL_MULTISAMPLE)
+        gl.glEnable(gl.GL_DEPTH_TEST)
+        gl.glDepthFunc(gl.GL_LESS)
+        gl.glDepthMask(gl.GL_TRUE)
+        gl.glDepthRange(0.0, 1.0)
+        gl.glEnable(gl.GL_CULL_FACE)
+        gl.glCullFace(gl.GL_BACK)
+        gl.glFrontFace(gl.GL_CCW)
+        gl.glClearBufferiv(gl.GL_COLOR, 0, np.zeros(4, np.int32))
+        gl.glClearDepth(1.0)
+        gl.glClear(gl.GL_DEPTH_BUFFER_BIT)
+        gl.glBindVertexArray(m.vao)
+        gl.glBindBuffer(gl.GL_ELEMENT_ARRAY_BUFFER, m.buffers[2 if back else 1])
+        gl.glDrawElements(gl.GL_TRIANGLES, m.count, gl.GL_UNSIGNED_INT, None)
+        out = np.empty((h, w), dtype=np.int32)
+        gl.glReadPixels(0, 0, w, h, gl.GL_RED_INTEGER, gl.GL_INT, out)
+        gl.glBindVertexArray(0)
+        return out[::-1]
+
+
+_gl_passes: _GLPasses | None = None
+_gl_failed: str | None = None
+
+
+def _forget_meshes() -> None:
+    """Drop every mesh kept on the context (both paths; call under _lock)."""
+    _pass_scenes.clear()
+    if _gl_passes is not None:
+        while _gl_passes.meshes:
+            _gl_passes.meshes.popitem()[1].delete(_gl_passes.gl)
+
+
+def _direct_passes(renderer) -> _GLPasses | None:
+    """The process's :class:`_GLPasses` on ``renderer``'s context (made current), or
+    ``None`` where it cannot be set up (then pyrender's forward pass renders the ids)."""
+    global _gl_passes, _gl_failed
+    if _gl_failed is not None:
+        return None
+    renderer._platform.make_current()
+    if _gl_passes is None:
+        try:
+            _gl_passes = _GLPasses()
+        except Exception as exc:  # noqa: BLE001  (any GL failure: pyrender's pass instead)
+            import warnings  # noqa: PLC0415
+
+            _gl_failed = f"{type(exc).__name__}: {exc}"
+            warnings.warn(f"torchrefract: the direct id pass is unavailable on this OpenGL "
+                          f"context ({_gl_failed}); using pyrender's forward pass (the same "
+                          f"ids, slower)", RuntimeWarning, stacklevel=3)
+            return None
+    return _gl_passes
+
+
 def visibility_pass(mesh: MeshData, cam: Camera, supersample: int = 1,
-                    back: bool = False) -> torch.Tensor:
+                    back: bool = False, direct: bool = True) -> torch.Tensor:
     """Rasterize per-pixel triangle ids of the nearest front (or back) face.
 
     Args:
@@ -170,32 +348,35 @@ def visibility_pass(mesh: MeshData, cam: Camera, supersample: int = 1,
         cam: the camera.
         supersample: n; the pass is rendered at (n H, n W).
         back: rasterize back faces (reversed winding) instead of front faces.
+        direct: draw on the context directly (module docstring); ``False``: through
+            pyrender's forward pass (the same ids).
 
     Returns:
         (n H, n W) int64 face index into ``mesh.faces``, -1 where no face is seen.
     """
     if mesh.num_faces > _MAX_ID:
         raise ValueError(f"mesh has {mesh.num_faces} triangles; the id buffer holds {_MAX_ID}")
-    pyrender = _pyrender()
     h, w = cam.height * supersample, cam.width * supersample
     with _lock:
-        ps = _pass_scene(mesh)
-        center, radius = ps.sphere
-        eye = np.asarray(cam.eye, dtype=np.float64)
-        dist = float(np.linalg.norm(center - eye))
-        # Near/far planes from the bounding sphere: only the ids are used, so depth
-        # precision only matters for telling overlapping surfaces apart.
-        znear = max(dist - radius, 0.0) * 0.5
-        znear = max(znear, radius * 1e-4, 1e-6)
-        zfar = dist + radius * 2.0 + znear
-        ps.camera.yfov, ps.camera.aspectRatio = np.radians(cam.yfov_deg), cam.width / cam.height
-        ps.camera.znear, ps.camera.zfar = znear, zfar
-        ps.scene.set_pose(ps.camera_node, camera_pose(cam))
-        ps.layers[0].is_visible, ps.layers[1].is_visible = not back, back
         renderer = get_renderer(w, h)
-        with _multisampling_off():
-            color, _ = renderer.render(ps.scene, flags=pyrender.RenderFlags.FLAT)
-    c = color.astype(np.int64)
-    ids = (c[..., 0] << 16) | (c[..., 1] << 8) | c[..., 2]
+        passes = _direct_passes(renderer) if direct else None
+        if passes is not None:
+            ids = passes.ids(mesh, cam, w, h, back).astype(np.int64)
+        else:
+            ids = _pyrender_ids(mesh, cam, renderer, back)
     ids = np.where(ids > mesh.num_faces, 0, ids) - 1  # out-of-range ids cannot occur
     return torch.from_numpy(np.ascontiguousarray(ids))
+
+
+def _pyrender_ids(mesh: MeshData, cam: Camera, renderer, back: bool) -> np.ndarray:
+    """The ids + 1 through pyrender's forward pass (flat vertex colors; call under _lock)."""
+    pyrender = _pyrender()
+    ps = _pass_scene(mesh)
+    _, _, ps.camera.znear, ps.camera.zfar = _view_matrices(cam, ps.sphere)
+    ps.camera.yfov, ps.camera.aspectRatio = np.radians(cam.yfov_deg), cam.width / cam.height
+    ps.scene.set_pose(ps.camera_node, camera_pose(cam))
+    ps.layers[0].is_visible, ps.layers[1].is_visible = not back, back
+    with _multisampling_off():
+        color, _ = renderer.render(ps.scene, flags=pyrender.RenderFlags.FLAT)
+    c = color.astype(np.int64)
+    return (c[..., 0] << 16) | (c[..., 1] << 8) | c[..., 2]
