@@ -191,7 +191,8 @@ class _RousJob(ctypes.Structure):
                 ("bounce_limit", ctypes.c_int), ("bounce_rays", ctypes.c_int),
                 ("bounce_steps", ctypes.c_int), ("bounce_tol", ctypes.c_float),
                 ("diffuse_var", ctypes.c_float), ("planes_in", _p), ("bounces", _p),
-                ("residual", _p)]
+                ("residual", _p), ("levels", ctypes.c_int), ("mips", ctypes.c_int),
+                ("level_alpha", _p), ("cover", _p), ("cover_hw", _p)]
 
 
 class _BackgroundJob(ctypes.Structure):

@@ -7,8 +7,8 @@ it gives the same image: the native kernels are built (:mod:`.native`), the sett
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
 tensor is on the CPU, and the kernel covers the scene's features. Today: at most 64 sphere
 lights; ``rousiers`` with its default cone and spread (``cone_rays: march``, ``spread:
-rays``) and uniform roughness (its roughness maps' coverage ratios stay in the tensor
-code), with or without internal bounces; ``specular`` and ``prefiltered`` without them. Elsewhere these functions return ``None`` and the
+rays``), roughness maps and internal bounces; ``specular`` and
+``prefiltered`` without internal bounces. Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
 
@@ -158,12 +158,13 @@ def prefiltered(g, lighting, materials, options, radiance: torch.Tensor
     return _paths(g, lighting, materials, options, radiance, blur=True)
 
 
-def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_var: float
-             ) -> tuple[torch.Tensor, dict] | None:
-    """``render_rousiers``' radiance and passes, as :func:`specular`, internal bounces
-    included (``diffuse_var``: rousiers.options.DIFFUSE_VAR)."""
-    if (lighting.light_pos.shape[1] > 64 or materials.has_maps
-            or options.cone_rays != "march" or options.spread != "rays"):
+def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_var: float,
+             coverage: tuple | None = None) -> tuple[torch.Tensor, dict] | None:
+    """``render_rousiers``' radiance and passes, as :func:`specular`, internal bounces and
+    roughness maps included (``diffuse_var``: rousiers.options.DIFFUSE_VAR; ``coverage``:
+    rousiers.cone.coverage_mips where the batch has a map)."""
+    if (lighting.light_pos.shape[1] > 64 or options.cone_rays != "march"
+            or options.spread != "rays"):
         return None
     made = _frame(g, lighting, materials, options, radiance, sg_env=True)
     if made is None:
@@ -188,6 +189,12 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
     if limit and frame.n:
         job.planes_in = keep.ptr(camera_planes(g, both=True))
         job.bounces, job.residual = counts.data_ptr(), resid.data_ptr()
+    if coverage is not None:  # one exit lobe per roughness level (sec. 5.1)
+        levels, mips = coverage
+        job.levels, job.mips = levels.shape[1], len(mips)
+        job.level_alpha = keep.ptr(levels.clamp(min=mf.ALPHA_MIN))
+        job.cover = keep.array(mips)
+        job.cover_hw = keep.ptr(torch.tensor([m.shape[1:3] for m in mips]), torch.int64)
     if frame.n and not _run("rousiers", job):
         return None
     return radiance.view(b, h, w, 3), passes

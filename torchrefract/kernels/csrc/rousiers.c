@@ -33,6 +33,14 @@ typedef struct {
     float bounce_tol, diffuse_var;
     const float *planes_in;        /* (B*H*W, 8) camera_planes(g, both=True) */
     float *bounces, *residual;     /* out (B*H*W,) bounces.bounce_passes */
+    /* roughness maps (sec. 5.1; 0 levels: none in the batch): the L roughness levels of
+     * each view (B, L; at least ALPHA_MIN; a uniform view's L times its roughness) and
+     * their coverage over the back layer as box mips (cone.coverage_mips): per mip level
+     * its (B, h, w, L) array and (h, w) */
+    int levels, mips;
+    const float *level_alpha;
+    const float *const *cover;
+    const int64_t *cover_hw;
 } RousJob;
 
 enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULES, + split */
@@ -40,6 +48,32 @@ enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULE
 /* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
  * (eta = ior) and leaving (eta = 1 / ior). */
 enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
+/* ... followed by the leaving interface (eta = 1 / ior) at each roughness level */
+#define MAX_LEVELS 16
+#define NAXES (AXES + MAX_LEVELS)
+
+/* The axes of a point of roughness ``alpha`` (at least ALPHA_MIN) in view b: the view's
+ * where its roughness is uniform, else ``own`` filled at alpha (the alpha_min ones are the
+ * view's). */
+static const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b, float alpha,
+                             SgAxes *own) {
+    if (!f->rmap[b]) return view;
+    float ior = f->ior[b];
+    sg_axes(&f->table, ior, alpha, own + IN);
+    own[IN0] = view[IN0];
+    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
+    own[OUT0] = view[OUT0];
+    return own;
+}
+
+/* materials.roughness_at at the barycentrics of triangle tri (0 where none:
+ * gbuffer.interpolate of tri.clamp(min=0)), at least ALPHA_MIN. */
+static float alpha_on(const Frame *f, int64_t b, const float *bary, int64_t tri) {
+    float uv[2];
+    interpolate(bary, f->tri_uvs + 6 * (tri > 0 ? tri : 0), 2, uv);
+    float a = roughness_at(f, b, uv);
+    return a > 1e-4f ? a : 1e-4f;
+}
 
 /* cone.bounding_angle: theta_b = 2 asin(sqrt(-expm1(-ln 4 / (k + 1)) / 2)) (eq. 12). */
 static inline float bounding_angle(float k) {
@@ -126,6 +160,7 @@ typedef struct {
     int n;
     int pix[RAYS];
     float p[RAYS][3], t[RAYS][3], w[RAYS][3], var[RAYS], share[RAYS], normal[RAYS][3];
+    float alpha[RAYS];  /* the roughness where the ray arrives (the map at its UV) */
     uint8_t found[RAYS];
 } Paths;
 
@@ -137,6 +172,9 @@ typedef struct {
     float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
     float front[BLOCK][3];  /* with bounces: e_r times the reflected lobe's light */
     uint8_t hidden[BLOCK];  /* a light in front of the pixel */
+    float alpha[BLOCK];     /* the front roughness (the map at the front hit's UV) */
+    const SgAxes *ax[BLOCK];         /* its table axes: the view's, or own */
+    SgAxes own[BLOCK][AXES];
     Paths paths;
 } Block;
 
@@ -180,10 +218,12 @@ static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, in
 }
 
 /* The footprint's larger extent in pixels (cone.trace_cone, kernels.cone.footprint): the
- * screen bounding box of the four exits (the axis' exit where one is not found). */
-static float footprint_major(const Frame *j, const Block *k, int i, int64_t b) {
+ * screen bounding box of the four exits (the axis' exit where one is not found); ``c``
+ * the axis exit's pixel coordinates, ``minor`` the smaller extent (both at least 1). */
+static float footprint_major(const Frame *j, const Block *k, int i, int64_t b, float *c,
+                             float *minor) {
     const float *pp = j->proj + 16 * b;
-    float c[2], xy[4][2], ext[2];
+    float xy[4][2], ext[2];
     project1(k->axis.pos + 3 * i, pp, c);
     for (int q = 0; q < 4; q++) {
         if (k->cone[q].found[i]) project1(k->cone[q].pos + 3 * i, pp, xy[q]);
@@ -195,7 +235,45 @@ static float footprint_major(const Frame *j, const Block *k, int i, int64_t b) {
         ext[a] = mx - mn;
         if (ext[a] < 1.0f) ext[a] = 1.0f;  /* clamp(min=1), NaN kept */
     }
+    *minor = tmin(ext[0], ext[1]);
     return tmax(ext[0], ext[1]);
+}
+
+/* ndf.sample_box_mips of the coverage mips at pixel (x, y) and fractional level ``lv``
+ * (trilinear: grid_sample's bilinear, zeros padding, align_corners=False, on the two mip
+ * levels around it), normalized (cone.footprint_coverage): the L coverage ratios. */
+static void coverage(const RousJob *rj, int64_t b, float x, float y, float lv, float *c) {
+    int n = rj->mips, nl = rj->levels;
+    lv = clampf(lv, 0.0f, (float)(n - 1));
+    int l0 = (int)floorf(lv), l1 = l0 + 1 < n ? l0 + 1 : n - 1;
+    float frac = lv - (float)l0, sum = 0.0f;
+    for (int q = 0; q < nl; q++) c[q] = 0.0f;
+    for (int lvl = l0; lvl <= l1; lvl++) {
+        float w = (l0 == lvl ? 1.0f - frac : 0.0f) + (l1 == lvl ? frac : 0.0f);
+        if (!(w > 0.0f)) continue;
+        int64_t h = rj->cover_hw[2 * lvl], wd = rj->cover_hw[2 * lvl + 1];
+        float scale = (float)(1 << lvl);
+        float gx = (x / scale) / (float)wd * 2.0f - 1.0f, gy = (y / scale) / (float)h * 2.0f - 1.0f;
+        float ix = ((gx + 1.0f) * (float)wd - 1.0f) / 2.0f;
+        float iy = ((gy + 1.0f) * (float)h - 1.0f) / 2.0f;
+        float fx0 = floorf(ix), fy0 = floorf(iy);
+        int64_t x0 = (int64_t)fx0, y0 = (int64_t)fy0, xs[2] = {x0, x0 + 1}, ys[2] = {y0, y0 + 1};
+        float tw[4] = {(fx0 + 1.0f - ix) * (fy0 + 1.0f - iy), (ix - fx0) * (fy0 + 1.0f - iy),
+                       (fx0 + 1.0f - ix) * (iy - fy0), (ix - fx0) * (iy - fy0)};
+        const float *img = rj->cover[lvl] + b * h * wd * nl;
+        for (int q = 0; q < nl; q++) {
+            float v = 0.0f;
+            for (int t = 0; t < 4; t++) {  /* nw, ne, sw, se; zero outside */
+                int64_t xx = xs[t & 1], yy = ys[t >> 1];
+                float val = (xx >= 0 && xx < wd && yy >= 0 && yy < h)
+                                ? img[(yy * wd + xx) * nl + q] : 0.0f;
+                v = t == 0 ? val * tw[0] : v + val * tw[t];
+            }
+            c[q] = c[q] + w * v;
+        }
+    }
+    for (int q = 0; q < nl; q++) sum = q == 0 ? c[0] : sum + c[q];
+    for (int q = 0; q < nl; q++) c[q] = c[q] / (sum > 1e-12f ? sum : 1e-12f);
 }
 
 /* bounces.follow's bookkeeping for the rays an interface reflects inside: throughput
@@ -230,12 +308,13 @@ static void add_ray(Paths *ps, int pix, const float *p, const float *t, const fl
  * reflected lobe (E_ri averaged over the arriving lobe, k_ri) along the mirror direction of
  * p_t1 about the exit normal; with ``bounce_rays: 4`` split into four rays around it
  * (bounces.split_lobe: tilted by +-sqrt(var) along two tangents, each with half the
- * variance and a quarter of the throughput). ``acc`` starts with w1 l_trans, the light
+ * variance and a quarter of the throughput); ``ax``: the table axes at the exit point's
+ * roughness. ``acc`` starts with w1 l_trans, the light
  * the exit lets out. ``reflects``: the exit was found and the object is not index-matched
  * (elsewhere nothing is reflected). */
 static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int i, int64_t b,
                              int reflects, const float *p_t1, const float *n_in, float cos2,
-                             float var1, float alpha, const float *p2, const float *w1,
+                             float var1, const float *p2, const float *w1,
                              const float *l_trans) {
     const Frame *j = &rj->f;
     int64_t dist = j->dist[b];
@@ -248,7 +327,6 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
         sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
         spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
     }
-    (void)alpha;  /* uniform roughness: the exit point's is the pixel's */
     if (!goes_on(rj, ps, i, reflects, 0, w1, e_ri, w_next)) return;
     float d[3], var = var1 + 1.0f / (k_ri > 1e-12f ? k_ri : 1e-12f);
     reflect(p_t1, n_in, d);
@@ -272,11 +350,11 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
 /* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
  * exit lobe widened by the bounding rays, the environment around it and around the
  * reflected lobe, the absorption; the pixel and its passes written. */
-static void shade_pixel(const RousJob *rj, const SgAxes *ax, Block *k, int i,
+static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
                         int64_t px, int64_t b) {
     const Frame *j = &rj->f;
-    float ior = j->ior[b], alpha = j->alpha[b];
-    alpha = alpha > 1e-4f ? alpha : 1e-4f;  /* microfacet.ALPHA_MIN (pixels.py) */
+    const SgAxes *ax = k->ax[i];
+    float ior = j->ior[b], alpha = k->alpha[i];
     const float *p_t1 = k->axis.t + 3 * i;
     int found = k->axis.found[i];
     float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
@@ -300,29 +378,61 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, Block *k, int i,
     float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
     float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
                                (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
-    float p_out[3], kk, weight2;
-    int bounce = rj->bounce_limit > 0;
-    exit_lobe(rj, ax, b, alpha, bounce ? SPLIT : j->tir_mode, view2, n_in, cos2, cos_crit, tir,
-              var1, var_geo, p_out, &kk, &weight2);
-    if (!found) {  /* leave with the front lobe */
-        for (int c = 0; c < 3; c++) p_out[c] = p_t1[c];
-        kk = k_t1;
-        weight2 = 1.0f;
-    }
+    int bounce = rj->bounce_limit > 0, mode = bounce ? SPLIT : j->tir_mode;
     float thick = j->back_dist[px] - j->front_dist[px];
     float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
-    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i];
+    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], kk, c_xy[2], minor;
     const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
     float d[3] = {-v[0], -v[1], -v[2]}, p2[3];
     for (int c = 0; c < 3; c++) p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
+    float major = footprint_major(j, k, i, b, c_xy, &minor);
     incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
+    if (rj->levels == 0) {  /* exit.transmitted_radiance: one exit lobe */
+        float p_out[3], weight2;
+        exit_lobe(rj, ax, b, alpha, mode, view2, n_in, cos2, cos_crit, tir, var1, var_geo,
+                  p_out, &kk, &weight2);
+        if (!found) {  /* leave with the front lobe */
+            for (int c = 0; c < 3; c++) p_out[c] = p_t1[c];
+            kk = k_t1;
+            weight2 = 1.0f;
+        }
+        incident_sg(&j->lights, &j->env, b, p2, p_out, kk, l_trans);
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * weight2;
+    } else {  /* a roughness map: one exit lobe per level, by its coverage (sec. 5.1) */
+        float cov[MAX_LEVELS], ksum = 0.0f, csum = 0.0f;
+        coverage(rj, b, c_xy[0], c_xy[1], log2f(minor), cov);
+        for (int q = 0; q < rj->levels; q++) csum = q == 0 ? cov[0] : csum + cov[q];
+        int no_cov = csum < 0.5f;  /* nothing covered: the front roughness */
+        for (int c = 0; c < 3; c++) l_trans[c] = 0.0f;
+        for (int q = 0; q < rj->levels; q++) {
+            SgAxes lv[AXES];
+            const SgAxes *la = ax;
+            float a_q = alpha, w_q = 1.0f / (float)rj->levels, p_q[3], k_q, wt_q, l_q[3];
+            if (!no_cov) {
+                a_q = rj->level_alpha[b * rj->levels + q];
+                w_q = cov[q];
+                lv[OUT] = view_axes[AXES + q];
+                lv[OUT0] = view_axes[OUT0];
+                la = lv;
+            }
+            exit_lobe(rj, la, b, a_q, mode, view2, n_in, cos2, cos_crit, tir, var1, var_geo,
+                      p_q, &k_q, &wt_q);
+            if (!found) {
+                for (int c = 0; c < 3; c++) p_q[c] = p_t1[c];
+                k_q = k_t1;
+                wt_q = 1.0f;
+            }
+            incident_sg(&j->lights, &j->env, b, p2, p_q, k_q, l_q);
+            float ww = w_q * wt_q;
+            for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] + ww * l_q[c];
+            ksum = ksum + w_q / (k_q > 1e-12f ? k_q : 1e-12f);
+        }
+        kk = 1.0f / (ksum > 1e-12f ? ksum : 1e-12f);
+    }
     if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
         incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
         er = 0.0f;
         et = 1.0f;
-    } else {
-        incident_sg(&j->lights, &j->env, b, p2, p_out, kk, l_trans);
-        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * weight2;
     }
     int64_t l;  /* a light between the eye and the object hides it (shade._composite) */
     int hidden = j->lights.nl > 0 &&
@@ -335,13 +445,16 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, Block *k, int i,
     if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
         k->hidden[i] = (uint8_t)hidden;
         for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
-        first_reflection(rj, ax, &k->paths, i, b, found && ior != 1.0f, p_t1, n_in, cos2,
-                         var1, alpha, p2, w1, l_trans);
+        /* the exit's internal reflection lobe uses the roughness at the exit point */
+        float a_x = found ? alpha_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]) : alpha;
+        SgAxes own_x[AXES];
+        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
+                         found && ior != 1.0f, p_t1, n_in, cos2, var1, p2, w1, l_trans);
     }
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
-    rj->footprint[px] = found ? footprint_major(j, k, i, b) : 0.0f;
+    rj->footprint[px] = found ? major : 0.0f;
 }
 
 /* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
@@ -351,9 +464,12 @@ static void shade_pixel(const RousJob *rj, const SgAxes *ax, Block *k, int i,
  * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
  * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
  * direction and variance of the reflected lobe. */
-static float shade_inside(const RousJob *rj, const SgAxes *ax, Paths *ps, int r, int64_t b,
-                          float alpha, int last, float *dir, float *var_out) {
+static float shade_inside(const RousJob *rj, const SgAxes *view_axes, Paths *ps, int r,
+                          int64_t b, int last, float *dir, float *var_out) {
     const Frame *j = &rj->f;
+    float alpha = ps->alpha[r];
+    SgAxes own[AXES];
+    const SgAxes *ax = axes_at(j, view_axes, b, alpha, own);
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
     int64_t dist = j->dist[b];
     int mode = j->tir_mode;
@@ -444,6 +560,7 @@ static void follow_block(const RousJob *rj, const SgAxes *axes, Paths *ps, int64
                     ps->normal[r][c] = rays.normal[3 * i + c];
                 }
                 ps->found[r] = (uint8_t)f;
+                ps->alpha[r] = alpha_on(j, b, rays.bary + 3 * i, rays.tri[i]);
             }
         }
         int last = k >= rj->bounce_limit, n = ps->n;
@@ -451,8 +568,8 @@ static void follow_block(const RousJob *rj, const SgAxes *axes, Paths *ps, int64
         for (int r = 0; r < n; r++) {  /* shade, and compact the rays that go on in place */
             int pix = ps->pix[r];
             int64_t b = j->batch[r0 + pix];
-            float alpha = j->alpha[b] > 1e-4f ? j->alpha[b] : 1e-4f, dir[3], var, w_next[3];
-            float refl = shade_inside(rj, axes + AXES * b, ps, r, b, alpha, last, dir, &var);
+            float dir[3], var, w_next[3];
+            float refl = shade_inside(rj, axes + NAXES * b, ps, r, b, last, dir, &var);
             if (goes_on(rj, ps, pix, ps->found[r], last, ps->w[r], refl, w_next))
                 add_ray(ps, pix, ps->p[r], dir, w_next, var, ps->share[r]);
         }
@@ -465,16 +582,19 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
     const RousJob *rj = (const RousJob *)job;
     const Frame *j = &rj->f;
     Block k;
-    for (int i = 0; i < m; i++) {
-        int64_t b = j->batch[r0 + i];
-        front_and_cone(j, axes + AXES * b, &k, i, j->idx[r0 + i], b);
+    for (int i = 0; i < m; i++) {  /* the front roughness (pixels.object_pixels) */
+        int64_t b = j->batch[r0 + i], px = j->idx[r0 + i];
+        float a = roughness_at(j, b, j->front_uv + 2 * px);
+        k.alpha[i] = a > 1e-4f ? a : 1e-4f;  /* microfacet.ALPHA_MIN */
+        k.ax[i] = axes_at(j, axes + NAXES * b, b, k.alpha[i], k.own[i]);
+        front_and_cone(j, k.ax[i], &k, i, px, b);
     }
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
     for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        shade_pixel(rj, axes + AXES * b, &k, i, j->idx[r0 + i], b);
+        shade_pixel(rj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
     if (rj->bounce_limit <= 0) return;
     follow_block(rj, axes, &k.paths, r0);
@@ -496,12 +616,16 @@ static void rous_axes(const Frame *f, int64_t b, SgAxes *out) {
     sg_axes(&f->table, ior, a0, out + IN0);
     sg_axes(&f->table, 1.0f / ior, a, out + OUT);
     sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
+    const RousJob *rj = (const RousJob *)f;  /* f is the job's first member */
+    for (int q = 0; q < rj->levels; q++)
+        sg_axes(&f->table, 1.0f / ior, rj->level_alpha[b * rj->levels + q], out + AXES + q);
 }
 
 /* Entry point (ctypes, shading/fused.py): shade all object pixels of ``job`` on
  * ``threads`` threads (frame.h's run_shading). */
 int torchrefract_rousiers(RousJob *job, int threads) {
-    return run_shading(job, &job->f, AXES, rous_axes, shade_block, threads);
+    if (job->levels > MAX_LEVELS) return -1;
+    return run_shading(job, &job->f, NAXES, rous_axes, shade_block, threads);
 }
 
 int64_t torchrefract_rousiers_job_size(void) { return (int64_t)sizeof(RousJob); }

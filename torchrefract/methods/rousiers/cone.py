@@ -219,16 +219,25 @@ def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor
     return wts.view(b, h, w, n)
 
 
+def coverage_mips(g: GBuffer, materials: MaterialBatch, n_levels: int
+                  ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    """The roughness levels (B, L) and the box mips of their coverage over the back layer
+    (:func:`level_coverage`), for :func:`footprint_coverage` (and the fused kernel)."""
+    return level_values(materials, n_levels), build_box_mips(
+        level_coverage(g, materials, n_levels))
+
+
 def footprint_coverage(g: GBuffer, materials: MaterialBatch, n_levels: int, bi: torch.Tensor,
-                       cone: Cone) -> tuple[torch.Tensor, torch.Tensor]:
+                       cone: Cone, mips: tuple | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """Spatially varying roughness at the exit (sec. 5.1): the roughness levels (B, L) and
     their coverage ratios over the footprint (N, L), carried through the mips like the NDF
-    and read at the same level."""
-    cover = level_coverage(g, materials, n_levels)  # (B, H, W, L)
-    levels = level_values(materials, n_levels)  # (B, L)
-    c = sample_box_mips(build_box_mips(cover), bi, cone.xy_c, cone.level)  # (N, L)
+    and read at the same level (``mips``: :func:`coverage_mips`, where built already)."""
+    levels, cover = mips if mips is not None else coverage_mips(g, materials, n_levels)
+    c = sample_box_mips(cover, bi, cone.xy_c, cone.level)  # (N, L)
     return levels, c / c.sum(-1, keepdim=True).clamp(min=1e-12)
 
 
-__all__ = ["Cone", "back_ndf", "bounding_angle", "footprint_coverage", "geometric_variance",
+__all__ = ["Cone", "back_ndf", "bounding_angle", "coverage_mips", "footprint_coverage",
+           "geometric_variance",
            "level_coverage", "level_values", "trace_cone"]

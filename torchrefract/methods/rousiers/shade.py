@@ -11,6 +11,7 @@ from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.rousiers.bounces import follow_bounces
 from torchrefract.methods.rousiers.cone import (
     back_ndf,
+    coverage_mips,
     footprint_coverage,
     geometric_variance,
     trace_cone,
@@ -45,7 +46,9 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     """
     b, h, w = g.shape
     radiance = background(g, lighting)
-    done = fused.rousiers(g, lighting, materials, options, radiance, DIFFUSE_VAR)
+    mips = coverage_mips(g, materials, options.roughness_levels) if materials.has_maps \
+        else None
+    done = fused.rousiers(g, lighting, materials, options, radiance, DIFFUSE_VAR, mips)
     if done is not None:  # the fused kernel ran (shading.fused says where it does)
         return done
     idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
@@ -69,8 +72,8 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                                         xi.mag2 / front.k_t1)
     # 5. The environment from the SG-pre-convolved pyramid (sec. 4.1) around each lobe.
     l_refl = incident_radiance_sg(lighting, px.bi, px.p1, front.axis_r, front.k_r)
-    coverage = footprint_coverage(g, materials, options.roughness_levels, px.bi, cone) \
-        if materials.has_maps else None
+    coverage = footprint_coverage(g, materials, options.roughness_levels, px.bi, cone, mips) \
+        if mips is not None else None
     # With internal bounces the first exit is not the last interface: the table's own split
     # between the transmitted and the internally reflected lobe applies (no TIR rule).
     l_trans, k = transmitted_radiance(table, lighting, px, xi, materials, options.spread,
