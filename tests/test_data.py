@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -15,6 +16,7 @@ from torch.utils.data import DataLoader
 
 from torchrefract.checks import ConfigError
 from torchrefract.dataset.loaders import RefractDataset, RenderStream, collate, decode_wds
+from torchrefract.dataset.paths import resolve_record
 from torchrefract.dataset.run import run_sweep
 from torchrefract.output.images import read_exr
 
@@ -118,7 +120,10 @@ def test_render_stream_equals_the_written_dataset(cfg_path, folder):
     assert len(got) == 8
     for i, x in enumerate(got):
         _same(ds[i], x)
-        assert x["meta"]["params"] == ds[i]["meta"]["params"]
+        # The stream's paths are absolute, the dataset's relative to its folder.
+        assert x["meta"]["params"] == resolve_record(ds[i]["meta"], folder)["params"]
+        stream_scene = json.loads(json.dumps(x["meta"]["scene"]))  # tuples -> lists
+        assert stream_scene == resolve_record(ds[i]["meta"], folder)["scene"]
 
 
 def test_render_stream_in_a_dataloader_with_two_workers(tmp_path):

@@ -90,7 +90,9 @@ def test_folder_run_writes_all_passes_and_a_complete_manifest(reference, cfg_pat
     # The EXR is exactly what the API renders for the recorded scene, written as
     # `torchrefract render` writes it.
     e = lines[5]
-    scene = tr.scene_from_dict(e["scene"], name=e["sample_id"])
+    # Its input paths are relative to the dataset folder.
+    assert e["scene"]["mesh"] == os.path.relpath(Path(SPOT).resolve(), reference.resolve())
+    scene = tr.scene_from_dict(e["scene"], base_dir=reference, name=e["sample_id"])
     assert scene == cfg.sample(5).scene
     direct = reference / "direct.exr.out"
     write_exr(direct, exr_channels(tr.render([scene]), 0))
@@ -264,8 +266,8 @@ def test_broken_mesh_and_envmap_fail_only_their_samples(tmp_path, capsys):
     lines = {e["sample_id"]: e for e in _manifest(out)}
     assert len(lines) == 8
     for e in lines.values():
-        bad_mesh = e["scene"]["mesh"] == str(broken_mesh)
-        bad_env = e["scene"]["envmap"]["path"] == str(broken_env)
+        bad_mesh = e["scene"]["mesh"] == "../broken.ply"  # relative to the dataset folder
+        bad_env = e["scene"]["envmap"]["path"] == "../broken.exr"
         if not (bad_mesh or bad_env):  # batch-mates of broken samples still render
             assert e["status"] == "ok" and (out / f"{e['sample_id']}.exr").is_file()
             continue

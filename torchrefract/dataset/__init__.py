@@ -13,6 +13,7 @@ _NAMES = {
     "run_sweep": "run", "RunSummary": "run", "read_manifest": "manifest",
     "load_sweep": "sweep", "sweep_from_dict": "sweep", "expand": "sweep",
     "SweepConfig": "sweep", "Sample": "sweep",
+    "sample_scene": "paths", "resolve_record": "paths",
 }
 
 

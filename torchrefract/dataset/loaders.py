@@ -19,6 +19,10 @@ default, ``layout="hwc"`` gives channels-last ``(H, W, C)`` instead)::
 :func:`collate` batches such samples, keeping ``meta`` a list of dicts (torch's default
 collate would transpose the lists inside it).
 
+A rendered dataset's paths are relative to its folder (:mod:`~torchrefract.dataset.paths`):
+``meta`` holds them as stored (as the shards' ``.json`` members do), and
+:meth:`RefractDataset.scene` resolves them. The folder can be copied or moved elsewhere.
+
 Example:
     >>> from torch.utils.data import DataLoader
     >>> from torchrefract.dataset.loaders import RefractDataset, RenderStream, collate
@@ -49,6 +53,7 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from torchrefract.checks import ConfigError
 from torchrefract.dataset.encode import channel_layout
 from torchrefract.dataset.manifest import MANIFEST, latest_entries, read_manifest
+from torchrefract.dataset.paths import dataset_file, sample_scene
 from torchrefract.dataset.records import _sample_meta, camera_metadata
 from torchrefract.dataset.sweep import SweepConfig, load_sweep
 
@@ -154,7 +159,9 @@ class RefractDataset(Dataset):
     """Map-style dataset over a rendered sweep (folder of files or WebDataset shards).
 
     Reads ``DIR/manifest.jsonl`` and serves the samples whose status is ``ok``, in index
-    order. Files are opened per item (safe with DataLoader workers, fork or spawn).
+    order. Files are opened per item (safe with DataLoader workers, fork or spawn). The
+    records' paths are relative to ``DIR`` (older ones absolute), so ``DIR`` may have been
+    copied or moved since it was rendered; a file it lacks raises a ConfigError naming it.
 
     Args:
         root: the ``--out`` folder of ``torchrefract sweep``.
@@ -186,21 +193,37 @@ class RefractDataset(Dataset):
     def __len__(self) -> int:
         return len(self.records)
 
-    def _shard_index(self, shard: str) -> dict[str, tuple[int, int]]:
+    def _shard_index(self, rec: dict) -> dict[str, tuple[int, int]]:
+        shard = rec["shard"]
         idx = self._offsets.get(shard)
         if idx is None:
-            with tarfile.open(self.root / shard) as t:
+            with tarfile.open(dataset_file(self.root, shard, rec["sample_id"])) as t:
                 idx = {m.name: (m.offset_data, m.size) for m in t.getmembers() if m.isfile()}
             self._offsets[shard] = idx
         return idx
 
     def _read(self, rec: dict, ext: str) -> bytes:
         if "shard" in rec:
-            off, size = self._shard_index(rec["shard"])[rec["members"][ext]]
+            member = rec["members"][ext]
+            idx = self._shard_index(rec)
+            if member not in idx:
+                raise ConfigError(f"{self.root / rec['shard']}: no member {member!r} (sample "
+                                  f"{rec['sample_id']}; the shard was replaced?)")
+            off, size = idx[member]
             with open(self.root / rec["shard"], "rb") as f:
                 f.seek(off)
                 return f.read(size)
-        return (self.root / rec["files"][ext]).read_bytes()
+        return dataset_file(self.root, rec["files"][ext], rec["sample_id"]).read_bytes()
+
+    def scene(self, i: int):
+        """The :class:`~torchrefract.scene.Scene` of item ``i``, its mesh and maps resolved
+        against the dataset folder (to render it again, or look at its inputs).
+
+        Raises:
+            ConfigError: an input file is missing (the dataset was copied without it),
+                naming it and where it was looked for.
+        """
+        return sample_scene(self.records[i], self.root)
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         if not -len(self) <= i < len(self):

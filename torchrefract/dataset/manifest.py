@@ -3,7 +3,8 @@
 Lines are appended (one write, flushed and fsynced, per batch) only after the files they
 describe are durable, so a killed run leaves whole lines or one truncated last line, which
 :func:`read_manifest` drops. At the end of a run the file is compacted to one line per
-sample, in index order. Every rewrite is atomic and fsynced.
+sample, in index order. Every rewrite is atomic and fsynced. Paths in the records are
+relative to ``DIR`` (:mod:`~torchrefract.dataset.paths`; older records: absolute).
 """
 
 from __future__ import annotations

@@ -1,13 +1,16 @@
 """What a sample's record says about it, deterministically (no times or hosts): the
 resolved parameters, the full scene, the camera's intrinsics and extrinsics, seeds and
-versions (the manifest's and the loaders' metadata)."""
+versions (the manifest's and the loaders' metadata). Written into a dataset, its input paths
+are relative to the dataset folder (:mod:`~torchrefract.dataset.paths`)."""
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
+from torchrefract.dataset.paths import portable_record
 from torchrefract.dataset.sweep import Sample, SweepConfig
 from torchrefract.scene.model import Camera
 
@@ -41,12 +44,13 @@ def camera_metadata(cam: Camera) -> dict:
     }
 
 
-def _sample_meta(cfg: SweepConfig, sample: Sample) -> dict:
-    """Everything that decides a sample (deterministic: no times or hosts in it)."""
+def _sample_meta(cfg: SweepConfig, sample: Sample, root: str | Path | None = None) -> dict:
+    """Everything that decides a sample (deterministic: no times or hosts in it); with a
+    dataset folder ``root``, input paths relative to it (else absolute)."""
     from torchrefract import __version__  # noqa: PLC0415
 
     scene = sample.scene
-    return {
+    meta = {
         "sample_id": sample.sample_id,
         "index": sample.params["index"],
         "sweep": cfg.name,
@@ -59,4 +63,5 @@ def _sample_meta(cfg: SweepConfig, sample: Sample) -> dict:
         "camera": camera_metadata(scene.camera),
         "torchrefract_version": __version__,
     }
+    return meta if root is None else portable_record(meta, root)
 

@@ -19,7 +19,9 @@ What a run does (``torchrefract sweep CONFIG --out DIR``, or :func:`run_sweep`):
 
    then appends one JSON line per sample to ``DIR/manifest.jsonl``: status ``ok`` or
    ``failed`` with the reason, every resolved parameter, the full scene, camera intrinsics
-   and extrinsics, method, seeds, timings, package version and config hash.
+   and extrinsics, method, seeds, timings, package version and config hash. Its file and
+   input paths are relative to ``DIR`` (:mod:`~torchrefract.dataset.paths`), so the folder
+   can be copied elsewhere and still loads (and resumes, its inputs' relative layout kept).
 
 Crash safety: every file is written to a temporary name, fsynced and renamed; manifest lines
 are appended (flush + fsync) only after the files they describe are durable; a shard is
@@ -59,6 +61,7 @@ from torchrefract.checks import ConfigError
 from torchrefract.dataset.encode import _encode, channel_layout, encode_exr, encode_png
 from torchrefract.dataset.executors import _failure, _make_executor, render_items
 from torchrefract.dataset.manifest import MANIFEST, _Manifest, latest_entries, read_manifest
+from torchrefract.dataset.paths import map_scene_paths, relative_path
 from torchrefract.dataset.records import _sample_meta, camera_metadata
 from torchrefract.dataset.shards import _completed_shards, _TarShards
 from torchrefract.dataset.sweep import Sample, SweepConfig, load_sweep
@@ -192,10 +195,15 @@ def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str) -> None:
                 raise ConfigError(f"{out} was written with --format {rec.get('format')}; "
                                   f"resume it with the same format (or use a new --out)")
             return
+    # Paths relative to the folder (a moved dataset keeps them valid); the config as written.
+    source = cfg.source
+    if source and os.path.isfile(source):
+        source = relative_path(os.path.abspath(source), out)
+    base = map_scene_paths(cfg.base.to_dict(), lambda p: relative_path(p, out))
     record = {"name": cfg.name, "config_hash": cfg.config_hash, "format": fmt,
-              "num_samples": cfg.num_samples, "source": cfg.source,
+              "num_samples": cfg.num_samples, "source": source,
               "sampling": asdict(cfg.sampling), "config": cfg.raw,
-              "base_scene": cfg.base.to_dict(), "torchrefract_version": __version__,
+              "base_scene": base, "torchrefract_version": __version__,
               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     write_bytes(path, (json.dumps(record, indent=2, default=str) + "\n").encode(), fsync=True)
 
@@ -508,7 +516,7 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
     records = []
     batch_render = batch_encode = 0.0
     for sample, res in zip(batch, results):
-        meta = _sample_meta(cfg, sample)
+        meta = _sample_meta(cfg, sample, out)
         if res["ok"] and "result" in res:  # rendered in this process, not yet encoded
             te = time.perf_counter()
             try:

@@ -4,7 +4,9 @@ A shard is written to a temporary file and renamed into place, durably, once ful
 the end of the run); only then are its samples' manifest lines appended. On resume a shard
 counts only when the manifest holds all of its samples; any other is deleted and its
 samples rendered again. Members get fixed owners, modes and times, so shards are
-byte-identical across runs.
+byte-identical across runs. A sample's ``<id>.json`` member names its inputs relative to
+``DIR`` (:mod:`~torchrefract.dataset.paths`); any webdataset reader can stream the shards
+(``webdataset.WebDataset``, Hugging Face ``datasets.load_dataset("webdataset", ...)``).
 """
 
 from __future__ import annotations
