@@ -107,6 +107,10 @@ def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, tor
     n = g.supersample
     thick = (g.back.dist - g.front.dist).clamp(min=0.0)
     both = g.front.mask & g.back.mask
+    if n == 1:  # a layer is zero where it is empty (gbuffer._layer): nothing to mask
+        return {"depth_front": g.front.depth[..., None], "depth_back": g.back.depth[..., None],
+                "normal_front": g.front.normal, "normal_back": g.back.normal,
+                "thickness": _masked_box(thick[..., None], both, n, cache)}
     return {
         "depth_front": _masked_box(g.front.depth[..., None], g.front.mask, n, cache),
         "depth_back": _masked_box(g.back.depth[..., None], g.back.mask, n, cache),
@@ -238,13 +242,15 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     passes = _geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
-    fm = g.front.mask[..., None].float()  # (B, H, W, 1)
+    fm = _mask_box(g.front.mask, n, torch.float32, cache)[0]  # (B, H, W, 1)
     b_, h_, w_ = g.shape
-    flat_b = torch.arange(b_).repeat_interleave(h_ * w_)
-    rough = materials.roughness_at(flat_b, g.front.uv.reshape(-1, 2)).view(b_, h_, w_, 1)
-    passes["roughness"] = _masked_box(fm * rough, g.front.mask, n, cache)
-    passes["ior"] = _masked_box(fm * materials.ior[:, None, None, None], g.front.mask, n,
-                                cache)
+    if materials.has_maps:
+        flat_b = torch.arange(b_).repeat_interleave(h_ * w_)
+        rough = materials.roughness_at(flat_b, g.front.uv.reshape(-1, 2)).view(b_, h_, w_, 1)
+    else:
+        rough = materials.roughness[:, None, None, None]
+    for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
+        passes[name] = v if n == 1 else _masked_box(v, g.front.mask, n, cache)  # 0 outside
     for k, v in method_passes.items():
         passes[k] = _masked_box(v, g.front.mask, n, cache)
     return RenderResult(
