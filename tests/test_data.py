@@ -41,13 +41,16 @@ def shards(cfg_path, tmp_path_factory):
     return out
 
 
-def _same(a: dict, b: dict) -> None:
+def _same(a: dict, b: dict, meta: bool = False) -> None:
+    """Two loaded samples hold the same tensors (and with ``meta`` the same record)."""
     assert a["sample_id"] == b["sample_id"]
     for k in ("radiance", "coverage", "K", "world_to_camera"):
         assert torch.equal(a[k], b[k]), k
     assert a["passes"].keys() == b["passes"].keys()
     for n in a["passes"]:
         assert torch.equal(a["passes"][n], b["passes"][n]), n
+    if meta:
+        assert a["meta"] == b["meta"]
 
 
 def test_refract_dataset_over_a_folder(folder):

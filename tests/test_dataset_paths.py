@@ -14,6 +14,7 @@ import pytest
 import torch
 import yaml
 from conftest import ASSETS
+from test_data import _same as _same_tensors
 from PIL import Image
 
 from torchrefract.checks import ConfigError
@@ -64,14 +65,7 @@ def _items(root: Path) -> list[dict]:
 
 
 def _same(a: dict, b: dict, meta: bool = True) -> None:
-    assert a["sample_id"] == b["sample_id"]
-    for k in ("radiance", "coverage", "K", "world_to_camera"):
-        assert torch.equal(a[k], b[k]), k
-    assert a["passes"].keys() == b["passes"].keys()
-    for n in a["passes"]:
-        assert torch.equal(a["passes"][n], b["passes"][n]), n
-    if meta:
-        assert a["meta"] == b["meta"]
+    _same_tensors(a, b, meta=meta)
 
 
 def _shard_json(shard: Path) -> list[dict]:
