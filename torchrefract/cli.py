@@ -40,6 +40,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-fused", action="store_true",
                    help="each method's tensor code instead of its fused shading kernel "
                         "(the same images within float32 rounding; slower)")
+    r.add_argument("--adaptive", action="store_true",
+                   help="with samples_per_pixel > 1, shade every sub-pixel only where the "
+                        "G-buffer changes inside the pixel (RenderSettings.adaptive)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -76,6 +79,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--no-fused", action="store_true",
                    help="each method's tensor code instead of its fused shading kernel in "
                         "every rendering process")
+    w.add_argument("--adaptive", action="store_true",
+                   help="adaptive supersampling in every rendering process "
+                        "(RenderSettings.adaptive)")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -214,6 +220,8 @@ def _settings(args: argparse.Namespace):
         changes["native"] = False
     if getattr(args, "no_fused", False):
         changes["fused"] = False
+    if getattr(args, "adaptive", False):
+        changes["adaptive"] = True
     return s.replace(**changes)
 
 

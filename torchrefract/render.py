@@ -19,13 +19,15 @@ from dataclasses import dataclass, field
 import torch
 
 from torchrefract.checks import ConfigError
+from torchrefract.geometry import adaptive
+from torchrefract.geometry.camera import pixel_rays
 from torchrefract.geometry.gbuffer import GBuffer, build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.scene import Scene, validate
-from torchrefract.settings import RenderSettings, using
+from torchrefract.settings import RenderSettings, current, using
 from torchrefract.stages import collect
 
 
@@ -225,11 +227,19 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     lighting = Lighting.from_scenes(scenes)
     t1 = time.perf_counter()
     g = build_gbuffer(meshes, [s.camera for s in scenes])
-    t2 = time.perf_counter()
     materials = MaterialBatch.from_scenes(scenes)
+    plan = None
+    if current().adaptive and g.supersample > 1:
+        b_, h_, w_ = g.shape
+        alpha = materials.roughness_at(torch.arange(b_).repeat_interleave(h_ * w_),
+                                       g.front.uv.reshape(-1, 2)).view(b_, h_, w_)
+        g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]), alpha)
+    t2 = time.perf_counter()
     with collect() as stage_times:
         shaded = entry.shade(g, lighting, materials, options, state)
     radiance, method_passes = shaded.radiance, shaded.passes
+    if plan is not None:  # the pixels shaded once: their sample to every sub-pixel
+        radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
     t3 = time.perf_counter()
 
     n = g.supersample

@@ -1,5 +1,5 @@
-"""How a render runs (not what it renders): threads, kernels, compilation, the cache folder
-and the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
+"""How a render runs (not what it renders): threads, kernels, compilation, adaptive
+supersampling (an approximation, off by default), the cache folder and the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
 ``RenderStream`` as one :class:`RenderSettings`.
 
 The settings hold for the duration of one call, through a context variable that the
@@ -11,6 +11,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_NATIVE=0``              ``native=False``: tensor code, not the C kernels
 ``TORCHREFRACT_NATIVE_SIMD=0``         ``native_simd=False``: the march's scalar search
 ``TORCHREFRACT_FUSED=0``               ``fused=False``: the tensor code, not the fused kernels
+``TORCHREFRACT_ADAPTIVE=1``            ``adaptive=True``: adaptive supersampling
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
@@ -68,6 +69,10 @@ class RenderSettings:
     """A method's per-pixel shading as one native kernel where it covers the scene
     (:mod:`torchrefract.shading.fused`; the tensor code otherwise, and wherever a gradient
     is wanted): the same images within float32 rounding."""
+    adaptive: bool = False
+    """With ``samples_per_pixel`` n > 1: shade all n x n sub-pixels only where the G-buffer
+    changes inside the pixel, one center sample elsewhere (:mod:`torchrefract.geometry.
+    adaptive`): an approximation of the uniform sampling, at a fraction of its shading."""
     compile: bool = False
     """torch.compile the march's tensor code (seconds of start-up per process)."""
     heap_reuse: bool = False
@@ -93,6 +98,7 @@ class RenderSettings:
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
             fused=_env_flag("TORCHREFRACT_FUSED", True),
+            adaptive=_env_flag("TORCHREFRACT_ADAPTIVE", False),
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,

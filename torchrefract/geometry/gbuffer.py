@@ -125,6 +125,8 @@ class GBuffer:
             height of the rendered (supersampled) grid.
         meshes: the batch's triangles.
         supersample: n; (H, W) = n * (camera height, camera width).
+        shade: (B, H, W) bool, the object (sub-)pixels a method shades (None: all of
+            ``front.mask``; :mod:`torchrefract.geometry.adaptive` sets fewer).
     """
 
     front: Layer
@@ -134,11 +136,17 @@ class GBuffer:
     proj: torch.Tensor
     meshes: MeshBatch
     supersample: int
+    shade: torch.Tensor | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
         b, h, w, _ = self.ray_dir.shape
         return b, h, w
+
+    def object_index(self) -> torch.Tensor:
+        """(N,) flat (B*H*W) indices of the object (sub-)pixels to shade, in order."""
+        mask = self.front.mask if self.shade is None else self.shade
+        return mask.reshape(-1).nonzero(as_tuple=True)[0]
 
 
 def intersect_triangles(origin: torch.Tensor, direction: torch.Tensor,

@@ -233,7 +233,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     b, h, w = g.shape
     exit_found, tir = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
-    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
+    idx = g.object_index()
     keep = _Keep()
     if idx.numel() == 0:
         return native._Frame(n=0), keep, radiance, passes

@@ -82,7 +82,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     exit's.
     """
     b, h, w = g.shape
-    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]  # compact: object pixels only
+    idx = g.object_index()  # compact: object pixels only
     bi = idx // (h * w)
     d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
     p1 = take(g.front.position.reshape(-1, 3), idx)

@@ -51,7 +51,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     done = fused.rousiers(g, lighting, materials, options, radiance, DIFFUSE_VAR, mips)
     if done is not None:  # the fused kernel ran (shading.fused says where it does)
         return done
-    idx = g.front.mask.reshape(-1).nonzero(as_tuple=True)[0]
+    idx = g.object_index()
     bounce = options.bounces.enabled
     if idx.numel() == 0:  # the same passes as a batch with object pixels
         return radiance.view(b, h, w, 3), _passes(g, idx, bounce, None, None)
