@@ -67,11 +67,14 @@ def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
     eye, r, u, f = camera_frame(cam)
     t = math.tan(math.radians(cam.yfov_deg) / 2.0)
     a = cam.width / cam.height
-    grid = create_meshgrid(h, w, normalized_coordinates=False, dtype=torch.float64)[0]  # (h, w, 2)
-    x = (2.0 * (grid[..., 0] + 0.5) / w - 1.0) * t * a  # (h, w)
-    y = (1.0 - 2.0 * (grid[..., 1] + 0.5) / h) * t
-    d = (torch.from_numpy(f) + x[..., None] * torch.from_numpy(r)
-         + y[..., None] * torch.from_numpy(u))  # (h, w, 3)
+    # x depends on the column only, y on the row only: (f + x r) per column and y u per row,
+    # added once over the image (each element's operations and order unchanged)
+    grid = create_meshgrid(1, w, normalized_coordinates=False, dtype=torch.float64)[0]
+    x = (2.0 * (grid[0, :, 0] + 0.5) / w - 1.0) * t * a  # (w,)
+    rows = create_meshgrid(h, 1, normalized_coordinates=False, dtype=torch.float64)[0]
+    y = (1.0 - 2.0 * (rows[:, 0, 1] + 0.5) / h) * t  # (h,)
+    fx = torch.from_numpy(f) + x[:, None] * torch.from_numpy(r)  # (w, 3)
+    d = fx[None] + (y[:, None] * torch.from_numpy(u))[:, None]  # (h, w, 3)
     return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
 
 
