@@ -6,11 +6,13 @@ included. On CPU torch's advanced indexing runs a generic strided kernel that is
 times slower than these (measured on this project's 2-core CPU, 300k rows, 2 threads:
 (524k, 4) float rows 10.8 ms against 1.4 ms; 1-D 1.5 against 0.33 ms; scatters of 120k
 (N, 3) rows 1.26 against 0.76 ms). The ray march, the G-buffer and the lookups gather per
-ray and per sample, so they use these.
+ray and per sample, so they use these. ``broadcast_shape`` is ``torch.broadcast_shapes``
+without its first call's cost.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -27,3 +29,10 @@ def put_(x: torch.Tensor, idx: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 def where_true(mask: torch.Tensor) -> torch.Tensor:
     """(K,) int64 positions of the True entries of a 1-D bool ``mask``."""
     return mask.nonzero().squeeze(1)
+
+
+def broadcast_shape(*shapes) -> tuple[int, ...]:
+    """The shape ``shapes`` broadcast to (torch's rule, numpy's implementation:
+    ``torch.broadcast_shapes`` imports ``torch._refs`` on its first call, a quarter of a
+    second of every process's first render)."""
+    return tuple(np.broadcast_shapes(*(tuple(s) for s in shapes)))

@@ -62,6 +62,7 @@ from typing import Literal
 
 import torch
 
+from torchrefract.kernels.index import broadcast_shape
 from torchrefract.optics.smooth import dot
 
 Distribution = Literal["beckmann", "ggx"]
@@ -323,7 +324,7 @@ def _half_vector(wi: torch.Tensor, wo: torch.Tensor, eta: torch.Tensor):
 
 
 def _broadcast(wi, wo, alpha, eta):
-    shape = torch.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], alpha.shape, eta.shape)
+    shape = broadcast_shape(wi.shape[:-1], wo.shape[:-1], alpha.shape, eta.shape)
     return (wi.expand(*shape, 3), wo.expand(*shape, 3), alpha.expand(shape), eta.expand(shape))
 
 
@@ -567,7 +568,7 @@ def sample(wi: torch.Tensor, alpha: torch.Tensor | float, eta: torch.Tensor | fl
     ggx = _is_ggx(distribution)
     dist = "ggx" if ggx else "beckmann"
     alpha, eta = _alpha(alpha, wi), _tensor(eta, wi)
-    shape = torch.broadcast_shapes(wi.shape[:-1], u.shape[:-1], alpha.shape, eta.shape)
+    shape = broadcast_shape(wi.shape[:-1], u.shape[:-1], alpha.shape, eta.shape)
     wi, u = wi.expand(*shape, 3), u.to(wi.dtype).expand(*shape, 3)
     alpha, eta = alpha.expand(shape), eta.expand(shape)
     ci = wi[..., 2]

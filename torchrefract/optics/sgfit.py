@@ -65,6 +65,7 @@ from pathlib import Path
 
 import torch
 
+from torchrefract.kernels.index import broadcast_shape
 from torchrefract.optics import microfacet as mf
 from torchrefract.optics.sg_fit import build_sg_table
 from torchrefract.optics.sg_table import (
@@ -171,7 +172,7 @@ def _coordinates(table: SGTable, cos_theta_o, eta, alpha, distribution):
         d_idx = distribution.to(device=dev, dtype=torch.long)
     else:
         d_idx = torch.tensor(1 if mf._is_ggx(distribution) else 0, device=dev)
-    shape = torch.broadcast_shapes(c.shape, e.shape, a.shape, d_idx.shape)
+    shape = broadcast_shape(c.shape, e.shape, a.shape, d_idx.shape)
     c, e, a, d_idx = (t.expand(shape) for t in (c, e, a, d_idx))
 
     spec = table.spec
