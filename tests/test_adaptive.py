@@ -92,3 +92,11 @@ def test_cli_flag_and_environment(monkeypatch):
         assert _settings(_parser().parse_args(cmd + ["--adaptive"])).adaptive is True
     monkeypatch.setenv("TORCHREFRACT_ADAPTIVE", "1")
     assert RenderSettings.from_env().adaptive is True
+
+
+def test_reference_is_sampled_uniformly():
+    """Mitsuba renders every sub-pixel itself (``shades_object_index = False``): adaptive
+    sampling leaves its image as it is."""
+    s = _scene("slab_a02", 16, method="reference", method_options={"spp": 4})
+    a, b = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
+    assert torch.equal(a.radiance, b.radiance)

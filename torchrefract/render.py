@@ -229,7 +229,7 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     materials = MaterialBatch.from_scenes(scenes)
     plan = None
-    if current().adaptive and g.supersample > 1:
+    if current().adaptive and g.supersample > 1 and entry.shades_object_index:
         b_, h_, w_ = g.shape
         alpha = materials.roughness_at(torch.arange(b_).repeat_interleave(h_ * w_),
                                        g.front.uv.reshape(-1, 2)).view(b_, h_, w_)

@@ -54,6 +54,10 @@ class Method:
     Options: type = NoOptions
     excluded_options: tuple[str, ...] = ()
     """Keys of ``Options``' nested groups this method does not accept."""
+    shades_object_index: bool = True
+    """``shade`` reads the object (sub-)pixels ``g.object_index()`` names, so adaptive
+    supersampling (:mod:`torchrefract.geometry.adaptive`) may name fewer; a method that
+    renders the scene its own way (``reference``) sets False and is sampled uniformly."""
 
     def parse(self, options: dict | None, source: str | None = None) -> Any:
         """``method_options`` checked and turned into ``Options`` (ConfigError otherwise)."""

@@ -119,6 +119,7 @@ class Reference(Method):
     """Mitsuba 3 path tracing of the same scenes (module docstring)."""
 
     name = "reference"
+    shades_object_index = False  # Mitsuba renders every sub-pixel itself
     Options = ReferenceOptions
 
     def prepare(self, scenes, options):
