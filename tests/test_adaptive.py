@@ -83,17 +83,6 @@ def test_close_to_uniform_and_fused_equals_tensor():
             assert a.passes[k].shape == u.passes[k].shape
 
 
-def test_cli_flag_and_environment(monkeypatch):
-    from torchrefract.cli import _parser, _settings
-
-    monkeypatch.delenv("TORCHREFRACT_ADAPTIVE", raising=False)
-    for cmd in (["render", "x.yaml", "--out", "o"], ["sweep", "x.yaml", "--out", "o"]):
-        assert _settings(_parser().parse_args(cmd)).adaptive is False
-        assert _settings(_parser().parse_args(cmd + ["--adaptive"])).adaptive is True
-    monkeypatch.setenv("TORCHREFRACT_ADAPTIVE", "1")
-    assert RenderSettings.from_env().adaptive is True
-
-
 def test_reference_is_sampled_uniformly():
     """Mitsuba renders every sub-pixel itself (``shades_object_index = False``): adaptive
     sampling leaves its image as it is."""

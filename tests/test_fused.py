@@ -241,17 +241,3 @@ def test_no_object_pixels():
     a, b = tr.render(s, settings=TENSOR), tr.render(s, settings=FUSED)
     assert float(b.coverage.sum()) == 0
     assert np.allclose(a.radiance.numpy(), b.radiance.numpy(), rtol=1e-4, atol=1e-6)
-
-
-def test_no_fused_flag_and_environment_default(monkeypatch):
-    """``--no-fused`` (render and sweep) and ``TORCHREFRACT_FUSED=0`` are settings of the
-    run, not of the process."""
-    from torchrefract.cli import _parser, _settings
-
-    monkeypatch.delenv("TORCHREFRACT_FUSED", raising=False)
-    for cmd in (["render", "x.yaml", "--out", "o"], ["sweep", "x.yaml", "--out", "o"]):
-        assert _settings(_parser().parse_args(cmd)).fused is True
-        assert _settings(_parser().parse_args(cmd + ["--no-fused"])).fused is False
-    monkeypatch.setenv("TORCHREFRACT_FUSED", "0")
-    assert RenderSettings.from_env().fused is False
-    assert RenderSettings().fused is True  # the Python API's default is the fast path

@@ -113,3 +113,21 @@ def test_old_switches_are_deprecated_aliases(monkeypatch):
     monkeypatch.delenv("TORCHREFRACT_NATIVE")
     monkeypatch.delenv("TORCHREFRACT_COMPILE")
     assert current().native and not current().compile
+
+
+@pytest.mark.parametrize("flag, env, field, default", [
+    ("--no-fused", "TORCHREFRACT_FUSED=0", "fused", True),
+    ("--adaptive", "TORCHREFRACT_ADAPTIVE=1", "adaptive", False)])
+def test_flag_and_environment_are_settings_of_the_run(monkeypatch, flag, env, field, default):
+    """A command's flag (render and sweep) and its environment variable set the run's
+    settings, not the process's; the Python API's default is ``default``."""
+    from torchrefract.cli import _parser, _settings
+
+    name, value = env.split("=")
+    monkeypatch.delenv(name, raising=False)
+    for cmd in (["render", "x.yaml", "--out", "o"], ["sweep", "x.yaml", "--out", "o"]):
+        assert getattr(_settings(_parser().parse_args(cmd)), field) is default
+        assert getattr(_settings(_parser().parse_args(cmd + [flag])), field) is not default
+    monkeypatch.setenv(name, value)
+    assert getattr(RenderSettings.from_env(), field) is not default
+    assert getattr(RenderSettings(), field) is default
