@@ -51,7 +51,8 @@ def test_edges_are_supersampled_and_the_smooth_interior_is_not():
     most of its flat interior once; the center sample lies on the surface, on the ray
     through the pixel's center."""
     s = _scene("slab_a02", 48)
-    g, g2, p = _plan(s)
+    g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])  # as built
+    _, g2, p = _plan(s)  # planned: its own G-buffer, center samples written in
     cov = g.front.mask.float().reshape(1, 48, 2, 48, 2).mean((2, 4))
     edge = (cov > 0) & (cov < 1)
     assert edge.any() and not (p.uniform & edge).any()

@@ -231,8 +231,9 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     plan = None
     if current().adaptive and g.supersample > 1 and entry.shades_object_index:
         b_, h_, w_ = g.shape
-        alpha = materials.roughness_at(torch.arange(b_).repeat_interleave(h_ * w_),
-                                       g.front.uv.reshape(-1, 2)).view(b_, h_, w_)
+        alpha = materials.roughness if not materials.has_maps else materials.roughness_at(
+            torch.arange(b_).repeat_interleave(h_ * w_), g.front.uv.reshape(-1, 2)
+        ).view(b_, h_, w_)
         g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]), alpha)
     t2 = time.perf_counter()
     with collect() as stage_times:

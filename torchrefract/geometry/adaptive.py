@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from torchrefract.geometry.gbuffer import GBuffer, Layer, interpolate, intersect_triangles
+from torchrefract.geometry.gbuffer import GBuffer, interpolate, intersect_triangles
 from torchrefract.kernels.index import take
 from torchrefract.optics.smooth import dot, normalize
 
@@ -49,62 +49,60 @@ class Plan:
     n: int
 
 
-def _blocks(x: torch.Tensor, n: int) -> torch.Tensor:
-    """(B, H, W, ...) -> (B, H/n, W/n, n*n, ...): each pixel's sub-pixels, row-major."""
-    b, h, w = x.shape[:3]
-    rest = x.shape[3:]
-    y = x.reshape(b, h // n, n, w // n, n, *rest).transpose(2, 3)
-    return y.reshape(b, h // n, w // n, n * n, *rest)
-
-
-def _first(n: int, shape: tuple[int, int, int]) -> torch.Tensor:
-    """(B, H, W) bool: the first sub-pixel of every pixel."""
-    b, h, w = shape
-    first = torch.zeros(n, n, dtype=torch.bool)
-    first[0, 0] = True
-    return first.repeat(h // n, w // n)[None].expand(b, h, w)
+def _subs(x: torch.Tensor, n: int) -> list[torch.Tensor]:
+    """The n*n strided views (B, H/n, W/n, ...) of a (B, H, W, ...) tensor, one per
+    sub-pixel position of a pixel, row-major (no copies)."""
+    return [x[:, i::n, j::n] for i in range(n) for j in range(n)]
 
 
 def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
          normal_tol: float = NORMAL_TOL, depth_tol: float = DEPTH_TOL,
          smooth_alpha: float = SMOOTH_ALPHA) -> tuple[GBuffer, Plan]:
-    """The G-buffer to shade and the plan (module docstring).
+    """The G-buffer to shade and the plan (module docstring). Writes the center samples
+    into ``g``'s front layer and rays (a render's own G-buffer).
 
     Args:
         g: a G-buffer of supersampling n > 1.
         center_dirs: (B, H/n, W/n, 3) unit rays through the pixels' centers.
-        alpha: (B, H, W) the front roughness of each sub-pixel: a pixel with a sub-pixel
-            smoother than ``smooth_alpha`` is shaded at all of them.
+        alpha: (B, H, W) the front roughness of each sub-pixel, or (B,) per view: a pixel
+            with a sub-pixel smoother than ``smooth_alpha`` is shaded at all of them.
 
     Returns:
-        The G-buffer with the center samples in the uniform pixels' first sub-pixels and
-        ``shade`` set (the sub-pixels to shade), and the plan.
+        The G-buffer with ``shade`` set (the sub-pixels to shade), and the plan.
     """
     n = g.supersample
-    fm, bm = _blocks(g.front.mask, n), _blocks(g.back.mask, n)
-    same = (fm == fm[..., :1]).all(-1) & (bm == bm[..., :1]).all(-1)
-    for lay in (g.front, g.back):
-        nb = _blocks(lay.normal, n)
-        same &= (1.0 - dot(nb, nb[..., :1, :])).amax(-1) <= normal_tol
-    bd = _blocks(g.back.depth, n)
-    same &= ((bd - bd[..., :1]).abs().amax(-1) <= depth_tol * bd[..., 0].abs())
-    same &= _blocks(alpha, n).amin(-1) >= smooth_alpha
-    uniform = same & fm[..., 0]  # covered and smooth inside (empty pixels cost nothing)
-    first = _first(n, g.shape)
-    up = uniform.repeat_interleave(n, 1).repeat_interleave(n, 2)  # (B, H, W)
-    sel = (up & first).reshape(-1).nonzero(as_tuple=True)[0]
-    front, ray_dir = _center_samples(g, sel, _blocks(g.front.tri, n)[uniform],
-                                     center_dirs[uniform])
-    shade = g.front.mask & (first | ~up)
-    return replace(g, front=front, ray_dir=ray_dir, shade=shade), Plan(uniform=uniform, n=n)
+    fm, bm = _subs(g.front.mask, n), _subs(g.back.mask, n)
+    fn, bn, bd = _subs(g.front.normal, n), _subs(g.back.normal, n), _subs(g.back.depth, n)
+    uniform = fm[0].clone()  # covered (empty pixels cost nothing) and smooth inside
+    tol = depth_tol * bd[0].abs()
+    for k in range(1, n * n):
+        uniform &= (fm[k] == fm[0]) & (bm[k] == bm[0])
+        uniform &= (1.0 - dot(fn[k], fn[0]) <= normal_tol) & (1.0 - dot(bn[k], bn[0]) <= normal_tol)
+        uniform &= (bd[k] - bd[0]).abs() <= tol
+    if alpha.dim() == 1:
+        uniform &= (alpha >= smooth_alpha)[:, None, None]
+    else:
+        for a in _subs(alpha, n):
+            uniform &= a >= smooth_alpha
+    b, hh, ww = uniform.shape
+    first = (torch.arange(b * hh * ww).view(b, hh, ww)[uniform])  # uniform pixels, flat
+    pb, rem = first // (hh * ww), first % (hh * ww)
+    sel = (pb * g.shape[1] + (rem // ww) * n) * g.shape[2] + (rem % ww) * n  # sub-pixel 0
+    tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
+    _center_samples(g, sel, tris, center_dirs[uniform])
+    shade = g.front.mask.clone()
+    for k, v in enumerate(_subs(shade, n)):
+        if k:
+            v[uniform] = False
+    return replace(g, shade=shade), Plan(uniform=uniform, n=n)
 
 
 def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.Tensor
-                    ) -> tuple[Layer, torch.Tensor]:
-    """The front layer and rays with the sub-pixels ``sel`` (flat) replaced by the samples
-    along ``d`` (len(sel), 3): each on the one of its pixel's sub-pixel triangles ``tris``
-    (len(sel), n*n) that the center ray hits (the most inside one: largest smallest
-    barycentric)."""
+                    ) -> None:
+    """The sub-pixels ``sel`` (flat) of ``g``'s front layer and rays replaced, in place, by
+    the samples along ``d`` (len(sel), 3): each on the one of its pixel's sub-pixel
+    triangles ``tris`` (len(sel), n*n) that the center ray hits (the most inside one:
+    largest smallest barycentric)."""
     b, h, w = g.shape
     bi = sel // (h * w)
     eye = take(g.eye, bi)
@@ -124,32 +122,24 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
         "normal": normalize(interpolate(bary, take(g.meshes.tri_normals, tri))),
         "uv": interpolate(bary, take(g.meshes.tri_uvs, tri)),
     }
-    fields = {}
     v0, v1, v2 = g.meshes.tri_vertices[tri].unbind(-2)
     values["geo_normal"] = normalize(torch.cross(v1 - v0, v2 - v0, dim=-1))  # by winding
-    for name in ("mask", "tri", "position", "dist", "depth", "bary", "geo_normal", "normal",
-                 "uv"):
+    for name, v in values.items():  # in place: the render's own layer
         x = getattr(g.front, name)
-        if name in values:
-            x = x.clone()
-            x.reshape(-1, *x.shape[3:])[sel] = values[name].to(x.dtype)
-        fields[name] = x
-    ray_dir = g.ray_dir.clone()
-    ray_dir.reshape(-1, 3)[sel] = d.to(ray_dir.dtype)
-    return Layer(**fields), ray_dir
+        x.view(-1, *x.shape[3:])[sel] = v.to(x.dtype)
+    g.ray_dir.view(-1, 3)[sel] = d.to(g.ray_dir.dtype)
 
 
 def spread(p: Plan, radiance: torch.Tensor, passes: dict[str, torch.Tensor]
            ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Each uniform pixel's first sub-pixel copied to its others: radiance (B, H, W, 3) and
-    the method's passes (B, H, W, C), in place where they allow it."""
-    def fill(x: torch.Tensor) -> torch.Tensor:
-        xb = _blocks(x, p.n)  # a copy (the transpose), filled and put back
-        xb[p.uniform] = xb[p.uniform][:, :1].expand_as(xb[p.uniform])
-        b, hh, ww = p.uniform.shape
-        return xb.reshape(b, hh, ww, p.n, p.n, *x.shape[3:]).transpose(2, 3).reshape(x.shape)
-
-    return fill(radiance), {k: fill(v) for k, v in passes.items()}
+    the method's passes (B, H, W, C), in place."""
+    for x in (radiance, *passes.values()):
+        subs = _subs(x, p.n)
+        v0 = subs[0][p.uniform]
+        for v in subs[1:]:
+            v[p.uniform] = v0
+    return radiance, passes
 
 
 __all__ = ["DEPTH_TOL", "NORMAL_TOL", "SMOOTH_ALPHA", "Plan", "plan", "spread"]
