@@ -208,6 +208,60 @@ def test_resume_after_kill_9_completes_without_duplicates(tmp_path):
         assert direct.read_bytes() == files[f"{i:06d}.exr"]
 
 
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 64 KiB tmpfs (root only: skipped where mounting is not allowed); ``resize(kib)``
+    gives it more space."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
+                       capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"a size-limited folder needs a tmpfs mount: {r.stderr.strip()}")
+
+    def resize(kib: int) -> None:
+        subprocess.run(["mount", "-o", f"remount,size={kib}k", str(mnt)], check=True)
+
+    yield mnt, resize
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+@pytest.mark.parametrize("fmt", ["folder", "webdataset"])
+def test_full_disk_stops_with_a_clear_error_and_resumes(small_disk, reference, cfg_path,
+                                                        tmp_path, capsys, fmt):
+    """A full file system stops the run with an error naming the folder (exit 3, no
+    traceback), leaves no partial file and only whole recorded samples; with space back,
+    the same command completes the dataset, byte for byte the uninterrupted run's."""
+    mnt, resize = small_disk
+    need = sum(p.stat().st_size for p in reference.iterdir()) // 1024
+    resize(max(64, need // 3))  # room for part of the samples
+    out = mnt / "out"
+    args = ["sweep", str(cfg_path), "--out", str(out), "--quiet", "--format", fmt,
+            "--batch-size", "1"]
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert str(out) in err and "no space left" in err and "Traceback" not in err
+    assert _no_temporaries(out)
+    done = [e for e in read_manifest(out / "manifest.jsonl") if e["status"] == "ok"]
+    assert len(done) < 8
+    if fmt == "folder":
+        for e in done:  # what is recorded is whole
+            for kind in ("exr", "png"):
+                data = (out / e["files"][kind]).read_bytes()
+                assert hashlib.sha256(data).hexdigest() == e["sha256"][kind]
+    resize(4 * need + 1024)
+    assert main(args) == 0
+    lines = _manifest(out)
+    assert len(lines) == 8 and all(e["status"] == "ok" for e in lines)
+    assert _no_temporaries(out)
+    if fmt == "folder":
+        assert _files(out) == _files(reference)
+    else:
+        full = tmp_path / "full" / "out"  # beside the disk: the same relative input paths
+        assert main(args[:3] + [str(full)] + args[4:]) == 0
+        assert _files(out) == _files(full)
+
+
 def test_resume_after_kill_9_with_shards(tmp_path, reference):
     cfg = write_config(tmp_path / "c.yaml", small_sweep())
     out = tmp_path / "out"

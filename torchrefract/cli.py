@@ -89,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _sweep_cmd(args: argparse.Namespace) -> int:
-    from torchrefract.dataset.run import run_sweep  # noqa: PLC0415
+    from torchrefract.dataset.run import DiskFullError, run_sweep  # noqa: PLC0415
 
     try:
         s = run_sweep(args.config, args.out, fmt=args.format, shard_size=args.shard_size,
@@ -99,6 +99,9 @@ def _sweep_cmd(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"torchrefract: {exc}", file=sys.stderr)
         return 2
+    except DiskFullError as exc:
+        print(f"torchrefract: {exc}", file=sys.stderr)
+        return 3
     if s.failed:
         print(f"torchrefract: {s.failed} sample(s) FAILED (reasons in {args.out}/manifest.jsonl)"
               f": {', '.join(s.failed_ids[:10])}" + (" ..." if s.failed > 10 else ""),

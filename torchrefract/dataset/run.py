@@ -42,6 +42,7 @@ Modules: :mod:`~torchrefract.dataset.manifest` (the manifest file),
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -68,12 +69,48 @@ from torchrefract.dataset.sweep import Sample, SweepConfig, load_sweep
 from torchrefract.output.atomic import write_bytes
 
 # Names other modules imported from here before the split (kept importable).
-__all__ = ["EXECUTORS", "FORMATS", "MANIFEST", "RunSummary", "camera_metadata",
+__all__ = ["EXECUTORS", "FORMATS", "MANIFEST", "DiskFullError", "RunSummary", "camera_metadata",
            "channel_layout", "encode_exr", "encode_png", "latest_entries", "read_manifest",
            "render_items", "run_sweep"]
 
 SWEEP_RECORD = "sweep.json"
 RUN_LOG = "runs.jsonl"
+
+
+class DiskFullError(RuntimeError):
+    """The dataset folder's file system is full (or its quota spent): the run stopped
+    there. Every sample the manifest records is whole (no partial file is left: the writes
+    are atomic, an unfinished shard is deleted); the same command resumes once there is
+    space again."""
+
+
+def _log_run(out: Path, line: bytes) -> None:
+    """Append the run's line to ``RUN_LOG``, whole or not at all (a full disk leaves it
+    out rather than cut: the error the run stops with is the one reported)."""
+    try:
+        fd = os.open(out / RUN_LOG, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except OSError:
+        return
+    try:
+        start = os.lseek(fd, 0, os.SEEK_END)
+        try:
+            written = os.write(fd, line)
+        except OSError:
+            written = -1
+        if written != len(line):
+            os.ftruncate(fd, start)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _disk_full(out: Path, exc: OSError) -> DiskFullError:
+    where = f" (writing {exc.filename})" if exc.filename else ""
+    return DiskFullError(
+        f"{out}: no space left on its file system{where}: {exc.strerror}. The run stopped; "
+        f"the samples written so far are complete and recorded. Free space (or move the "
+        f"folder) and run the same command again to resume.")
 LOCK = ".lock"
 FORMATS = ("folder", "webdataset")
 EXECUTORS = ("local", "ray")
@@ -367,6 +404,10 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
             ex = _make_executor(executor, workers, settings, ray_address, quiet)
         _drive(cfg, out, fmt, ex, batches, manifest, shards, summary, quiet, t_ex)
         _finish(manifest, shards, summary)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise _disk_full(out, exc) from exc
+        raise
     finally:
         if shards is not None:
             shards.abort()
@@ -378,8 +419,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
             summary.shutdown_s = time.perf_counter() - t
         summary.wall_s = time.perf_counter() - t_start
         try:
-            with open(out / RUN_LOG, "a") as f:
-                f.write(json.dumps(dict(summary.to_dict(), run=_run_info())) + "\n")
+            _log_run(out, (json.dumps(dict(summary.to_dict(), run=_run_info())) + "\n"
+                           ).encode())
         finally:
             lock.release()
     return summary

@@ -75,10 +75,15 @@ class _TarShards:
         return done
 
     def abort(self) -> None:
-        """Delete the unfinished shard (a failed run: its samples are rendered again)."""
+        """Delete the unfinished shard (a failed run: its samples are rendered again). A
+        flush that fails on the way (a full disk) changes nothing: the temporary file is
+        removed all the same, and the error the run stopped with is the one reported."""
         if self.tar is not None:
             self.tar = None
-            self._files.__exit__(_ShardAborted, _ShardAborted(), None)
+            try:
+                self._files.__exit__(_ShardAborted, _ShardAborted(), None)
+            except OSError:
+                pass
 
 
 def _completed_shards(out: Path, latest: dict[str, dict], verify: bool
