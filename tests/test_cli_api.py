@@ -138,6 +138,33 @@ def test_cli_compare_prints_metrics_and_writes_error_map(tmp_path, capsys):
     assert main(["compare", str(tmp_path / "missing.exr"), str(a / "small.exr")]) == 2
 
 
+def test_memory_budget_chunks_a_batch_and_refuses_a_view_up_front(tmp_path):
+    """RenderSettings.memory_budget_mb (TORCHREFRACT_MEMORY_MB): a batch is shaded in
+    chunks of the views that fit the budget (the same pixels), and a view that alone does
+    not fit fails before any work, naming its size and the budget (a sweep records such a
+    sample as failed with that reason)."""
+    import importlib
+
+    from torchrefract.settings import RenderSettings, using
+
+    render_mod = importlib.import_module("torchrefract.render")
+    s = tr.load_scene(str(ROOT / "configs" / "demo.yaml"))
+    scenes = [s.replace(camera=tr.Camera(eye=(0.1 * i, 0.3, 3.0), width=64, height=64))
+              for i in range(5)]
+    per_view = 64 * 64 * render_mod.PASS_BYTES_PER_SUBPIXEL
+    budget_mb = (2 * per_view + (64 << 20)) // (1 << 20) + 1  # two views per pass
+    with using(RenderSettings(memory_budget_mb=budget_mb)):
+        assert [len(c) for c in render_mod._chunks(scenes)] == [2, 2, 1]
+    a = tr.render(scenes, settings=RenderSettings(memory_budget_mb=budget_mb))
+    assert torch.equal(a.radiance, tr.render(scenes).radiance)
+    big = s.replace(camera=tr.Camera(width=512, height=512, samples_per_pixel=2))
+    with pytest.raises(tr.ConfigError, match=r"512x512 view at samples_per_pixel 2 .*1\.6 "
+                                             r"GiB, over the memory budget of 100 MB"):
+        tr.render(big, settings=RenderSettings(memory_budget_mb=100))
+    with pytest.raises(tr.ConfigError, match="memory_budget_mb"):
+        RenderSettings(memory_budget_mb=0)
+
+
 @pytest.mark.parametrize("method, options", [("rousiers", {"internal_bounces": 1}),
                                              ("specular", {})])
 def test_a_large_batch_renders_in_chunks_with_the_same_pixels(monkeypatch, method, options):

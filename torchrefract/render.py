@@ -207,11 +207,55 @@ rendered alone): the march's per-sample plane lookups and the shading's gathers 
 within a few views' buffers, and the peak memory follows the chunk, not the batch."""
 
 
+PASS_BYTES_PER_SUBPIXEL = 1536
+"""Peak memory of a render pass per sub-pixel, bytes (measured on 2026-12-04: `rousiers`
+with two internal bounces, one view of 512, 1024 and 2048 pixels square: 1026, 1359, 1318;
+the G-buffer's layers, the march's planes, the rays, the radiance and the passes with
+their temporaries), for :func:`memory_budget`'s check."""
+
+
+def memory_budget() -> int:
+    """The bytes a render pass may take: ``RenderSettings.memory_budget_mb``, else 80% of
+    the memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where unknown)."""
+    mb = current().memory_budget_mb
+    if mb is not None:
+        return mb << 20
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(int(line.split()[1]) * 1024 * 0.8)
+    except OSError:
+        pass
+    return 4 << 30
+
+
+def _size(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MB"
+
+
 def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
-    """The batch split into near-equal consecutive chunks of at most MAX_PASS_SUBPIXELS."""
+    """The batch split into near-equal consecutive chunks of at most MAX_PASS_SUBPIXELS,
+    and of at most the memory budget's sub-pixels (:func:`memory_budget`).
+
+    Raises:
+        ConfigError: one view alone does not fit the budget (naming its size and the
+            budget; large frames are not rendered in tiles yet).
+    """
     c = scenes[0].camera
     per_view = c.width * c.height * c.samples_per_pixel ** 2
-    most = max(1, MAX_PASS_SUBPIXELS // per_view)
+    budget = memory_budget()
+    need = per_view * PASS_BYTES_PER_SUBPIXEL + (64 << 20)
+    if need > budget:
+        raise ConfigError(
+            f"render: one {c.width}x{c.height} view at samples_per_pixel "
+            f"{c.samples_per_pixel} ({per_view:,} sub-pixels) needs about {_size(need)}, "
+            f"over the memory budget of {_size(budget)} "
+            f"(RenderSettings.memory_budget_mb; default: 80% of the available memory): "
+            f"render it smaller or with fewer samples per pixel (large frames are not split "
+            f"into tiles yet)")
+    most = max(1, min(MAX_PASS_SUBPIXELS, (budget - (64 << 20)) // PASS_BYTES_PER_SUBPIXEL)
+               // per_view)
     n = -(-len(scenes) // most)  # chunks
     size = -(-len(scenes) // n)
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]

@@ -15,6 +15,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
+``TORCHREFRACT_MEMORY_MB=N``           ``memory_budget_mb=N``
 ``TORCHREFRACT_CACHE=DIR``             ``cache_dir=DIR``
 ====================================  =============================================
 
@@ -78,11 +79,20 @@ class RenderSettings:
     heap_reuse: bool = False
     """Tune glibc's allocator for the whole process (:mod:`torchrefract.heap`): asked for by
     the ``torchrefract`` command; never by default in a host process."""
+    memory_budget_mb: int | None = None
+    """The memory a render pass may take (MB): a batch is shaded in chunks of views that fit
+    it, and a view that alone does not fails up front, naming its size and the budget
+    (None: 80% of the machine's available memory at the render)."""
     cache_dir: str | None = None
     """Folder of the built kernels and tables (None: ``$XDG_CACHE_HOME/torchrefract`` or
     ``~/.cache/torchrefract``)."""
 
     def __post_init__(self):
+        if self.memory_budget_mb is not None and (
+                isinstance(self.memory_budget_mb, bool)
+                or not isinstance(self.memory_budget_mb, int) or self.memory_budget_mb < 1):
+            raise ConfigError(f"RenderSettings.memory_budget_mb: expected an integer >= 1 or "
+                              f"None, got {self.memory_budget_mb!r}")
         if self.threads is not None and (isinstance(self.threads, bool)
                                          or not isinstance(self.threads, int)
                                          or self.threads < 1):
@@ -93,12 +103,14 @@ class RenderSettings:
     def from_env(cls, **overrides) -> "RenderSettings":
         """The defaults as the environment variables (module docstring) set them."""
         threads = os.environ.get("TORCHREFRACT_THREADS", "").strip()
+        budget = os.environ.get("TORCHREFRACT_MEMORY_MB", "").strip()
         base = cls(
             threads=int(threads) if threads.isdigit() and int(threads) > 0 else None,
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
             fused=_env_flag("TORCHREFRACT_FUSED", True),
             adaptive=_env_flag("TORCHREFRACT_ADAPTIVE", False),
+            memory_budget_mb=int(budget) if budget.isdigit() and int(budget) > 0 else None,
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,
