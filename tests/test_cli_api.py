@@ -156,7 +156,7 @@ def test_memory_budget_chunks_a_batch_and_refuses_a_view_up_front(tmp_path):
     with using(RenderSettings(memory_budget_mb=budget_mb)):
         assert [len(c) for c in render_mod._chunks(scenes)] == [2, 2, 1]
     a = tr.render(scenes, settings=RenderSettings(memory_budget_mb=budget_mb))
-    assert torch.equal(a.radiance, tr.render(scenes).radiance)
+    assert torch.equal(a.radiance, tr.render(scenes, settings=RenderSettings()).radiance)
     big = s.replace(camera=tr.Camera(width=512, height=512, samples_per_pixel=2))
     with pytest.raises(tr.ConfigError, match=r"512x512 view at samples_per_pixel 2 .*1\.6 "
                                              r"GiB, over the memory budget of 100 MB"):
