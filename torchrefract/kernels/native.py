@@ -48,7 +48,7 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "background.c", "rousiers.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
-                          "lighting.h", "frame.h"))
+                          "lighting.h", "frame.h", "bounces.h"))
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 # With -march=native where the compiler takes it: this CPU's instructions (fmaf inline,
@@ -177,10 +177,17 @@ class _Frame(ctypes.Structure):
         ("exit_found", _p), ("tir", _p)]
 
 
+class _Bounces(ctypes.Structure):
+    """ctypes mirror of ``Bounces`` in csrc/bounces.h."""
+
+    _fields_ = [("limit", ctypes.c_int), ("rays", ctypes.c_int), ("steps", ctypes.c_int),
+                ("tol", ctypes.c_float), ("planes_in", _p), ("bounces", _p), ("residual", _p)]
+
+
 class _SpecJob(ctypes.Structure):
     """ctypes mirror of ``SpecJob`` in csrc/specular.c."""
 
-    _fields_ = [("f", _Frame), ("blur", ctypes.c_int), ("blur_sigma", _p)]
+    _fields_ = [("f", _Frame), ("blur", ctypes.c_int), ("blur_sigma", _p), ("bo", _Bounces)]
 
 
 class _RousJob(ctypes.Structure):
@@ -188,10 +195,8 @@ class _RousJob(ctypes.Structure):
 
     _fields_ = [("f", _Frame), ("cone_steps", ctypes.c_int), ("cone_refine", ctypes.c_int),
                 ("two_ln4", ctypes.c_float), ("lobe_sigma", _p), ("footprint", _p),
-                ("bounce_limit", ctypes.c_int), ("bounce_rays", ctypes.c_int),
-                ("bounce_steps", ctypes.c_int), ("bounce_tol", ctypes.c_float),
-                ("diffuse_var", ctypes.c_float), ("planes_in", _p), ("bounces", _p),
-                ("residual", _p), ("levels", ctypes.c_int), ("mips", ctypes.c_int),
+                ("bo", _Bounces), ("diffuse_var", ctypes.c_float),
+                ("levels", ctypes.c_int), ("mips", ctypes.c_int),
                 ("level_alpha", _p), ("cover", _p), ("cover_hw", _p)]
 
 

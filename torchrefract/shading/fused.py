@@ -7,8 +7,8 @@ it gives the same image: the native kernels are built (:mod:`.native`), the sett
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
 tensor is on the CPU, and the kernel covers the scene's features. Today: at most 64 sphere
 lights; ``rousiers`` with its default cone and spread (``cone_rays: march``, ``spread:
-rays``), roughness maps and internal bounces; ``specular`` and
-``prefiltered`` without internal bounces. Elsewhere these functions return ``None`` and the
+rays``), roughness maps and internal bounces; ``specular`` (internal bounces included)
+and ``prefiltered``. Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
 
@@ -141,11 +141,10 @@ def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
 
 def specular(g, lighting, materials, options, radiance: torch.Tensor
              ) -> tuple[torch.Tensor, dict] | None:
-    """``render_specular``'s radiance (B, H, W, 3) and passes (``exit_found``, ``tir``),
-    shaded over ``radiance`` (B*H*W, 3), the background (written in place); ``None``, and
-    ``radiance`` untouched, where the fused kernel does not run (module docstring)."""
-    if options.bounces.enabled:
-        return None
+    """``render_specular``'s radiance (B, H, W, 3) and passes (``exit_found``, ``tir``; with
+    internal bounces ``bounces``, ``bounce_residual``), shaded over ``radiance`` (B*H*W, 3),
+    the background (written in place); ``None``, and ``radiance`` untouched, where the fused
+    kernel does not run (module docstring)."""
     return _paths(g, lighting, materials, options, radiance, blur=False)
 
 
@@ -173,22 +172,10 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
     b, h, w = g.shape
     sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
-    bs = options.bounces
-    limit, tol = 0, 0.0
-    if bs.enabled:  # shading.bounces.follow's budget
-        auto = bs.internal_bounces == AUTO
-        limit = bs.max_internal_bounces if auto else int(bs.internal_bounces)
-        tol = bs.bounce_tolerance if auto else 0.0
-        counts, resid = torch.zeros(b * h * w), torch.zeros(b * h * w)
-        passes.update(bounces=counts.view(b, h, w, 1), bounce_residual=resid.view(b, h, w, 1))
     job = native._RousJob(
         f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
         two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
-        bounce_limit=limit, bounce_rays=bs.bounce_rays, bounce_steps=bs.bounce_march_steps,
-        bounce_tol=tol, diffuse_var=diffuse_var)
-    if limit and frame.n:
-        job.planes_in = keep.ptr(camera_planes(g, both=True))
-        job.bounces, job.residual = counts.data_ptr(), resid.data_ptr()
+        bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var)
     if coverage is not None:  # one exit lobe per roughness level (sec. 5.1)
         levels, mips = coverage
         job.levels, job.mips = levels.shape[1], len(mips)
@@ -198,6 +185,23 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
     if frame.n and not _run("rousiers", job):
         return None
     return radiance.view(b, h, w, 3), passes
+
+
+def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:
+    """csrc/bounces.h's budget for ``bs`` (bounces.BounceSettings), with the slab planes of
+    the inside march and the bounce passes (added to ``passes``) where it is not 0."""
+    if not bs.enabled:
+        return native._Bounces(limit=0)
+    b, h, w = g.shape
+    auto = bs.internal_bounces == AUTO  # shading.bounces.follow's budget
+    counts, resid = torch.zeros(b * h * w), torch.zeros(b * h * w)
+    passes.update(bounces=counts.view(b, h, w, 1), bounce_residual=resid.view(b, h, w, 1))
+    return native._Bounces(
+        limit=bs.max_internal_bounces if auto else int(bs.internal_bounces),
+        rays=bs.bounce_rays, steps=bs.bounce_march_steps,
+        tol=bs.bounce_tolerance if auto else 0.0,
+        planes_in=keep.ptr(camera_planes(g, both=True)) if frame.n else None,
+        bounces=counts.data_ptr(), residual=resid.data_ptr())
 
 
 def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
@@ -211,8 +215,9 @@ def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
     sigma = torch.zeros(b * h * w)
     if blur:
         passes["blur_sigma"] = sigma.view(b, h, w, 1)
-    if frame.n and not _run("specular", native._SpecJob(
-            f=frame, blur=int(blur), blur_sigma=sigma.data_ptr())):
+    job = native._SpecJob(f=frame, blur=int(blur), blur_sigma=sigma.data_ptr(),
+                          bo=_bounces(g, options.bounces, frame, keep, passes))
+    if frame.n and not _run("specular", job):
         return None
     return radiance.view(b, h, w, 3), passes
 

@@ -18,21 +18,15 @@
  * path; tests/test_fused.py holds the two together.
  */
 
-#include "frame.h"
+#include "bounces.h"
 
 typedef struct {
     Frame f;
     int cone_steps, cone_refine;  /* the bounding rays' march (the axis': f.march) */
     float two_ln4;                /* 2 ln 4 as float32 (kernels.cone.ray_spread) */
     float *lobe_sigma, *footprint; /* out (B*H*W,) the passes of shade.PASSES */
-    /* internal bounces (bounces.BounceSettings; limit 0: none, the first exit is the last
-     * interface): interfaces followed after the first exit (K, or max_internal_bounces
-     * under ``auto``), the throughput a ray stops at (0 for K), rays of the first internal
-     * reflection (1 or 4), the inside march's coarse steps, options.DIFFUSE_VAR */
-    int bounce_limit, bounce_rays, bounce_steps;
-    float bounce_tol, diffuse_var;
-    const float *planes_in;        /* (B*H*W, 8) camera_planes(g, both=True) */
-    float *bounces, *residual;     /* out (B*H*W,) bounces.bounce_passes */
+    Bounces bo;                    /* internal bounces (bounces.h; limit 0: none) */
+    float diffuse_var;             /* options.DIFFUSE_VAR */
     /* roughness maps (sec. 5.1; 0 levels: none in the batch): the L roughness levels of
      * each view (B, L; at least ALPHA_MIN; a uniform view's L times its roughness) and
      * their coverage over the back layer as box mips (cone.coverage_mips): per mip level
@@ -66,14 +60,6 @@ static const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b, floa
     return own;
 }
 
-/* materials.roughness_at at the barycentrics of triangle tri (0 where none:
- * gbuffer.interpolate of tri.clamp(min=0)), at least ALPHA_MIN. */
-static float alpha_on(const Frame *f, int64_t b, const float *bary, int64_t tri) {
-    float uv[2];
-    interpolate(bary, f->tri_uvs + 6 * (tri > 0 ? tri : 0), 2, uv);
-    float a = roughness_at(f, b, uv);
-    return a > 1e-4f ? a : 1e-4f;
-}
 
 /* cone.bounding_angle: theta_b = 2 asin(sqrt(-expm1(-ln 4 / (k + 1)) / 2)) (eq. 12). */
 static inline float bounding_angle(float k) {
@@ -148,21 +134,6 @@ static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact
     }
     return cnt > 0 ? (sum / (float)cnt) / rj->two_ln4 : fallback;
 }
-
-/* The internal reflections of one block's pixels (bounces.follow's state): per pixel the
- * light leaving through the interfaces met from inside (``acc``), the bounces followed and
- * the residual throughput; per ray still alive its pixel, where it is (its arrival at the
- * next interface once marched), its direction, throughput, lobe variance and share of its
- * path. */
-#define RAYS (4 * BLOCK)
-typedef struct {
-    float acc[BLOCK][3], bounces[BLOCK], residual[BLOCK];
-    int n;
-    int pix[RAYS];
-    float p[RAYS][3], t[RAYS][3], w[RAYS][3], var[RAYS], share[RAYS], normal[RAYS][3];
-    float alpha[RAYS];  /* the roughness where the ray arrives (the map at its UV) */
-    uint8_t found[RAYS];
-} Paths;
 
 /* What the steps of one block of pixels hand on: the axis' and the bounding rays' marches,
  * the front lobes, and the internal reflections. */
@@ -276,34 +247,6 @@ static void coverage(const RousJob *rj, int64_t b, float x, float y, float lv, f
     for (int q = 0; q < nl; q++) c[q] = c[q] / (sum > 1e-12f ? sum : 1e-12f);
 }
 
-/* bounces.follow's bookkeeping for the rays an interface reflects inside: throughput
- * w_next = w refl goes on where the interface was found, the ray is not at the budget's
- * last interface and w_next exceeds the tolerance (max over RGB); elsewhere its mean is
- * residual. Returns whether it goes on. */
-static int goes_on(const RousJob *rj, Paths *ps, int pix, int found, int last, const float *w,
-                   float refl, float *w_next) {
-    for (int c = 0; c < 3; c++) w_next[c] = w[c] * refl;
-    float mx = tmax(tmax(w_next[0], w_next[1]), w_next[2]);
-    if (found && !last && mx > rj->bounce_tol && refl > 0.0f) return 1;
-    ps->residual[pix] += ((w_next[0] + w_next[1]) + w_next[2]) / 3.0f;
-    return 0;
-}
-
-/* Add a ray to the paths: from p along t with throughput w and lobe variance var. */
-static void add_ray(Paths *ps, int pix, const float *p, const float *t, const float *w,
-                    float var, float share) {
-    int r = ps->n++;
-    ps->pix[r] = pix;
-    for (int c = 0; c < 3; c++) {
-        ps->p[r][c] = p[c];
-        ps->t[r][c] = t[c];
-        ps->w[r][c] = w[c];
-    }
-    ps->var[r] = var;
-    ps->share[r] = share;
-    ps->bounces[pix] += share;
-}
-
 /* The first exit's internal reflection (rousiers.bounces.follow_bounces): the table's
  * reflected lobe (E_ri averaged over the arriving lobe, k_ri) along the mirror direction of
  * p_t1 about the exit normal; with ``bounce_rays: 4`` split into four rays around it
@@ -327,11 +270,11 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
         sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
         spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
     }
-    if (!goes_on(rj, ps, i, reflects, 0, w1, e_ri, w_next)) return;
+    if (!goes_on(&rj->bo, ps, i, reflects, 0, w1, e_ri, w_next)) return;
     float d[3], var = var1 + 1.0f / (k_ri > 1e-12f ? k_ri : 1e-12f);
     reflect(p_t1, n_in, d);
     normalize3(d);
-    if (rj->bounce_rays == 1) {
+    if (rj->bo.rays == 1) {
         add_ray(ps, i, p2, d, w_next, var, 1.0f);
         return;
     }
@@ -378,7 +321,7 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
     float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
     float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
                                (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
-    int bounce = rj->bounce_limit > 0, mode = bounce ? SPLIT : j->tir_mode;
+    int bounce = rj->bo.limit > 0, mode = bounce ? SPLIT : j->tir_mode;
     float thick = j->back_dist[px] - j->front_dist[px];
     float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
     float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], kk, c_xy[2], minor;
@@ -446,7 +389,11 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
         k->hidden[i] = (uint8_t)hidden;
         for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
         /* the exit's internal reflection lobe uses the roughness at the exit point */
-        float a_x = found ? alpha_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]) : alpha;
+        float a_x = alpha;
+        if (found) {
+            a_x = roughness_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]);
+            a_x = a_x > 1e-4f ? a_x : 1e-4f;
+        }
         SgAxes own_x[AXES];
         first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
                          found && ior != 1.0f, p_t1, n_in, cos2, var1, p2, w1, l_trans);
@@ -464,10 +411,11 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
  * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
  * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
  * direction and variance of the reflected lobe. */
-static float shade_inside(const RousJob *rj, const SgAxes *view_axes, Paths *ps, int r,
+static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, int r,
                           int64_t b, int last, float *dir, float *var_out) {
+    const RousJob *rj = (const RousJob *)job;
     const Frame *j = &rj->f;
-    float alpha = ps->alpha[r];
+    float alpha = ps->alpha[r] > 1e-4f ? ps->alpha[r] : 1e-4f;  /* microfacet.ALPHA_MIN */
     SgAxes own[AXES];
     const SgAxes *ax = axes_at(j, view_axes, b, alpha, own);
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
@@ -527,55 +475,6 @@ static float shade_inside(const RousJob *rj, const SgAxes *view_axes, Paths *ps,
     return refl;
 }
 
-/* Step 5 over a block (bounces.follow from its second interface on): march the rays still
- * alive to their next interface (march_inside: both layers, from 1e-4 of the chord),
- * attenuate them over the segment, shade it, keep the rays that go on; until none does. */
-static void follow_block(const RousJob *rj, const SgAxes *axes, Paths *ps, int64_t r0) {
-    const Frame *j = &rj->f;
-    Job inside = j->march;
-    inside.planes = rj->planes_in;
-    inside.pw = 8;
-    Rays rays;
-    for (int k = 1; ps->n > 0; k++) {
-        for (int r0m = 0; r0m < ps->n; r0m += BLOCK) {  /* the march, BLOCK rays at a time */
-            int m = ps->n - r0m < BLOCK ? ps->n - r0m : BLOCK;
-            for (int i = 0; i < m; i++) {
-                int r = r0m + i;
-                int64_t b = j->batch[r0 + ps->pix[r]];
-                float c0[3], ct[3];
-                camera_coords(j, b, ps->p[r], 1, c0);
-                camera_coords(j, b, ps->t[r], 0, ct);
-                set_ray(j, &rays, i, b, ps->p[r], ps->t[r], c0, ct);
-                rays.smin[i] = 1e-4f * rays.smax[i];
-            }
-            march_rays_on(&inside, &rays, m, rj->bounce_steps, j->march.refine);
-            for (int i = 0; i < m; i++) {
-                int r = r0m + i;
-                int64_t b = j->batch[r0 + ps->pix[r]];
-                int f = rays.found[i];
-                float s = f ? rays.s[i] : 0.0f;
-                for (int c = 0; c < 3; c++) {
-                    ps->w[r][c] = ps->w[r][c] * expf(-j->absorption[3 * b + c] * s);
-                    if (f) ps->p[r][c] = rays.pos[3 * i + c];
-                    ps->normal[r][c] = rays.normal[3 * i + c];
-                }
-                ps->found[r] = (uint8_t)f;
-                ps->alpha[r] = alpha_on(j, b, rays.bary + 3 * i, rays.tri[i]);
-            }
-        }
-        int last = k >= rj->bounce_limit, n = ps->n;
-        ps->n = 0;
-        for (int r = 0; r < n; r++) {  /* shade, and compact the rays that go on in place */
-            int pix = ps->pix[r];
-            int64_t b = j->batch[r0 + pix];
-            float dir[3], var, w_next[3];
-            float refl = shade_inside(rj, axes + NAXES * b, ps, r, b, last, dir, &var);
-            if (goes_on(rj, ps, pix, ps->found[r], last, ps->w[r], refl, w_next))
-                add_ray(ps, pix, ps->p[r], dir, w_next, var, ps->share[r]);
-        }
-    }
-}
-
 /* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
  * family over the block, steps 3-5 per pixel. */
 static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
@@ -596,14 +495,14 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         int64_t b = j->batch[r0 + i];
         shade_pixel(rj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
-    if (rj->bounce_limit <= 0) return;
-    follow_block(rj, axes, &k.paths, r0);
+    if (rj->bo.limit <= 0) return;
+    follow_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths, r0);
     for (int i = 0; i < m; i++) {  /* the pixel over the background, its bounce passes */
         int64_t px = j->idx[r0 + i];
         for (int c = 0; c < 3 && !k.hidden[i]; c++)
             j->radiance[3 * px + c] = k.front[i][c] + k.paths.acc[i][c];
-        rj->bounces[px] = k.paths.bounces[i];
-        rj->residual[px] = k.paths.residual[i];
+        rj->bo.bounces[px] = k.paths.bounces[i];
+        rj->bo.residual[px] = k.paths.residual[i];
     }
 }
 

@@ -14,14 +14,23 @@
  * holds up no other.
  */
 
-#include "frame.h"
+#include "bounces.h"
 
 typedef struct {
     Frame f;
     int blur;                   /* 1: ``prefiltered``: the lookups blurred by the roughness
                                  * (prefiltered.blur_sharpness), from the SG pyramids */
     float *blur_sigma;          /* (B*H*W,) with ``blur``: the transmitted lobe's k^-1/2 */
+    Bounces bo;                 /* internal bounces (bounces.h; limit 0: none) */
 } SpecJob;
+
+/* What one block of pixels hands on with internal bounces: the front reflection's light,
+ * whether a light hides the pixel, and the paths. */
+typedef struct {
+    float front[BLOCK][3];
+    uint8_t hidden[BLOCK];
+    Paths paths;
+} SpecBlock;
 
 /* The exit's energies (paths.trace_paths): the smooth interface's Fresnel split, or the
  * rough one's (SG table: ``in`` the entry's axes at alpha1, ``out`` the exit's at alpha2),
@@ -29,14 +38,15 @@ typedef struct {
  * fraction of the trapped light. */
 static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, int64_t b,
                           float alpha1, float alpha2, float cos1, float cos2, float f2,
-                          float *e_t2, float *e_r2, float *esc) {
+                          int spread, float *e_t2, float *e_r2, float *esc, float *var) {
     float eta = j->ior[b];
     int64_t dist = j->dist[b];
     *esc = 1.0f;
+    *var = 0.0f;
     if (!j->rough) {
         *e_t2 = 1.0f - f2;
         *e_r2 = f2;
-    } else if (j->tir_mode == 0) {
+    } else if (spread) {  /* ``tir: conserve``, or internal bounces follow */
         int rough = alpha1 > j->table.alpha_min;
         float k1, tilt;
         transmit_lobe(&j->table, in, dist, cos1, &k1, &tilt);
@@ -52,8 +62,8 @@ static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, i
         float c_axis = cos2 * cos_d - sin2 * sin_d;
         if (c_axis < 0.0f) c_axis = 0.0f;
         if (!rough) c_axis = cos2;
-        spread_interface_energies(&j->table, out, dist, c_axis, rough ? 1.0f / k1 : 0.0f,
-                                  eta, e_t2, e_r2);
+        *var = rough ? 1.0f / k1 : 0.0f;
+        spread_interface_energies(&j->table, out, dist, c_axis, *var, eta, e_t2, e_r2);
         *esc = escape(j, b, alpha2);
     } else {
         interface_energies(&j->table, out, dist, cos2, f2, e_t2, e_r2);
@@ -71,11 +81,97 @@ static inline float leaving_weight(int mode, int tir, float e_t, float e_r, floa
     return tir ? (kept > 1.0f ? 1.0f : kept) : e_t;
 }
 
+/* The reflected lobe's spread for the next interface (render_specular's _interface): a
+ * rough interface's internal reflection lobe (the table's moment sharpness) widens it. */
+static float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b, float alpha,
+                           float cos, float var) {
+    float k_r, ang, e;
+    sg_lookup(&sj->f.table, out, sj->f.dist[b], 1, 0, cos, &k_r, &ang, &e);
+    return var + (alpha > 0.0f ? 1.0f / k_r : 0.0f);
+}
+
+/* The first exit with internal bounces (render_specular's _interface at k = 0): what the
+ * exit lets out (its energies: the paths' e_t2, e_r2 where the batch is rough, Fresnel
+ * elsewhere) along the refracted ray, and the mirror ray that goes on with the rest. ``out``:
+ * the table's axes of the exit interface. */
+static void first_exit(const SpecJob *sj, const SgAxes *out, Paths *ps, int i, int64_t b,
+                       const Rays *rays, const float *t1, const float *n2, const float *t_ref,
+                       const float *p2, float cos2, float f2, float e_t1, float e_t2,
+                       float e_r2, float var1, float path) {
+    const Frame *j = &sj->f;
+    int ok = rays->found[i];
+    float alpha = roughness_on(j, b, rays->bary + 3 * i, ok ? rays->tri[i] : -1);
+    float e_t = 1.0f - f2, e_r = f2, var = 0.0f, w1[3], w_next[3], r[3], l_out[3];
+    if (j->rough) {
+        e_t = e_t2;
+        e_r = e_r2;
+        var = reflected_var(sj, out, b, alpha, cos2, var1);
+    }
+    float w_out = ok ? e_t : (j->rough ? escape(j, b, alpha) : 1.0f);
+    float refl = ok ? e_r : 0.0f;
+    incident(&j->lights, b, p2, ok ? t_ref : t1, l_out);
+    for (int c = 0; c < 3; c++) {
+        w1[c] = e_t1 * expf(-j->absorption[3 * b + c] * path);
+        ps->acc[i][c] = w1[c] * w_out * l_out[c];
+    }
+    ps->bounces[i] = 0.0f;
+    ps->residual[i] = 0.0f;
+    if (!goes_on(&sj->bo, ps, i, ok, 0, w1, refl, w_next)) return;
+    reflect(t1, n2, r);
+    add_ray(ps, i, p2, r, w_next, var, 1.0f);
+}
+
+/* A later interface (render_specular's _interface, k >= 1): the smooth ray refracts out
+ * with the interface's energies (Fresnel; rough: the table's, averaged over the lobe
+ * carried), the ``tir`` rule at the budget's last interface; the mirror ray goes on. A ray
+ * the march lost leaves along its own direction with the escape fraction. */
+static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps, int r,
+                             int64_t b, int last, float *dir, float *var_out) {
+    const SpecJob *sj = (const SpecJob *)job;
+    const Frame *j = &sj->f;
+    float eta = j->ior[b], alpha = ps->alpha[r], *t = ps->t[r];
+    SgAxes own;
+    const SgAxes *out = view_axes + 1;
+    if (j->rmap[b]) {
+        sg_axes(&j->table, 1.0f / eta, alpha, &own);
+        out = &own;
+    }
+    float n_view[3], t_out[3], l_out[3];
+    face_forward(ps->normal[r], t, n_view);
+    float cos = -dot3(t, n_view), f = fresnel(cos, eta);
+    int tir = refract(t, n_view, eta, t_out);
+    reflect(t, n_view, dir);
+    float e_t = 1.0f - f, e_r = f, var = 0.0f;
+    if (j->rough) {
+        spread_interface_energies(&j->table, out, j->dist[b], cos, ps->var[r], eta, &e_t, &e_r);
+        if (!last) var = reflected_var(sj, out, b, alpha, cos, ps->var[r]);
+    }
+    float esc = j->rough && (!ps->found[r] || (last && j->tir_mode == 0))
+                    ? escape(j, b, alpha) : 1.0f;
+    float w_out = e_t, refl = e_r;
+    if (last) {
+        if (j->tir_mode == 2 && tir)
+            for (int c = 0; c < 3; c++) t_out[c] = dir[c];
+        w_out = leaving_weight(j->tir_mode, tir, e_t, e_r, esc);
+        refl = j->tir_mode == 0 || tir ? 0.0f : e_r;
+    }
+    if (!ps->found[r]) {
+        for (int c = 0; c < 3; c++) t_out[c] = t[c];
+        w_out = esc;
+        refl = 0.0f;
+    }
+    incident(&j->lights, b, ps->p[r], t_out, l_out);
+    for (int c = 0; c < 3; c++) ps->acc[ps->pix[r]][c] += ps->w[r][c] * w_out * l_out[c];
+    *var_out = var;
+    return refl;
+}
+
 /* Step 3 for ray i of a marched block (paths.trace_paths, render_specular, and
  * render_prefiltered with ``blur``): the exit refraction, the energies and the exit rule,
  * the absorption, the two lookups; the pixel and its passes written. */
 static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, int i,
-                        const float *d, const float *n1, int tir1, int64_t px, int64_t b) {
+                        const float *d, const float *n1, int tir1, int64_t px, int64_t b,
+                        SpecBlock *sb) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
     float eta = j->ior[b];
@@ -93,10 +189,12 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         ax = own;
     }
     float cos1 = -dot3(d, n1), f1 = fresnel(cos1, 1.0f / eta);
-    float n2[3], t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc;
+    float n2[3], t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1, t_ref[3];
+    int bounce = sj->bo.limit > 0;
     face_forward(rays->normal + 3 * i, t1, n2);
     float cos2 = -dot3(t1, n2), f2 = fresnel(cos2, eta);
     int tir2 = refract(t1, n2, eta, t2) && ok;
+    for (int c = 0; c < 3; c++) t_ref[c] = t2[c];
     if (j->tir_mode == 2 && tir2) reflect(t1, n2, t2);
     if (j->rough) {
         interface_energies(&j->table, ax, j->dist[b], cos1, f1, &e_t1, &e_r1);
@@ -104,7 +202,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         e_t1 = 1.0f - f1;
         e_r1 = f1;
     }
-    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, cos2, f2, &e_t2, &e_r2, &esc);
+    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, cos2, f2,
+                  j->tir_mode == 0 || bounce, &e_t2, &e_r2, &esc, &var1);
     float w2 = leaving_weight(j->tir_mode, tir2, e_t2, e_r2, esc), path;
     if (ok) {
         for (int c = 0; c < 3; c++) p2[c] = rays->pos[3 * i + c];
@@ -132,7 +231,12 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     int64_t l;
     int hidden = j->lights.nl > 0 &&
                  hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
-    if (!hidden) {
+    if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
+        sb->hidden[i] = (uint8_t)hidden;
+        for (int c = 0; c < 3; c++) sb->front[i][c] = e_r1 * l_refl[c];
+        first_exit(sj, ax + 1, &sb->paths, i, b, rays, t1, n2, t_ref, p2, cos2, f2, e_t1, e_t2,
+                   e_r2, var1, path);
+    } else if (!hidden) {
         for (int c = 0; c < 3; c++) {
             float att = expf(-j->absorption[3 * b + c] * path);
             j->radiance[3 * px + c] = e_r1 * l_refl[c] + e_t1 * w2 * att * l_trans[c];
@@ -164,10 +268,21 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         set_ray(j, &rays, i, b, p1, t1, c0, ct);
     }
     march_rays(j, &rays, m, j->march.steps, j->march.refine);
+    SpecBlock sb;
+    sb.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
         shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, n1 + 3 * i, tir1[i], j->idx[r0 + i],
-                    b);
+                    b, &sb);
+    }
+    if (sj->bo.limit <= 0) return;
+    follow_block(j, &sj->bo, sj, inside_specular, axes, 2, &sb.paths, r0);
+    for (int i = 0; i < m; i++) {  /* the pixel over the background, its bounce passes */
+        int64_t px = j->idx[r0 + i];
+        for (int c = 0; c < 3 && !sb.hidden[i]; c++)
+            j->radiance[3 * px + c] = sb.front[i][c] + sb.paths.acc[i][c];
+        sj->bo.bounces[px] = sb.paths.bounces[i];
+        sj->bo.residual[px] = sb.paths.residual[i];
     }
 }
 

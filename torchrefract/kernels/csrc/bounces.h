@@ -1,0 +1,129 @@
+/* Internal reflections in the fused kernels (shading/bounces.follow), shared by
+ * specular.c and rousiers.c: the paths of one block of pixels, the budget's bookkeeping
+ * and the march between the layers from one interface to the next. Each method brings
+ * its own interface model (``tr_inside_fn``: bounces.ShadeFn after the first exit). */
+
+#ifndef TORCHREFRACT_BOUNCES_H
+#define TORCHREFRACT_BOUNCES_H
+
+#include "frame.h"
+
+/* The budget (bounces.BounceSettings; limit 0: none) and what it writes. */
+typedef struct {
+    int limit;                  /* interfaces after the first exit (K, or the auto cap) */
+    int rays;                   /* rays of the first internal reflection (1 or 4) */
+    int steps;                  /* coarse steps of each inside march */
+    float tol;                  /* a ray stops at this throughput (max over RGB; 0 for K) */
+    const float *planes_in;     /* (B*H*W, 8) camera_planes(g, both=True) */
+    float *bounces, *residual;  /* out (B*H*W,) bounces.bounce_passes */
+} Bounces;
+
+/* The internal reflections of one block's pixels (bounces.follow's state): per pixel the
+ * light leaving through the interfaces met from inside (``acc``), the bounces followed and
+ * the residual throughput; per ray still alive its pixel, where it is (its arrival at the
+ * next interface once marched), its direction, throughput, lobe variance, share of its
+ * path and the roughness where it arrives. */
+#define RAYS (4 * BLOCK)
+typedef struct {
+    float acc[BLOCK][3], bounces[BLOCK], residual[BLOCK];
+    int n;
+    int pix[RAYS];
+    float p[RAYS][3], t[RAYS][3], w[RAYS][3], var[RAYS], share[RAYS], normal[RAYS][3];
+    float alpha[RAYS];  /* materials.roughness_at at the arrival's UV (not clamped) */
+    uint8_t found[RAYS];
+} Paths;
+
+/* A method's interface model for ray r of the paths at a later interface: adds the light
+ * leaving to ``acc``; returns the reflectance, and the reflected lobe's direction and
+ * variance. */
+typedef float (*tr_inside_fn)(const void *job, const SgAxes *view_axes, Paths *ps, int r,
+                              int64_t b, int last, float *dir, float *var_out);
+
+/* materials.roughness_at at the barycentrics of triangle tri (0 where none:
+ * gbuffer.interpolate of tri.clamp(min=0)). */
+static float roughness_on(const Frame *f, int64_t b, const float *bary, int64_t tri) {
+    float uv[2];
+    interpolate(bary, f->tri_uvs + 6 * (tri > 0 ? tri : 0), 2, uv);
+    return roughness_at(f, b, uv);
+}
+
+/* bounces.follow's bookkeeping for the rays an interface reflects inside: throughput
+ * w_next = w refl goes on where the interface was found, the ray is not at the budget's
+ * last interface and w_next exceeds the tolerance (max over RGB); elsewhere its mean is
+ * residual. Returns whether it goes on. */
+static int goes_on(const Bounces *bo, Paths *ps, int pix, int found, int last, const float *w,
+                   float refl, float *w_next) {
+    for (int c = 0; c < 3; c++) w_next[c] = w[c] * refl;
+    float mx = tmax(tmax(w_next[0], w_next[1]), w_next[2]);
+    if (found && !last && mx > bo->tol && refl > 0.0f) return 1;
+    ps->residual[pix] += ((w_next[0] + w_next[1]) + w_next[2]) / 3.0f;
+    return 0;
+}
+
+/* Add a ray to the paths: from p along t with throughput w and lobe variance var. */
+static void add_ray(Paths *ps, int pix, const float *p, const float *t, const float *w,
+                    float var, float share) {
+    int r = ps->n++;
+    ps->pix[r] = pix;
+    for (int c = 0; c < 3; c++) {
+        ps->p[r][c] = p[c];
+        ps->t[r][c] = t[c];
+        ps->w[r][c] = w[c];
+    }
+    ps->var[r] = var;
+    ps->share[r] = share;
+    ps->bounces[pix] += share;
+}
+
+/* bounces.follow from the second interface on, over a block: march the rays still alive
+ * to their next interface (march_inside: both layers, from 1e-4 of the chord), attenuate
+ * them over the segment, shade it (``shade``, with view b's ``naxes`` table axes), keep
+ * the rays that go on; until none does. */
+static void follow_block(const Frame *j, const Bounces *bo, const void *job,
+                         tr_inside_fn shade, const SgAxes *axes, int naxes, Paths *ps,
+                         int64_t r0) {
+    Job inside = j->march;
+    inside.planes = bo->planes_in;
+    inside.pw = 8;
+    Rays rays;
+    for (int k = 1; ps->n > 0; k++) {
+        for (int r0m = 0; r0m < ps->n; r0m += BLOCK) {  /* the march, BLOCK rays at a time */
+            int m = ps->n - r0m < BLOCK ? ps->n - r0m : BLOCK;
+            for (int i = 0; i < m; i++) {
+                int r = r0m + i;
+                int64_t b = j->batch[r0 + ps->pix[r]];
+                float c0[3], ct[3];
+                camera_coords(j, b, ps->p[r], 1, c0);
+                camera_coords(j, b, ps->t[r], 0, ct);
+                set_ray(j, &rays, i, b, ps->p[r], ps->t[r], c0, ct);
+                rays.smin[i] = 1e-4f * rays.smax[i];
+            }
+            march_rays_on(&inside, &rays, m, bo->steps, j->march.refine);
+            for (int i = 0; i < m; i++) {
+                int r = r0m + i;
+                int64_t b = j->batch[r0 + ps->pix[r]];
+                int f = rays.found[i];
+                float s = f ? rays.s[i] : 0.0f;
+                for (int c = 0; c < 3; c++) {
+                    ps->w[r][c] = ps->w[r][c] * expf(-j->absorption[3 * b + c] * s);
+                    if (f) ps->p[r][c] = rays.pos[3 * i + c];
+                    ps->normal[r][c] = rays.normal[3 * i + c];
+                }
+                ps->found[r] = (uint8_t)f;
+                ps->alpha[r] = roughness_on(j, b, rays.bary + 3 * i, rays.tri[i]);
+            }
+        }
+        int last = k >= bo->limit, n = ps->n;
+        ps->n = 0;
+        for (int r = 0; r < n; r++) {  /* shade, and compact the rays that go on in place */
+            int pix = ps->pix[r];
+            int64_t b = j->batch[r0 + pix];
+            float dir[3], var, w_next[3];
+            float refl = shade(job, axes + naxes * b, ps, r, b, last, dir, &var);
+            if (goes_on(bo, ps, pix, ps->found[r], last, ps->w[r], refl, w_next))
+                add_ray(ps, pix, ps->p[r], dir, w_next, var, ps->share[r]);
+        }
+    }
+}
+
+#endif
