@@ -126,4 +126,20 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
     }
 }
 
+/* A block with internal bounces: follow its paths (follow_block), then write each pixel,
+ * ``front`` (its front reflection's light) plus what left through the interfaces met from
+ * inside, over the background unless a light hides it (``hidden``), and its bounce passes. */
+static void finish_block(const Frame *j, const Bounces *bo, const void *job,
+                         tr_inside_fn shade, const SgAxes *axes, int naxes, Paths *ps,
+                         const float (*front)[3], const uint8_t *hidden, int64_t r0, int m) {
+    follow_block(j, bo, job, shade, axes, naxes, ps, r0);
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i];
+        for (int c = 0; c < 3 && !hidden[i]; c++)
+            j->radiance[3 * px + c] = front[i][c] + ps->acc[i][c];
+        bo->bounces[px] = ps->bounces[i];
+        bo->residual[px] = ps->residual[i];
+    }
+}
+
 #endif

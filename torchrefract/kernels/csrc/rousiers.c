@@ -495,15 +495,9 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         int64_t b = j->batch[r0 + i];
         shade_pixel(rj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
-    if (rj->bo.limit <= 0) return;
-    follow_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths, r0);
-    for (int i = 0; i < m; i++) {  /* the pixel over the background, its bounce passes */
-        int64_t px = j->idx[r0 + i];
-        for (int c = 0; c < 3 && !k.hidden[i]; c++)
-            j->radiance[3 * px + c] = k.front[i][c] + k.paths.acc[i][c];
-        rj->bo.bounces[px] = k.paths.bounces[i];
-        rj->bo.residual[px] = k.paths.residual[i];
-    }
+    if (rj->bo.limit > 0)
+        finish_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths,
+                     (const float (*)[3])k.front, k.hidden, r0, m);
 }
 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its

@@ -275,15 +275,9 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, n1 + 3 * i, tir1[i], j->idx[r0 + i],
                     b, &sb);
     }
-    if (sj->bo.limit <= 0) return;
-    follow_block(j, &sj->bo, sj, inside_specular, axes, 2, &sb.paths, r0);
-    for (int i = 0; i < m; i++) {  /* the pixel over the background, its bounce passes */
-        int64_t px = j->idx[r0 + i];
-        for (int c = 0; c < 3 && !sb.hidden[i]; c++)
-            j->radiance[3 * px + c] = sb.front[i][c] + sb.paths.acc[i][c];
-        sj->bo.bounces[px] = sb.paths.bounces[i];
-        sj->bo.residual[px] = sb.paths.residual[i];
-    }
+    if (sj->bo.limit > 0)
+        finish_block(j, &sj->bo, sj, inside_specular, axes, 2, &sb.paths,
+                     (const float (*)[3])sb.front, sb.hidden, r0, m);
 }
 
 /* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces on the table (views
