@@ -84,6 +84,17 @@ class BounceSettings:
     def enabled(self) -> bool:
         return self.internal_bounces == AUTO or self.internal_bounces > 0
 
+    @property
+    def limit(self) -> int:
+        """Interfaces followed after the first exit at most: K, or the cap under ``auto``."""
+        return self.max_internal_bounces if self.internal_bounces == AUTO \
+            else int(self.internal_bounces)
+
+    @property
+    def tolerance(self) -> float:
+        """The throughput a ray stops at: ``bounce_tolerance`` under ``auto``, 0 for K."""
+        return self.bounce_tolerance if self.internal_bounces == AUTO else 0.0
+
 
 def split_lobe(t: torch.Tensor, var: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Four rays standing for a lobe of axis ``t`` (M, 3) and per-axis angular variance
@@ -179,9 +190,7 @@ def follow(g: GBuffer, first: Arrival, shade: ShadeFn, absorption: torch.Tensor,
         n_paths: N, the number of paths (``pix`` indexes them).
         refine: bisection steps of each internal march.
     """
-    auto = settings.internal_bounces == AUTO
-    limit = settings.max_internal_bounces if auto else int(settings.internal_bounces)
-    tol = settings.bounce_tolerance if auto else 0.0
+    limit, tol = settings.limit, settings.tolerance
     dtype = first.w.dtype
     out = torch.zeros(n_paths, 3, dtype=dtype)
     bounces = torch.zeros(n_paths, dtype=dtype)

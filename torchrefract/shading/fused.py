@@ -28,7 +28,7 @@ from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import TIR_RULES
 from torchrefract.optics.sg_table import K_MAX, K_MIN
 from torchrefract.optics.sgfit import load_sg_table
-from torchrefract.shading.bounces import AUTO, escape_grid
+from torchrefract.shading.bounces import escape_grid
 from torchrefract.stages import stage
 
 _DIST = {"beckmann": 0, "ggx": 1}
@@ -193,13 +193,10 @@ def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:
     if not bs.enabled:
         return native._Bounces(limit=0)
     b, h, w = g.shape
-    auto = bs.internal_bounces == AUTO  # shading.bounces.follow's budget
     counts, resid = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes.update(bounces=counts.view(b, h, w, 1), bounce_residual=resid.view(b, h, w, 1))
     return native._Bounces(
-        limit=bs.max_internal_bounces if auto else int(bs.internal_bounces),
-        rays=bs.bounce_rays, steps=bs.bounce_march_steps,
-        tol=bs.bounce_tolerance if auto else 0.0,
+        limit=bs.limit, rays=bs.bounce_rays, steps=bs.bounce_march_steps, tol=bs.tolerance,
         planes_in=keep.ptr(camera_planes(g, both=True)) if frame.n else None,
         bounces=counts.data_ptr(), residual=resid.data_ptr())
 
