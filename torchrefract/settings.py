@@ -1,5 +1,6 @@
 """How a render runs (not what it renders): threads, kernels, compilation, adaptive
-supersampling (an approximation, off by default), the cache folder and the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
+supersampling (an approximation, off by default), the memory budget, the cache folder and
+the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
 ``RenderStream`` as one :class:`RenderSettings`.
 
 The settings hold for the duration of one call, through a context variable that the
@@ -46,6 +47,12 @@ _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("0", "false", "no", "off")
 
 
+def _env_count(name: str) -> int | None:
+    """A positive integer from the environment, else None."""
+    v = os.environ.get(name, "").strip()
+    return int(v) if v.isdigit() and int(v) > 0 else None
+
+
 def _env_flag(name: str, default: bool) -> bool:
     v = os.environ.get(name, "").strip().lower()
     if v in _TRUE:
@@ -88,29 +95,22 @@ class RenderSettings:
     ``~/.cache/torchrefract``)."""
 
     def __post_init__(self):
-        if self.memory_budget_mb is not None and (
-                isinstance(self.memory_budget_mb, bool)
-                or not isinstance(self.memory_budget_mb, int) or self.memory_budget_mb < 1):
-            raise ConfigError(f"RenderSettings.memory_budget_mb: expected an integer >= 1 or "
-                              f"None, got {self.memory_budget_mb!r}")
-        if self.threads is not None and (isinstance(self.threads, bool)
-                                         or not isinstance(self.threads, int)
-                                         or self.threads < 1):
-            raise ConfigError(f"RenderSettings.threads: expected an integer >= 1 or None, "
-                              f"got {self.threads!r}")
+        for name in ("threads", "memory_budget_mb"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ConfigError(f"RenderSettings.{name}: expected an integer >= 1 or None, "
+                                  f"got {v!r}")
 
     @classmethod
     def from_env(cls, **overrides) -> "RenderSettings":
         """The defaults as the environment variables (module docstring) set them."""
-        threads = os.environ.get("TORCHREFRACT_THREADS", "").strip()
-        budget = os.environ.get("TORCHREFRACT_MEMORY_MB", "").strip()
         base = cls(
-            threads=int(threads) if threads.isdigit() and int(threads) > 0 else None,
+            threads=_env_count("TORCHREFRACT_THREADS"),
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
             fused=_env_flag("TORCHREFRACT_FUSED", True),
             adaptive=_env_flag("TORCHREFRACT_ADAPTIVE", False),
-            memory_budget_mb=int(budget) if budget.isdigit() and int(budget) > 0 else None,
+            memory_budget_mb=_env_count("TORCHREFRACT_MEMORY_MB"),
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,
