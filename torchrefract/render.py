@@ -122,6 +122,16 @@ def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, tor
     }
 
 
+def _front_roughness(g: GBuffer, materials: MaterialBatch) -> torch.Tensor:
+    """The roughness at each front (sub-)pixel, (B, H, W), or (B, 1, 1) where no scene of
+    the batch has a map (then it is each view's own)."""
+    if not materials.has_maps:
+        return materials.roughness[:, None, None]
+    b, h, w = g.shape
+    return materials.roughness_at(torch.arange(b).repeat_interleave(h * w),
+                                  g.front.uv.reshape(-1, 2)).view(b, h, w)
+
+
 def _check_batch(scenes: list[Scene]) -> None:
     c0 = scenes[0].camera
     for i, s in enumerate(scenes[1:], 1):
@@ -208,10 +218,11 @@ within a few views' buffers, and the peak memory follows the chunk, not the batc
 
 
 PASS_BYTES_PER_SUBPIXEL = 1536
-"""Peak memory of a render pass per sub-pixel, bytes (measured on 2026-12-04: `rousiers`
-with two internal bounces, one view of 512, 1024 and 2048 pixels square: 1026, 1359, 1318;
-the G-buffer's layers, the march's planes, the rays, the radiance and the passes with
-their temporaries), for :func:`memory_budget`'s check."""
+"""Peak memory of a render pass per sub-pixel, bytes (the G-buffer's layers, the march's
+planes, the rays, the radiance and the passes with their temporaries; measured in
+docs/datasets.md, "Memory budget"), for :func:`memory_budget`'s check."""
+PASS_BYTES_FIXED = 64 << 20
+"""What a render pass takes whatever its size (tables, pyramids' lookups), bytes."""
 
 
 def memory_budget() -> int:
@@ -245,7 +256,7 @@ def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
     c = scenes[0].camera
     per_view = c.width * c.height * c.samples_per_pixel ** 2
     budget = memory_budget()
-    need = per_view * PASS_BYTES_PER_SUBPIXEL + (64 << 20)
+    need = per_view * PASS_BYTES_PER_SUBPIXEL + PASS_BYTES_FIXED
     if need > budget:
         raise ConfigError(
             f"render: one {c.width}x{c.height} view at samples_per_pixel "
@@ -254,8 +265,8 @@ def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
             f"(RenderSettings.memory_budget_mb; default: 80% of the available memory): "
             f"render it smaller or with fewer samples per pixel (large frames are not split "
             f"into tiles yet)")
-    most = max(1, min(MAX_PASS_SUBPIXELS, (budget - (64 << 20)) // PASS_BYTES_PER_SUBPIXEL)
-               // per_view)
+    most = max(1, min(MAX_PASS_SUBPIXELS,
+                      (budget - PASS_BYTES_FIXED) // PASS_BYTES_PER_SUBPIXEL) // per_view)
     n = -(-len(scenes) // most)  # chunks
     size = -(-len(scenes) // n)
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]
@@ -274,11 +285,8 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     materials = MaterialBatch.from_scenes(scenes)
     plan = None
     if current().adaptive and g.supersample > 1 and entry.shades_object_index:
-        b_, h_, w_ = g.shape
-        alpha = materials.roughness if not materials.has_maps else materials.roughness_at(
-            torch.arange(b_).repeat_interleave(h_ * w_), g.front.uv.reshape(-1, 2)
-        ).view(b_, h_, w_)
-        g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]), alpha)
+        g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
+                                _front_roughness(g, materials))
     t2 = time.perf_counter()
     with collect() as stage_times:
         shaded = entry.shade(g, lighting, materials, options, state)
@@ -298,12 +306,7 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
     passes = _geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
     fm = _mask_box(g.front.mask, n, torch.float32, cache)[0]  # (B, H, W, 1)
-    b_, h_, w_ = g.shape
-    if materials.has_maps:
-        flat_b = torch.arange(b_).repeat_interleave(h_ * w_)
-        rough = materials.roughness_at(flat_b, g.front.uv.reshape(-1, 2)).view(b_, h_, w_, 1)
-    else:
-        rough = materials.roughness[:, None, None, None]
+    rough = _front_roughness(g, materials)[..., None]
     for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
         passes[name] = v if n == 1 else _masked_box(v, g.front.mask, n, cache)  # 0 outside
     for k, v in method_passes.items():

@@ -35,9 +35,8 @@ DEPTH_TOL = 0.05
 """The largest relative step of the back layer's depth inside a pixel it shades once."""
 SMOOTH_ALPHA = 0.02
 """Below this roughness every sub-pixel is shaded: a sharp refraction resolves the
-environment's detail inside a pixel, which the G-buffer does not show (the smooth sphere
-with two internal bounces: one sample per pixel there lost 0.005 of FLIP against the truth
-that uniform 2x2 sampling gains)."""
+environment's detail inside a pixel, which the G-buffer does not show (measured on the
+smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
 
 
 @dataclass(frozen=True)
@@ -64,8 +63,9 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
     Args:
         g: a G-buffer of supersampling n > 1.
         center_dirs: (B, H/n, W/n, 3) unit rays through the pixels' centers.
-        alpha: (B, H, W) the front roughness of each sub-pixel, or (B,) per view: a pixel
-            with a sub-pixel smoother than ``smooth_alpha`` is shaded at all of them.
+        alpha: the front roughness of each sub-pixel, broadcastable to (B, H, W) (per view:
+            (B, 1, 1)): a pixel with a sub-pixel smoother than ``smooth_alpha`` is shaded
+            at all of them.
 
     Returns:
         The G-buffer with ``shade`` set (the sub-pixels to shade), and the plan.
@@ -79,15 +79,11 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         uniform &= (fm[k] == fm[0]) & (bm[k] == bm[0])
         uniform &= (1.0 - dot(fn[k], fn[0]) <= normal_tol) & (1.0 - dot(bn[k], bn[0]) <= normal_tol)
         uniform &= (bd[k] - bd[0]).abs() <= tol
-    if alpha.dim() == 1:
-        uniform &= (alpha >= smooth_alpha)[:, None, None]
-    else:
-        for a in _subs(alpha, n):
-            uniform &= a >= smooth_alpha
-    b, hh, ww = uniform.shape
-    first = (torch.arange(b * hh * ww).view(b, hh, ww)[uniform])  # uniform pixels, flat
-    pb, rem = first // (hh * ww), first % (hh * ww)
-    sel = (pb * g.shape[1] + (rem // ww) * n) * g.shape[2] + (rem % ww) * n  # sub-pixel 0
+    for a in _subs(alpha.expand(g.shape), n):
+        uniform &= a >= smooth_alpha
+    _, h, w = g.shape
+    pb, py, px = uniform.nonzero(as_tuple=True)  # the uniform pixels
+    sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
     tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
     _center_samples(g, sel, tris, center_dirs[uniform])
     shade = g.front.mask.clone()
