@@ -68,12 +68,24 @@ static inline float bounding_angle(float k) {
 }
 
 /* The exit lobe (exit.exit_lobe, ``spread: rays``): direction, sharpness, weight. */
+/* The exit interface of a pixel (exit.ExitInterface): the front lobe arriving (axis p_t1,
+ * sharpness k_t1, variance var1), the exact exit normal inward n_in, view2 = -p_t1, cos2,
+ * the critical cosine, TIR, the bounding rays' variance var_geo (cone.geometric_variance),
+ * the exit point p2, and whether the axis found its exit. */
+typedef struct {
+    const float *p_t1;
+    float view2[3], n_in[3], p2[3];
+    float k_t1, var1, cos2, cos_crit, var_geo;
+    int tir, found;
+} ExitGeo;
+
 static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
-                      const float *view2, const float *n_in, float cos2, float cos_crit,
-                      int tir, float var1, float var_geo, float *p_out, float *k_out,
-                      float *w_out) {
+                      const ExitGeo *e, float *p_out, float *k_out, float *w_out) {
     const Frame *j = &rj->f;
     int64_t dist = j->dist[b];
+    const float *view2 = e->view2, *n_in = e->n_in;
+    float cos2 = e->cos2, cos_crit = e->cos_crit, var1 = e->var1, var_geo = e->var_geo;
+    int tir = e->tir;
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
     float k_t2, t_t2, e_t2, weight;
     if (mode == SPLIT) {  /* bounces follow: the table's own split, averaged over the lobe */
@@ -290,6 +302,59 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
     }
 }
 
+/* The light of one exit lobe (exit.exit_lobe at roughness ``alpha``, axes ``ax``; where
+ * the exit is not found, the front lobe's): its sharpness k and weight, and the
+ * environment and lights around it, seen from the exit point. */
+static void exit_light(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
+                       const ExitGeo *e, float *k, float *wt, float *l) {
+    const Frame *j = &rj->f;
+    float p[3];
+    exit_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
+    if (!e->found) {  /* leave with the front lobe */
+        for (int c = 0; c < 3; c++) p[c] = e->p_t1[c];
+        *k = e->k_t1;
+        *wt = 1.0f;
+    }
+    incident_sg(&j->lights, &j->env, b, e->p2, p, *k, l);
+}
+
+/* Step 5's transmitted part (exit.transmitted_radiance): the light leaving through the
+ * exit lobe, or with a roughness map one lobe per level by its coverage over the footprint
+ * (sec. 5.1; nothing covered: the front roughness); returns the lobe's sharpness (the
+ * coverage-weighted one with a map). */
+static float transmitted(const RousJob *rj, const SgAxes *view_axes, const SgAxes *ax,
+                         int64_t b, float alpha, int mode, const ExitGeo *e,
+                         const float *c_xy, float minor, float *l_trans) {
+    float kk, wt;
+    if (rj->levels == 0) {
+        exit_light(rj, ax, b, alpha, mode, e, &kk, &wt, l_trans);
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * wt;
+        return kk;
+    }
+    float cov[MAX_LEVELS], ksum = 0.0f, csum = 0.0f;
+    coverage(rj, b, c_xy[0], c_xy[1], log2f(minor), cov);
+    for (int q = 0; q < rj->levels; q++) csum = q == 0 ? cov[0] : csum + cov[q];
+    int no_cov = csum < 0.5f;
+    for (int c = 0; c < 3; c++) l_trans[c] = 0.0f;
+    for (int q = 0; q < rj->levels; q++) {
+        SgAxes lv[AXES];
+        const SgAxes *la = ax;
+        float a_q = alpha, w_q = 1.0f / (float)rj->levels, k_q, l_q[3];
+        if (!no_cov) {
+            a_q = rj->level_alpha[b * rj->levels + q];
+            w_q = cov[q];
+            lv[OUT] = view_axes[AXES + q];
+            lv[OUT0] = view_axes[OUT0];
+            la = lv;
+        }
+        exit_light(rj, la, b, a_q, mode, e, &k_q, &wt, l_q);
+        float ww = w_q * wt;
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] + ww * l_q[c];
+        ksum = ksum + w_q / (k_q > 1e-12f ? k_q : 1e-12f);
+    }
+    return 1.0f / (ksum > 1e-12f ? ksum : 1e-12f);
+}
+
 /* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
  * exit lobe widened by the bounding rays, the environment around it and around the
  * reflected lobe, the absorption; the pixel and its passes written. */
@@ -308,70 +373,30 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
         for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
     }
     /* the exit interface: the exact exit normal, inward */
-    float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]}, n_in[3];
-    face_forward(m_n, p_t1, n_in);
-    float view2[3] = {-p_t1[0], -p_t1[1], -p_t1[2]};
-    float cos2 = clampf(dot3(view2, n_in), 0.0f, 1.0f);
+    ExitGeo e = {.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
+    float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]};
+    face_forward(m_n, p_t1, e.n_in);
+    for (int c = 0; c < 3; c++) e.view2[c] = -p_t1[c];
+    e.cos2 = clampf(dot3(e.view2, e.n_in), 0.0f, 1.0f);
     float cc = 1.0f - 1.0f / (ior * ior);
-    float cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
-    int tir = cos2 < cos_crit && found;
-    float sin2 = 1.0f - cos2 * cos2;
+    e.cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    e.tir = e.cos2 < e.cos_crit && found;
+    float sin2 = 1.0f - e.cos2 * e.cos2;
     float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
-    float mg = ior * cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
-    float var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
-    float var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
-                               (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
+    float mg = ior * e.cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    e.var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+    e.var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
+                           (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
     int bounce = rj->bo.limit > 0, mode = bounce ? SPLIT : j->tir_mode;
     float thick = j->back_dist[px] - j->front_dist[px];
     float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
-    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], kk, c_xy[2], minor;
+    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], c_xy[2], minor;
     const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
-    float d[3] = {-v[0], -v[1], -v[2]}, p2[3];
-    for (int c = 0; c < 3; c++) p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
+    float d[3] = {-v[0], -v[1], -v[2]};
+    for (int c = 0; c < 3; c++) e.p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
     float major = footprint_major(j, k, i, b, c_xy, &minor);
     incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
-    if (rj->levels == 0) {  /* exit.transmitted_radiance: one exit lobe */
-        float p_out[3], weight2;
-        exit_lobe(rj, ax, b, alpha, mode, view2, n_in, cos2, cos_crit, tir, var1, var_geo,
-                  p_out, &kk, &weight2);
-        if (!found) {  /* leave with the front lobe */
-            for (int c = 0; c < 3; c++) p_out[c] = p_t1[c];
-            kk = k_t1;
-            weight2 = 1.0f;
-        }
-        incident_sg(&j->lights, &j->env, b, p2, p_out, kk, l_trans);
-        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * weight2;
-    } else {  /* a roughness map: one exit lobe per level, by its coverage (sec. 5.1) */
-        float cov[MAX_LEVELS], ksum = 0.0f, csum = 0.0f;
-        coverage(rj, b, c_xy[0], c_xy[1], log2f(minor), cov);
-        for (int q = 0; q < rj->levels; q++) csum = q == 0 ? cov[0] : csum + cov[q];
-        int no_cov = csum < 0.5f;  /* nothing covered: the front roughness */
-        for (int c = 0; c < 3; c++) l_trans[c] = 0.0f;
-        for (int q = 0; q < rj->levels; q++) {
-            SgAxes lv[AXES];
-            const SgAxes *la = ax;
-            float a_q = alpha, w_q = 1.0f / (float)rj->levels, p_q[3], k_q, wt_q, l_q[3];
-            if (!no_cov) {
-                a_q = rj->level_alpha[b * rj->levels + q];
-                w_q = cov[q];
-                lv[OUT] = view_axes[AXES + q];
-                lv[OUT0] = view_axes[OUT0];
-                la = lv;
-            }
-            exit_lobe(rj, la, b, a_q, mode, view2, n_in, cos2, cos_crit, tir, var1, var_geo,
-                      p_q, &k_q, &wt_q);
-            if (!found) {
-                for (int c = 0; c < 3; c++) p_q[c] = p_t1[c];
-                k_q = k_t1;
-                wt_q = 1.0f;
-            }
-            incident_sg(&j->lights, &j->env, b, p2, p_q, k_q, l_q);
-            float ww = w_q * wt_q;
-            for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] + ww * l_q[c];
-            ksum = ksum + w_q / (k_q > 1e-12f ? k_q : 1e-12f);
-        }
-        kk = 1.0f / (ksum > 1e-12f ? ksum : 1e-12f);
-    }
+    float kk = transmitted(rj, view_axes, ax, b, alpha, mode, &e, c_xy, minor, l_trans);
     if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
         incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
         er = 0.0f;
@@ -396,10 +421,11 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
         }
         SgAxes own_x[AXES];
         first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
-                         found && ior != 1.0f, p_t1, n_in, cos2, var1, p2, w1, l_trans);
+                         found && ior != 1.0f, p_t1, e.n_in, e.cos2, e.var1, e.p2, w1,
+                         l_trans);
     }
     j->exit_found[px] = found ? 1.0f : 0.0f;
-    j->tir[px] = tir ? 1.0f : 0.0f;
+    j->tir[px] = e.tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
     rj->footprint[px] = found ? major : 0.0f;
 }
