@@ -75,6 +75,11 @@ __all__ = ["EXECUTORS", "FORMATS", "MANIFEST", "DiskFullError", "RunSummary", "c
 
 SWEEP_RECORD = "sweep.json"
 RUN_LOG = "runs.jsonl"
+LOCK = ".lock"
+FORMATS = ("folder", "webdataset")
+EXECUTORS = ("local", "ray")
+# Temporary files of torchrefract.output.atomic (every writer's): ".<name>.<random>.tmp[...]".
+_TMP_RE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 class DiskFullError(RuntimeError):
@@ -111,11 +116,6 @@ def _disk_full(out: Path, exc: OSError) -> DiskFullError:
         f"{out}: no space left on its file system{where}: {exc.strerror}. The run stopped; "
         f"the samples written so far are complete and recorded. Free space (or move the "
         f"folder) and run the same command again to resume.")
-LOCK = ".lock"
-FORMATS = ("folder", "webdataset")
-EXECUTORS = ("local", "ray")
-# Temporary files of torchrefract.output.atomic (every writer's): ".<name>.<random>.tmp[...]".
-_TMP_RE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 @dataclass
@@ -409,21 +409,27 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
             raise _disk_full(out, exc) from exc
         raise
     finally:
-        if shards is not None:
-            shards.abort()
-        if manifest is not None and not manifest.f.closed:
-            manifest.close()
-        if ex is not None:
-            t = time.perf_counter()
-            ex.close()
-            summary.shutdown_s = time.perf_counter() - t
-        summary.wall_s = time.perf_counter() - t_start
-        try:
-            _log_run(out, (json.dumps(dict(summary.to_dict(), run=_run_info())) + "\n"
-                           ).encode())
-        finally:
-            lock.release()
+        _close_run(out, lock, ex, manifest, shards, summary, t_start)
     return summary
+
+
+def _close_run(out: Path, lock: "_Lock", ex, manifest: _Manifest | None,
+               shards: _TarShards | None, summary: RunSummary, t_start: float) -> None:
+    """The end of a run, finished or not: an unfinished shard deleted, the manifest and the
+    executor closed, the run's line logged and the folder's lock released."""
+    if shards is not None:
+        shards.abort()
+    if manifest is not None and not manifest.f.closed:
+        manifest.close()
+    if ex is not None:
+        t = time.perf_counter()
+        ex.close()
+        summary.shutdown_s = time.perf_counter() - t
+    summary.wall_s = time.perf_counter() - t_start
+    try:
+        _log_run(out, (json.dumps(dict(summary.to_dict(), run=_run_info())) + "\n").encode())
+    finally:
+        lock.release()
 
 
 def _finish(manifest: _Manifest, shards: _TarShards | None, summary: RunSummary) -> None:
