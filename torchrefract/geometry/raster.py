@@ -8,7 +8,7 @@ framebuffer), single-sample; the mesh stays resident (a vertex array per mesh, k
 last few meshes), and a pass is one draw and one readback of the ids. The back layer draws
 the faces with reversed winding under back-face culling, which keeps the nearest back face.
 The vertex transform is pyrender's (``P V M inst_m``, the same matrices), so the ids are
-those its own forward pass gave (tests/test_gbuffer.py), at about 1 ms less per pass.
+those its own forward pass gave (tests/test_gbuffer.py), in less time (docs/decisions.md).
 Where the context lacks what this needs (OpenGL 3.3, integer renderbuffers), each pass
 renders through pyrender's own forward pass instead (flat vertex colors encoding the id,
 ``RenderFlags.FLAT``), with one warning. One EGL context per process is created lazily and

@@ -33,6 +33,6 @@ def where_true(mask: torch.Tensor) -> torch.Tensor:
 
 def broadcast_shape(*shapes) -> tuple[int, ...]:
     """The shape ``shapes`` broadcast to (torch's rule, numpy's implementation:
-    ``torch.broadcast_shapes`` imports ``torch._refs`` on its first call, a quarter of a
-    second of every process's first render)."""
+    ``torch.broadcast_shapes`` imports ``torch._refs`` on its first call, which slowed every
+    process's first render; docs/benchmarks.md)."""
     return tuple(np.broadcast_shapes(*(tuple(s) for s in shapes)))
