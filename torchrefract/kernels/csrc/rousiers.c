@@ -8,7 +8,7 @@
  *      refracted out at their own exits (cone.geometric_variance),
  *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
  *      4.1) and the sphere lights' share of each lobe, the absorption, an index-matched
- *      object left invisible (shade._index_matched),
+ *      object left invisible (shade.index_matched),
  *   5. with internal bounces (shading/bounces.follow, methods/rousiers/bounces.py): the
  *      light the first exit reflects back inside, one ray (or four, ``bounce_rays``) per
  *      pixel marched between the layers (march.march_inside) to the next interface, where
@@ -397,12 +397,12 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
     float major = footprint_major(j, k, i, b, c_xy, &minor);
     incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
     float kk = transmitted(rj, view_axes, ax, b, alpha, mode, &e, c_xy, minor, l_trans);
-    if (ior == 1.0f) {  /* index-matched: no interface (shade._index_matched) */
+    if (ior == 1.0f) {  /* index-matched: no interface (shade.index_matched) */
         incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
         er = 0.0f;
         et = 1.0f;
     }
-    int64_t l;  /* a light between the eye and the object hides it (shade._composite) */
+    int64_t l;  /* a light between the eye and the object hides it (shade.composite) */
     int hidden = j->lights.nl > 0 &&
                  hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
     float w1[3];

@@ -25,6 +25,7 @@ own direction with the escape fraction of trapped light
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -54,9 +55,13 @@ from torchrefract.shading.bounces import Arrival, Shading, escape_fraction, foll
 
 def follow_bounces(g: GBuffer, table, lighting: Lighting, materials: MaterialBatch,
                    options: RousiersOptions, px: Pixels, front: FrontLobes, xi,
-                   l_trans: torch.Tensor, matched: torch.Tensor):
+                   l_trans: torch.Tensor, matched: torch.Tensor,
+                   reflected: Callable[[torch.Tensor], torch.Tensor] | None = None):
     """The light the first exit (``xi``: :class:`.exit.ExitInterface`) reflects back
     inside, followed bounce by bounce; ``l_trans`` the light its transmitted lobe reads.
+    ``reflected`` maps the table's internal reflection energy at ``xi`` (N,) to the one a
+    method whose exit leaves by several lobes uses (``gsr``: its lobes', to match their
+    transmitted energies).
     Returns the radiance leaving through all interfaces from inside (N, 3) and the
     :class:`torchrefract.shading.bounces.BounceResult`."""
     ex, bi = xi.ex, px.bi
@@ -67,6 +72,8 @@ def follow_bounces(g: GBuffer, table, lighting: Lighting, materials: MaterialBat
     a_x = alpha_x.clamp(min=mf.ALPHA_MIN)
     _, k_ri, _, _ = sg_lobe(table, xi.cos2, xi.eta, a_x, px.dist, "reflect")
     e_ri = spread_energies(table, xi.cos2, xi.var1, xi.eta, a_x, px.dist)[1]
+    if reflected is not None:
+        e_ri = reflected(e_ri)
     p_ri = normalize(reflect(front.p_t1, xi.n_in))  # the lobe's ray: mirror (docstring)
     w1 = front.e_t1[:, None] * xi.att
     first = Shading(radiance=w1 * l_trans, direction=p_ri,

@@ -184,8 +184,16 @@ def geometric_variance(g: GBuffer, cone: Cone, bi: torch.Tensor, p_t1: torch.Ten
     ball lens focuses it): the per-axis variance (N,) they add to the exit lobe
     (:func:`torchrefract.kernels.cone.ray_spread`); ``fallback`` where no bounding ray found
     its exit."""
+    n4, ok4 = bounding_normals(g, cone, bi)
+    return _ray_spread(p_t1, cone.exact_n, cone.dirs, n4, ok4, ior, fallback)
+
+
+def bounding_normals(g: GBuffer, cone: Cone, bi: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bounding rays' exit normals (N, 4, 3) and which were found (N, 4): marched
+    (``cone_rays: march``) or, for ``plane``, the back layer's at the exits' pixels."""
     n4, ok4 = cone.n4, cone.ok4
-    if n4 is None:  # ``cone_rays: plane``: the back layer's normals at the exits' pixels
+    if n4 is None:
         _, h, w = g.shape
         n = bi.shape[0]
         xy = cone.xy
@@ -193,7 +201,7 @@ def geometric_variance(g: GBuffer, cone: Cone, bi: torch.Tensor, p_t1: torch.Ten
                                         + xy[..., 0].floor().clamp(0, w - 1).long())
         n4 = take(g.back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
         ok4 = ok4 & take(g.back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
-    return _ray_spread(p_t1, cone.exact_n, cone.dirs, n4, ok4, ior, fallback)
+    return n4, ok4
 
 
 def level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
@@ -238,6 +246,6 @@ def footprint_coverage(g: GBuffer, materials: MaterialBatch, n_levels: int, bi: 
     return levels, c / c.sum(-1, keepdim=True).clamp(min=1e-12)
 
 
-__all__ = ["Cone", "back_ndf", "bounding_angle", "coverage_mips", "footprint_coverage",
+__all__ = ["Cone", "back_ndf", "bounding_angle", "bounding_normals", "coverage_mips", "footprint_coverage",
            "geometric_variance",
            "level_coverage", "level_values", "trace_cone"]

@@ -54,7 +54,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     idx = g.object_index()
     bounce = options.bounces.enabled
     if idx.numel() == 0:  # the same passes as a batch with object pixels
-        return radiance.view(b, h, w, 3), _passes(g, idx, bounce, None, None)
+        return radiance.view(b, h, w, 3), object_passes(g, idx, bounce, None, None)
     table = load_sg_table()
     px = object_pixels(g, materials, idx)
     # 1. Front interface lobes (eqs. 8-9).
@@ -78,23 +78,38 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     # between the transmitted and the internally reflected lobe applies (no TIR rule).
     l_trans, k = transmitted_radiance(table, lighting, px, xi, materials, options.spread,
                                       "split" if bounce else options.tir, coverage)
-    e_r, e_t, l_trans, matched = _index_matched(lighting, px, front, l_trans)
+    passes = finish(g, table, lighting, materials, options, px, front, cone, xi, radiance,
+                    l_refl, l_trans, torch.rsqrt(k.clamp(min=1e-12)))
+    return radiance.view(b, h, w, 3), passes
+
+
+def finish(g: GBuffer, table, lighting: Lighting, materials: MaterialBatch, options, px: Pixels,
+           front, cone, xi, radiance: torch.Tensor, l_refl: torch.Tensor,
+           l_trans: torch.Tensor, lobe_sigma: torch.Tensor, reflected=None
+           ) -> dict[str, torch.Tensor]:
+    """What follows the exit lobe, for ``rousiers`` and the methods built on its steps
+    (``lean``, ``gsr``): an index-matched object left invisible, the internal bounces
+    (``reflected``: :func:`.bounces.follow_bounces`) or the exit's transmitted light, the
+    object composited over ``radiance``; returns the passes (:func:`object_passes`) with
+    the final transmitted lobe's per-axis spread ``lobe_sigma`` (N,)."""
+    bounce = options.bounces.enabled
+    e_r, e_t, l_trans, matched = index_matched(lighting, px, front, l_trans)
     res = None
     if bounce:
         l_through, res = follow_bounces(g, table, lighting, materials, options, px, front,
-                                        xi, l_trans, matched)
+                                        xi, l_trans, matched, reflected)
         l_obj = e_r[:, None] * l_refl + l_through
     else:
         l_obj = e_r[:, None] * l_refl + e_t[:, None] * xi.att * l_trans
-    _composite(g, lighting, px, radiance, l_obj)
+    composite(g, lighting, px, radiance, l_obj)
     found = cone.ex.found
     values = {"exit_found": found.float(), "tir": xi.tir.float(),
-              "lobe_sigma": torch.rsqrt(k.clamp(min=1e-12)).float(),
+              "lobe_sigma": lobe_sigma.float(),
               "footprint": torch.where(found, cone.major, torch.zeros_like(cone.major)).float()}
-    return radiance.view(b, h, w, 3), _passes(g, idx, bounce, values, res)
+    return object_passes(g, px.idx, bounce, values, res)
 
 
-def _composite(g: GBuffer, lighting: Lighting, px: Pixels, radiance: torch.Tensor,
+def composite(g: GBuffer, lighting: Lighting, px: Pixels, radiance: torch.Tensor,
                l_obj: torch.Tensor) -> None:
     """The object's radiance written over the background (N, 3), except where a light lies
     in front of the object."""
@@ -104,7 +119,7 @@ def _composite(g: GBuffer, lighting: Lighting, px: Pixels, radiance: torch.Tenso
                                        l_obj.to(radiance.dtype)))
 
 
-def _passes(g: GBuffer, idx: torch.Tensor, bounce: bool,
+def object_passes(g: GBuffer, idx: torch.Tensor, bounce: bool,
             values: dict[str, torch.Tensor] | None, res) -> dict[str, torch.Tensor]:
     """The passes (B, H, W, 1), ``values`` (N,) on the object pixels ``idx`` (zero
     elsewhere): the exit found, TIR, the final transmitted lobe's per-axis spread k^-1/2,
@@ -122,7 +137,7 @@ def _passes(g: GBuffer, idx: torch.Tensor, bounce: bool,
     return out
 
 
-def _index_matched(lighting: Lighting, px: Pixels, front, l_trans: torch.Tensor):
+def index_matched(lighting: Lighting, px: Pixels, front, l_trans: torch.Tensor):
     """An index-matched object (IOR exactly 1) has no interface at all: it is invisible
     (the microfacet model would still lose the masking-shadowing energy there). Returns the
     front reflection's and transmission's energies, l_trans (the unrefracted environment
@@ -138,4 +153,4 @@ def _index_matched(lighting: Lighting, px: Pixels, front, l_trans: torch.Tensor)
     return e_r, e_t, l_trans, matched
 
 
-__all__ = ["render_rousiers"]
+__all__ = ["composite", "finish", "index_matched", "object_passes", "render_rousiers"]
