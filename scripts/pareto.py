@@ -95,6 +95,15 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("prefiltered tir clamp", "prefiltered", {"tir": "clamp"}, 1, False),
     ("rousiers tir clamp", "rousiers", {"tir": "clamp"}, 1, False),
     ("auto", "auto", {}, 1, False),
+    # Dai and Wyman 2012 (issue #24): LEAN moments, EWA; GSR's subdivisions; the poster's
+    # own spread (``paper``) and environment lookup (``mip``, Lee et al. 2008)
+    ("lean", "lean", {}, 1, False),
+    ("lean ib2", "lean", {"internal_bounces": 2}, 1, False),
+    ("lean paper ib2", "lean", {"internal_bounces": 2, "spread": "paper"}, 1, False),
+    ("lean mip ib2", "lean", {"internal_bounces": 2, "env_lookup": "mip"}, 1, False),
+    ("gsr", "gsr", {}, 1, False),
+    ("gsr ib2", "gsr", {"internal_bounces": 2}, 1, False),
+    ("gsr paper ib2", "gsr", {"internal_bounces": 2, "spread": "paper"}, 1, False),
     # One sample per pixel instead of the scenes' n x n grid (what a user short of time
     # would set; Mitsuba's 1 spp is the same pixel count):
     ("specular 1x1", "specular", {SPP: 1}, 1, False),
@@ -102,6 +111,8 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers plane 1x1", "rousiers", {"cone_rays": "plane", SPP: 1}, 1, False),
     ("rousiers plane 1x1 b8", "rousiers", {"cone_rays": "plane", SPP: 1}, 8, False),
     ("rousiers ib2 1x1", "rousiers", {"internal_bounces": 2, SPP: 1}, 1, False),
+    ("lean ib2 1x1", "lean", {"internal_bounces": 2, SPP: 1}, 1, False),
+    ("gsr ib2 1x1", "gsr", {"internal_bounces": 2, SPP: 1}, 1, False),
     # The compiled march (torchrefract.kernels.compiled; same images, its start-up is in the warm-up):
     ("rousiers compiled", "rousiers", {COMPILE: True}, 1, False),
     ("rousiers compiled b8", "rousiers", {COMPILE: True}, 8, False),

@@ -152,6 +152,11 @@ ROUGHNESS_FAILS = {
                                       "default, is continuous there)",
     ("rousiers+tir=clamp", "suzanne"): "per-pixel flicker under clamp: 99th-pct pixel step "
                                        "0.518 at alpha 0.7->0.725 (median 0.033)",
+    ("gsr+spread=paper+internal_bounces=2", "suzanne"): "the poster's GSR: per-pixel "
+                                                       "99th-pct step 0.169 at alpha "
+                                                       "0.15->0.175 (median 0.071): lobes "
+                                                       "jump as normals change sector; ours "
+                                                       "(spread: rays) passes",
     ("auto+auto_blend=False", "sphere"): "single picks switch variants: 0.1 -> 0.125 steps "
                                          "0.0176 against neighbours ~0.005 (rousiers 2 -> 1 "
                                          "bounce); blended auto (the default) passes",

@@ -131,13 +131,16 @@ def incident_radiance(lighting: Lighting, batch: torch.Tensor, origin: torch.Ten
 
 
 def incident_radiance_sg(lighting: Lighting, batch: torch.Tensor, origin: torch.Tensor,
-                         direction: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
+                         direction: torch.Tensor, sharpness: torch.Tensor,
+                         env: str = "sg") -> torch.Tensor:
     """Environment radiance convolved with a normalized SG lobe around each direction.
 
     Args:
         lighting: the batch's lighting.
         batch: (N,) scene index; origin (N, 3); direction (N, 3); sharpness (N,) SG
             sharpness (inf = a plain lookup).
+        env: ``sg`` reads the SG-pre-convolved pyramid (exact), ``mip`` a box MIP at the
+            lobe's variance 1 / sharpness (Lee et al. 2008, :mod:`.env_mips`).
 
     Returns:
         (N, 3) radiance. Sphere lights are convolved with the lobe too: the fraction of the
@@ -151,6 +154,13 @@ def incident_radiance_sg(lighting: Lighting, batch: torch.Tensor, origin: torch.
     for b in range(len(lighting.texels)):
         sel = (batch == b).nonzero(as_tuple=True)[0]
         if sel.numel() == 0:
+            continue
+        if env == "mip":
+            from torchrefract.lighting.env_mips import env_mips_for, mip_lookup  # noqa: PLC0415
+
+            put_(out, sel, mip_lookup(env_mips_for(lighting.paths[b]), take(direction, sel),
+                                      1.0 / take(sharpness, sel), lighting.rotate_deg[b],
+                                      lighting.scale[b]))
             continue
         put_(out, sel, sg_lookup_env(lighting.pyramid(b), take(direction, sel),
                                      take(sharpness, sel), lighting.rotate_deg[b],

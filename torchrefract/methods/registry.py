@@ -22,9 +22,9 @@ _BUILTIN = {
     "specular": "torchrefract.methods.specular:METHOD",
     "prefiltered": "torchrefract.methods.prefiltered:METHOD",
     "rousiers": "torchrefract.methods.rousiers:METHOD",
-    "lean": "torchrefract.methods.planned:LEAN",
-    "gsr": "torchrefract.methods.planned:GSR",
-    "sh": "torchrefract.methods.planned:SH",
+    "lean": "torchrefract.methods.lean:LEAN",
+    "gsr": "torchrefract.methods.lean:GSR",
+    "sh": "torchrefract.methods.sh:METHOD",
     "reference": "torchrefract.methods.reference:METHOD",
 }
 POLICIES = {"auto": "torchrefract.auto:POLICY"}

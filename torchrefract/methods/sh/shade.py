@@ -1,0 +1,274 @@
+"""Shading with the precomputed mapping (Genevaux et al. 2006, secs. 3 and 5; rough lobes
+ours).
+
+Per object pixel (all pixels of a batch, compacted):
+
+1. Front interface: the SG fits of the Walter BRDF and BTDF (de Rousiers' eqs. 8-9,
+   :func:`torchrefract.methods.rousiers.lobes.front_lobes`) give the reflected lobe
+   (E_r, k_r, axis) and the transmitted one's energy E_t1 and sharpness k_t1.
+2. The refraction map (eq. 2): the front hit's face and barycentrics pick the three
+   surface samples around it (:func:`.layout.interpolation`); the view direction, turned
+   into object space (the scene's rotation; sec. 5.4's remapping) and into each sample's
+   tangent frame, evaluates each sample's SH (eqs. 3-7, order ``order``, window of sec.
+   4.3); the three values are blended with the barycentric weights S_oi. Out come the exit
+   direction, the length inside, the exit cosine and the path's throughput.
+3. The lobe leaving (ours, so that ``sh`` renders rough glass): the front lobe's spread,
+   var1 = 1 / k_t1 inside, is a spread of equivalent smooth view directions (Snell's
+   derivative), which the mapping carries to the exit: the mapping is read again at four
+   view directions one standard deviation away, and the mean squared change of the exit
+   direction is the lobe's geometric variance (as ``rousiers``' bounding rays, measured on
+   the precomputed paths instead of the depth buffer). The exit interface's own roughness
+   adds the table's transmitted lobe at the stored exit cosine: k = 1 / (1/k_t2 + var_geo).
+4. L = E_r L_env(axis_r, k_r) + E_t1 W2 exp(-sigma d) L_env(exit, k), the environment
+   read from the SG-pre-convolved pyramid, sphere lights included; W2 per ``exit_weight``.
+
+An index-matched object (IOR 1) has no interface: it is invisible (no table needed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.geometry.mesh import MeshData, rotation_matrix
+from torchrefract.kernels.index import put_, take, where_true
+from torchrefract.lighting.lights import Lighting, incident_radiance_sg
+from torchrefract.methods.rousiers.lobes import front_lobes, sg_lobe, spread_energies
+from torchrefract.methods.rousiers.pixels import Pixels, object_pixels
+from torchrefract.methods.rousiers.shade import composite
+from torchrefract.methods.sh.basis import num_even, real_sh_even, window
+from torchrefract.methods.sh.layout import interpolation
+from torchrefract.methods.sh.options import SHOptions
+from torchrefract.methods.sh.precompute import SHTable
+from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.optics.sgfit import load_sg_table
+from torchrefract.optics.smooth import normalize, tangent_frame
+from torchrefract.shading.background import background
+from torchrefract.shading.bounces import escape_fraction
+
+PASSES = ("lobe_sigma", "path_length")
+
+CHUNK = 8192
+"""Pixels evaluated at once (bounds the gathered weights: 8192 x 3 x 45 x 6 floats)."""
+
+MAX_SPREAD = 0.35
+"""Largest angular offset (radians, ~20 degrees) at which the mapping is re-read for the
+lobe's spread; wider lobes are extrapolated linearly from it."""
+
+ROUGH = 1e-3
+"""Front roughness from which the lobe's spread is measured (below: a sharp ray)."""
+
+
+@dataclass(frozen=True)
+class SceneTable:
+    """What one batch item shades with.
+
+    Attributes:
+        table: the precomputed mapping, or None (IOR 1: nothing to map).
+        mesh: the object-space mesh the table was made for.
+        rotation: (3, 3) float32 object-to-world rotation; scale, translate: the rest of
+            the scene's transform.
+    """
+
+    table: SHTable | None
+    mesh: MeshData
+    rotation: torch.Tensor
+    scale: float
+    translate: torch.Tensor
+
+
+def scene_table(table: SHTable | None, mesh: MeshData, transform) -> SceneTable:
+    """A :class:`SceneTable` for a scene's ``transform`` (SCENE_SPEC: scale, rotate, translate)."""
+    r = torch.from_numpy(rotation_matrix(transform.rotate_deg).astype(np.float32))
+    return SceneTable(table=table, mesh=mesh, rotation=r, scale=float(transform.scale),
+                      translate=torch.tensor(transform.translate, dtype=torch.float32))
+
+
+def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
+    """Static by design: the G-buffer's mesh of batch item ``b`` must be the precomputed
+    mesh under the scene's transform.
+
+    Raises:
+        ValueError: another mesh (face count or positions differ), naming both.
+    """
+    mesh = item.mesh
+    nf = int(g.meshes.num_faces[b])
+    if nf != mesh.num_faces:
+        raise ValueError(f"method 'sh': batch item {b} shows a mesh of {nf} faces, but its "
+                         f"precomputed table is for {mesh.num_faces}; re-run prepare() on "
+                         "the scenes rendered (a deformed or other mesh needs its own table)")
+    off = int(g.meshes.face_offset[b])
+    world = g.meshes.tri_vertices[off:off + nf]  # (F, 3, 3)
+    expect = (mesh.vertices[mesh.faces] * item.scale) @ item.rotation.T + item.translate
+    err = float((world - expect).abs().max())
+    tol = 1e-4 * max(1.0, float(expect.abs().max()))
+    if not err <= tol:
+        raise ValueError(f"method 'sh': batch item {b}'s mesh differs from its precomputed "
+                         f"table's by up to {err:.3g} (tolerance {tol:.3g}); re-run prepare() "
+                         "on the scenes rendered (a deformed mesh needs its own table)")
+
+
+def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
+             order: int, weights: torch.Tensor) -> torch.Tensor:
+    """Eq. 2: the mapping at surface points for view directions.
+
+    Args:
+        table: the precomputed mapping.
+        faces: (N,) mesh-local faces; bary: (N, 3) barycentrics of the points.
+        omega: (N, E, 3) unit view directions (towards the viewer, object space), E per point.
+        order: highest band; weights: (K,) window of the even coefficients up to it.
+
+    Returns:
+        (N, E, C) the interpolated channels (:data:`.precompute.CHANNELS`).
+    """
+    lay = table.layout
+    samples, s_w = interpolation(lay.lattice, lay.rate, faces, bary)  # (N, 3)
+    k = num_even(order)
+    frames = lay.frame[samples]  # (N, 3, 3, 3): per sample, rows t, b, n
+    local = torch.einsum("ner,nsar->nsea", omega, frames)  # (N, 3, E, 3)
+    y = real_sh_even(local, order)  # (N, 3, E, K)
+    w = table.coeffs[samples.reshape(-1)][:, :k].float().view(*samples.shape, k, -1)
+    w = w * weights[None, None, :, None]
+    vals = torch.einsum("nsek,nskc->nsec", y, w)  # (N, 3, E, C)
+    return (s_w[:, :, None, None] * vals).sum(1)
+
+
+def _snell_spread(px: Pixels, var1: torch.Tensor) -> torch.Tensor:
+    """Per-axis variance of the smooth view directions whose refracted rays spread like the
+    front lobe (variance ``var1`` inside): in the plane of incidence d theta_o / d theta_t =
+    eta cos_t / cos_o, across it eta; averaged over the two axes."""
+    eta = px.ior
+    cos_o = px.cos1.clamp(min=0.05)
+    sin2_t = (1.0 - cos_o * cos_o) / (eta * eta)
+    cos_t = torch.sqrt((1.0 - sin2_t).clamp(min=0.0))
+    m1 = eta * cos_t / cos_o
+    return var1 * 0.5 * (m1 * m1 + eta * eta)
+
+
+def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneTable,
+                options: SHOptions, var_view: torch.Tensor, rough: bool):
+    """Exit direction (world), length (world), exit cosine, throughput and the geometric
+    variance of the pixels ``sel`` (positions in ``px``) of one batch item."""
+    table = item.table
+    weights = window(options.order, options.window, options.window_width)
+    b_idx = take(px.idx, sel)
+    off = int(g.meshes.face_offset[bi])
+    faces = take(g.front.tri.reshape(-1), b_idx) - off
+    bary = take(g.front.bary.reshape(-1, 3), b_idx)
+    omega = take(px.view, sel) @ item.rotation  # world -> object: R^T w
+    dirs = [omega]
+    if rough:
+        r = torch.sqrt(take(var_view, sel)).clamp(max=MAX_SPREAD)
+        u, v = tangent_frame(omega)
+        for t in (u, -u, v, -v):
+            dirs.append(normalize(omega + r[:, None] * t))
+    om = torch.stack(dirs, 1)  # (n, E, 3)
+    out = []
+    for c0 in range(0, om.shape[0], CHUNK):
+        out.append(evaluate(table, faces[c0:c0 + CHUNK], bary[c0:c0 + CHUNK],
+                            om[c0:c0 + CHUNK], options.order, weights))
+    vals = torch.cat(out, 0)  # (n, E, C)
+    exit_obj = vals[..., :3]
+    center = normalize(exit_obj[:, 0])
+    var_geo = torch.zeros_like(center[:, 0])
+    if rough:
+        r2 = (torch.sqrt(take(var_view, sel)).clamp(max=MAX_SPREAD) ** 2).clamp(min=1e-12)
+        diff = normalize(exit_obj[:, 1:]) - center[:, None, :]  # chords ~ angles
+        var_geo = (diff * diff).sum(-1).mean(1) * (take(var_view, sel) / r2)
+    weak = exit_obj[:, 0].norm(dim=-1) < 1e-3  # ringing cancelled the vector: go straight
+    center = torch.where(weak[:, None], -omega, center)
+    direction = center @ item.rotation.T  # object -> world
+    length = (vals[:, 0, 3] * table.radius * item.scale).clamp(min=0.0)
+    return (direction, length, vals[:, 0, 4].clamp(0.0, 1.0), vals[:, 0, 5].clamp(0.0, 1.0),
+            var_geo)
+
+
+def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options: SHOptions,
+              items: tuple[SceneTable, ...]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Shade a G-buffer with the precomputed refracted-path mapping (module docstring).
+
+    Args:
+        g: G-buffer of B views at (H, W) (sub-)pixels.
+        lighting: environment maps (SG pyramids) and lights.
+        materials: IOR, roughness, distribution and absorption per scene.
+        options: method settings.
+        items: per batch item, its table and transform (``SH.prepare``).
+
+    Returns:
+        radiance: (B, H, W, 3) float32, background included.
+        passes: ``lobe_sigma`` (per-axis spread of the transmitted lobe, radians) and
+            ``path_length`` (world length inside), (B, H, W, 1) on object pixels.
+
+    Raises:
+        ValueError: a batch item's mesh or IOR is not its table's (``check_mesh``).
+    """
+    b, h, w = g.shape
+    if len(items) != b:
+        raise ValueError(f"method 'sh': {len(items)} prepared tables for {b} views")
+    radiance = background(g, lighting)
+    idx = g.object_index()
+    values = {k: torch.zeros(b * h * w) for k in PASSES}
+    if idx.numel() > 0:
+        table = load_sg_table()
+        px = object_pixels(g, materials, idx)
+        front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
+        var1 = 1.0 / front.k_t1.clamp(min=1e-12)
+        var_view = _snell_spread(px, var1)
+        n = idx.numel()
+        direction, length = px.d.clone(), torch.zeros(n)
+        cos_exit, thr, var_geo = torch.ones(n), torch.ones(n), torch.zeros(n)
+        length_fallback = take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0)
+        matched = torch.zeros(n, dtype=torch.bool)
+        for bi, item in enumerate(items):
+            sel = where_true(px.bi == bi)
+            if sel.numel() == 0:
+                continue
+            if item.table is None:  # IOR 1: no interface
+                put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
+                put_(length, sel, take(length_fallback, sel))
+                continue
+            check_mesh(g, bi, item)
+            if float(materials.ior[bi]) != item.table.settings.ior:
+                raise ValueError(f"method 'sh': batch item {bi} has IOR "
+                                 f"{float(materials.ior[bi])}, its table "
+                                 f"{item.table.settings.ior}; re-run prepare()")
+            rough = bool((take(px.alpha, sel) > ROUGH).any())
+            outs = _map_pixels(g, px, bi, sel, item, options, var_view, rough)
+            for dst, v in zip((direction, length, cos_exit, thr, var_geo), outs):
+                put_(dst, sel, v)
+        # The exit interface (leaving: eta = 1 / ior), its lobe at the exit cosine (held
+        # just outside TIR, where interpolation may dip below the critical angle).
+        eta2 = 1.0 / px.ior
+        cos_in = torch.maximum(cos_exit, critical_cosine(px.ior) + CRITICAL_MARGIN).clamp(max=1.0)
+        k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
+        k = 1.0 / (1.0 / k_t2 + var_geo).clamp(min=1e-12)
+        if options.exit_weight == "conserve":
+            e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist)
+            esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi)
+            weight2 = leaving_weight("conserve", torch.zeros_like(matched), e_t2, e_r2, esc)
+        else:
+            weight2 = thr
+        e_r, e_t1 = front.e_r, front.e_t1
+        # Index-matched: invisible (the straight ray, unblurred, all the light).
+        e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
+        e_t1 = torch.where(matched, torch.ones_like(e_t1), e_t1)
+        weight2 = torch.where(matched, torch.ones_like(weight2), weight2)
+        k = torch.where(matched, torch.full_like(k, float("inf")), k)
+        att = torch.exp(-take(materials.absorption, px.bi) * length[:, None])  # (N, 3), sec. 5.4
+        l_refl = incident_radiance_sg(lighting, px.bi, px.p1, front.axis_r, front.k_r)
+        l_trans = incident_radiance_sg(lighting, px.bi, px.p1, direction, k)
+        l_obj = e_r[:, None] * l_refl + (e_t1 * weight2)[:, None] * att * l_trans
+        l_obj = torch.nan_to_num(l_obj, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
+        composite(g, lighting, px, radiance, l_obj)
+        put_(values["lobe_sigma"], idx,
+             torch.nan_to_num(torch.rsqrt(k.clamp(min=1e-12)), nan=0.0, posinf=0.0))
+        put_(values["path_length"], idx, torch.nan_to_num(length, nan=0.0, posinf=0.0))
+    return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in values.items()}
+
+
+__all__ = ["CHUNK", "PASSES", "SceneTable", "check_mesh", "evaluate", "render_sh",
+           "scene_table"]
