@@ -8,6 +8,9 @@
   x: 8 grooves of period 0.2 and depth 0.07 (facets tilted 35 degrees), flat back at
   z = -0.1, valleys at z = 0.02, ridges at z = 0.09. Watertight, flat-shaded (stored facet
   normals); the ridges are parallel to y.
+- sawtooth.ply: the same construction with 16 asymmetric teeth (period 0.1, depth 0.05,
+  ridge at 3/4 of each period: facets tilted 34 and 63 degrees), flat back at z = -0.1,
+  valleys at z = 0.02.
 - torus.ply: torus about the z axis, major radius 0.7, minor radius 0.3 (128 x 64 sections,
   16,384 triangles), analytic normals stored: a thick ring where most light is trapped by
   total internal reflection.
@@ -19,6 +22,9 @@
 - ../textures/globe_roughness.png: 256 x 128 8-bit grayscale roughness map over the globe's
   UVs with exactly two values: 0 on "continents" (a few smooth blobs, procedural) and 255
   on "oceans" (with roughness_range [0.05, 0.4]: alpha 0.05 and 0.4).
+- ../textures/gradient_roughness.png: 256 x 128 8-bit grayscale map, a smooth ramp in
+  longitude, 255 (1 - cos(2 pi u)) / 2 (continuous across the seam): roughness that varies
+  with no jump (``configs/suite/globe_gradient.yaml``).
 
     .venv/bin/python scripts/make_assets.py
 """
@@ -53,15 +59,22 @@ def flat_shaded(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def vgroove_slab(width: float = 1.6, grooves: int = 8, depth: float = 0.07,
-                 z_back: float = -0.1, z_valley: float = 0.02) -> trimesh.Trimesh:
+                 z_back: float = -0.1, z_valley: float = 0.02, ridge: float = 0.5
+                 ) -> trimesh.Trimesh:
     """Slab with a sawtooth top (profile in x, extruded along y), closed, shared vertices.
 
-    The profile's top polyline has valleys at x = -w/2 + k p and ridges half-way between
-    (p = w / grooves). Every face (back, sides, end caps) is split at the same x stations as
-    the top, so all edges are shared by exactly two triangles (no T-junctions).
+    The profile's top polyline has valleys at x = -w/2 + k p and ridges a fraction ``ridge``
+    of the period p = w / grooves after each (0.5: symmetric v-grooves). Every face (back,
+    sides, end caps) is split at the same x stations as the top, so all edges are shared by
+    exactly two triangles (no T-junctions).
     """
     h = width / 2
-    xs = np.linspace(-h, h, 2 * grooves + 1)  # valley, ridge, valley, ...
+    if ridge == 0.5:
+        xs = np.linspace(-h, h, 2 * grooves + 1)  # valley, ridge, valley, ...
+    else:
+        p = width / grooves
+        xs = np.sort(np.concatenate([-h + p * np.arange(grooves + 1),
+                                     -h + p * (np.arange(grooves) + ridge)]))
     zt = np.where(np.arange(len(xs)) % 2 == 0, z_valley, z_valley + depth)
     n = len(xs)
     verts = []
@@ -163,6 +176,13 @@ def globe_roughness(width: int = 256, height: int = 128) -> np.ndarray:
     return np.where(land, 0, 255).astype(np.uint8)
 
 
+def gradient_roughness(width: int = 256, height: int = 128) -> np.ndarray:
+    """Smooth ramp in longitude, 0 at u = 0 and 255 at u = 1/2, the same in every row."""
+    u = (np.arange(width) + 0.5) / width
+    row = np.round(255.0 * 0.5 * (1.0 - np.cos(2.0 * np.pi * u)))
+    return np.repeat(row[None, :], height, 0).astype(np.uint8)
+
+
 def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
@@ -172,6 +192,9 @@ def main() -> None:
     vgroove = vgroove_slab()
     assert vgroove.is_watertight and vgroove.is_volume
     (OUT / "vgroove.ply").write_bytes(export_ply(flat_shaded(vgroove), vertex_normal=True))
+    saw = vgroove_slab(grooves=16, depth=0.05, ridge=0.75)
+    assert saw.is_watertight and saw.is_volume
+    (OUT / "sawtooth.ply").write_bytes(export_ply(flat_shaded(saw), vertex_normal=True))
     ring = torus()
     assert ring.is_watertight and ring.is_volume
     (OUT / "torus.ply").write_bytes(export_ply(ring, vertex_normal=True))
@@ -186,11 +209,13 @@ def main() -> None:
 
     Image.fromarray(globe_roughness(), mode="L").save(TEXTURES / "globe_roughness.png",
                                                        optimize=True)
-    for name, m in (("sphere", sphere), ("slab", slab), ("vgroove", vgroove),
+    Image.fromarray(gradient_roughness(), mode="L").save(TEXTURES / "gradient_roughness.png",
+                                                          optimize=True)
+    for name, m in (("sphere", sphere), ("slab", slab), ("vgroove", vgroove), ("sawtooth", saw),
                     ("torus", ring)):
         print(f"wrote {OUT / (name + '.ply')} ({len(m.faces)} triangles)")
     print(f"wrote {OUT / 'globe.obj'} ({len(globe.faces)} triangles)")
-    print(f"wrote {TEXTURES / 'globe_roughness.png'}")
+    print(f"wrote {TEXTURES / 'globe_roughness.png'}, {TEXTURES / 'gradient_roughness.png'}")
 
 
 if __name__ == "__main__":
