@@ -14,6 +14,7 @@ from PIL import Image
 
 import torchrefract as tr
 from torchrefract.cli import main
+from torchrefract.methods.base import Planned
 from torchrefract.output.images import read_exr
 
 _small_scene_yaml = small_scene_yaml
@@ -87,8 +88,9 @@ def test_api_rejects_mixed_resolutions_and_unknown_method(tmp_path):
         tr.render([s, other])
     with pytest.raises(tr.ConfigError, match="unknown method 'nope'"):
         tr.render([s], method="nope")
-    with pytest.raises(NotImplementedError, match="'lean' is not implemented yet"):
-        tr.render([s], method="lean")
+    tr.register_method("planned_x", Planned("planned_x", "issue #0"))
+    with pytest.raises(NotImplementedError, match="'planned_x' is not implemented yet"):
+        tr.render([s], method="planned_x")
     with pytest.raises(tr.ConfigError, match="march_stepz"):
         tr.render([s.replace(method_options={"march_stepz": 3})])
 
@@ -140,26 +142,30 @@ def test_cli_compare_prints_metrics_and_writes_error_map(tmp_path, capsys):
 
 def test_memory_budget_chunks_a_batch_and_refuses_a_view_up_front(tmp_path):
     """RenderSettings.memory_budget_mb (TORCHREFRACT_MEMORY_MB): a batch is shaded in
-    chunks of the views that fit the budget (the same pixels), and a view that alone does
-    not fit fails before any work, naming its size and the budget (a sweep records such a
-    sample as failed with that reason)."""
+    chunks of the views that fit the budget (the same pixels), and a view that does not
+    fit even in tiles fails before any work, naming its size and the budget (a sweep
+    records such a sample as failed with that reason)."""
     import importlib
 
+    from torchrefract import tiles
     from torchrefract.settings import RenderSettings, using
 
     render_mod = importlib.import_module("torchrefract.render")
     s = tr.load_scene(str(ROOT / "configs" / "demo.yaml"))
     scenes = [s.replace(camera=tr.Camera(eye=(0.1 * i, 0.3, 3.0), width=64, height=64))
               for i in range(5)]
-    per_view = 64 * 64 * render_mod.PASS_BYTES_PER_SUBPIXEL
-    budget_mb = (2 * per_view + (64 << 20)) // (1 << 20) + 1  # two views per pass
+    per_view = tiles.pass_bytes(64 * 64, 64 * 64) - tiles.PASS_BYTES_FIXED  # untiled
+    budget_mb = (2 * per_view + tiles.PASS_BYTES_FIXED) // (1 << 20) + 1  # two views per pass
     with using(RenderSettings(memory_budget_mb=budget_mb)):
         assert [len(c) for c in render_mod._chunks(scenes)] == [2, 2, 1]
     a = tr.render(scenes, settings=RenderSettings(memory_budget_mb=budget_mb))
     assert torch.equal(a.radiance, tr.render(scenes, settings=RenderSettings()).radiance)
+    # A view too large for one pass is shaded in tiles (tests/test_tiles.py); one whose
+    # frame alone is over the budget fails up front.
     big = s.replace(camera=tr.Camera(width=512, height=512, samples_per_pixel=2))
-    with pytest.raises(tr.ConfigError, match=r"512x512 view at samples_per_pixel 2 .*1\.6 "
-                                             r"GiB, over the memory budget of 100 MB"):
+    need = tiles.size_text(tiles.pass_bytes(512 * 512 * 4, tiles.MIN_TILE), up=True)
+    with pytest.raises(tr.ConfigError, match=rf"512x512 view at samples_per_pixel 2 .*{need} "
+                                             r"even in tiles .*over the memory budget of 100 MB"):
         tr.render(big, settings=RenderSettings(memory_budget_mb=100))
     with pytest.raises(tr.ConfigError, match="memory_budget_mb"):
         RenderSettings(memory_budget_mb=0)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchrefract import tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import pixel_rays
@@ -29,6 +30,7 @@ from torchrefract.optics.materials import MaterialBatch
 from torchrefract.scene import Scene, validate
 from torchrefract.settings import RenderSettings, current, using
 from torchrefract.stages import collect
+from torchrefract.tiles import memory_budget
 
 
 @dataclass(frozen=True)
@@ -166,7 +168,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None,
 
     Raises:
         ConfigError: mixed resolutions, methods or options; unknown method or option; a
-            broken mesh or environment map (file and problem named).
+            broken mesh or environment map (file and problem named); a view that does not
+            fit the memory budget even in tiles (before any work; :mod:`torchrefract.tiles`).
         NotImplementedError: a method of the design that is not implemented yet.
     """
     with using(settings):
@@ -198,14 +201,15 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
     options = entry.parse(scenes[0].method_options, scenes[0].name)
     if registry.is_policy(method):
         return _render_policy(scenes, entry, options)
-    parts = _chunks(scenes)
+    budget = memory_budget()  # once: the passes' own memory must not shrink it
+    parts = _chunks(scenes, budget)
     if len(parts) == 1:
-        return _render_pass(scenes, entry, options)
+        return _render_pass(scenes, entry, options, budget)
     start = 0
     placed = []
     for p in parts:
-        placed.append((list(range(start, start + len(p))), _render_pass(p, entry, options),
-                       None))
+        placed.append((list(range(start, start + len(p))),
+                       _render_pass(p, entry, options, budget), None))
         start += len(p)
     return _merge(len(scenes), placed)
 
@@ -217,63 +221,29 @@ rendered alone): the march's per-sample plane lookups and the shading's gathers 
 within a few views' buffers, and the peak memory follows the chunk, not the batch."""
 
 
-PASS_BYTES_PER_SUBPIXEL = 1536
-"""Peak memory of a render pass per sub-pixel, bytes (the G-buffer's layers, the march's
-planes, the rays, the radiance and the passes with their temporaries; measured in
-docs/datasets.md, "Memory budget"), for :func:`memory_budget`'s check."""
-PASS_BYTES_FIXED = 64 << 20
-"""What a render pass takes whatever its size (tables, pyramids' lookups), bytes."""
-
-
-def memory_budget() -> int:
-    """The bytes a render pass may take: ``RenderSettings.memory_budget_mb``, else 80% of
-    the memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where unknown)."""
-    mb = current().memory_budget_mb
-    if mb is not None:
-        return mb << 20
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(int(line.split()[1]) * 1024 * 0.8)
-    except OSError:
-        pass
-    return 4 << 30
-
-
-def _size(n: int) -> str:
-    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MB"
-
-
-def _chunks(scenes: list[Scene]) -> list[list[Scene]]:
+def _chunks(scenes: list[Scene], budget: int | None = None) -> list[list[Scene]]:
     """The batch split into near-equal consecutive chunks of at most MAX_PASS_SUBPIXELS,
-    and of at most the memory budget's sub-pixels (:func:`memory_budget`).
+    and of at most the views one pass shades whole within the memory budget
+    (:func:`torchrefract.tiles.views_per_pass`; a view that alone does not fit is a chunk of
+    its own, shaded in tiles).
 
     Raises:
-        ConfigError: one view alone does not fit the budget (naming its size and the
-            budget; large frames are not rendered in tiles yet).
+        ConfigError: one view does not fit the budget even in tiles (naming its size and
+            the budget; :func:`torchrefract.tiles.check_view`).
     """
     c = scenes[0].camera
     per_view = c.width * c.height * c.samples_per_pixel ** 2
-    budget = memory_budget()
-    need = per_view * PASS_BYTES_PER_SUBPIXEL + PASS_BYTES_FIXED
-    if need > budget:
-        raise ConfigError(
-            f"render: one {c.width}x{c.height} view at samples_per_pixel "
-            f"{c.samples_per_pixel} ({per_view:,} sub-pixels) needs about {_size(need)}, "
-            f"over the memory budget of {_size(budget)} "
-            f"(RenderSettings.memory_budget_mb; default: 80% of the available memory): "
-            f"render it smaller or with fewer samples per pixel (large frames are not split "
-            f"into tiles yet)")
-    most = max(1, min(MAX_PASS_SUBPIXELS,
-                      (budget - PASS_BYTES_FIXED) // PASS_BYTES_PER_SUBPIXEL) // per_view)
+    budget = memory_budget() if budget is None else budget
+    tiles.check_view(c, budget)
+    most = max(1, min(MAX_PASS_SUBPIXELS // per_view, tiles.views_per_pass(c, budget)))
     n = -(-len(scenes) // most)  # chunks
     size = -(-len(scenes) // n)
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]
 
 
-def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
-    """One tensor pass over ``scenes`` (checked: one resolution, method and options)."""
+def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResult:
+    """One tensor pass over ``scenes`` (checked: one resolution, method and options), its
+    shading in tiles where it does not fit ``budget`` bytes at once (:mod:`torchrefract.tiles`)."""
 
     method = entry.name
     t0 = time.perf_counter()
@@ -289,7 +259,7 @@ def _render_pass(scenes: list[Scene], entry, options) -> RenderResult:
                                 _front_roughness(g, materials))
     t2 = time.perf_counter()
     with collect() as stage_times:
-        shaded = entry.shade(g, lighting, materials, options, state)
+        shaded = tiles.shade(entry, g, lighting, materials, options, state, budget)
     radiance, method_passes = shaded.radiance, shaded.passes
     if plan is not None:  # the pixels shaded once: their sample to every sub-pixel
         radiance, method_passes = adaptive.spread(plan, radiance, method_passes)

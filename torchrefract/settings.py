@@ -88,8 +88,9 @@ class RenderSettings:
     the ``torchrefract`` command; never by default in a host process."""
     memory_budget_mb: int | None = None
     """The memory a render pass may take (MB): a batch is shaded in chunks of views that fit
-    it, and a view that alone does not fails up front, naming its size and the budget
-    (None: 80% of the machine's available memory at the render)."""
+    it, a view that alone does not in tiles (:mod:`torchrefract.tiles`: the same pixels),
+    and a view whose frame does not fit even so fails up front, naming its size and the
+    budget (None: 80% of the machine's available memory at the render)."""
     cache_dir: str | None = None
     """Folder of the built kernels and tables (None: ``$XDG_CACHE_HOME/torchrefract`` or
     ``~/.cache/torchrefract``)."""
