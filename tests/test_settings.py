@@ -102,8 +102,13 @@ def test_bad_settings_are_named():
 
 
 def test_old_switches_are_deprecated_aliases(monkeypatch):
-    monkeypatch.delenv("TORCHREFRACT_NATIVE", raising=False)
-    monkeypatch.delenv("TORCHREFRACT_COMPILE", raising=False)
+    # Registered with monkeypatch first (set, then deleted), so that its teardown ends with
+    # the variables as they were: set_native / set_compile write os.environ themselves, and
+    # a bare delenv at the end would be undone to their values (every later test then ran
+    # with native kernels off and compilation on).
+    for name in ("TORCHREFRACT_NATIVE", "TORCHREFRACT_COMPILE"):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
     with pytest.warns(DeprecationWarning, match="RenderSettings"):
         tr.set_native(False)
     assert current().native is False

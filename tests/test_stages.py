@@ -43,13 +43,17 @@ def test_stages_sum_counts_once_when_nested_and_isolate_collections():
 
 
 def test_render_reports_march_and_mips_inside_shading():
-    # spread: paper reads the back layer's NDF mips; the default (rays) builds none
+    # The tensor code (the fused kernels march inside one call, reported as "fused"):
+    # spread: paper reads the back layer's NDF mips; the default (rays) builds none.
+    tensor = tr.RenderSettings(fused=False)
     for options, has_mips in (({"spread": "paper"}, True), ({}, False)):
-        out = tr.render([_scene("rousiers", **options)])
+        out = tr.render([_scene("rousiers", **options)], settings=tensor)
         t = out.timings
         assert t["march"] > 0.0
         assert (t["mips"] > 0.0) == has_mips, t
         assert t["march"] + t["mips"] <= t["shading"] <= t["total"]
     # specular with bounces marches inside as well
-    t = tr.render([_scene("specular", internal_bounces=1)]).timings
+    t = tr.render([_scene("specular", internal_bounces=1)], settings=tensor).timings
     assert t["march"] > 0.0 and t["mips"] == 0.0
+    t = tr.render([_scene("rousiers")]).timings  # the default: fused
+    assert t["fused"] > 0.0 and t["march"] == 0.0 and t["fused"] <= t["shading"]
