@@ -16,10 +16,11 @@ echo "== C API defaults (--no-heap-reuse), 256 b8"
 $B --methods specular prefiltered rousiers --sizes 256 --batches 8 --repeats 5 --no-heap-reuse --no-mitsuba --out outputs/bench_sitting/C 2>&1 | grep -v saved
 echo "== D 1 thread, 256 b8"
 $B --methods specular rousiers rousiers:internal_bounces=2 --sizes 256 --batches 8 --repeats 5 --threads 1 --no-mitsuba --out outputs/bench_sitting/D 2>&1 | grep -v saved
-echo "== E under load (one core busy), 2 threads then 1 thread"
-( timeout 120 python3 -c "while True: pass" ) & HOG=$!
+echo "== E under load (one core busy): default (threads adapt), 2 threads fixed, 1 thread"
+( timeout 180 python3 -c "while True: pass" ) & HOG=$!
 sleep 1
 $B --methods specular rousiers --sizes 256 --batches 8 --repeats 5 --no-mitsuba --out outputs/bench_sitting/E2 2>&1 | grep -v saved
+TORCHREFRACT_ADAPT_THREADS=0 $B --methods specular rousiers --sizes 256 --batches 8 --repeats 5 --no-mitsuba --out outputs/bench_sitting/E2f 2>&1 | grep -v saved
 $B --methods specular rousiers --sizes 256 --batches 8 --repeats 5 --threads 1 --no-mitsuba --out outputs/bench_sitting/E1 2>&1 | grep -v saved
 $B --methods rousiers --sizes 256 --batches 8 --repeats 5 --no-fused --no-mitsuba --out outputs/bench_sitting/E3 2>&1 | grep -v saved
 kill $HOG 2>/dev/null; wait $HOG 2>/dev/null

@@ -136,3 +136,44 @@ def test_flag_and_environment_are_settings_of_the_run(monkeypatch, flag, env, fi
     monkeypatch.setenv(name, value)
     assert getattr(RenderSettings.from_env(), field) is not default
     assert getattr(RenderSettings(), field) is default
+
+
+def test_threads_adapt_to_cores_other_processes_keep_busy(monkeypatch):
+    """threads None: a call under load takes only the free cores (at least 1) and gives
+    torch's count back after; an explicit count or adapt_threads=False is kept."""
+    from torchrefract import cpu_load
+
+    n = torch.get_num_threads()
+    cores = os.cpu_count() or 1
+    monkeypatch.setattr(cpu_load, "busy_cores", lambda *a, **k: cores)  # every core taken
+    with using(RenderSettings()):
+        assert torch.get_num_threads() == 1
+        with using(RenderSettings()):  # a nested block keeps the outer count
+            assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == n
+    with using(RenderSettings(adapt_threads=False)):
+        assert torch.get_num_threads() == n
+    with using(RenderSettings(threads=2)):
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == n
+    assert cpu_load.threads_for(4, cores=8, busy=2) == 4
+    assert cpu_load.threads_for(4, cores=4, busy=1) == 3
+    assert cpu_load.threads_for(2, cores=2, busy=5) == 1
+    assert RenderSettings.from_env().adapt_threads
+    monkeypatch.setenv("TORCHREFRACT_ADAPT_THREADS", "0")
+    assert not RenderSettings.from_env().adapt_threads
+
+
+def test_busy_cores_sees_a_busy_process():
+    """A process spinning on a core is counted (the machine's other load may add more)."""
+    import time
+
+    from torchrefract.cpu_load import busy_cores
+
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        assert max(busy_cores() for _ in range(5)) >= 1
+    finally:
+        hog.kill()
+        hog.wait()

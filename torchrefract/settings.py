@@ -16,12 +16,14 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
+``TORCHREFRACT_ADAPT_THREADS=0``       ``adapt_threads=False``: torch's count even under load
 ``TORCHREFRACT_MEMORY_MB=N``           ``memory_budget_mb=N``
 ``TORCHREFRACT_CACHE=DIR``             ``cache_dir=DIR``
 ====================================  =============================================
 
-Only ``threads`` and ``heap_reuse`` touch process-wide state, and only when set: ``threads``
-is torch's intra-op thread count for the call (restored after it); ``heap_reuse`` tunes
+Only ``threads`` and ``heap_reuse`` touch process-wide state: ``threads`` (or, where it is
+None, the cores left free by other processes: ``adapt_threads``) is torch's intra-op thread
+count for the call (restored after it); ``heap_reuse`` tunes
 glibc's allocator for the whole process (:mod:`torchrefract.heap`), which the caller asks
 for explicitly.
 
@@ -67,7 +69,12 @@ class RenderSettings:
     """How a render runs; every field's default is the fastest correct choice."""
 
     threads: int | None = None
-    """torch CPU threads for the call (None: torch's own count, left as it is)."""
+    """torch CPU threads for the call (None: torch's own count, lowered for the call by the
+    cores other processes keep busy where ``adapt_threads``)."""
+    adapt_threads: bool = True
+    """With ``threads`` None: where other processes keep cores busy at the start of a call,
+    use only the free ones for it (at least 1; :mod:`torchrefract.cpu_load`): one thread
+    per core is slower than fewer when a core is taken."""
     native: bool = True
     """The C kernels (march, G-buffer, cone) where they build; the tensor code otherwise
     (the same images)."""
@@ -107,6 +114,7 @@ class RenderSettings:
         """The defaults as the environment variables (module docstring) set them."""
         base = cls(
             threads=_env_count("TORCHREFRACT_THREADS"),
+            adapt_threads=_env_flag("TORCHREFRACT_ADAPT_THREADS", True),
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
             fused=_env_flag("TORCHREFRACT_FUSED", True),
@@ -156,21 +164,30 @@ def current() -> RenderSettings:
 def using(settings: RenderSettings | None) -> Iterator[RenderSettings]:
     """Run the block under ``settings`` (None: those in force, or the environment's).
 
-    Sets torch's thread count for the block where ``settings.threads`` is given (and
-    restores it), and turns heap reuse on where ``settings.heap_reuse`` asks for it."""
+    Sets torch's thread count for the block where ``settings.threads`` is given, or where
+    other processes keep cores busy (``adapt_threads``), and restores it; turns heap reuse
+    on where ``settings.heap_reuse`` asks for it. Nested blocks keep the outer count."""
     s = settings if settings is not None else current()
     if not isinstance(s, RenderSettings):
         raise ConfigError(f"settings: expected a torchrefract.RenderSettings, got "
                           f"{type(s).__name__}")
+    outer = _CURRENT.get() is None
     token = _CURRENT.set(s)
     threads_before = None
     try:
-        if s.threads is not None:
+        want = s.threads
+        if want is None and s.adapt_threads and outer:
+            import torch  # noqa: PLC0415
+
+            from torchrefract.cpu_load import threads_for  # noqa: PLC0415
+
+            want = threads_for(torch.get_num_threads())
+        if want is not None:
             import torch  # noqa: PLC0415
 
             threads_before = torch.get_num_threads()
-            if threads_before != s.threads:
-                torch.set_num_threads(s.threads)
+            if threads_before != want:
+                torch.set_num_threads(want)
             else:
                 threads_before = None
         if s.heap_reuse:

@@ -1,0 +1,61 @@
+"""How many cores other processes keep busy right now: for a render's thread count under
+load (``RenderSettings.adapt_threads``, issue #28).
+
+With one of two cores busy (a training job's DataLoader worker, another render), torch's
+default of one thread per core is slower than one thread: every tensor op waits at its
+barrier for the thread that lost its core, and libgomp's spinning workers fight the busy
+process (measured: docs/benchmarks.md, "Threads under load"). Linux reports the runnable
+tasks of the whole machine (``/proc/loadavg``, fourth field) and each of our threads'
+state (``/proc/self/task/*/stat``); the difference is what other processes run. A few
+samples a fraction of a millisecond apart, the least kept: a task that runs for an instant
+is not load.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+
+def _running_here() -> int:
+    """This process's threads in state R (running or ready to run)."""
+    n = 0
+    for t in os.scandir("/proc/self/task"):
+        try:
+            with open(os.path.join(t.path, "stat"), "rb") as f:
+                stat = f.read()
+        except OSError:  # the thread ended
+            continue
+        if stat[stat.rfind(b")") + 2:][:1] == b"R":
+            n += 1
+    return n
+
+
+def busy_cores(samples: int = 3, gap_s: float = 0.0005) -> int:
+    """Cores other processes keep busy now (0 where /proc is not readable): the machine's
+    runnable tasks less this process's, the least of ``samples`` reads ``gap_s`` apart."""
+    best = None
+    try:
+        for i in range(samples):
+            if i:
+                time.sleep(gap_s)
+            with open("/proc/loadavg") as f:
+                running = int(f.read().split()[3].split("/")[0])
+            other = max(0, running - _running_here())
+            best = other if best is None else min(best, other)
+            if best == 0:
+                break
+    except (OSError, ValueError, IndexError):
+        return 0
+    return best or 0
+
+
+def threads_for(requested: int, cores: int | None = None, busy: int | None = None) -> int:
+    """The threads a render takes when it asked for ``requested``: at most the cores other
+    processes leave free, at least 1."""
+    cores = cores if cores is not None else (os.cpu_count() or 1)
+    busy = busy if busy is not None else busy_cores()
+    return max(1, min(requested, cores - busy))
+
+
+__all__ = ["busy_cores", "threads_for"]
