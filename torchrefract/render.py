@@ -30,7 +30,6 @@ from torchrefract.optics.materials import MaterialBatch
 from torchrefract.scene import Scene, validate
 from torchrefract.settings import RenderSettings, current, using
 from torchrefract.stages import collect
-from torchrefract.tiles import memory_budget
 
 
 @dataclass(frozen=True)
@@ -201,7 +200,7 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
     options = entry.parse(scenes[0].method_options, scenes[0].name)
     if registry.is_policy(method):
         return _render_policy(scenes, entry, options)
-    budget = memory_budget()  # once: the passes' own memory must not shrink it
+    budget = tiles.memory_budget()  # once: the passes' own memory must not shrink it
     parts = _chunks(scenes, budget)
     if len(parts) == 1:
         return _render_pass(scenes, entry, options, budget)
@@ -233,7 +232,7 @@ def _chunks(scenes: list[Scene], budget: int | None = None) -> list[list[Scene]]
     """
     c = scenes[0].camera
     per_view = c.width * c.height * c.samples_per_pixel ** 2
-    budget = memory_budget() if budget is None else budget
+    budget = tiles.memory_budget() if budget is None else budget
     tiles.check_view(c, budget)
     most = max(1, min(MAX_PASS_SUBPIXELS // per_view, tiles.views_per_pass(c, budget)))
     n = -(-len(scenes) // most)  # chunks

@@ -176,16 +176,14 @@ def using(settings: RenderSettings | None) -> Iterator[RenderSettings]:
     threads_before = None
     try:
         want = s.threads
-        if want is None and s.adapt_threads and outer:
+        adapt = want is None and s.adapt_threads and outer
+        if want is not None or adapt:
             import torch  # noqa: PLC0415
 
             from torchrefract.cpu_load import threads_for  # noqa: PLC0415
 
-            want = threads_for(torch.get_num_threads())
-        if want is not None:
-            import torch  # noqa: PLC0415
-
             threads_before = torch.get_num_threads()
+            want = threads_for(threads_before) if adapt else want
             if threads_before != want:
                 torch.set_num_threads(want)
             else:

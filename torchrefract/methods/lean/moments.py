@@ -42,8 +42,9 @@ import torch
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.ndf import build_box_mips, sample_box_mips
+from torchrefract.methods.lean.lobes import to_basis
 from torchrefract.optics.cov2 import psd2
-from torchrefract.optics.smooth import normalize
+from torchrefract.optics.smooth import dot, normalize
 
 NZ_MIN = 0.2
 """Smallest camera-z of a back normal used for its slopes (78 degrees off the view axis)."""
@@ -219,19 +220,16 @@ facets grow without bound."""
 def separation(fp: Footprint) -> torch.Tensor:
     """(N,) in [0, 1]: how clearly the footprint's normals form separate groups rather than
     one blob cut into sectors (``SEPARATION``, smoothstep of the trace ratio, continuous as
-    the object moves). ``gsr`` with ``spread: rays`` spreads its lobes by this much, so a
-    curved surface keeps one lobe (the poster's ghosting) and a crease splits."""
+    the object moves). ``gsr`` with ``spread: rays`` blends from the merged lobe to its
+    subdivisions' lobes by this much, so a curved surface keeps one lobe (the poster's
+    ghosting) and a crease splits."""
     w = fp.weight
     n_bar = normalize((w[..., None] * fp.normal).sum(1))
-    t1, t2 = _tangents(n_bar)
-    o = torch.stack([(fp.normal * t1[:, None]).sum(-1), (fp.normal * t2[:, None]).sum(-1)], -1)
+    t1, t2 = (t[:, None] for t in _tangents(n_bar))
+    o = torch.stack([dot(fp.normal, t1), dot(fp.normal, t2)], -1)
     o = o - (w[..., None] * o).sum(1, keepdim=True)
     between = (w * (o * o).sum(-1)).sum(-1)
-    r = torch.stack([torch.stack([(t1[:, None] * fp.u).sum(-1), (t1[:, None] * fp.v).sum(-1)],
-                                 -1),
-                     torch.stack([(t2[:, None] * fp.u).sum(-1), (t2[:, None] * fp.v).sum(-1)],
-                                 -1)], -2)  # (N, K, 2, 2)
-    cov = r @ fp.cov @ r.transpose(-1, -2)
+    cov = to_basis(fp.cov, fp.u, fp.v, t1, t2)  # each subdivision's, in n_bar's plane
     within = (w * (cov[..., 0, 0] + cov[..., 1, 1])).sum(-1)
     ratio = between / within.clamp(min=1e-10)
     lo, hi = SEPARATION

@@ -84,7 +84,7 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     mode = "split" if bounce else options.tir
     if spread == "paper":
         lobes, normals, weight = _lobes(g, table, px, front, cone, fp, materials, options,
-                                        mode, exact=False)
+                                        mode, exact=False, reflected=bounce)
         # the bounces continue from the lobes' mean normal
         xi = exit_interface(g, px, front, cone.ex, normalize(
             (weight[..., None] * normals).sum(1)), None, materials)
@@ -105,7 +105,7 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
             # group's own lobe, widened as the poster does (flat facets: the front lobe
             # through each exit), blended in continuously
             lobes = _lobes(g, table, px, front, cone, fp, materials, options, mode,
-                           exact=False)[0]
+                           exact=False, reflected=bounce)[0]
             covs, var_k = _paper_covariances(px, front.p_t1, cone, fp, lobes)
             l_k = _read(lighting, px, lobes, covs, options)
             l_trans = torch.lerp(l_trans, l_k, apart[:, None])
@@ -137,10 +137,10 @@ def _lobe_normals(fp: Footprint, cone: Cone, exact: bool, alpha_front: torch.Ten
     w_ndf = (torch.log2(cone.minor) / 2.0).clamp(0.0, 1.0)[:, None, None]
     if exact:
         w_ndf = torch.zeros_like(w_ndf)
-    exact = cone.exact_n[:, None, :].expand(-1, k, -1)
-    blended = normalize(w_ndf * fp.normal + (1.0 - w_ndf) * exact)
+    exact_n = cone.exact_n[:, None, :].expand(-1, k, -1)
+    blended = normalize(w_ndf * fp.normal + (1.0 - w_ndf) * exact_n)
     use = have[:, None] & (fp.weight > 0)
-    normals = torch.where(use[..., None], blended, exact)
+    normals = torch.where(use[..., None], blended, exact_n)
     if lobes == 2:
         a2, aw = fp.alpha2, fp.alpha2_w
     else:
@@ -152,11 +152,13 @@ def _lobe_normals(fp: Footprint, cone: Cone, exact: bool, alpha_front: torch.Ten
 
 
 def _lobes(g: GBuffer, table, px: Pixels, front: FrontLobes, cone: Cone, fp: Footprint,
-           materials: MaterialBatch, options, mode: str, exact: bool):
+           materials: MaterialBatch, options, mode: str, exact: bool, reflected: bool):
     """The exit lobes of a footprint's Gaussians, one per subdivision and roughness node
     (the SG table's lobe for its normal and roughness under the exit rule ``mode``), with
     the subdivisions' weights (N, K) and normals (N, K, 3). Without a roughness map the two
-    roughness nodes coincide: one lobe (the same image, half the lookups)."""
+    roughness nodes coincide: one lobe (the same image, half the lookups). ``reflected``:
+    also what each lobe's interface reflects inside (for the bounces, :func:`_reflected`;
+    zeros otherwise)."""
     lobes_r = options.roughness_lobes if materials.has_maps else 1
     weight, normals, alphas, alpha_w = _lobe_normals(fp, cone, exact, px.alpha, lobes_r)
     lobes = []
@@ -167,7 +169,7 @@ def _lobes(g: GBuffer, table, px: Pixels, front: FrontLobes, cone: Cone, fp: Foo
             a = alphas[:, j, r]
             axis, k, energy = exit_lobe(table, px, xi, materials, "rays", mode, a)
             refl = spread_energies(table, xi.cos2, xi.var1, xi.eta, a, px.dist)[1] \
-                if mode == "split" else torch.zeros_like(a)
+                if reflected else torch.zeros_like(a)
             lobes.append(_Lobe(xi, axis, k, energy, weight[:, j] * alpha_w[:, j, r], j, a,
                                refl))
     return lobes, normals, weight
@@ -189,7 +191,8 @@ def _rays_mixture(g: GBuffer, table, lighting: Lighting, materials: MaterialBatc
     """``spread: rays``: the light read by the lobes of a footprint's merged Gaussian (its
     roughness nodes, at the exact exit normal) placed around the central exit direction
     (:func:`_ray_covariances`) and the mixture's per-axis variance."""
-    lobes = _lobes(g, table, px, front, cone, fp, materials, options, mode, exact=True)[0]
+    lobes = _lobes(g, table, px, front, cone, fp, materials, options, mode, exact=True,
+                   reflected=False)[0]
     alpha_c = torch.sqrt(sum(lb.share * lb.alpha ** 2 for lb in lobes))
     center = exit_lobe(table, px, xi, materials, "rays", mode, alpha_c)[0]
     covs, variance = _ray_covariances(g, px, front.p_t1, front.k_t1, cone, xi, center, lobes)
@@ -231,12 +234,11 @@ def _ray_covariances(g: GBuffer, px: Pixels, p_t1: torch.Tensor, k_t1: torch.Ten
     its covariance R (:func:`.lobes.ray_covariance`); the lobes keep only their shape,
     their axes' spread B about their own mean (the roughness nodes' axes differ a little),
     shrunk by s where it exceeds R (:func:`.lobes.mixture_shrink`), each lobe then
-    R - s^2 B wide plus its microfacet part, so the mixture has R's covariance. Returns per lobe (axis, covariance, e1, e2)
-    and the mixture's per-axis variance (N,)."""
+    R - s^2 B wide plus its microfacet part, so the mixture has R's covariance. Returns
+    per lobe (axis, covariance, e1, e2) and the mixture's per-axis variance (N,)."""
     share = torch.stack([lb.share for lb in lobes], -1)  # (N, M)
     axes = torch.stack([lb.axis for lb in lobes], 1)  # (N, M, 3)
-    mean = center
-    e1, e2 = out_basis(mean, p_t1, xi.n_in)
+    e1, e2 = out_basis(center, p_t1, xi.n_in)
     d = torch.stack([dot(axes, e1[:, None]), dot(axes, e2[:, None])], -1)  # (N, M, 2)
     d = d - (share[..., None] * d).sum(1, keepdim=True)
     between = (share[..., None, None] * d[..., :, None] * d[..., None, :]).sum(1)
@@ -250,7 +252,7 @@ def _ray_covariances(g: GBuffer, px: Pixels, p_t1: torch.Tensor, k_t1: torch.Ten
     for m, lobe in enumerate(lobes):
         off = torch.sqrt(s2)[:, None] * d[:, m]
         axis = torch.where(found[:, None], normalize(
-            mean + off[:, :1] * e1 + off[:, 1:] * e2), lobe.axis)
+            center + off[:, :1] * e1 + off[:, 1:] * e2), lobe.axis)
         cov = torch.where(found[:, None, None], within, torch.zeros_like(within)) \
             + _iso(_var(lobe.k), within)
         out.append((axis, cov, e1, e2))
