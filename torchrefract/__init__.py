@@ -7,12 +7,15 @@ Public API::
     out.radiance   # (B, H, W, 3) float32 linear RGB
     out.coverage   # (B, H, W)
     out.passes     # dict of (B, H, W, C)
+    # with scene.passes = {"matte": {}}: the lobes of every pixel, relightable
+    img = torchrefract.relight(out, "other_map.exr", rotate_deg=90.0)
 """
 
 from torchrefract.checks import ConfigError
 from torchrefract.heap import set_heap_reuse
 from torchrefract.kernels.compiled import set_compile
 from torchrefract.kernels.native import set_native
+from torchrefract.matte.relight import relight
 from torchrefract.methods import register_method
 from torchrefract.render import RenderResult, render
 from torchrefract.scene import (
@@ -30,5 +33,5 @@ from torchrefract.settings import RenderSettings
 __version__ = "0.1.0"
 
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "RenderSettings", "Scene",
-           "SphereLight", "Transform", "load_scene", "register_method", "render",
+           "SphereLight", "Transform", "load_scene", "register_method", "relight", "render",
            "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "__version__"]

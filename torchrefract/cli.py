@@ -43,6 +43,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--adaptive", action="store_true",
                    help="with samples_per_pixel > 1, shade every sub-pixel only where the "
                         "G-buffer changes inside the pixel (RenderSettings.adaptive)")
+    r.add_argument("--passes", default=None,
+                   help="extra passes for every scene, comma-separated: matte (the lobes "
+                        "the method read the environment with, relightable), flow "
+                        "(refractive flow); replaces the scenes' own 'passes' (docs/matte.md)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -126,10 +130,21 @@ def _render_cmd(args: argparse.Namespace) -> int:
         return 2
     failed: list[tuple[str, str]] = []
     scenes = []
+    extra = None
+    if args.passes is not None:
+        from torchrefract.matte.passes import parse_passes  # noqa: PLC0415
+
+        try:
+            extra = parse_passes([p.strip() for p in args.passes.split(",") if p.strip()],
+                                 None, "--passes")
+        except ConfigError as exc:
+            print(f"torchrefract: {exc}", file=sys.stderr)
+            return 2
     for path in args.scenes:
         try:
             s = load_scene(path)
-            scenes.append(s if args.method is None else s.replace(method=args.method))
+            s = s if args.method is None else s.replace(method=args.method)
+            scenes.append(s if extra is None else s.replace(passes=extra))
         except ConfigError as exc:
             failed.append((path, str(exc)))
     names = [s.name for s in scenes]
@@ -141,7 +156,8 @@ def _render_cmd(args: argparse.Namespace) -> int:
     groups = defaultdict(list)
     for s in scenes:
         c = s.camera
-        key = (c.width, c.height, c.samples_per_pixel, s.method, repr(s.method_options))
+        key = (c.width, c.height, c.samples_per_pixel, s.method, repr(s.method_options),
+               repr(s.passes))
         groups[key].append(s)
     out = Path(args.out)
     start = time.perf_counter()

@@ -25,6 +25,7 @@ from torchrefract.geometry.camera import pixel_rays
 from torchrefract.geometry.gbuffer import GBuffer, build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
+from torchrefract.matte import render_hook
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.scene import Scene, validate
@@ -147,6 +148,10 @@ def _check_batch(scenes: list[Scene]) -> None:
         if s.method_options != scenes[0].method_options:
             raise ConfigError(f"render: scenes in one batch need the same method_options; "
                               f"scene {i} ({s.name}) differs from scene 0")
+        if s.passes != scenes[0].passes:
+            raise ConfigError(f"render: scenes in one batch need the same passes; scene {i} "
+                              f"({s.name}) asks for {sorted(s.passes)}, scene 0 "
+                              f"({scenes[0].name}) for {sorted(scenes[0].passes)}")
 
 
 def render(scenes: Scene | list[Scene], method: str | None = None,
@@ -198,8 +203,19 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
     _check_batch(scenes)
     entry = registry.get(method)
     options = entry.parse(scenes[0].method_options, scenes[0].name)
+    extra = render_hook.requested(scenes)  # ``matte`` / ``flow`` (torchrefract.matte)
     if registry.is_policy(method):
+        if extra:
+            raise ConfigError(f"render: passes {sorted(extra)} need a method, not the policy "
+                              f"{method!r}; set method to one of "
+                              f"{', '.join(render_hook.MATTE_METHODS)}")
         return _render_policy(scenes, entry, options)
+    render_hook.check(method, extra, options)
+    with render_hook.settings_for(extra):  # the tensor code, where lookups are recorded
+        return _render_method(scenes, entry, options)
+
+
+def _render_method(scenes: list[Scene], entry, options) -> RenderResult:
     budget = tiles.memory_budget()  # once: the passes' own memory must not shrink it
     parts = _chunks(scenes, budget)
     if len(parts) == 1:
@@ -257,20 +273,29 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
         g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
                                 _front_roughness(g, materials))
     t2 = time.perf_counter()
-    with collect() as stage_times:
+    extra = render_hook.requested(scenes)
+    extra_passes: dict[str, torch.Tensor] = {}
+    with collect() as stage_times, render_hook.scope(extra) as rec:
         shaded = tiles.shade(entry, g, lighting, materials, options, state, budget)
-    radiance, method_passes = shaded.radiance, shaded.passes
-    if plan is not None:  # the pixels shaded once: their sample to every sub-pixel
-        radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
+        radiance, method_passes = shaded.radiance, shaded.passes
+        if plan is not None:  # the pixels shaded once: their sample to every sub-pixel
+            radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
+        bad = ~torch.isfinite(radiance)
+        if bad.any():  # never let NaN/Inf out, and never hide that it happened
+            count = int(bad.any(-1).sum())
+            warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and "
+                          "were set to 0; please report the scene", RuntimeWarning,
+                          stacklevel=2)
+            radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
+        if rec is not None:  # every lookup's weight and sub-pixel, then the passes
+            t_m = time.perf_counter()
+            extra_passes = render_hook.make_passes(rec, radiance, _box, g, scenes, extra)
+            radiance = radiance.detach()
+            method_passes = {k: v.detach() for k, v in method_passes.items()}
+            stage_times["matte"] = time.perf_counter() - t_m
     t3 = time.perf_counter()
 
     n = g.supersample
-    bad = ~torch.isfinite(radiance)
-    if bad.any():  # never let NaN/Inf out, and never hide that it happened
-        count = int(bad.any(-1).sum())
-        warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and were "
-                      "set to 0; please report the scene", RuntimeWarning, stacklevel=2)
-        radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     passes = _geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
@@ -280,6 +305,7 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
         passes[name] = v if n == 1 else _masked_box(v, g.front.mask, n, cache)  # 0 outside
     for k, v in method_passes.items():
         passes[k] = _masked_box(v, g.front.mask, n, cache)
+    passes.update(extra_passes)  # already per pixel
     return RenderResult(
         radiance=_box(radiance, n).float(),
         coverage=_mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
@@ -288,6 +314,7 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
         timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
                  "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
                  "fused": stage_times.get("fused", 0.0),
+                 **({"matte": stage_times["matte"]} if "matte" in stage_times else {}),
                  "total": time.perf_counter() - t0},
     )
 

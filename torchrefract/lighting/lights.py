@@ -14,6 +14,7 @@ import torch
 
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting import envmap
+from torchrefract.matte import record
 from torchrefract.optics.smooth import dot
 from torchrefract.scene.model import Scene
 
@@ -119,6 +120,8 @@ def incident_radiance(lighting: Lighting, batch: torch.Tensor, origin: torch.Ten
             continue
         put_(out, sel, envmap.lookup(tex, take(direction, sel), lighting.rotate_deg[b],
                                      lighting.scale[b]))
+    # A matte render records the lookup and its weight (torchrefract.matte.record).
+    out = record.tap(out, origin, direction, None, batch, "plain")
     if lighting.light_pos.shape[1] > 0:
         t, le = hit_lights(origin, direction, take(lighting.light_pos, batch),
                            take(lighting.light_radius, batch),
@@ -165,6 +168,8 @@ def incident_radiance_sg(lighting: Lighting, batch: torch.Tensor, origin: torch.
         put_(out, sel, sg_lookup_env(lighting.pyramid(b), take(direction, sel),
                                      take(sharpness, sel), lighting.rotate_deg[b],
                                      lighting.scale[b]))
+    # A matte render records the lookup and its weight (torchrefract.matte.record).
+    out = record.tap(out, origin, direction, sharpness, batch, env)
     if lighting.light_pos.shape[1] > 0:
         pos, rad = take(lighting.light_pos, batch), take(lighting.light_radius, batch)
         le_all = take(lighting.light_radiance, batch)

@@ -22,11 +22,12 @@ from torchrefract.checks import (
     load_yaml_file,
     where,
 )
+from torchrefract.matte.passes import parse_passes
 from torchrefract.methods import registry
 from torchrefract.scene.model import Camera, EnvMap, Material, Scene, SphereLight, Transform
 
 _TOP_KEYS = ("mesh", "transform", "material", "envmap", "lights", "camera", "method",
-             "method_options", "exposure", "name")
+             "method_options", "exposure", "passes", "name")
 
 
 def _section(data: dict, key: str) -> dict:
@@ -66,12 +67,13 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
                source)
     registry.get(method).parse(opts, source)  # raises ConfigError naming the bad option
     exposure = check_number(_get(data, "exposure", Scene), "exposure", source)
+    passes = parse_passes(data.get("passes"), source)
     nm = data.get("name", name if name is not None else "scene")
     if not isinstance(nm, str) or not nm or "/" in nm or nm.startswith("."):
         raise ConfigError(f"{where(source, 'name')}: expected a file stem, got {nm!r}")
     return Scene(mesh=mesh, envmap=envmap, transform=transform, material=material,
                  lights=lights, camera=camera, method=method,
-                 method_options=dict(opts), exposure=exposure, name=nm)
+                 method_options=dict(opts), exposure=exposure, passes=passes, name=nm)
 
 
 def _transform(t: dict, source: str | None) -> Transform:

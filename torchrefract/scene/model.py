@@ -100,6 +100,9 @@ class Scene:
     """Settings of that method, e.g. ``{tir: reflect}``."""
     exposure: float = 0.0
     """Extension: exposure in stops applied to the PNG preview only (never to the EXR)."""
+    passes: dict = field(default_factory=dict)
+    """Extension: optional output passes, name -> options (``matte``, ``flow``;
+    :mod:`torchrefract.matte.passes`). Empty: the standard passes only."""
     name: str = "scene"
     """Output file stem (the YAML file's stem when loaded from a file)."""
 
@@ -107,6 +110,8 @@ class Scene:
         """The resolved scene as plain data (for metadata and for writing YAML back)."""
         d = dataclasses.asdict(self)
         d["lights"] = [dict(l) for l in d["lights"]]
+        if not d["passes"]:  # not asked for: left out (older records stay the same)
+            del d["passes"]
         return d
 
     def replace(self, **changes: Any) -> "Scene":

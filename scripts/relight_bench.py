@@ -1,0 +1,115 @@
+"""Relighting against full renders (issue #27): time per relit image and its error.
+
+For a few suite scenes at 256x256 (1 sample per pixel): render once with ``passes: [matte]``
+(the tensor code, lookups recorded), then for each of three maps (and a rotation) relight
+and render directly (default settings: fused kernels; and the tensor code), in one run.
+Prints and writes ``outputs/relight_bench/relight_bench.json`` and a figure
+``outputs/relight_bench/relit_vs_direct.png`` (per map: relit, direct, FLIP error).
+
+Usage: .venv/bin/python scripts/relight_bench.py [--size 256] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torchrefract as tr
+from torchrefract.output.images import linear_to_srgb8
+from torchrefract.truth.metrics import flip_map
+
+ROOT = Path(__file__).resolve().parent.parent
+MAPS = [("lebombo", 60.0), ("rooitou_park", 0.0), ("studio_small_03", 135.0)]
+SCENES = [("sphere_a03.yaml", "rousiers", {"internal_bounces": 2}),
+          ("suzanne_a01.yaml", "rousiers", {}),
+          ("torus_a01.yaml", "prefiltered", {})]
+
+
+def best(fn, repeats: int) -> tuple[float, object]:
+    out, ts = None, []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts), out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads for both (default 1: on this shared 2-core machine "
+                         "two threads were 5-30x slower for the lookups when the other core "
+                         "was busy)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    one = tr.RenderSettings(threads=args.threads)
+    out_dir = ROOT / "outputs" / "relight_bench"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows, figure = [], []
+    for name, method, opts in SCENES:
+        s = tr.load_scene(ROOT / "configs" / "suite" / name)
+        s = s.replace(method=method, method_options=opts, camera=tr.Camera(
+            **{**s.camera.__dict__, "width": args.size, "height": args.size,
+               "samples_per_pixel": 1}))
+        tr.render(s, settings=one)  # warm caches (pyramids, tables, kernels)
+        t_matte, res = best(lambda: tr.render(s.replace(passes={"matte": {}}), settings=one),
+                            args.repeats)
+        obj = (res.coverage[0] > 0.999).numpy()
+        for mp, rot in MAPS:
+            env = tr.EnvMap(path=str(ROOT / "assets" / "envmaps" / f"{mp}.exr"),
+                            rotate_deg=rot, scale=1.0)
+            tr.relight(res, env.path, rot)  # its pyramid built / cached
+            t_relight, img = best(lambda: tr.relight(res, env.path, rotate_deg=rot),
+                                  args.repeats)
+            t_full, direct = best(lambda: tr.render(s.replace(envmap=env), settings=one),
+                                  args.repeats)
+            t_tensor, direct_t = best(lambda: tr.render(
+                s.replace(envmap=env), settings=one.replace(fused=False)), 1)
+            fm = flip_map(img[0].numpy(), direct.radiance[0].numpy())
+            fm_t = flip_map(img[0].numpy(), direct_t.radiance[0].numpy())
+            rel = ((img - direct_t.radiance).abs().amax(-1)
+                   / direct_t.radiance.amax(-1).clamp(min=1e-6))[0].numpy()
+            row = {"scene": name, "method": method, "options": opts, "map": mp,
+                   "rotate_deg": rot, "ms_relight": 1e3 * t_relight,
+                   "ms_render_default": 1e3 * t_full, "ms_render_tensor": 1e3 * t_tensor,
+                   "ms_render_matte": 1e3 * t_matte,
+                   "speedup_vs_default": t_full / t_relight,
+                   "flip_object_vs_default": float(fm[obj].mean()),
+                   "flip_object_vs_tensor": float(fm_t[obj].mean()),
+                   "max_rel_object_vs_tensor": float(rel[obj].max())}
+            rows.append(row)
+            print(f"{name:18s} {method:11s} {mp:16s} relight {row['ms_relight']:7.1f} ms | "
+                  f"render {row['ms_render_default']:7.1f} ms (x{row['speedup_vs_default']:.1f})"
+                  f" | tensor {row['ms_render_tensor']:7.1f} | matte render "
+                  f"{row['ms_render_matte']:7.1f} | FLIP {row['flip_object_vs_default']:.4f}"
+                  f" / {row['flip_object_vs_tensor']:.4f} | maxrel "
+                  f"{row['max_rel_object_vs_tensor']:.1e}", flush=True)
+            if name == SCENES[0][0]:
+                figure.append(np.concatenate([
+                    linear_to_srgb8(img[0].numpy()), linear_to_srgb8(direct.radiance[0].numpy()),
+                    (np.clip(fm * 4, 0, 1)[..., None].repeat(3, -1) * 255).astype(np.uint8)], 1))
+    from PIL import Image  # noqa: PLC0415
+
+    Image.fromarray(np.concatenate(figure, 0)).save(out_dir / "relit_vs_direct.png")
+    sp = [r["speedup_vs_default"] for r in rows]
+    summary = {"date": date.today().isoformat(), "threads": torch.get_num_threads(),
+               "size": args.size, "rows": rows,
+               "speedup_min": min(sp), "speedup_median": float(np.median(sp)),
+               "flip_max_vs_default": max(r["flip_object_vs_default"] for r in rows),
+               "max_rel_vs_tensor": max(r["max_rel_object_vs_tensor"] for r in rows)}
+    (out_dir / "relight_bench.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"speed-up relight vs default render: min x{summary['speedup_min']:.1f}, median "
+          f"x{summary['speedup_median']:.1f}; FLIP max {summary['flip_max_vs_default']:.4f}; "
+          f"threads {summary['threads']}; figure: {out_dir / 'relit_vs_direct.png'}")
+
+
+if __name__ == "__main__":
+    main()
