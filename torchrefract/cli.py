@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="extra passes for every scene, comma-separated: matte (the lobes "
                         "the method read the environment with, relightable), flow "
                         "(refractive flow); replaces the scenes' own 'passes' (docs/matte.md)")
+    r.add_argument("--device", default=None,
+                   help="cpu, cuda, cuda:N or auto: where the shading runs "
+                        "(RenderSettings.device; default cpu, or $TORCHREFRACT_DEVICE)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -86,6 +89,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--adaptive", action="store_true",
                    help="adaptive supersampling in every rendering process "
                         "(RenderSettings.adaptive)")
+    w.add_argument("--device", default=None,
+                   help="cpu, cuda, cuda:N or auto: where every rendering process shades "
+                        "(RenderSettings.device)")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -241,6 +247,8 @@ def _settings(args: argparse.Namespace):
         changes["fused"] = False
     if getattr(args, "adaptive", False):
         changes["adaptive"] = True
+    if getattr(args, "device", None):
+        changes["device"] = args.device
     return s.replace(**changes)
 
 

@@ -28,6 +28,7 @@ from torchrefract.lighting.lights import Lighting
 from torchrefract.matte import render_hook
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
+from torchrefract.placement import on_device, to_device
 from torchrefract.scene import Scene, validate
 from torchrefract.settings import RenderSettings, current, using
 from torchrefract.stages import collect
@@ -272,7 +273,27 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     if current().adaptive and g.supersample > 1 and entry.shades_object_index:
         g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
                                 _front_roughness(g, materials))
+    device = current().torch_device()
+    if device.type != "cpu" and device.type in entry.devices:
+        g, lighting, materials, plan = to_device((g, lighting, materials, plan), device)
+    else:
+        device = torch.device("cpu")  # a CPU-only method: its result is moved at the end
     t2 = time.perf_counter()
+    with on_device(device):
+        result = _finish_pass(scenes, entry, g, lighting, materials, options, state, budget,
+                              plan)
+    result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1,
+                           "shading": result.timings["shading"] - t2,
+                           "total": time.perf_counter() - t0})
+    out = current().torch_device()
+    return result if out == device else to_device(result, out)
+
+
+def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan
+                 ) -> RenderResult:
+    """The method's shading of a built G-buffer and the passes, on the tensors' device."""
+    method = entry.name
+    n = g.supersample
     extra = render_hook.requested(scenes)
     extra_passes: dict[str, torch.Tensor] = {}
     with collect() as stage_times, render_hook.scope(extra) as rec:
@@ -293,9 +314,10 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
             radiance = radiance.detach()
             method_passes = {k: v.detach() for k, v in method_passes.items()}
             stage_times["matte"] = time.perf_counter() - t_m
+    if radiance.is_cuda:  # the shading's time, not its launches'
+        torch.cuda.synchronize(radiance.device)
     t3 = time.perf_counter()
 
-    n = g.supersample
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     passes = _geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
@@ -311,11 +333,10 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
         coverage=_mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
-        timings={"load": t1 - t0, "gbuffer": t2 - t1, "shading": t3 - t2,
+        timings={"shading": t3,  # the caller subtracts the start
                  "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
                  "fused": stage_times.get("fused", 0.0),
-                 **({"matte": stage_times["matte"]} if "matte" in stage_times else {}),
-                 "total": time.perf_counter() - t0},
+                 **({"matte": stage_times["matte"]} if "matte" in stage_times else {})},
     )
 
 
@@ -355,20 +376,23 @@ def _merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None
     pixels) is zero elsewhere (it adds 0); the scenes are the last part's at each position;
     timings are summed."""
     first = parts[0][1]
-    radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype)
-    coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype)
+    dev = first.radiance.device
+    radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype,
+                           device=dev)
+    coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype,
+                           device=dev)
     passes: dict[str, torch.Tensor] = {}
     out_scenes: list[Scene | None] = [None] * b
     timings: dict[str, float] = {}
     for idx, res, weights in parts:
-        sel = torch.tensor(idx)
+        sel = torch.tensor(idx, device=dev)
         # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
-        w = torch.tensor(weights or [1.0] * len(idx))[:, None, None, None]
+        w = torch.tensor(weights or [1.0] * len(idx), device=dev)[:, None, None, None]
         radiance.index_add_(0, sel, w * res.radiance)
         coverage[sel] = res.coverage  # the geometry's: the same for every variant
         for k, v in res.passes.items():
             if k not in passes:
-                passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype)
+                passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype, device=dev)
             passes[k].index_add_(0, sel, w.to(v.dtype) * v)
         for j, i in enumerate(idx):
             out_scenes[i] = res.scenes[j]

@@ -19,6 +19,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_ADAPT_THREADS=0``       ``adapt_threads=False``: torch's count even under load
 ``TORCHREFRACT_MEMORY_MB=N``           ``memory_budget_mb=N``
 ``TORCHREFRACT_CACHE=DIR``             ``cache_dir=DIR``
+``TORCHREFRACT_DEVICE=cuda``           ``device="cuda"``: shade on the GPU (tensor code)
 ====================================  =============================================
 
 Only ``threads`` and ``heap_reuse`` touch process-wide state: ``threads`` (or, where it is
@@ -38,6 +39,7 @@ from __future__ import annotations
 import contextvars
 import dataclasses
 import os
+import re
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,6 +103,11 @@ class RenderSettings:
     cache_dir: str | None = None
     """Folder of the built kernels and tables (None: ``$XDG_CACHE_HOME/torchrefract`` or
     ``~/.cache/torchrefract``)."""
+    device: str = "cpu"
+    """Where the shading runs: ``cpu``, ``cuda`` / ``cuda:N`` (the tensor code on that GPU;
+    the G-buffer is still rasterized by pyrender and built on the CPU, then moved), or
+    ``auto`` (``cuda`` where torch sees a GPU, else ``cpu``). The result's tensors are on
+    that device."""
 
     def __post_init__(self):
         for name in ("threads", "memory_budget_mb"):
@@ -108,6 +115,29 @@ class RenderSettings:
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise ConfigError(f"RenderSettings.{name}: expected an integer >= 1 or None, "
                                   f"got {v!r}")
+        if not isinstance(self.device, str) or not re.fullmatch(r"cpu|auto|cuda(:\d+)?",
+                                                                 self.device):
+            raise ConfigError(f"RenderSettings.device: expected 'cpu', 'cuda', 'cuda:N' or "
+                              f"'auto', got {self.device!r}")
+
+    def torch_device(self):
+        """The torch.device the shading runs on (``auto`` resolved).
+
+        Raises:
+            ConfigError: a CUDA device is asked for and torch sees none (or not that one).
+        """
+        import torch  # noqa: PLC0415
+
+        if self.device == "cpu":
+            return torch.device("cpu")
+        if self.device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        dev = torch.device(self.device)
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (dev.index or 0) >= count:
+            raise ConfigError(f"RenderSettings.device: {self.device!r} asked for, but torch "
+                              f"{torch.__version__} sees {count} CUDA device(s)")
+        return dev
 
     @classmethod
     def from_env(cls, **overrides) -> "RenderSettings":
@@ -123,6 +153,7 @@ class RenderSettings:
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,
+            device=os.environ.get("TORCHREFRACT_DEVICE") or "cpu",
         )
         return dataclasses.replace(base, **overrides)
 

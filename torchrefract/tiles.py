@@ -62,18 +62,27 @@ MIN_TILE = 1 << 12
 
 def memory_budget() -> int:
     """The bytes a render pass may take: ``RenderSettings.memory_budget_mb``, else 80% of
-    the memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where unknown)."""
-    mb = current().memory_budget_mb
-    if mb is not None:
-        return mb << 20
+    the memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where unknown),
+    and on a GPU (``RenderSettings.device``) at most 80% of its free memory (the G-buffer is
+    built on the host and shaded on the GPU)."""
+    s = current()
+    if s.memory_budget_mb is not None:
+        return s.memory_budget_mb << 20
+    budget = 4 << 30
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(int(line.split()[1]) * 1024 * 0.8)
+                    budget = int(int(line.split()[1]) * 1024 * 0.8)
+                    break
     except OSError:
         pass
-    return 4 << 30
+    dev = s.torch_device()
+    if dev.type == "cuda":
+        import torch  # noqa: PLC0415
+
+        budget = min(budget, int(torch.cuda.mem_get_info(dev)[0] * 0.8))
+    return budget
 
 
 def pass_bytes(subpixels: int, shaded: int) -> int:

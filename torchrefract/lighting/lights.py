@@ -63,7 +63,7 @@ class Lighting:
         """The SG-pre-convolved pyramid of scene ``b``'s map (built once per file, cached)."""
         from torchrefract.lighting.sg_pyramid import sg_pyramid_for  # noqa: PLC0415
 
-        return sg_pyramid_for(self.paths[b])
+        return sg_pyramid_for(self.paths[b], device=self.scale.device)
 
 
 def hit_lights(origin: torch.Tensor, direction: torch.Tensor, pos: torch.Tensor,
@@ -234,11 +234,11 @@ def sg_light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: 
     a = (c_g - 8.0 * s).clamp(min=0.0)
     b = torch.minimum(big_r, c_g + 8.0 * s)
     half = ((b - a) * 0.5).clamp(min=0.0)
-    x = (a + b)[..., None] * 0.5 + half[..., None] * _GL_X.to(dt)  # (N, L, 24)
+    x = (a + b)[..., None] * 0.5 + half[..., None] * _GL_X.to(a.device, dt)  # (N, L, 24)
     s2 = (s * s)[..., None]
     f = (x / s2) * torch.exp(-((x - c_g[..., None]) ** 2) / (2.0 * s2)) \
         * torch.special.i0e(x * c_g[..., None] / s2)
-    mass = (f * _GL_W.to(dt)).sum(-1) * half / (-torch.expm1(-2.0 * k))
+    mass = (f * _GL_W.to(a.device, dt)).sum(-1) * half / (-torch.expm1(-2.0 * k))
     cover = torch.where(d <= r, torch.ones_like(mass), mass.clamp(0.0, 1.0))
     cover = torch.where(r > 0, cover, torch.zeros_like(cover))
     return cover.to(direction.dtype)

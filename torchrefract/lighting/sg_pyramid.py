@@ -661,7 +661,7 @@ def _pyramid_cached(path: str, _mtime: int, _size: int, params: tuple,
 
 
 def sg_pyramid_for(path: str | Path, *, cache_dir: str | Path | bool | None = None,
-                   **params) -> SGPyramid:
+                   device: torch.device | str | None = None, **params) -> SGPyramid:
     """The SG pyramid of a map file, built once per file version and parameters.
 
     Kept in memory (keyed by resolved path, modification time, size and parameters; the 4
@@ -672,20 +672,31 @@ def sg_pyramid_for(path: str | Path, *, cache_dir: str | Path | bool | None = No
         path: .exr or .hdr lat-long map (see :func:`torchrefract.lighting.envmap.load_envmap`).
         cache_dir: folder of the disk cache; default ``$TORCHREFRACT_CACHE`` or
             ``~/.cache/torchrefract``; ``False`` keeps it in memory only.
+        device: where the pyramid is wanted (default the CPU); a copy on another device is
+            kept in memory too.
         **params: keyword arguments of :func:`build_sg_pyramid` (no gradient is recorded).
 
     Returns:
-        The pyramid (float32, CPU; must not be modified in place).
+        The pyramid (float32; must not be modified in place).
     """
     version = file_version(path, "envmap")
     if "sharpness_levels" in params and params["sharpness_levels"] is not None:
         params["sharpness_levels"] = tuple(float(k) for k in params["sharpness_levels"])
     key = tuple(sorted(params.items()))
     cd = _cache_dir(cache_dir)
-    return _pyramid_cached(*version, key,
-                           None if cd is None else str(cd))
+    args = (*version, key, None if cd is None else str(cd))
+    if device is None or torch.device(device).type == "cpu":
+        return _pyramid_cached(*args)
+    return _pyramid_on(*args, str(torch.device(device)))
+
+
+@functools.lru_cache(maxsize=4)
+def _pyramid_on(*args) -> SGPyramid:
+    """The cached pyramid of ``args[:-1]`` copied to device ``args[-1]`` (kept)."""
+    return _pyramid_cached(*args[:-1]).to(args[-1])
 
 
 def clear_sg_cache() -> None:
     """Drop the in-memory pyramids (the disk cache is left alone)."""
     _pyramid_cached.cache_clear()
+    _pyramid_on.cache_clear()

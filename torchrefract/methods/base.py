@@ -58,6 +58,10 @@ class Method:
     """``shade`` reads the object (sub-)pixels ``g.object_index()`` names, so adaptive
     supersampling (:mod:`torchrefract.geometry.adaptive`) may name fewer; a method that
     renders the scene its own way (``reference``) sets False and is sampled uniformly."""
+    devices: tuple[str, ...] = ("cpu", "cuda")
+    """Device types ``shade`` runs on (``RenderSettings.device``). A method whose shading
+    is not torch code on the G-buffer's device (Mitsuba's ``reference``) lists ``cpu``
+    alone: it shades on the CPU and :func:`torchrefract.render` moves its result."""
 
     def parse(self, options: dict | None, source: str | None = None) -> Any:
         """``method_options`` checked and turned into ``Options`` (ConfigError otherwise)."""

@@ -120,6 +120,7 @@ class Reference(Method):
 
     name = "reference"
     shades_object_index = False  # Mitsuba renders every sub-pixel itself
+    devices = ("cpu",)  # Mitsuba renders on its own; the result is moved
     Options = ReferenceOptions
 
     def prepare(self, scenes, options):

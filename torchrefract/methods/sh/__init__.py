@@ -58,6 +58,7 @@ class SH(Method):
     """Precomputed refracted-path mapping in spherical harmonics (package docstring)."""
 
     name = "sh"
+    devices = ("cpu",)  # its precomputed state is CPU tensors (not moved yet)
     Options = SHOptions
 
     def prepare(self, scenes, options):
