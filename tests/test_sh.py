@@ -247,6 +247,57 @@ def test_compressed_mapping_converges_to_snell_with_order(sphere4, tmp_path, one
     assert err < 0.05, err
 
 
+def test_native_kernel_matches_the_tensor_code(sphere4, tmp_path, one_thread):
+    """The native kernel of eq. 2 (methods/sh/native.py: samples, offset views and SH in
+    C) against the tensor code, on a real table: the same values to float32 rounding, for
+    every order, one and five directions, given samples or found from the barycentrics;
+    and a rough render's image with the kernel on and off."""
+    from torchrefract.methods.sh import native as sh_native
+    from torchrefract.methods.sh.shade import _evaluate_tensor, _map_values
+    from torchrefract.settings import RenderSettings, using
+
+    _tracer_or_skip()
+    if not sh_native.available():
+        pytest.skip("no C compiler for the native sh kernel")
+    mesh = load_mesh(str(sphere4))
+    table, _ = sh_cache.get_table(mesh, Settings(ior=1.5, rings=8, samples=8000, max_events=8),
+                                  tmp_path)
+    assert table.layout.rate == 2
+    g = torch.Generator().manual_seed(5)
+    n = 3000
+    faces = torch.randint(0, mesh.num_faces, (n,), generator=g)
+    b = torch.rand(n, 3, generator=g)
+    b = b / b.sum(1, keepdim=True)
+    b[:7] = torch.tensor([1.0, 0, 0])  # on a corner, an edge, outside (clamped)
+    b[7:14] = torch.tensor([0.5, 0.5, 0])
+    b[14:21] = torch.tensor([1.2, -0.1, -0.1])
+    p = (b.clamp(min=0)[:, :, None] * mesh.vertices[mesh.faces[faces]]).sum(1)
+    om = normalize(normalize(p) + 0.8 * torch.randn(n, 3, generator=g))
+    r = 0.3 * torch.rand(n, generator=g)
+    samples, s_w = interpolation(table.layout.lattice, table.layout.rate, faces, b)
+    scale = table.coeffs.float().abs().amax(1).sum(0)  # per channel, bounds the sums
+    for order in (0, 3, 8):
+        w = window(order, "gauss", 1.0)
+        ref = _evaluate_tensor(table, samples, s_w, om[:, None], order, w, 6)
+        nat = sh_native.evaluate(table.padded, table.layout.frame, samples, s_w, om[:, None],
+                                 order, w, 6, 6)
+        assert nat is not None and ((nat - ref).abs() <= 1e-5 * scale + 1e-6).all(), order
+        with using(RenderSettings(native=False)):
+            ref5 = _map_values(table, faces, b, om, r, order, w)
+        nat5 = _map_values(table, faces, b, om, r, order, w)
+        assert ref5.shape == nat5.shape == (n, 5, 6)
+        assert (nat5[:, 1:, 3:] == 0).all() and (ref5[:, 1:, 3:] == 0).all()
+        assert ((nat5 - ref5).abs() <= 1e-5 * scale + 1e-6).all(), order
+    scene = tr.Scene(mesh=str(sphere4), material=tr.Material(ior=1.5, roughness=0.2),
+                     envmap=tr.EnvMap(path=ENV),
+                     camera=tr.Camera(eye=(0, 0.4, 3.2), width=40, height=40),
+                     method="sh", method_options=dict(SMALL))
+    img = tr.render([scene]).radiance
+    with using(RenderSettings(native=False)):
+        ref_img = tr.render([scene]).radiance
+    assert ((img - ref_img).abs() <= 1e-4 * ref_img.abs().clamp(min=1e-2)).all()
+
+
 # -------------------------------------------------------------------------------- cache
 
 def test_cache_hit_miss_atomic_and_content_keyed(tmp_path, one_thread):

@@ -62,27 +62,13 @@ def num_even(order: int) -> int:
     return (order + 1) * (order + 2) // 2
 
 
-def real_sh(d: torch.Tensor, order: int) -> torch.Tensor:
-    """Orthonormal real spherical harmonics of unit directions (eqs. 4-7).
-
-    y_l^0 = K_l^0 P_l^0(z); y_l^m = sqrt(2) K_l^m P_l^m(z) Re((x + iy)^m) / sin^m and
-    y_l^-m = sqrt(2) K_l^m P_l^m(z) Im((x + iy)^m) / sin^m for m > 0 (eq. 7, Condon-Shortley
-    phase included), written with Q_l^m = P_l^m / sin^m theta, a polynomial in z:
-    Q_m^m = (-1)^m (2m - 1)!!, Q_{m+1}^m = (2m + 1) z Q_m^m,
-    (l - m) Q_l^m = (2l - 1) z Q_{l-1}^m - (l + m - 1) Q_{l-2}^m. So every y is a polynomial
-    of x, y, z (eq. 6), as the paper evaluates them.
-
-    Args:
-        d: (..., 3) unit directions.
-        order: highest band L (0..8).
-
-    Returns:
-        (..., (L + 1)^2) values, y_l^m at l^2 + l + m.
-    """
+def _real_sh_terms(d: torch.Tensor, order: int, even_only: bool) -> dict[int, torch.Tensor]:
+    """The y_l^m of :func:`real_sh` by their positions l^2 + l + m (``even_only``: only
+    those with l + m even; the odd ones are not formed)."""
     if not 0 <= order <= MAX_ORDER:
         raise ValueError(f"real_sh: order must be in [0, {MAX_ORDER}], got {order}")
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    out: list[torch.Tensor | None] = [None] * num_coeffs(order)
+    out: dict[int, torch.Tensor] = {}
     # Re / Im of (x + i y)^m
     cm, sm = [torch.ones_like(x)], [torch.zeros_like(x)]
     for _ in range(order):
@@ -101,6 +87,8 @@ def real_sh(d: torch.Tensor, order: int) -> torch.Tensor:
                 q = ((2 * l - 1) * z * q_prev - (l + m - 1) * q_prev2) / (l - m)
             if l > m:
                 q_prev2, q_prev = q_prev, q
+            if even_only and (l + m) % 2:
+                continue
             k = math.sqrt((2 * l + 1) / (4 * math.pi)
                           * math.exp(math.lgamma(l - m + 1) - math.lgamma(l + m + 1)))
             if m == 0:
@@ -108,12 +96,35 @@ def real_sh(d: torch.Tensor, order: int) -> torch.Tensor:
             else:
                 out[sh_index(l, m)] = (math.sqrt(2.0) * k) * q * cm[m]
                 out[sh_index(l, -m)] = (math.sqrt(2.0) * k) * q * sm[m]
-    return torch.stack(out, -1)  # type: ignore[arg-type]
+    return out
+
+
+def real_sh(d: torch.Tensor, order: int) -> torch.Tensor:
+    """Orthonormal real spherical harmonics of unit directions (eqs. 4-7).
+
+    y_l^0 = K_l^0 P_l^0(z); y_l^m = sqrt(2) K_l^m P_l^m(z) Re((x + iy)^m) / sin^m and
+    y_l^-m = sqrt(2) K_l^m P_l^m(z) Im((x + iy)^m) / sin^m for m > 0 (eq. 7, Condon-Shortley
+    phase included), written with Q_l^m = P_l^m / sin^m theta, a polynomial in z:
+    Q_m^m = (-1)^m (2m - 1)!!, Q_{m+1}^m = (2m + 1) z Q_m^m,
+    (l - m) Q_l^m = (2l - 1) z Q_{l-1}^m - (l + m - 1) Q_{l-2}^m. So every y is a polynomial
+    of x, y, z (eq. 6), as the paper evaluates them.
+
+    Args:
+        d: (..., 3) unit directions.
+        order: highest band L (0..8).
+
+    Returns:
+        (..., (L + 1)^2) values, y_l^m at l^2 + l + m.
+    """
+    out = _real_sh_terms(d, order, even_only=False)
+    return torch.stack([out[i] for i in range(num_coeffs(order))], -1)
 
 
 def real_sh_even(d: torch.Tensor, order: int) -> torch.Tensor:
-    """(..., K) the mirror-symmetric (l + m even) basis functions of :func:`real_sh`."""
-    return real_sh(d, order).index_select(-1, even_indices(order))
+    """(..., K) the mirror-symmetric (l + m even) basis functions of :func:`real_sh`, in the
+    order of :func:`even_indices` (the same values; the odd ones are never formed)."""
+    out = _real_sh_terms(d, order, even_only=True)
+    return torch.stack([out[i] for i in even_indices(order).tolist()], -1)
 
 
 def view_angles(rings: int) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,10 @@ The coefficients are stored as float16 (the paper found 8 bits per weight enough
 
 from __future__ import annotations
 
+import functools
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
@@ -32,6 +35,9 @@ CHANNELS = ("dir_x", "dir_y", "dir_z", "length", "cos_exit", "throughput")
 
 PATHS_PER_CHUNK = 1 << 19
 """Paths traced per batch (bounds the memory: ~0.2 GB of temporaries)."""
+
+MAX_WORKERS = 8
+"""Most chunks traced at once (:func:`precompute_workers`)."""
 
 EPS = 1e-5
 """Ray origin offset off the surface, in units of the mesh's bounding radius."""
@@ -68,6 +74,14 @@ class SHTable:
     mesh_hash: str
     stats: dict = field(default_factory=dict)
 
+    @functools.cached_property
+    def padded(self) -> torch.Tensor:
+        """(S, 45, 8) float32 coefficients, channels zero-padded: the native kernel's
+        layout (:func:`.native.padded_coeffs`), made once per table."""
+        from torchrefract.methods.sh.native import padded_coeffs  # noqa: PLC0415
+
+        return padded_coeffs(self.coeffs)
+
     @property
     def nbytes(self) -> int:
         """Memory of the table (coefficients, lattice, sample frames)."""
@@ -76,8 +90,37 @@ class SHTable:
                    (self.coeffs, lay.lattice, lay.position, lay.frame))
 
 
+def precompute_workers() -> int:
+    """Chunks traced at once: the cores this process may use over torch's intra-op
+    threads (at 1 torch thread on 2 cores: 2). Embree (embreex) and torch's ops release
+    the GIL, so threads of this process run them side by side."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(MAX_WORKERS, cores // max(1, torch.get_num_threads())))
+
+
+def _trace_chunk(layout: Layout, s0: int, s1: int, intersect, tri_v: torch.Tensor,
+                 tri_n: torch.Tensor, radius: float, m: torch.Tensor,
+                 omega_local: torch.Tensor, settings: Settings) -> tuple[torch.Tensor, int]:
+    """(s1 - s0, K, C) float16 weights of samples s0..s1 (eq. 10) and the rays cast."""
+    n_dir = omega_local.shape[0]
+    frame = layout.frame[s0:s1]  # (Sc, 3, 3) rows t, b, n
+    omega = torch.einsum("jk,skr->sjr", omega_local, frame).reshape(-1, 3)
+    p = layout.position[s0:s1, None, :].expand(-1, n_dir, 3).reshape(-1, 3)
+    n = frame[:, None, 2, :].expand(-1, n_dir, 3).reshape(-1, 3)
+    ends = trace_paths(intersect, tri_v, tri_n, p, n, omega, settings.ior,
+                       settings.max_events, EPS * radius, settings.branch)
+    r = torch.cat([ends.direction, (ends.length / radius)[:, None],
+                   ends.cos_exit[:, None], ends.throughput[:, None]], 1)
+    r = r.view(s1 - s0, n_dir, len(CHANNELS))
+    w = torch.einsum("kj,sjc->skc", m, r).to(torch.float16)  # eq. 10
+    return w, int(ends.events.sum()) + p.shape[0]
+
+
 def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str = "auto",
-               progress: str | None = None) -> SHTable:
+               progress: str | None = None, workers: int | None = None) -> SHTable:
     """Trace and compress the mapping of ``mesh`` (object space) at ``settings``.
 
     Args:
@@ -86,6 +129,9 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
         mesh_hash: recorded in the table.
         tracer: ``auto``, ``embree`` or ``mitsuba`` (:mod:`.tracer`).
         progress: a progress bar's description (None: no bar).
+        workers: chunks of samples traced at once by threads of this process (None:
+            :func:`precompute_workers`; Mitsuba: 1, its own kernels are threaded). The
+            table does not depend on it.
 
     Returns:
         :class:`SHTable`.
@@ -102,28 +148,39 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
     n_dir = omega_local.shape[0]
     s_total = layout.num_samples
     chunk = max(1, PATHS_PER_CHUNK // n_dir)
+    starts = list(range(0, s_total, chunk))
+    workers = precompute_workers() if workers is None else max(1, int(workers))
+    workers = 1 if backend != "embree" else min(workers, len(starts))
     coeffs = torch.empty((s_total, m.shape[0], len(CHANNELS)), dtype=torch.float16)
     rays = 0
+
+    def run(s0: int) -> tuple[int, torch.Tensor, int]:
+        s1 = min(s_total, s0 + chunk)
+        return (s0, *_trace_chunk(layout, s0, s1, intersect, tri_v, tri_n, radius, m,
+                                  omega_local, settings))
+
     with tqdm(total=s_total, desc=progress or "sh", unit="sample", disable=progress is None,
               leave=False) as bar:
-        for s0 in range(0, s_total, chunk):
-            s1 = min(s_total, s0 + chunk)
-            frame = layout.frame[s0:s1]  # (Sc, 3, 3) rows t, b, n
-            omega = torch.einsum("jk,skr->sjr", omega_local, frame).reshape(-1, 3)
-            p = layout.position[s0:s1, None, :].expand(-1, n_dir, 3).reshape(-1, 3)
-            n = frame[:, None, 2, :].expand(-1, n_dir, 3).reshape(-1, 3)
-            ends = trace_paths(intersect, tri_v, tri_n, p, n, omega, settings.ior,
-                               settings.max_events, EPS * radius, settings.branch)
-            rays += int(ends.events.sum()) + p.shape[0]
-            r = torch.cat([ends.direction, (ends.length / radius)[:, None],
-                           ends.cos_exit[:, None], ends.throughput[:, None]], 1)
-            r = r.view(s1 - s0, n_dir, len(CHANNELS))
-            coeffs[s0:s1] = torch.einsum("kj,sjc->skc", m, r).to(torch.float16)  # eq. 10
-            bar.update(s1 - s0)
+        if workers == 1:
+            results = map(run, starts)
+            pool = None
+        else:
+            pool = ThreadPoolExecutor(workers, thread_name_prefix="sh-precompute")
+            results = pool.map(run, starts)
+        try:
+            for s0, w, cast in results:
+                coeffs[s0:s0 + w.shape[0]] = w
+                rays += cast
+                bar.update(w.shape[0])
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
     stats = {"seconds": time.perf_counter() - t0, "paths": s_total * n_dir, "rays": rays,
-             "tracer": backend, "samples": s_total, "rate": layout.rate}
+             "tracer": backend, "samples": s_total, "rate": layout.rate, "workers": workers,
+             "torch_threads": torch.get_num_threads()}
     return SHTable(layout=layout, coeffs=coeffs, radius=radius, settings=settings,
                    mesh_hash=mesh_hash, stats=stats)
 
 
-__all__ = ["CHANNELS", "EPS", "PATHS_PER_CHUNK", "SHTable", "Settings", "precompute"]
+__all__ = ["CHANNELS", "EPS", "MAX_WORKERS", "PATHS_PER_CHUNK", "SHTable", "Settings",
+           "precompute", "precompute_workers"]

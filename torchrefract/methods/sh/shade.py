@@ -34,11 +34,13 @@ import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.geometry.mesh import MeshData, rotation_matrix
+from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.rousiers.lobes import front_lobes, sg_lobe, spread_energies
 from torchrefract.methods.rousiers.pixels import Pixels, object_pixels
 from torchrefract.methods.rousiers.shade import composite
+from torchrefract.methods.sh import native as sh_native
 from torchrefract.methods.sh.basis import num_even, real_sh_even, window
 from torchrefract.methods.sh.layout import interpolation
 from torchrefract.methods.sh.options import SHOptions
@@ -113,7 +115,7 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
 
 
 def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
-             order: int, weights: torch.Tensor) -> torch.Tensor:
+             order: int, weights: torch.Tensor, channels: int | None = None) -> torch.Tensor:
     """Eq. 2: the mapping at surface points for view directions.
 
     Args:
@@ -121,19 +123,58 @@ def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: tor
         faces: (N,) mesh-local faces; bary: (N, 3) barycentrics of the points.
         omega: (N, E, 3) unit view directions (towards the viewer, object space), E per point.
         order: highest band; weights: (K,) window of the even coefficients up to it.
+        channels: the first ``channels`` of :data:`.precompute.CHANNELS` (None: all).
 
     Returns:
-        (N, E, C) the interpolated channels (:data:`.precompute.CHANNELS`).
+        (N, E, channels) the interpolated channels.
     """
-    lay = table.layout
-    samples, s_w = interpolation(lay.lattice, lay.rate, faces, bary)  # (N, 3)
+    samples, s_w = interpolation(table.layout.lattice, table.layout.rate, faces, bary)  # (N, 3)
+    return evaluate_samples(table, samples, s_w, omega, order, weights, channels)
+
+
+def evaluate_samples(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
+                     omega: torch.Tensor, order: int, weights: torch.Tensor,
+                     channels: int | None = None, rest_channels: int | None = None
+                     ) -> torch.Tensor:
+    """:func:`evaluate` from the points' three samples (N, 3) and their weights S_oi (N, 3)
+    (:func:`.layout.interpolation`): the native kernel (:mod:`.native`) where it runs and
+    no gradient is wanted through ``omega``, else the tensor code in chunks of
+    :data:`CHUNK` points (the same values to float32 rounding).
+
+    ``rest_channels``: only the first ``rest_channels`` are evaluated for the directions
+    after the first (``omega[:, 1:]``), the others are 0 (None: all ``channels``).
+    """
+    c = table.coeffs.shape[-1] if channels is None else channels
+    cr = c if rest_channels is None else min(rest_channels, c)
+    if sh_native.available() and native.no_grad_through(omega, s_w, weights):
+        out = sh_native.evaluate(table.padded, table.layout.frame, samples, s_w, omega, order,
+                                 weights, c, cr)
+        if out is not None:
+            return out
+    parts = []
+    for c0 in range(0, omega.shape[0], CHUNK):
+        sl = slice(c0, c0 + CHUNK)
+        if cr == c or omega.shape[1] == 1:
+            parts.append(_evaluate_tensor(table, samples[sl], s_w[sl], omega[sl], order,
+                                          weights, c))
+            continue
+        first = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, :1], order, weights, c)
+        rest = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, 1:], order, weights, cr)
+        parts.append(torch.cat([first, torch.nn.functional.pad(rest, (0, c - cr))], 1))
+    return torch.cat(parts, 0) if len(parts) != 1 else parts[0]
+
+
+def _evaluate_tensor(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
+                     omega: torch.Tensor, order: int, weights: torch.Tensor, channels: int
+                     ) -> torch.Tensor:
+    """The tensor code of :func:`evaluate_samples` (differentiable in ``omega``)."""
     k = num_even(order)
-    frames = lay.frame[samples]  # (N, 3, 3, 3): per sample, rows t, b, n
+    frames = table.layout.frame[samples]  # (N, 3, 3, 3): per sample, rows t, b, n
     local = torch.einsum("ner,nsar->nsea", omega, frames)  # (N, 3, E, 3)
     y = real_sh_even(local, order)  # (N, 3, E, K)
-    w = table.coeffs[samples.reshape(-1)][:, :k].float().view(*samples.shape, k, -1)
-    w = w * weights[None, None, :, None]
-    vals = torch.einsum("nsek,nskc->nsec", y, w)  # (N, 3, E, C)
+    w = table.coeffs.index_select(0, samples.reshape(-1))[:, :k, :channels].float()
+    w = w.view(*samples.shape, k, channels) * weights[None, None, :, None]  # (N, 3, K, c)
+    vals = torch.einsum("nsek,nskc->nsec", y, w)  # (N, 3, E, c)
     return (s_w[:, :, None, None] * vals).sum(1)
 
 
@@ -149,6 +190,28 @@ def _snell_spread(px: Pixels, var1: torch.Tensor) -> torch.Tensor:
     return var1 * 0.5 * (m1 * m1 + eta * eta)
 
 
+def _map_values(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
+                r: torch.Tensor | None, order: int, weights: torch.Tensor) -> torch.Tensor:
+    """(n, E, C) the mapping at the front hits (``faces``, ``bary``) for the view ``omega``
+    (n, 3) (object space) and, with ``r`` (n,), the four views at angle r around it (E = 5;
+    only the exit direction, 3 channels, at those): the native kernel where it runs and no
+    gradient is wanted (samples and directions made there), else the tensor code."""
+    if sh_native.available() and native.no_grad_through(omega, weights, *(
+            () if r is None else (r,))):
+        out = sh_native.evaluate_points(table.padded, table.layout.frame, table.layout.lattice,
+                                        table.layout.rate, faces, bary, omega, r, order,
+                                        weights, table.coeffs.shape[-1], 3)
+        if out is not None:
+            return out
+    samples, s_w = interpolation(table.layout.lattice, table.layout.rate, faces, bary)
+    dirs = [omega]
+    if r is not None:
+        u, v = tangent_frame(omega)
+        dirs += [normalize(omega + r[:, None] * t) for t in (u, -u, v, -v)]
+    # all channels at the view itself, the exit direction (3) at the offsets
+    return evaluate_samples(table, samples, s_w, torch.stack(dirs, 1), order, weights, None, 3)
+
+
 def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneTable,
                 options: SHOptions, var_view: torch.Tensor, rough: bool):
     """Exit direction (world), length (world), exit cosine, throughput and the geometric
@@ -160,26 +223,19 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
     faces = take(g.front.tri.reshape(-1), b_idx) - off
     bary = take(g.front.bary.reshape(-1, 3), b_idx)
     omega = take(px.view, sel) @ item.rotation  # world -> object: R^T w
-    dirs = [omega]
+    r = var_v = None
     if rough:
-        r = torch.sqrt(take(var_view, sel)).clamp(max=MAX_SPREAD)
-        u, v = tangent_frame(omega)
-        for t in (u, -u, v, -v):
-            dirs.append(normalize(omega + r[:, None] * t))
-    om = torch.stack(dirs, 1)  # (n, E, 3)
-    out = []
-    for c0 in range(0, om.shape[0], CHUNK):
-        out.append(evaluate(table, faces[c0:c0 + CHUNK], bary[c0:c0 + CHUNK],
-                            om[c0:c0 + CHUNK], options.order, weights))
-    vals = torch.cat(out, 0)  # (n, E, C)
-    exit_obj = vals[..., :3]
-    center = normalize(exit_obj[:, 0])
+        var_v = take(var_view, sel)
+        r = torch.sqrt(var_v).clamp(max=MAX_SPREAD)
+    vals = _map_values(table, faces, bary, omega, r, options.order, weights)
+    exit_obj = vals[:, 0, :3]
+    center = normalize(exit_obj)
     var_geo = torch.zeros_like(center[:, 0])
     if rough:
-        r2 = (torch.sqrt(take(var_view, sel)).clamp(max=MAX_SPREAD) ** 2).clamp(min=1e-12)
-        diff = normalize(exit_obj[:, 1:]) - center[:, None, :]  # chords ~ angles
-        var_geo = (diff * diff).sum(-1).mean(1) * (take(var_view, sel) / r2)
-    weak = exit_obj[:, 0].norm(dim=-1) < 1e-3  # ringing cancelled the vector: go straight
+        r2 = (r ** 2).clamp(min=1e-12)
+        diff = normalize(vals[:, 1:, :3]) - center[:, None, :]  # (n, 4, 3): chords ~ angles
+        var_geo = (diff * diff).sum(-1).mean(1) * (var_v / r2)
+    weak = exit_obj.norm(dim=-1) < 1e-3  # ringing cancelled the vector: go straight
     center = torch.where(weak[:, None], -omega, center)
     direction = center @ item.rotation.T  # object -> world
     length = (vals[:, 0, 3] * table.radius * item.scale).clamp(min=0.0)
@@ -270,5 +326,5 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
     return radiance.view(b, h, w, 3), {k: v.view(b, h, w, 1) for k, v in values.items()}
 
 
-__all__ = ["CHUNK", "PASSES", "SceneTable", "check_mesh", "evaluate", "render_sh",
-           "scene_table"]
+__all__ = ["CHUNK", "PASSES", "SceneTable", "check_mesh", "evaluate", "evaluate_samples",
+           "render_sh", "scene_table"]

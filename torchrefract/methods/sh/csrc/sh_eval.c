@@ -1,0 +1,305 @@
+/* Method sh: eq. 2's evaluation of the precomputed mapping at surface points, the
+ * native twin of shade._evaluate_tensor (methods/sh/native.py builds and calls it).
+ *
+ * Per point: its three surface samples (with barycentric weights S_oi) and E view
+ * directions in object space; per (sample, direction): the direction in the sample's
+ * tangent frame, the mirrored-hemisphere real SH basis up to band L (eqs. 4-7; the
+ * recurrences of basis.real_sh, only the l + m even functions, in the order of
+ * basis.even_indices), windowed (sec. 4.3), times the sample's coefficients, blended with
+ * S_oi. Vectorized with GCC/Clang vector types: the SH of a point's 3 E directions
+ * together (8 directions per vector), then the product with the coefficients 8 channels
+ * at a time (the table is stored (S, K, 8): the C <= 8 channels of a coefficient side by
+ * side), one broadcast and multiply-add per (direction, coefficient). Float32 throughout
+ * and no contraction (as the tensor code: -ffp-contract=off); the sums run in another order
+ * (the images agree to float32 rounding, tests/test_sh.py). */
+
+#include "../../../kernels/csrc/common.h"
+
+#if defined(__F16C__) && defined(__AVX__)
+#include <immintrin.h>
+#define SH_HALF 1 /* the table stays float16 (as stored): half the bytes gathered per pixel */
+#else
+#define SH_HALF 0
+#endif
+
+TR_DEFINE_VEC3(float, f, fmaf, fabsf, sqrtf, 1e-30f)
+
+#define SH_MAXL 8
+#define SH_MAXK 45 /* (L + 1)(L + 2) / 2 at L = 8 */
+#define SH_CPAD 8  /* channels per coefficient in the table */
+#define SH_MAXE 5
+#define SH_NV 2    /* vectors of 8 directions: 3 samples x at most 5 directions */
+
+typedef float v8f __attribute__((vector_size(32)));
+
+typedef struct {
+    int64_t n;              /* points */
+    int64_t e;              /* directions per point (<= 5) */
+    int64_t order;          /* highest band L (<= 8) */
+    int64_t c;              /* channels written for direction 0 (<= 8) */
+    int64_t c_rest;         /* channels written for directions 1.. (<= c) */
+    const float *omega;     /* (n, e, 3) unit view directions, object space; with `spread`:
+                             * (n, 1, 3), the other e - 1 = 4 made here */
+    const int64_t *samples; /* (n, 3) surface samples, or NULL: from faces and bary */
+    const float *s_w;       /* (n, 3) their weights (with samples) */
+    const int64_t *faces;   /* (n,) mesh-local faces (without samples) */
+    const float *bary;      /* (n, 3) barycentrics (without samples) */
+    const int64_t *lattice; /* (F, P) layout.lattice (without samples) */
+    int64_t rate;           /* layout.rate */
+    const float *spread;    /* (n,) offset angle r of the 4 extra directions, or NULL */
+    const float *frame;     /* (S, 3, 3) rows t, b, n */
+    const void *coeffs;     /* (S, 45, 8) float16 (SH_HALF) or float32, channels zero-padded */
+    const float *weights;   /* (K,) window */
+    float *out;             /* (n, e, c); channels >= c_rest of directions 1.. set to 0 */
+} ShEvalJob;
+
+/* The constants of basis.real_sh for the even functions, in basis.even_indices' order:
+ * band l, signed m, and the factor (K_l^0, or sqrt(2) K_l^m) rounded to float32 as torch
+ * multiplies it; Q_m^m = (-1)^m (2m - 1)!!. */
+typedef struct {
+    int k;
+    int l[SH_MAXK], m[SH_MAXK];
+    float f[SH_MAXK];
+    float qmm[SH_MAXL + 1];
+} ShConst;
+
+static void sh_constants(int order, ShConst *cst) {
+    int k = 0;
+    for (int l = 0; l <= order; l++)
+        for (int m = -l; m <= l; m++) {
+            if ((l + m) & 1) continue;
+            int am = m < 0 ? -m : m;
+            double kk = sqrt((2.0 * l + 1) / (4.0 * M_PI)
+                             * exp(lgamma(l - am + 1.0) - lgamma(l + am + 1.0)));
+            cst->l[k] = l;
+            cst->m[k] = m;
+            cst->f[k] = (float)(m == 0 ? kk : sqrt(2.0) * kk);
+            k++;
+        }
+    cst->k = k;
+    for (int m = 0; m <= order; m++) {
+        double q = 1.0;
+        for (int i = 1; i < 2 * m; i += 2) q *= i;
+        cst->qmm[m] = (float)((m & 1 ? -1.0 : 1.0) * q);
+    }
+}
+
+static inline v8f splat(float a) { return (v8f){a, a, a, a, a, a, a, a}; }
+
+/* ysh[k][v]: the even functions of the directions (x, y, z)[v] (nv vectors of 8). */
+static void sh_even(const ShConst *cst, int order, int nv, const v8f *x, const v8f *y,
+                    const v8f *z, v8f ysh[SH_MAXK][SH_NV]) {
+    v8f cm[SH_MAXL + 1][SH_NV], sm[SH_MAXL + 1][SH_NV];
+    v8f q[SH_MAXL + 1][SH_MAXL + 1][SH_NV]; /* q[l][m]: Q_l^m(z) */
+    for (int v = 0; v < nv; v++) {
+        cm[0][v] = splat(1.0f);
+        sm[0][v] = splat(0.0f);
+        for (int m = 1; m <= order; m++) {
+            v8f c = cm[m - 1][v], s = sm[m - 1][v];
+            cm[m][v] = c * x[v] - s * y[v];
+            sm[m][v] = c * y[v] + s * x[v];
+        }
+        for (int m = 0; m <= order; m++) {
+            q[m][m][v] = splat(cst->qmm[m]);
+            if (m + 1 <= order) q[m + 1][m][v] = splat((float)(2 * m + 1)) * z[v] * q[m][m][v];
+            /* (l - m) Q_l^m = (2l - 1) z Q_{l-1}^m - (l + m - 1) Q_{l-2}^m, divided as the
+             * tensor code does (folding 1 / (l - m) into the constants moved a few pixels
+             * by 1.6e-4 relative) */
+            for (int l = m + 2; l <= order; l++)
+                q[l][m][v] = (splat((float)(2 * l - 1)) * z[v] * q[l - 1][m][v]
+                              - splat((float)(l + m - 1)) * q[l - 2][m][v])
+                             / splat((float)(l - m));
+        }
+        for (int k = 0; k < cst->k; k++) {
+            int l = cst->l[k], m = cst->m[k];
+            v8f f = splat(cst->f[k]);
+            if (m == 0)
+                ysh[k][v] = f * q[l][0][v];
+            else if (m > 0)
+                ysh[k][v] = f * q[l][m][v] * cm[m][v];
+            else
+                ysh[k][v] = f * q[l][-m][v] * sm[-m][v];
+        }
+    }
+}
+
+/* layout.interpolation for one point: the three lattice samples of the small triangle the
+ * barycentrics fall in, and their weights (float32, formula by formula). */
+static void interpolate_point(const ShEvalJob *job, int64_t i, int64_t *smp, float *sw) {
+    const float *bi = job->bary + i * 3;
+    const int64_t n = job->rate;
+    float b[3];
+    for (int t = 0; t < 3; t++) b[t] = bi[t] < 0.0f ? 0.0f : bi[t];
+    float sum = (b[0] + b[1]) + b[2];
+    if (sum < 1e-12f) sum = 1e-12f;
+    for (int t = 0; t < 3; t++) b[t] = b[t] / sum;
+    float u = b[1] * (float)n, v = b[2] * (float)n;
+    int64_t ii = (int64_t)floorf(u), jj = (int64_t)floorf(v);
+    ii = ii < 0 ? 0 : (ii > n - 1 ? n - 1 : ii);
+    jj = jj < 0 ? 0 : (jj > n - 1 ? n - 1 : jj);
+    if (ii + jj > n - 1) ii = n - 1 - jj < 0 ? 0 : n - 1 - jj;
+    float fu = u - (float)ii, fv = v - (float)jj;
+    int upper = (fu + fv > 1.0f) && (ii + jj < n - 1);
+    int64_t pi[3], pj[3];
+    float w[3];
+    if (upper) {
+        pi[0] = ii + 1; pj[0] = jj + 1;
+        pi[1] = ii;     pj[1] = jj + 1;
+        pi[2] = ii + 1; pj[2] = jj;
+        w[0] = (fu + fv) - 1.0f;
+        w[1] = 1.0f - fu;
+        w[2] = 1.0f - fv;
+    } else {
+        pi[0] = ii;     pj[0] = jj;
+        pi[1] = ii + 1; pj[1] = jj;
+        pi[2] = ii;     pj[2] = jj + 1;
+        w[0] = (1.0f - fu) - fv;
+        w[1] = fu;
+        w[2] = fv;
+    }
+    for (int t = 0; t < 3; t++) w[t] = w[t] < 0.0f ? 0.0f : w[t];
+    float ws = (w[0] + w[1]) + w[2];
+    if (ws < 1e-12f) ws = 1e-12f;
+    const int64_t npts = (n + 1) * (n + 2) / 2;
+    const int64_t *lat = job->lattice + job->faces[i] * npts;
+    for (int t = 0; t < 3; t++) {
+        sw[t] = w[t] / ws;
+        smp[t] = lat[pj[t] * (n + 1) - (pj[t] * (pj[t] - 1)) / 2 + pi[t]];
+    }
+}
+
+/* optics.smooth.normalize */
+static inline void normalize3(float *v) {
+    float l = norm3f(v);
+    if (l < 1e-20f) l = 1e-20f;
+    for (int t = 0; t < 3; t++) v[t] = v[t] / l;
+}
+
+/* shade._map_pixels' view directions: omega, then omega +- r u, omega +- r v (normalized),
+ * u, v from optics.smooth.tangent_frame. */
+static void spread_directions(const float *om, float r, float dirs[SH_MAXE][3]) {
+    float h[3] = {0.0f, 0.0f, 0.0f}, u[3], v[3];
+    h[fabsf(om[0]) < 0.9f ? 0 : 1] = 1.0f;
+    cross3f(om, h, u);
+    normalize3(u);
+    cross3f(om, u, v);
+    for (int t = 0; t < 3; t++) {
+        dirs[0][t] = om[t];
+        float ru = r * u[t], rv = r * v[t];
+        dirs[1][t] = om[t] + ru;
+        dirs[2][t] = om[t] + -ru;
+        dirs[3][t] = om[t] + rv;
+        dirs[4][t] = om[t] + -rv;
+    }
+    for (int j = 1; j < SH_MAXE; j++) normalize3(dirs[j]);
+}
+
+static inline v8f coeff_row(const void *coeffs, int64_t sample, int k) {
+#if SH_HALF
+    const uint16_t *h = (const uint16_t *)coeffs + (sample * SH_MAXK + k) * SH_CPAD;
+    return (v8f)_mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)h));
+#else
+    return ((const v8f *)coeffs)[sample * SH_MAXK + k];
+#endif
+}
+
+static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
+    const ShEvalJob *job = (const ShEvalJob *)vjob;
+    const int e = (int)job->e, order = (int)job->order;
+    const int nc = (int)job->c, nr = (int)job->c_rest;
+    ShConst cst;
+    sh_constants(order, &cst);
+    const int nk = cst.k;
+    const int nd = 3 * e, nv = (nd + 7) / 8;
+    v8f wv[SH_MAXK];
+    for (int k = 0; k < nk; k++) wv[k] = splat(job->weights[k]);
+    v8f xv[SH_NV], yv[SH_NV], zv[SH_NV];
+    v8f ysh[SH_MAXK][SH_NV];
+    float *xs = (float *)xv, *ys = (float *)yv, *zs = (float *)zv;
+    float dirs[SH_MAXE][3];
+    for (int64_t i = begin; i < end; i++) {
+        int64_t smp[3];
+        float swt[3];
+        if (job->samples) {
+            for (int t = 0; t < 3; t++) {
+                smp[t] = job->samples[i * 3 + t];
+                swt[t] = job->s_w[i * 3 + t];
+            }
+        } else {
+            interpolate_point(job, i, smp, swt);
+        }
+        if (job->spread) {
+            spread_directions(job->omega + i * 3, job->spread[i], dirs);
+        } else {
+            for (int j = 0; j < e; j++)
+                for (int t = 0; t < 3; t++) dirs[j][t] = job->omega[(i * e + j) * 3 + t];
+        }
+        for (int v = 0; v < SH_NV; v++) {
+            xv[v] = splat(0.0f);
+            yv[v] = splat(0.0f);
+            zv[v] = splat(1.0f);
+        }
+        for (int s = 0; s < 3; s++) {
+            const float *fr = job->frame + smp[s] * 9;
+            for (int j = 0; j < e; j++) {
+                const float *o = dirs[j];
+                int d = s * e + j;
+                /* einsum("ner,nsar->nsea"): sum over r in order */
+                xs[d] = (o[0] * fr[0] + o[1] * fr[1]) + o[2] * fr[2];
+                ys[d] = (o[0] * fr[3] + o[1] * fr[4]) + o[2] * fr[5];
+                zs[d] = (o[0] * fr[6] + o[1] * fr[7]) + o[2] * fr[8];
+            }
+        }
+        sh_even(&cst, order, nv, xv, yv, zv, ysh);
+        const float *yflat = (const float *)ysh; /* ysh[k][v] lane t at (k * SH_NV + v) * 8 + t */
+        v8f acc[SH_MAXE];
+        for (int j = 0; j < e; j++) acc[j] = splat(0.0f);
+        for (int s = 0; s < 3; s++) {
+            const float *ys0 = yflat + s * e;
+            v8f sw = splat(swt[s]);
+            if (e == 1) {
+                /* one direction: four partial sums, so the adds do not wait on each other */
+                v8f p0 = splat(0.0f), p1 = p0, p2 = p0, p3 = p0;
+                int k = 0;
+                for (; k + 4 <= nk; k += 4) {
+                    const float *yk = ys0 + k * SH_NV * 8;
+                    p0 += splat(yk[0]) * (coeff_row(job->coeffs, smp[s], k) * wv[k]);
+                    p1 += splat(yk[SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 1) * wv[k + 1]);
+                    p2 += splat(yk[2 * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 2) * wv[k + 2]);
+                    p3 += splat(yk[3 * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 3) * wv[k + 3]);
+                }
+                for (; k < nk; k++)
+                    p0 += splat(ys0[k * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k) * wv[k]);
+                acc[0] += sw * ((p0 + p1) + (p2 + p3));
+                continue;
+            }
+            v8f part[SH_MAXE];
+            for (int j = 0; j < e; j++) part[j] = splat(0.0f);
+            for (int k = 0; k < nk; k++) {
+                v8f w = coeff_row(job->coeffs, smp[s], k) * wv[k];
+                const float *yk = ys0 + k * SH_NV * 8;
+                for (int j = 0; j < e; j++) part[j] += splat(yk[j]) * w;
+            }
+            for (int j = 0; j < e; j++) acc[j] += sw * part[j];
+        }
+        float *out = job->out + i * e * nc;
+        for (int j = 0; j < e; j++) {
+            const float *a = (const float *)&acc[j];
+            int cj = j == 0 ? nc : nr;
+            for (int c = 0; c < cj; c++) out[j * nc + c] = a[c];
+            for (int c = cj; c < nc; c++) out[j * nc + c] = 0.0f;
+        }
+    }
+}
+
+int64_t torchrefract_sh_eval_job_size(void) { return (int64_t)sizeof(ShEvalJob); }
+
+int torchrefract_sh_eval_half(void) { return SH_HALF; }
+
+int torchrefract_sh_eval(const ShEvalJob *job, int threads) {
+    if (job->e < 1 || job->e > SH_MAXE || job->order < 0 || job->order > SH_MAXL
+        || job->c < 1 || job->c > SH_CPAD || job->c_rest < 0 || job->c_rest > job->c
+        || (job->spread && job->e != SH_MAXE) || (!job->samples && job->rate < 1))
+        return -2;
+    return tr_parallel_for(sh_eval_range, job, job->n, 256, threads);
+}
