@@ -83,7 +83,28 @@ def agreement(size: int, pattern: str = "*") -> list[dict]:
             print(json.dumps({k: v for k, v in row.items() if k != "trace"}), flush=True)
             if "trace" in row:
                 print(row["trace"], flush=True)
+    rows.append(_matte_case(size))
     return rows
+
+
+def _matte_case(size: int) -> dict:
+    """The matte on the GPU: relit with its own map, it gives the GPU's direct image."""
+    s = _views(tr.load_scene(ROOT / "configs" / "suite" / "sphere_a03.yaml"), size, 2)
+    s = [x.replace(passes={"matte": {}}) for x in s]
+    row = {"scene": "sphere_a03", "method": "rousiers", "options": {"passes": "matte"}}
+    try:
+        b = tr.render(s, settings=tr.RenderSettings(device="cuda"))
+        img = tr.relight(b, s[0].envmap.path, rotate_deg=s[0].envmap.rotate_deg)
+        obj = b.coverage[:1] > 0
+        rel = ((img[:1] - b.radiance[:1]).abs() / b.radiance[:1].abs().clamp(min=1e-3))[obj]
+        row.update(on_gpu=b.radiance.is_cuda, relight_max_rel=float(rel.max()))
+    except Exception as exc:  # noqa: BLE001
+        row["error"] = f"{type(exc).__name__}: {exc}"[:400]
+        row["trace"] = "".join(traceback.format_exc().splitlines(True)[-14:])
+    print(json.dumps({k: v for k, v in row.items() if k != "trace"}), flush=True)
+    if "trace" in row:
+        print(row["trace"], flush=True)
+    return row
 
 
 def speed(repeats: int) -> list[dict]:

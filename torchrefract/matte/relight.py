@@ -90,8 +90,12 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     """
     m = _as_matte(matte)
     b, h, w, n_lobes = m.sharpness.shape
-    rot, sc = _per_view(rotate_deg, b, "rotate_deg"), _per_view(scale, b, "scale")
+    dev = m.weight.device  # the matte's (a GPU render's stays there)
+    rot = _per_view(rotate_deg, b, "rotate_deg").to(dev)
+    sc = _per_view(scale, b, "scale").to(dev)
     texels, pyr, path = _env(envmap)
+    texels = texels.to(dev)
+    pyr = None if pyr is None else pyr.to(dev)
     wt = m.weight.reshape(-1, 3)  # (B*H*W*L, 3)
     live = (wt != 0).any(-1).nonzero().squeeze(1)  # the used slots only
     wl, dl, kl = wt[live], m.direction.reshape(-1, 3)[live], m.sharpness.reshape(-1)[live]
@@ -107,7 +111,8 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
             val[sel] = envmap_mod.lookup(texels, dl[sel], rot[i], sc[i])
         if bool(soft.any()):
             if pyr is None:
-                pyr = sg_pyramid_for(path) if path is not None else build_sg_pyramid(texels)
+                pyr = (sg_pyramid_for(path, device=dev) if path is not None
+                       else build_sg_pyramid(texels))
             sel = soft.nonzero().squeeze(1)
             from torchrefract.lighting.sg_pyramid import sg_lookup_env  # noqa: PLC0415
 
