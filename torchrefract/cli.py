@@ -255,6 +255,10 @@ def _settings(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     args.settings = _settings(args)
+    if args.settings.heap_reuse:  # now, before any thread has made its own malloc arena
+        from torchrefract.heap import set_heap_reuse  # noqa: PLC0415
+
+        set_heap_reuse(True)
     if args.command == "render":
         return _render_cmd(args)
     if args.command == "compare":

@@ -8,7 +8,8 @@ in again: a render of the demo batch (256x256, 8 views) took 10,000-19,000 page 
 and 4-8 ms of system time per frame, single-thread. With glibc's mmap and trim thresholds
 at 1 GiB (``mallopt``) those blocks come from the heap, and the heap is not cut back after
 each free: the blocks are reused, no faults, 0.3 ms of system time per frame
-(``scripts/bench.py`` records the setting).
+(``scripts/bench.py`` records the setting). It also keeps every thread's blocks in one
+arena, so the kept heap reaches its working set once, not once per thread.
 
 Process-wide, and the process keeps the memory near its peak between renders instead of
 giving it back (the peak itself does not change). So it is never switched on by importing
@@ -27,7 +28,7 @@ import functools
 import ctypes.util
 import os
 
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # glibc's malloc.h
 _REUSE = 1 << 30  # both thresholds while reusing
 _DEFAULT = 128 * 1024  # glibc's initial values of both
 
@@ -66,6 +67,11 @@ def set_heap_reuse(enabled: bool = True) -> bool:
         return False
     value = _REUSE if enabled else _DEFAULT
     ok = fn(_M_MMAP_THRESHOLD, value) == 1 and fn(_M_TRIM_THRESHOLD, value) == 1
+    if ok and enabled:
+        # One arena: with the heap never cut back, each thread's arena (up to 8 per core)
+        # grows to its own high-water mark over thousands of renders (scripts/long_run.py,
+        # docs/datasets.md). Arenas made before stay, so the command sets this first thing.
+        fn(_M_ARENA_MAX, 1)
     if ok:
         _enabled = bool(enabled)
     return ok
