@@ -84,20 +84,29 @@ def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     layer(s) are empty the back plane is (0, 0, 0, -1): every point is beyond it, so the
     test needs no separate validity lookup. A caller that marches one G-buffer several
     times (the central and the bounding rays, the bounces) builds them once and passes them
-    as ``planes``.
+    as ``planes``. The native kernel (csrc/march.c) computes the same operations in one
+    pass over the layers.
     """
+    b = g.eye.shape[0]
+    basis = g.proj[:, 3:12]  # rows: right, up, forward
+    front = (g.front.position, g.front.geo_normal, g.front.mask) if both else (None,) * 3
+    with torch.no_grad():
+        out = native.planes(g.back.position, g.back.geo_normal, g.back.mask, g.eye, basis,
+                            *front)
+    if out is not None:
+        return out
     world = slab_planes(g) if both else back_planes(g)  # (B, H, W, 4|8)
     valid = (g.back.mask & g.front.mask) if both else g.back.mask
-    b = world.shape[0]
-    basis = g.proj[:, 3:12].reshape(b, 3, 3)  # rows: right, up, forward
-    # [n, c] -> [basis n, c - n.eye]: one (B, HW*L, 4) x (B, 4, 4) product per layer
-    m = torch.zeros(b, 4, 4, dtype=world.dtype)
-    m[:, :3, :3] = basis.transpose(1, 2)
-    m[:, :3, 3] = -g.eye
-    m[:, 3, 3] = 1.0
-    cam = torch.bmm(world.reshape(b, -1, 4), m).reshape(world.shape)
+    rows = basis.reshape(b, 1, 1, 3, 3)
+    eye = g.eye[:, None, None, :]
+    cam = []
+    for k in range(0, world.shape[-1], 4):  # [n, c] -> [basis n, c - n . eye]
+        n, c = world[..., k:k + 3], world[..., k + 3]
+        cam += [dot(n, rows[..., 0, :]), dot(n, rows[..., 1, :]), dot(n, rows[..., 2, :]),
+                c - dot(n, eye)]
+    cam = torch.stack(cam, -1)
     empty = torch.tensor([0.0, 0.0, 0.0, -1.0] + [0.0] * (world.shape[-1] - 4),
-                         dtype=cam.dtype)
+                         dtype=cam.dtype, device=cam.device)
     cam = torch.where(valid[..., None], cam, empty)
     return cam.reshape(-1, world.shape[-1]).detach()
 

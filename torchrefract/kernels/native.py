@@ -207,7 +207,16 @@ class _BackgroundJob(ctypes.Structure):
                 ("front_mask", _p), ("front_dist", _p), ("lights", _Lights), ("out", _p)]
 
 
-_KERNELS = {"march": _Job, "layer": _LayerJob, "footprint": _FootprintJob,
+class _PlanesJob(ctypes.Structure):
+    """ctypes mirror of ``PlanesJob`` in csrc/march.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("hw", ctypes.c_int64), ("pw", ctypes.c_int),
+                ("pos_b", _p), ("gn_b", _p), ("pos_f", _p), ("gn_f", _p), ("mask_b", _p),
+                ("mask_f", _p), ("eye", _p), ("basis", _p), ("out", _p)]
+
+
+_KERNELS = {"march": _Job, "planes": _PlanesJob, "layer": _LayerJob,
+            "footprint": _FootprintJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
@@ -394,6 +403,38 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
     if not _call("march", job):
         return None  # a thread could not be started: march in torch
     return (found, tri, layer) + extra
+
+
+def planes(back_pos: torch.Tensor, back_gn: torch.Tensor, back_mask: torch.Tensor,
+           eye: torch.Tensor, basis: torch.Tensor, front_pos: torch.Tensor | None = None,
+           front_gn: torch.Tensor | None = None, front_mask: torch.Tensor | None = None
+           ) -> torch.Tensor | None:
+    """``march.camera_planes``' (B*H*W, 4) back planes, or (B*H*W, 8) back then front with
+    the front layer given, in its operations (the same bits); ``None`` where the kernel is
+    unavailable or an input is not a float32 / bool CPU tensor.
+
+    Args:
+        back_pos, back_gn: (B, H, W, 3) the back layer's positions and geometric normals;
+            back_mask: (B, H, W). eye: (B, 3); basis: (B, 9) rows right, up, forward.
+        front_pos, front_gn, front_mask: the front layer's, for 8 channels.
+    """
+    if not available():
+        return None
+    both = front_pos is not None
+    f32 = (back_pos, back_gn, eye, basis) + ((front_pos, front_gn) if both else ())
+    keep = _inputs(f32, (), (back_mask,) + ((front_mask,) if both else ()))
+    if keep is None:
+        return None
+    b, h, w = back_mask.shape
+    pw = 8 if both else 4
+    out = torch.empty(b * h * w, pw)
+    job = _PlanesJob(n=b * h * w, hw=h * w, pw=pw, pos_b=keep[0].data_ptr(),
+                     gn_b=keep[1].data_ptr(), eye=keep[2].data_ptr(), basis=keep[3].data_ptr(),
+                     pos_f=keep[4].data_ptr() if both else None,
+                     gn_f=keep[5].data_ptr() if both else None,
+                     mask_b=keep[6 if both else 4].data_ptr(),
+                     mask_f=keep[7].data_ptr() if both else None, out=out.data_ptr())
+    return out if _call("planes", job) else None
 
 
 def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
