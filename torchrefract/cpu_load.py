@@ -50,12 +50,30 @@ def busy_cores(samples: int = 3, gap_s: float = 0.0005) -> int:
     return best or 0
 
 
+MAX_AGE_S = 1.0
+"""How long a reading of :func:`busy_cores` serves the renders that follow it: renders in
+quick succession (a training loop's batches) read /proc once a second, not every call
+(under load a reading takes up to ~5 ms: its samples wait for each other)."""
+
+_last: tuple[float, int] | None = None  # (monotonic time, busy cores) of the last reading
+
+
+def recent_busy_cores(max_age_s: float = MAX_AGE_S) -> int:
+    """:func:`busy_cores`, read anew only where the last reading is older than
+    ``max_age_s`` seconds."""
+    global _last
+    now = time.monotonic()
+    if _last is None or now - _last[0] > max_age_s:
+        _last = (now, busy_cores())
+    return _last[1]
+
+
 def threads_for(requested: int, cores: int | None = None, busy: int | None = None) -> int:
     """The threads a render takes when it asked for ``requested``: at most the cores other
-    processes leave free, at least 1."""
+    processes leave free (:func:`recent_busy_cores` unless ``busy`` is given), at least 1."""
     cores = cores if cores is not None else (os.cpu_count() or 1)
-    busy = busy if busy is not None else busy_cores()
+    busy = busy if busy is not None else recent_busy_cores()
     return max(1, min(requested, cores - busy))
 
 
-__all__ = ["busy_cores", "threads_for"]
+__all__ = ["MAX_AGE_S", "busy_cores", "recent_busy_cores", "threads_for"]
