@@ -45,7 +45,8 @@ from torchrefract.output.atomic import atomic_path
 
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
                                                                 "cone.c", "specular.c",
-                                                                "background.c", "rousiers.c"))
+                                                                "background.c", "rousiers.c",
+                                                                "lean.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "frame.h", "bounces.h"))

@@ -5,6 +5,10 @@ absorption are ``rousiers``' own functions; what differs is step 3, the back lay
 footprint (LEAN moments, K Gaussians for ``gsr``: :mod:`.moments`), and step 5: the exit
 lobes, one per subdivision and roughness node, anisotropic (:mod:`.lobes`) and read by EWA
 taps (:mod:`torchrefract.lighting.ewa`).
+
+Where :mod:`torchrefract.shading.fused_lean` covers the options and no gradient is wanted,
+the same steps run as one native kernel (kernels/csrc/lean.c); this tensor code is the
+reference and the differentiable path.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from torchrefract.optics.exit_rule import clamp_to_critical
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
 from torchrefract.optics.smooth import dot, normalize
+from torchrefract.shading import fused_lean
 from torchrefract.shading.background import background
 
 
@@ -70,6 +75,9 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     ``footprint``; with bounces theirs)."""
     b, h, w = g.shape
     radiance = background(g, lighting)
+    done = fused_lean.lean(g, lighting, materials, options, radiance, subdivisions, spread)
+    if done is not None:  # the fused kernel ran (shading.fused_lean says where it does)
+        return done
     idx = g.object_index()
     bounce = options.bounces.enabled
     if idx.numel() == 0:
