@@ -119,7 +119,9 @@ def speed(repeats: int) -> list[dict]:
     for method, opts in [("specular", {}), ("prefiltered", {}), ("rousiers", {}),
                          ("rousiers", {"internal_bounces": 2}), ("lean", {}), ("gsr", {})]:
         sc = [s.replace(method=method, method_options=opts) for s in scenes]
-        for name, st in cases:
+        extra = [("cuda, compiled march", tr.RenderSettings(device="cuda", compile=True))] \
+            if method == "rousiers" and not opts else []
+        for name, st in cases + extra:
             row = {"method": method, "options": opts, "where": name}
             try:
                 tr.render(sc, settings=st)  # warm-up: kernels, tables, pyramids
