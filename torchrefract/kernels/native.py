@@ -49,7 +49,7 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "lean.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
-                          "lighting.h", "frame.h", "bounces.h"))
+                          "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 # With -march=native where the compiler takes it: this CPU's instructions (fmaf inline,

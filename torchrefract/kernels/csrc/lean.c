@@ -4,7 +4,7 @@
  * any ``ewa_taps``, K = 1..8 subdivisions, sphere lights, absorption, internal bounces.
  * Per object pixel, in registers, after the LEAN moments' mip pyramid is built (in torch,
  * moments.lean_mips):
- *   1. the front lobes and the cone: ``rousiers``' steps 1-2 (rousiers.c's front_and_cone,
+ *   1. the front lobes and the cone: ``rousiers``' steps 1-2 (rousiers_core.h's front_and_cone,
  *      the marches of march_core.h),
  *   2. the footprint (cone.trace_cone) and the moments over it: four taps along its major
  *      extent and the roughness moments at its center (moments.footprint_sums), their
@@ -17,21 +17,16 @@
  *      their own lobes, widened as the poster does (shade._paper_covariances,
  *      lobes.paper_covariance), blended in by the separation,
  *   5. the front reflection, an index-matched object left invisible, the absorption and
- *      ``rousiers``' internal bounces (bounces.h, rousiers.c's shade_inside; for ``gsr``
+ *      ``rousiers``' internal bounces (bounces.h, rousiers_core.h's shade_inside; for ``gsr``
  *      the exit reflects inside what its lobes do not transmit, shade._reflected).
  * The tensor code (methods/lean/shade.py) is the reference and the differentiable path;
  * tests/test_fused_lean.py holds the two together.
  *
- * rousiers.c is included, not copied: its static steps (front lobes, cone, exit lobe,
- * interfaces met from inside) are the same functions here; its entry points are renamed
- * so that this unit's copies do not clash with the library's.
+ * rousiers_core.h is included, not copied: its static steps (front lobes, cone, exit
+ * lobe, first reflection, interfaces met from inside) are the same functions here.
  */
 
-#define torchrefract_rousiers torchrefract_rousiers_in_lean_
-#define torchrefract_rousiers_job_size torchrefract_rousiers_job_size_in_lean_
-#include "rousiers.c"
-#undef torchrefract_rousiers
-#undef torchrefract_rousiers_job_size
+#include "rousiers_core.h"
 
 #define LEAN_CH 9    /* moments.CHANNELS */
 #define MAX_K 8      /* GsrOptions.subdivisions' maximum */
@@ -97,11 +92,6 @@ static void to_basis(const float *c, const float *u, const float *v, const float
     out[0] = rc[0][0] * r[0][0] + rc[0][1] * r[0][1];
     out[1] = rc[0][0] * r[1][0] + rc[0][1] * r[1][1];
     out[2] = rc[1][0] * r[1][0] + rc[1][1] * r[1][1];
-}
-
-/* torch.lerp (its two branches). */
-static inline float lerpf(float a, float b, float w) {
-    return w < 0.5f ? a + w * (b - a) : b - (b - a) * (1.0f - w);
 }
 
 /* moments._tangents: u along the x axis projected onto the tangent plane of unit n. */
@@ -686,45 +676,6 @@ static float sector_lobes(const LeanJob *lj, const SgAxes *view_axes, int64_t b,
     return variance;
 }
 
-/* rousiers.c's first_reflection with the internal reflection's energy ``e_ri`` blended
- * towards ``gsr``'s lobes' (``apart``, ``sectors``; follow_bounces' ``reflected``). */
-static void lean_first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int i,
-                                  int64_t b, int reflects, const float *p_t1,
-                                  const float *n_in, float cos2, float var1, const float *p2,
-                                  const float *w1, const float *l_trans, float apart,
-                                  float sectors) {
-    const Frame *j = &rj->f;
-    int64_t dist = j->dist[b];
-    for (int c = 0; c < 3; c++) ps->acc[i][c] = w1[c] * l_trans[c];
-    ps->bounces[i] = 0.0f;
-    ps->residual[i] = 0.0f;
-    float k_ri = 0.0f, t_ri, e_ri = 0.0f, e_ti, w_next[3];
-    if (reflects) {
-        float e_unused;
-        sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
-        spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
-        if (apart > 0.0f) e_ri = lerpf(e_ri, sectors, apart);
-    }
-    if (!goes_on(&rj->bo, ps, i, reflects, 0, w1, e_ri, w_next)) return;
-    float d[3], var = var1 + 1.0f / (k_ri > 1e-12f ? k_ri : 1e-12f);
-    reflect(p_t1, n_in, d);
-    normalize3(d);
-    if (rj->bo.rays == 1) {
-        add_ray(ps, i, p2, d, w_next, var, 1.0f);
-        return;
-    }
-    float u[3], v[3], s = sqrtf(var > 0.0f ? var : 0.0f), wq[3];
-    tangent_frame(d, u, v);
-    for (int c = 0; c < 3; c++) wq[c] = w_next[c] * 0.25f;
-    for (int q = 0; q < 4; q++) {  /* offsets (1, 0), (-1, 0), (0, 1), (0, -1) */
-        float o0 = q == 0 ? 1.0f : (q == 1 ? -1.0f : 0.0f);
-        float o1 = q == 2 ? 1.0f : (q == 3 ? -1.0f : 0.0f), dq[3];
-        for (int c = 0; c < 3; c++) dq[c] = d[c] + s * (o0 * u[c] + o1 * v[c]);
-        normalize3(dq);
-        add_ray(ps, i, p2, dq, wq, 0.5f * var, 0.25f);
-    }
-}
-
 /* Steps 2-5 for pixel i of a block (shade.render_lean, rousiers.shade.finish). */
 static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int i,
                        int64_t px, int64_t b) {
@@ -797,9 +748,9 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
             a_x = a_x > 1e-4f ? a_x : 1e-4f;
         }
         SgAxes own_x[AXES];
-        lean_first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
-                              found && ior != 1.0f, pe.p_t1, xe.n_in, xe.cos2, xe.var1, xe.p2,
-                              w1, l_trans, apart, sectors);
+        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
+                         found && ior != 1.0f, pe.p_t1, xe.n_in, xe.cos2, xe.var1, xe.p2, w1,
+                         l_trans, apart, sectors);
     }
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = xe.tir ? 1.0f : 0.0f;
@@ -807,7 +758,7 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
     rj->footprint[px] = found ? fp.major : 0.0f;
 }
 
-/* One block of pixels: rousiers.c's steps 1-2, then lean_pixel, then the bounces. */
+/* One block of pixels: rousiers_core.h's steps 1-2, then lean_pixel, then the bounces. */
 static void lean_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
     const LeanJob *lj = (const LeanJob *)job;
     const RousJob *rj = &lj->r;

@@ -1,0 +1,556 @@
+/* The steps of the fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) for its
+ * default cone and spread (``cone_rays: march``, ``spread: rays``), every ``tir`` rule,
+ * uniform roughness, with or without internal bounces: per object pixel, in registers,
+ *   1. the front lobes (lobes.front_lobes; the SG table, eqs. 8-9),
+ *   2. the cone: the axis and its four bounding rays (eq. 12) marched to their exits
+ *      (march_core.h), their screen footprint (cone.trace_cone),
+ *   3. the exit lobe (exit.exit_interface, exit.exit_lobe) widened by the bounding rays
+ *      refracted out at their own exits (cone.geometric_variance),
+ *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
+ *      4.1) and the sphere lights' share of each lobe, the absorption, an index-matched
+ *      object left invisible (shade.index_matched),
+ *   5. with internal bounces (shading/bounces.follow, methods/rousiers/bounces.py): the
+ *      light the first exit reflects back inside, one ray (or four, ``bounce_rays``) per
+ *      pixel marched between the layers (march.march_inside) to the next interface, where
+ *      the table splits it again (bounces.shade_inside), until the budget or the
+ *      throughput is spent; per block, the rays still alive march together.
+ * The tensor code (methods/rousiers/shade.py) is the reference and the differentiable
+ * path; tests/test_fused.py holds the two together.
+ *
+ * Here as a header (csrc/rousiers.c holds the entry points) so that csrc/lean.c builds
+ * ``lean`` and ``gsr`` on the same steps (front lobes, cone marches, exit lobe, bounces).
+ */
+
+#ifndef TORCHREFRACT_ROUSIERS_CORE_H
+#define TORCHREFRACT_ROUSIERS_CORE_H
+
+#include "bounces.h"
+
+typedef struct {
+    Frame f;
+    int cone_steps, cone_refine;  /* the bounding rays' march (the axis': f.march) */
+    float two_ln4;                /* 2 ln 4 as float32 (kernels.cone.ray_spread) */
+    float *lobe_sigma, *footprint; /* out (B*H*W,) the passes of shade.PASSES */
+    Bounces bo;                    /* internal bounces (bounces.h; limit 0: none) */
+    float diffuse_var;             /* options.DIFFUSE_VAR */
+    /* roughness maps (sec. 5.1; 0 levels: none in the batch): the L roughness levels of
+     * each view (B, L; at least ALPHA_MIN; a uniform view's L times its roughness) and
+     * their coverage over the back layer as box mips (cone.coverage_mips): per mip level
+     * its (B, h, w, L) array and (h, w) */
+    int levels, mips;
+    const float *level_alpha;
+    const float *const *cover;
+    const int64_t *cover_hw;
+} RousJob;
+
+enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULES, + split */
+
+/* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
+ * (eta = ior) and leaving (eta = 1 / ior). */
+enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
+/* ... followed by the leaving interface (eta = 1 / ior) at each roughness level */
+#define MAX_LEVELS 16
+#define NAXES (AXES + MAX_LEVELS)
+
+/* The axes of a point of roughness ``alpha`` (at least ALPHA_MIN) in view b: the view's
+ * where its roughness is uniform, else ``own`` filled at alpha (the alpha_min ones are the
+ * view's). */
+static const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b, float alpha,
+                             SgAxes *own) {
+    if (!f->rmap[b]) return view;
+    float ior = f->ior[b];
+    sg_axes(&f->table, ior, alpha, own + IN);
+    own[IN0] = view[IN0];
+    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
+    own[OUT0] = view[OUT0];
+    return own;
+}
+
+
+/* cone.bounding_angle: theta_b = 2 asin(sqrt(-expm1(-ln 4 / (k + 1)) / 2)) (eq. 12). */
+static inline float bounding_angle(float k) {
+    float one_minus = -expm1f(-(float)log(4.0) / (k + 1.0f));
+    return 2.0f * asinf(sqrtf(0.5f * one_minus));
+}
+
+/* The exit lobe (exit.exit_lobe, ``spread: rays``): direction, sharpness, weight. */
+/* The exit interface of a pixel (exit.ExitInterface): the front lobe arriving (axis p_t1,
+ * sharpness k_t1, variance var1), the exact exit normal inward n_in, view2 = -p_t1, cos2,
+ * the critical cosine, TIR, the bounding rays' variance var_geo (cone.geometric_variance),
+ * the exit point p2, and whether the axis found its exit. */
+typedef struct {
+    const float *p_t1;
+    float view2[3], n_in[3], p2[3];
+    float k_t1, var1, cos2, cos_crit, var_geo;
+    int tir, found;
+} ExitGeo;
+
+static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
+                      const ExitGeo *e, float *p_out, float *k_out, float *w_out) {
+    const Frame *j = &rj->f;
+    int64_t dist = j->dist[b];
+    const float *view2 = e->view2, *n_in = e->n_in;
+    float cos2 = e->cos2, cos_crit = e->cos_crit, var1 = e->var1, var_geo = e->var_geo;
+    int tir = e->tir;
+    const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
+    float k_t2, t_t2, e_t2, weight;
+    if (mode == SPLIT) {  /* bounces follow: the table's own split, averaged over the lobe */
+        float er;
+        sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
+        lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+        spread_table_energies(&j->table, out, out0, dist, cos2, var1, &weight, &er);
+    } else if (mode == REFLECT) {  /* the internal reflection lobe under TIR */
+        float k_ti, t_ti, e_ti;
+        sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
+        sg_lobe(&j->table, out, out0, dist, 1, cos2, &k_ti, &t_ti, &e_ti);
+        if (tir) {
+            lobe_axis(view2, n_in, t_ti, 1.0f, p_out);
+            k_t2 = k_ti;
+            weight = e_ti;
+        } else {
+            lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+            weight = e_t2;
+        }
+    } else {  /* clamp, conserve: the incident angle clamped to the critical one */
+        float cos_in = tir ? cos_crit + 1e-4f : cos2;
+        sg_lobe(&j->table, out, out0, dist, 0, cos_in, &k_t2, &t_t2, &e_t2);
+        lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
+        if (mode == CLAMP) {
+            weight = tir ? 1.0f : e_t2;
+        } else {
+            float esc = escape(j, b, alpha), et, er;
+            spread_table_energies(&j->table, out, out0, dist, cos2, var1, &et, &er);
+            weight = et + er * esc;
+            if (weight > 1.0f) weight = 1.0f;
+        }
+    }
+    normalize3(p_out);
+    float v = 1.0f / k_t2 + var_geo;
+    *k_out = 1.0f / (v > 1e-12f ? v : 1e-12f);
+    *w_out = weight;
+}
+
+/* kernels.cone.ray_spread: the bounding rays refracted out at their exit normals, their
+ * squared chords to the central ray's (refracted at exact_n); ``fallback`` where none
+ * found its exit. */
+static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact_n,
+                        const float (*dirs)[3], const float (*n4)[3], const uint8_t *ok4,
+                        float ior, float fallback) {
+    float n[3], t_c[3], sum = 0.0f;
+    float m[3] = {-exact_n[0], -exact_n[1], -exact_n[2]};
+    face_forward(m, p_t1, n);
+    refract(p_t1, n, ior, t_c);
+    int cnt = 0;
+    for (int k = 0; k < 4; k++) {
+        float mk[3] = {-n4[k][0], -n4[k][1], -n4[k][2]}, nk[3], t_k[3], dk[3];
+        face_forward(mk, dirs[k], nk);
+        refract(dirs[k], nk, ior, t_k);
+        for (int c = 0; c < 3; c++) dk[c] = t_k[c] - t_c[c];
+        float chord2 = dot3(dk, dk);
+        sum = k == 0 ? (ok4[k] ? chord2 : 0.0f) : sum + (ok4[k] ? chord2 : 0.0f);
+        cnt += ok4[k] != 0;
+    }
+    return cnt > 0 ? (sum / (float)cnt) / rj->two_ln4 : fallback;
+}
+
+/* What the steps of one block of pixels hand on: the axis' and the bounding rays' marches,
+ * the front lobes, and the internal reflections. */
+typedef struct {
+    Rays axis, cone[4];
+    float view[3 * BLOCK], dirs[BLOCK][4][3], k_t1[BLOCK];
+    float e_t1[BLOCK], e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK];
+    float front[BLOCK][3];  /* with bounces: e_r times the reflected lobe's light */
+    uint8_t hidden[BLOCK];  /* a light in front of the pixel */
+    float alpha[BLOCK];     /* the front roughness (the map at the front hit's UV) */
+    const SgAxes *ax[BLOCK];         /* its table axes: the view's, or own */
+    SgAxes own[BLOCK][AXES];
+    Paths paths;
+} Block;
+
+/* Step 1 for pixel i (lobes.front_lobes, cone.trace_cone): the front lobes (eqs. 8-9), the
+ * axis p_t1 and the four bounding rays at theta_b around it (eq. 12), set to march. */
+static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, int64_t px,
+                           int64_t b) {
+    int64_t dist = j->dist[b];
+    float d[3], p1[3], n1[3], *vi = k->view + 3 * i;
+    for (int c = 0; c < 3; c++) {
+        d[c] = j->ray_dir[3 * px + c];
+        p1[c] = j->front_pos[3 * px + c];
+        vi[c] = -d[c];
+    }
+    face_forward(j->front_normal + 3 * px, d, n1);
+    float cos1 = clampf(dot3(vi, n1), 0.0f, 1.0f);
+    float t_r, t_t1, p_t1[3];
+    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 1, cos1, &k->k_r[i], &t_r, &k->e_r[i]);
+    lobe_axis(vi, n1, t_r, 1.0f, k->axis_r + 3 * i);
+    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 0, cos1, &k->k_t1[i], &t_t1, &k->e_t1[i]);
+    lobe_axis(vi, n1, t_t1, -1.0f, p_t1);
+    normalize3(p_t1);
+    float c_p1[3], c_t1[3], u[3], v[3], c_u[3], c_v[3];
+    camera_coords(j, b, p1, 1, c_p1);
+    camera_coords(j, b, p_t1, 0, c_t1);
+    set_ray(j, &k->axis, i, b, p1, p_t1, c_p1, c_t1);
+    float th = bounding_angle(k->k_t1[i]), cb = cosf(th), sb = sinf(th);
+    tangent_frame(p_t1, u, v);
+    camera_coords(j, b, u, 0, c_u);
+    camera_coords(j, b, v, 0, c_v);
+    for (int q = 0; q < 4; q++) {  /* (u, +), (u, -), (v, +), (v, -) */
+        const float *a = q < 2 ? u : v, *ca = q < 2 ? c_u : c_v;
+        float s = (q & 1) ? -1.0f : 1.0f, dq[3], cq[3];
+        for (int c = 0; c < 3; c++) {
+            dq[c] = cb * p_t1[c] + sb * s * a[c];
+            cq[c] = cb * c_t1[c] + sb * s * ca[c];
+            k->dirs[i][q][c] = dq[c];
+        }
+        set_ray(j, &k->cone[q], i, b, p1, dq, c_p1, cq);
+    }
+}
+
+/* The footprint's larger extent in pixels (cone.trace_cone, kernels.cone.footprint): the
+ * screen bounding box of the four exits (the axis' exit where one is not found); ``c``
+ * the axis exit's pixel coordinates, ``minor`` the smaller extent (both at least 1). */
+static float footprint_major(const Frame *j, const Block *k, int i, int64_t b, float *c,
+                             float *minor) {
+    const float *pp = j->proj + 16 * b;
+    float xy[4][2], ext[2];
+    project1(k->axis.pos + 3 * i, pp, c);
+    for (int q = 0; q < 4; q++) {
+        if (k->cone[q].found[i]) project1(k->cone[q].pos + 3 * i, pp, xy[q]);
+        else { xy[q][0] = c[0]; xy[q][1] = c[1]; }
+    }
+    for (int a = 0; a < 2; a++) {
+        float mx = xy[0][a], mn = xy[0][a];
+        for (int q = 1; q < 4; q++) { mx = tmax(mx, xy[q][a]); mn = tmin(mn, xy[q][a]); }
+        ext[a] = mx - mn;
+        if (ext[a] < 1.0f) ext[a] = 1.0f;  /* clamp(min=1), NaN kept */
+    }
+    *minor = tmin(ext[0], ext[1]);
+    return tmax(ext[0], ext[1]);
+}
+
+/* ndf.sample_box_mips of the coverage mips at pixel (x, y) and fractional level ``lv``
+ * (trilinear: grid_sample's bilinear, zeros padding, align_corners=False, on the two mip
+ * levels around it), normalized (cone.footprint_coverage): the L coverage ratios. */
+static void coverage(const RousJob *rj, int64_t b, float x, float y, float lv, float *c) {
+    int n = rj->mips, nl = rj->levels;
+    lv = clampf(lv, 0.0f, (float)(n - 1));
+    int l0 = (int)floorf(lv), l1 = l0 + 1 < n ? l0 + 1 : n - 1;
+    float frac = lv - (float)l0, sum = 0.0f;
+    for (int q = 0; q < nl; q++) c[q] = 0.0f;
+    for (int lvl = l0; lvl <= l1; lvl++) {
+        float w = (l0 == lvl ? 1.0f - frac : 0.0f) + (l1 == lvl ? frac : 0.0f);
+        if (!(w > 0.0f)) continue;
+        int64_t h = rj->cover_hw[2 * lvl], wd = rj->cover_hw[2 * lvl + 1];
+        float scale = (float)(1 << lvl);
+        float gx = (x / scale) / (float)wd * 2.0f - 1.0f, gy = (y / scale) / (float)h * 2.0f - 1.0f;
+        float ix = ((gx + 1.0f) * (float)wd - 1.0f) / 2.0f;
+        float iy = ((gy + 1.0f) * (float)h - 1.0f) / 2.0f;
+        float fx0 = floorf(ix), fy0 = floorf(iy);
+        int64_t x0 = (int64_t)fx0, y0 = (int64_t)fy0, xs[2] = {x0, x0 + 1}, ys[2] = {y0, y0 + 1};
+        float tw[4] = {(fx0 + 1.0f - ix) * (fy0 + 1.0f - iy), (ix - fx0) * (fy0 + 1.0f - iy),
+                       (fx0 + 1.0f - ix) * (iy - fy0), (ix - fx0) * (iy - fy0)};
+        const float *img = rj->cover[lvl] + b * h * wd * nl;
+        for (int q = 0; q < nl; q++) {
+            float v = 0.0f;
+            for (int t = 0; t < 4; t++) {  /* nw, ne, sw, se; zero outside */
+                int64_t xx = xs[t & 1], yy = ys[t >> 1];
+                float val = (xx >= 0 && xx < wd && yy >= 0 && yy < h)
+                                ? img[(yy * wd + xx) * nl + q] : 0.0f;
+                v = t == 0 ? val * tw[0] : v + val * tw[t];
+            }
+            c[q] = c[q] + w * v;
+        }
+    }
+    for (int q = 0; q < nl; q++) sum = q == 0 ? c[0] : sum + c[q];
+    for (int q = 0; q < nl; q++) c[q] = c[q] / (sum > 1e-12f ? sum : 1e-12f);
+}
+
+/* torch.lerp (its two branches). */
+static inline float lerpf(float a, float b, float w) {
+    return w < 0.5f ? a + w * (b - a) : b - (b - a) * (1.0f - w);
+}
+
+/* The first exit's internal reflection (rousiers.bounces.follow_bounces): the table's
+ * reflected lobe (E_ri averaged over the arriving lobe, k_ri) along the mirror direction of
+ * p_t1 about the exit normal; with ``bounce_rays: 4`` split into four rays around it
+ * (bounces.split_lobe: tilted by +-sqrt(var) along two tangents, each with half the
+ * variance and a quarter of the throughput); ``ax``: the table axes at the exit point's
+ * roughness. ``acc`` starts with w1 l_trans, the light
+ * the exit lets out. ``reflects``: the exit was found and the object is not index-matched
+ * (elsewhere nothing is reflected). ``gsr`` (csrc/lean.c) blends the reflected energy
+ * towards its lobes' ``sectors`` by ``apart`` (follow_bounces' ``reflected``; 0: none). */
+static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int i, int64_t b,
+                             int reflects, const float *p_t1, const float *n_in, float cos2,
+                             float var1, const float *p2, const float *w1,
+                             const float *l_trans, float apart, float sectors) {
+    const Frame *j = &rj->f;
+    int64_t dist = j->dist[b];
+    for (int c = 0; c < 3; c++) ps->acc[i][c] = w1[c] * l_trans[c];
+    ps->bounces[i] = 0.0f;
+    ps->residual[i] = 0.0f;
+    float k_ri = 0.0f, t_ri, e_ri = 0.0f, e_ti, w_next[3];
+    if (reflects) {
+        float e_unused;
+        sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
+        spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
+        if (apart > 0.0f) e_ri = lerpf(e_ri, sectors, apart);
+    }
+    if (!goes_on(&rj->bo, ps, i, reflects, 0, w1, e_ri, w_next)) return;
+    float d[3], var = var1 + 1.0f / (k_ri > 1e-12f ? k_ri : 1e-12f);
+    reflect(p_t1, n_in, d);
+    normalize3(d);
+    if (rj->bo.rays == 1) {
+        add_ray(ps, i, p2, d, w_next, var, 1.0f);
+        return;
+    }
+    float u[3], v[3], s = sqrtf(var > 0.0f ? var : 0.0f), wq[3];
+    tangent_frame(d, u, v);
+    for (int c = 0; c < 3; c++) wq[c] = w_next[c] * 0.25f;
+    for (int q = 0; q < 4; q++) {  /* offsets (1, 0), (-1, 0), (0, 1), (0, -1) */
+        float o0 = q == 0 ? 1.0f : (q == 1 ? -1.0f : 0.0f);
+        float o1 = q == 2 ? 1.0f : (q == 3 ? -1.0f : 0.0f), dq[3];
+        for (int c = 0; c < 3; c++) dq[c] = d[c] + s * (o0 * u[c] + o1 * v[c]);
+        normalize3(dq);
+        add_ray(ps, i, p2, dq, wq, 0.5f * var, 0.25f);
+    }
+}
+
+/* The light of one exit lobe (exit.exit_lobe at roughness ``alpha``, axes ``ax``; where
+ * the exit is not found, the front lobe's): its sharpness k and weight, and the
+ * environment and lights around it, seen from the exit point. */
+static void exit_light(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
+                       const ExitGeo *e, float *k, float *wt, float *l) {
+    const Frame *j = &rj->f;
+    float p[3];
+    exit_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
+    if (!e->found) {  /* leave with the front lobe */
+        for (int c = 0; c < 3; c++) p[c] = e->p_t1[c];
+        *k = e->k_t1;
+        *wt = 1.0f;
+    }
+    incident_sg(&j->lights, &j->env, b, e->p2, p, *k, l);
+}
+
+/* Step 5's transmitted part (exit.transmitted_radiance): the light leaving through the
+ * exit lobe, or with a roughness map one lobe per level by its coverage over the footprint
+ * (sec. 5.1; nothing covered: the front roughness); returns the lobe's sharpness (the
+ * coverage-weighted one with a map). */
+static float transmitted(const RousJob *rj, const SgAxes *view_axes, const SgAxes *ax,
+                         int64_t b, float alpha, int mode, const ExitGeo *e,
+                         const float *c_xy, float minor, float *l_trans) {
+    float kk, wt;
+    if (rj->levels == 0) {
+        exit_light(rj, ax, b, alpha, mode, e, &kk, &wt, l_trans);
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * wt;
+        return kk;
+    }
+    float cov[MAX_LEVELS], ksum = 0.0f, csum = 0.0f;
+    coverage(rj, b, c_xy[0], c_xy[1], log2f(minor), cov);
+    for (int q = 0; q < rj->levels; q++) csum = q == 0 ? cov[0] : csum + cov[q];
+    int no_cov = csum < 0.5f;
+    for (int c = 0; c < 3; c++) l_trans[c] = 0.0f;
+    for (int q = 0; q < rj->levels; q++) {
+        SgAxes lv[AXES];
+        const SgAxes *la = ax;
+        float a_q = alpha, w_q = 1.0f / (float)rj->levels, k_q, l_q[3];
+        if (!no_cov) {
+            a_q = rj->level_alpha[b * rj->levels + q];
+            w_q = cov[q];
+            lv[OUT] = view_axes[AXES + q];
+            lv[OUT0] = view_axes[OUT0];
+            la = lv;
+        }
+        exit_light(rj, la, b, a_q, mode, e, &k_q, &wt, l_q);
+        float ww = w_q * wt;
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] + ww * l_q[c];
+        ksum = ksum + w_q / (k_q > 1e-12f ? k_q : 1e-12f);
+    }
+    return 1.0f / (ksum > 1e-12f ? ksum : 1e-12f);
+}
+
+/* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
+ * exit lobe widened by the bounding rays, the environment around it and around the
+ * reflected lobe, the absorption; the pixel and its passes written. */
+static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
+                        int64_t px, int64_t b) {
+    const Frame *j = &rj->f;
+    const SgAxes *ax = k->ax[i];
+    float ior = j->ior[b], alpha = k->alpha[i];
+    const float *p_t1 = k->axis.t + 3 * i;
+    int found = k->axis.found[i];
+    float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
+    uint8_t ok4[4];
+    for (int c = 0; c < 3; c++) exact_n[c] = found ? k->axis.normal[3 * i + c] : p_t1[c];
+    for (int q = 0; q < 4; q++) {
+        ok4[q] = k->cone[q].found[i];
+        for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
+    }
+    /* the exit interface: the exact exit normal, inward */
+    ExitGeo e = {.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
+    float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]};
+    face_forward(m_n, p_t1, e.n_in);
+    for (int c = 0; c < 3; c++) e.view2[c] = -p_t1[c];
+    e.cos2 = clampf(dot3(e.view2, e.n_in), 0.0f, 1.0f);
+    float cc = 1.0f - 1.0f / (ior * ior);
+    e.cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    e.tir = e.cos2 < e.cos_crit && found;
+    float sin2 = 1.0f - e.cos2 * e.cos2;
+    float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
+    float mg = ior * e.cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    e.var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+    e.var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
+                           (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
+    int bounce = rj->bo.limit > 0, mode = bounce ? SPLIT : j->tir_mode;
+    float thick = j->back_dist[px] - j->front_dist[px];
+    float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
+    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], c_xy[2], minor;
+    const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
+    float d[3] = {-v[0], -v[1], -v[2]};
+    for (int c = 0; c < 3; c++) e.p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
+    float major = footprint_major(j, k, i, b, c_xy, &minor);
+    incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
+    float kk = transmitted(rj, view_axes, ax, b, alpha, mode, &e, c_xy, minor, l_trans);
+    if (ior == 1.0f) {  /* index-matched: no interface (shade.index_matched) */
+        incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
+        er = 0.0f;
+        et = 1.0f;
+    }
+    int64_t l;  /* a light between the eye and the object hides it (shade.composite) */
+    int hidden = j->lights.nl > 0 &&
+                 hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
+    float w1[3];
+    for (int c = 0; c < 3; c++) {
+        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
+        if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
+    }
+    if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
+        k->hidden[i] = (uint8_t)hidden;
+        for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
+        /* the exit's internal reflection lobe uses the roughness at the exit point */
+        float a_x = alpha;
+        if (found) {
+            a_x = roughness_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]);
+            a_x = a_x > 1e-4f ? a_x : 1e-4f;
+        }
+        SgAxes own_x[AXES];
+        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
+                         found && ior != 1.0f, p_t1, e.n_in, e.cos2, e.var1, e.p2, w1,
+                         l_trans, 0.0f, 0.0f);
+    }
+    j->exit_found[px] = found ? 1.0f : 0.0f;
+    j->tir[px] = e.tir ? 1.0f : 0.0f;
+    rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
+    rj->footprint[px] = found ? major : 0.0f;
+}
+
+/* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
+ * _split, _leaving): the table's transmitted lobe leaves (widened by the lobe carried,
+ * magnified by the refraction, at most 2x), its reflected lobe goes on along the mirror
+ * direction; the ``tir`` rule at the budget's last interface, ``conserve``'s diffuse part
+ * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
+ * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
+ * direction and variance of the reflected lobe. */
+static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, int r,
+                          int64_t b, int last, float *dir, float *var_out) {
+    const RousJob *rj = (const RousJob *)job;
+    const Frame *j = &rj->f;
+    float alpha = ps->alpha[r] > 1e-4f ? ps->alpha[r] : 1e-4f;  /* microfacet.ALPHA_MIN */
+    SgAxes own[AXES];
+    const SgAxes *ax = axes_at(j, view_axes, b, alpha, own);
+    const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
+    int64_t dist = j->dist[b];
+    int mode = j->tir_mode;
+    float ior = j->ior[b], var = ps->var[r], *t = ps->t[r];
+    float cc = 1.0f - 1.0f / (ior * ior), cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    float n_view[3], view[3] = {-t[0], -t[1], -t[2]};
+    face_forward(ps->normal[r], t, n_view);
+    float cos = clampf(dot3(view, n_view), 0.0f, 1.0f);
+    int tir = cos < cos_crit;
+    float cos_t = ((last && mode == CLAMP) || mode == CONSERVE) && tir ? cos_crit + 1e-4f : cos;
+    float k_t, t_t, e_t, k_r = INFINITY, t_r = 0.0f, e_r = 0.0f;
+    sg_lobe(&j->table, out, out0, dist, 0, cos_t, &k_t, &t_t, &e_t);
+    if (!(last && mode == CONSERVE)) sg_lobe(&j->table, out, out0, dist, 1, cos, &k_r, &t_r, &e_r);
+    if (!last || mode == CONSERVE)  /* the split averaged over the lobe carried */
+        spread_table_energies(&j->table, out, out0, dist, cos, var, &e_t, &e_r);
+    float p_t[3], k_out, w_out = e_t, refl = e_r, inv_kr = 1.0f / (k_r > 1e-12f ? k_r : 1e-12f);
+    lobe_axis(view, n_view, t_t, -1.0f, p_t);
+    normalize3(p_t);
+    float sin2 = 1.0f - cos_t * cos_t;
+    float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
+    float mg = ior * cos_t / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    if (mag2 > 4.0f) mag2 = 4.0f;
+    k_out = 1.0f / (1.0f / (k_t > 1e-12f ? k_t : 1e-12f) + mag2 * var);
+    if (mode == CONSERVE) {
+        float go_on = last ? 0.0f : expf(-(var + inv_kr) / rj->diffuse_var);
+        w_out = e_t + (1.0f - go_on) * e_r * escape(j, b, alpha);
+        if (w_out > 1.0f) w_out = 1.0f;
+        refl = go_on * e_r;
+    } else if (last && mode == CLAMP) {  /* TIR light leaves at the critical angle */
+        float e_true = e_t, k_u, t_u;
+        if (tir) sg_lobe(&j->table, out, out0, dist, 0, cos, &k_u, &t_u, &e_true);
+        w_out = tir ? (e_true + e_r > 1.0f ? 1.0f : e_true + e_r) : e_true;
+        refl = tir ? 0.0f : e_r;
+    } else if (last) {  /* reflect: under TIR the internal reflection lobe is read */
+        if (tir) {
+            lobe_axis(view, n_view, t_r, 1.0f, p_t);
+            normalize3(p_t);
+            k_out = 1.0f / (inv_kr + var);
+        }
+        w_out = tir ? e_r : e_t;
+        refl = tir ? 0.0f : e_r;
+    }
+    if (!ps->found[r]) {  /* lost: along its own direction, the escape fraction */
+        for (int c = 0; c < 3; c++) p_t[c] = t[c];
+        k_out = 1.0f / (var > 1e-12f ? var : 1e-12f);
+        w_out = escape(j, b, alpha);
+        refl = 0.0f;
+    }
+    float l_out[3];
+    incident_sg(&j->lights, &j->env, b, ps->p[r], p_t, k_out, l_out);
+    for (int c = 0; c < 3; c++) ps->acc[ps->pix[r]][c] += ps->w[r][c] * w_out * l_out[c];
+    reflect(t, n_view, dir);
+    normalize3(dir);
+    *var_out = var + inv_kr;
+    return refl;
+}
+
+/* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
+ * family over the block, steps 3-5 per pixel. */
+static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
+    const RousJob *rj = (const RousJob *)job;
+    const Frame *j = &rj->f;
+    Block k;
+    for (int i = 0; i < m; i++) {  /* the front roughness (pixels.object_pixels) */
+        int64_t b = j->batch[r0 + i], px = j->idx[r0 + i];
+        float a = roughness_at(j, b, j->front_uv + 2 * px);
+        k.alpha[i] = a > 1e-4f ? a : 1e-4f;  /* microfacet.ALPHA_MIN */
+        k.ax[i] = axes_at(j, axes + NAXES * b, b, k.alpha[i], k.own[i]);
+        front_and_cone(j, k.ax[i], &k, i, px, b);
+    }
+    march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
+    for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
+    k.paths.n = 0;
+    for (int i = 0; i < m; i++) {
+        int64_t b = j->batch[r0 + i];
+        shade_pixel(rj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
+    }
+    if (rj->bo.limit > 0)
+        finish_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths,
+                     (const float (*)[3])k.front, k.hidden, r0, m);
+}
+
+/* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
+ * roughness (at least microfacet.ALPHA_MIN) and at the table's smallest (sg_lobe's fade). */
+static void rous_axes(const Frame *f, int64_t b, SgAxes *out) {
+    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+    float a0 = f->table.alpha_min;
+    sg_axes(&f->table, ior, a, out + IN);
+    sg_axes(&f->table, ior, a0, out + IN0);
+    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
+    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
+    const RousJob *rj = (const RousJob *)f;  /* f is the job's first member */
+    for (int q = 0; q < rj->levels; q++)
+        sg_axes(&f->table, 1.0f / ior, rj->level_alpha[b * rj->levels + q], out + AXES + q);
+}
+
+#endif
