@@ -64,3 +64,32 @@ def test_texels_and_batches(one_thread):
     assert torch.allclose(img, expect, rtol=1e-4, atol=1e-5)
     with pytest.raises(tr.ConfigError, match="rotate_deg"):
         tr.relight(out, tex, rotate_deg=[1.0, 2.0, 3.0])
+
+
+def test_prepared_equals_lookups(one_thread):
+    """The prepared relight (gathers of precomputed texel indices) against the lookups one
+    by one: per-view rotations and scales, a pyramid passed in, rotations seen before, a
+    matte changed in place (prepared again)."""
+    from torchrefract.lighting.sg_pyramid import sg_pyramid_for
+    from torchrefract.matte.matte import from_passes
+    from torchrefract.matte.relight import prepare, relight_reference
+
+    s = _scene("suzanne_a01.yaml", "rousiers", {"internal_bounces": 1}, size=32)
+    out = tr.render([s.replace(passes={"matte": {}}),
+                     s.replace(passes={"matte": {}}, material=tr.Material(roughness=0.02))])
+    pyr = sg_pyramid_for(OTHER)
+
+    def close(a, b):
+        rel = (a - b).abs().amax(-1) / b.amax(-1).clamp(min=1e-6)
+        return float(rel.max()) <= 1e-6
+
+    for env in (OTHER, pyr, s.envmap.path):
+        for rot, sc in ((torch.tensor([10.0, -200.0]), torch.tensor([1.0, 0.3])),
+                        (33.0, 2.0), (torch.tensor([10.0, -200.0]), 1.0)):
+            assert close(tr.relight(out, env, rot, sc), relight_reference(out, env, rot, sc))
+    m = from_passes(out.passes)
+    before = tr.relight(m, OTHER, 5.0)
+    assert prepare(m) is prepare(m)  # kept
+    m.weight.mul_(2.0)  # in place: prepared again
+    assert torch.allclose(tr.relight(m, OTHER, 5.0) - m.lights, 2 * (before - m.lights),
+                          rtol=1e-5, atol=1e-6)

@@ -36,7 +36,11 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
     """Render one batch (the worker's task). Never raises for a bad sample.
 
     Args:
-        items: ``(index, sample_id, scene)`` of one resolution, method and options.
+        items: ``(index, sample_id, scene)`` of one resolution, method and options; in a
+            sweep's relight mode ``(index, sample_id, scene, source)``, ``source`` the
+            ``(index, sample_id, scene)`` of the item's relight group's source
+            (:mod:`torchrefract.dataset.relight`: those items are rendered once per group
+            and relit; where that fails, rendered directly).
         settings: the :class:`~torchrefract.settings.RenderSettings` of the renders (None:
             those in force; ``threads`` sets torch's thread count for each render).
         encode: encode the EXR and PNG bytes (else return the tensors in ``result``).
@@ -44,28 +48,38 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
     Returns:
         One dict per item: ``index``, ``sample_id``, ``ok``, ``reason``, ``exr``, ``png``
         (bytes), ``sha256``, ``channels``, ``timings`` (seconds: this sample's share of
-        the batch render, its encoding), ``batch_size``, ``warnings``, ``host``, ``pid``.
+        the batch render, its encoding), ``batch_size``, ``warnings``, ``host``, ``pid``;
+        a relit sample's ``relit_from`` (its source's sample id).
     """
     import torch  # noqa: PLC0415
 
+    groups: list[tuple[list[int], Any, list[str], str | None, dict]] = []
+    if items and len(items[0]) == 4:
+        from torchrefract.dataset.relight import render_relit  # noqa: PLC0415
+
+        try:
+            groups = render_relit(items, settings)
+        except Exception:  # noqa: BLE001 - no matte for this method, a source fails: direct
+            groups = []
+        items = [it[:3] for it in items]
     scenes = [s for _, _, s in items]
-    groups: list[tuple[list[int], Any, list[str], str | None]] = []
-    try:
-        res, warn = _render_one_group(scenes, settings)
-        groups.append((list(range(len(items))), res, warn, None))
-    except Exception as exc:  # noqa: BLE001 - any failure: retry alone, then report
-        if len(items) == 1:
-            groups.append(([0], None, [], _failure(exc)))
-        else:
-            for k, s in enumerate(scenes):
-                try:
-                    res, warn = _render_one_group([s], settings)
-                    groups.append(([k], res, warn, None))
-                except Exception as exc1:  # noqa: BLE001
-                    groups.append(([k], None, [], _failure(exc1)))
+    if not groups:
+        try:
+            res, warn = _render_one_group(scenes, settings)
+            groups.append((list(range(len(items))), res, warn, None, {}))
+        except Exception as exc:  # noqa: BLE001 - any failure: retry alone, then report
+            if len(items) == 1:
+                groups.append(([0], None, [], _failure(exc), {}))
+            else:
+                for k, s in enumerate(scenes):
+                    try:
+                        res, warn = _render_one_group([s], settings)
+                        groups.append(([k], res, warn, None, {}))
+                    except Exception as exc1:  # noqa: BLE001
+                        groups.append(([k], None, [], _failure(exc1), {}))
     out: list[dict | None] = [None] * len(items)
     host, pid = socket.gethostname(), os.getpid()
-    for ks, res, warn, reason in groups:
+    for ks, res, warn, reason, extra in groups:
         for j, k in enumerate(ks):
             index, sid, scene = items[k]
             rec = {"index": index, "sample_id": sid, "ok": res is not None, "reason": reason,
@@ -73,8 +87,11 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
                    "torch_threads": (settings.threads if settings is not None
                                      and settings.threads else torch.get_num_threads()),
                    "timings": {}}
+            if "relit_from" in extra:
+                rec["relit_from"] = extra["relit_from"]
             if res is not None:
-                rec["timings"]["render_s"] = res.timings["total"] / len(ks)
+                rec["timings"]["render_s"] = extra.get("render_s",
+                                                       res.timings["total"] / len(ks))
                 rec["timings"]["batch"] = dict(res.timings)
                 rec["channels"] = channel_layout(res)
                 if res.blends is not None:  # auto: the variants in the image, weighted

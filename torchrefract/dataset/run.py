@@ -64,6 +64,7 @@ from torchrefract.dataset.executors import _failure, _make_executor, render_item
 from torchrefract.dataset.manifest import MANIFEST, _Manifest, latest_entries, read_manifest
 from torchrefract.dataset.paths import map_scene_paths, relative_path
 from torchrefract.dataset.records import _sample_meta, camera_metadata
+from torchrefract.dataset.relight import sources as relight_sources
 from torchrefract.dataset.shards import _completed_shards, _TarShards
 from torchrefract.dataset.sweep import Sample, SweepConfig, load_sweep
 from torchrefract.output.atomic import write_bytes
@@ -268,8 +269,11 @@ def _completed(out: Path, fmt: str, latest: dict[str, dict], verify: bool
     return done, -1
 
 
-def _plan_batches(todo: list[Sample], batch_size: int) -> list[list[Sample]]:
-    """Group samples into batches of one resolution, supersampling, method and options."""
+def _plan_batches(todo: list[Sample], batch_size: int,
+                  sources: dict[str, Sample] | None = None) -> list[list[Sample]]:
+    """Group samples into batches of one resolution, supersampling, method and options.
+    In relight mode (``sources``: each sample's relight source) a relight group's samples
+    are kept side by side and in one batch where it fits (:func:`_pack`)."""
     groups: dict[tuple, list[Sample]] = {}
     for s in todo:
         c = s.scene.camera
@@ -285,7 +289,33 @@ def _plan_batches(todo: list[Sample], batch_size: int) -> list[list[Sample]]:
         for smp in g:
             first.setdefault(_view_key(smp), len(first))
         g = sorted(g, key=lambda smp: first[_view_key(smp)])
-        batches.extend(g[k:k + batch_size] for k in range(0, len(g), batch_size))
+        if sources is not None:
+            batches.extend(_pack(g, batch_size, sources))
+        else:
+            batches.extend(g[k:k + batch_size] for k in range(0, len(g), batch_size))
+    return batches
+
+
+def _pack(g: list[Sample], batch_size: int, sources: dict[str, Sample]) -> list[list[Sample]]:
+    """Batches of whole relight groups (first-seen order; a group larger than
+    ``batch_size`` split into chunks of it): a batch renders each group's source once."""
+    groups: dict[str, list[Sample]] = {}
+    for smp in g:
+        groups.setdefault(sources[smp.sample_id].sample_id, []).append(smp)
+    batches: list[list[Sample]] = []
+    cur: list[Sample] = []
+    for members in groups.values():
+        if cur and len(cur) + len(members) > batch_size:
+            batches.append(cur)
+            cur = []
+        for k in range(0, len(members), batch_size):
+            part = members[k:k + batch_size]
+            if len(part) == batch_size:
+                batches.append(part)
+            else:
+                cur.extend(part)
+    if cur:
+        batches.append(cur)
     return batches
 
 
@@ -387,7 +417,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     manifest: _Manifest | None = None
     try:
         todo, planned_failures, last_shard = _plan(cfg, out, fmt, verify, limit, summary)
-        batches = _plan_batches(todo, batch_size)
+        sources = relight_sources(cfg, todo) if cfg.relight else None
+        batches = _plan_batches(todo, batch_size, sources)
         manifest = _Manifest(out / MANIFEST)
         if fmt == "webdataset":
             shards = _TarShards(out, shard_size, last_shard + 1)
@@ -402,7 +433,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
         t_ex = time.perf_counter()
         if batches:
             ex = _make_executor(executor, workers, settings, ray_address, quiet)
-        _drive(cfg, out, fmt, ex, batches, manifest, shards, summary, quiet, t_ex)
+        _drive(cfg, out, fmt, ex, batches, manifest, shards, summary, quiet, t_ex, sources)
         _finish(manifest, shards, summary)
     except OSError as exc:
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -497,8 +528,9 @@ class _WriterThread:
 
 def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]],
            manifest: _Manifest, shards: _TarShards | None, summary: RunSummary,
-           quiet: bool, t_executor: float) -> None:
-    """Keep the executor busy with a window of batches; write results in plan order."""
+           quiet: bool, t_executor: float, sources: dict[str, Sample] | None = None) -> None:
+    """Keep the executor busy with a window of batches; write results in plan order. In
+    relight mode each item carries its relight group's source (``sources``)."""
     from tqdm import tqdm  # noqa: PLC0415
 
     total = sum(len(b) for b in batches)
@@ -518,6 +550,9 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
             if b is None:
                 return
             items = [(s.params["index"], s.sample_id, s.scene) for s in b]
+            if sources is not None:
+                items = [it + ((src.params["index"], src.sample_id, src.scene),)
+                         for it in items for src in (sources[it[1]],)]
             pending.append((b, ex.submit(items)))
 
     def write(batch: list[Sample], results: list[dict]) -> None:
@@ -585,6 +620,8 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
             continue
         if "auto_blend" in res:
             meta["auto_blend"] = res["auto_blend"]
+        if res.get("relit_from"):  # relight mode: relit from that sample's matte
+            meta["relit_from"] = res["relit_from"]
         rec = dict(meta, channels=res["channels"], status="ok", reason=None,
                    sha256=res["sha256"],
                    bytes={"exr": len(res["exr"]), "png": len(res["png"])},

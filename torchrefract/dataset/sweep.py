@@ -34,6 +34,8 @@ or the same mapping inline) and the parameters to vary::
         resolution: [64, "96x64", [128, 96]]   # square size, "WxH" or [W, H]
         samples_per_pixel: 1
       method: [specular]
+    relight: false                  # true: samples differing only in the env map are relit
+                                    # from one render's matte (torchrefract.dataset.relight)
 
 Every swept value is one of: a scalar (a constant), a list (discrete values), a
 ``{linspace: [lo, hi, n]}`` (n discrete values), or a distribution ``{uniform: [lo, hi]}`` /
@@ -216,6 +218,10 @@ class SweepConfig:
     """sha256 of the config's content (and the base scene file's) as canonical JSON."""
     raw: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
     """The config as written (for the dataset's record)."""
+    relight: bool = False
+    """Relight mode (``relight: true``): samples that differ only in the environment map
+    (path, rotation, scale) render their view once with the matte and are relit from it
+    (:mod:`torchrefract.dataset.relight`; docs/datasets.md, "Relight mode")."""
 
     def axes(self) -> list[tuple[str, Axis]]:
         """The set axes in the fixed order (:data:`AXES`)."""
@@ -300,7 +306,7 @@ def load_sweep(path: str | Path) -> SweepConfig:
     return sweep_from_dict(data, base_dir=p.parent, source=str(p))
 
 
-_TOP = ("name", "description", "base", "sampling", "sweep")
+_TOP = ("name", "description", "base", "sampling", "sweep", "relight")
 
 
 def sweep_from_dict(data: Any, base_dir: str | Path = ".",
@@ -317,6 +323,10 @@ def sweep_from_dict(data: Any, base_dir: str | Path = ".",
         raise ConfigError(f"{where(source, 'name')}: expected a non-empty string, got {name!r}")
     if "description" in data and not isinstance(data["description"], str):
         raise ConfigError(f"{where(source, 'description')}: expected a string")
+    relight = data.get("relight", False)
+    if not isinstance(relight, bool):
+        raise ConfigError(f"{where(source, 'relight')}: expected true or false, got "
+                          f"{relight!r}")
 
     sampling = _parse_sampling(data.get("sampling"), source)
     spec = _parse_spec(data.get("sweep"), base_dir, source)
@@ -346,7 +356,8 @@ def sweep_from_dict(data: Any, base_dir: str | Path = ".",
 
     canon = json.dumps(hashed, sort_keys=True, separators=(",", ":"), default=str)
     cfg = SweepConfig(base=base, sampling=sampling, sweep=spec, name=name, source=source,
-                      config_hash=hashlib.sha256(canon.encode()).hexdigest(), raw=data)
+                      config_hash=hashlib.sha256(canon.encode()).hexdigest(), raw=data,
+                      relight=relight)
     _check_counts(cfg)
     return cfg
 
