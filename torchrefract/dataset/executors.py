@@ -7,28 +7,12 @@ from __future__ import annotations
 import os
 import socket
 import time
-import warnings
 from typing import Any, Callable
 
 from torchrefract.checks import ConfigError
+from torchrefract.dataset.attempt import failure_reason, render_batch
 from torchrefract.dataset.encode import _encode, channel_layout
 from torchrefract.scene.model import Scene
-
-
-def _failure(exc: BaseException) -> str:
-    """A failed sample's reason: the exception's type and first line (at most 2000 chars)."""
-    msg = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {msg[0] if msg else ''}"[:2000]
-
-
-def _render_one_group(scenes: list[Scene], settings):
-    """Render one batch; returns the result and the distinct warnings it raised."""
-    from torchrefract.render import render  # noqa: PLC0415
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = render(scenes, settings=settings)
-    return result, sorted({str(w.message) for w in caught})
 
 
 def render_items(items: list[tuple[int, str, Scene]], settings=None,
@@ -65,18 +49,18 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
     scenes = [s for _, _, s in items]
     if not groups:
         try:
-            res, warn = _render_one_group(scenes, settings)
+            res, warn = render_batch(scenes, settings)
             groups.append((list(range(len(items))), res, warn, None, {}))
         except Exception as exc:  # noqa: BLE001 - any failure: retry alone, then report
             if len(items) == 1:
-                groups.append(([0], None, [], _failure(exc), {}))
+                groups.append(([0], None, [], failure_reason(exc), {}))
             else:
                 for k, s in enumerate(scenes):
                     try:
-                        res, warn = _render_one_group([s], settings)
+                        res, warn = render_batch([s], settings)
                         groups.append(([k], res, warn, None, {}))
                     except Exception as exc1:  # noqa: BLE001
-                        groups.append(([k], None, [], _failure(exc1), {}))
+                        groups.append(([k], None, [], failure_reason(exc1), {}))
     out: list[dict | None] = [None] * len(items)
     host, pid = socket.gethostname(), os.getpid()
     for ks, res, warn, reason, extra in groups:
@@ -102,7 +86,7 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
                     try:
                         rec.update(_encode(res, j, scene))
                     except Exception as exc:  # noqa: BLE001
-                        rec.update(ok=False, reason=_failure(exc))
+                        rec.update(ok=False, reason=failure_reason(exc))
                     rec["timings"]["encode_s"] = time.perf_counter() - t0
                 else:
                     rec["result"], rec["result_index"] = res, j

@@ -95,7 +95,7 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
     per-sample render time. Raises where the source render fails (the caller then renders
     the batch directly).
     """
-    from torchrefract.dataset.executors import _failure, _render_one_group  # noqa: PLC0415
+    from torchrefract.dataset.attempt import failure_reason, render_batch  # noqa: PLC0415
     from torchrefract.matte.matte import from_passes  # noqa: PLC0415
     from torchrefract.matte.relight import prepare, relight  # noqa: PLC0415
     from torchrefract.render import RenderResult  # noqa: PLC0415
@@ -108,7 +108,7 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
             src_scenes.append(sscene.replace(passes={**sscene.passes,
                                                      "matte": {"lobes": _matte_lobes(sscene)}}))
     t0 = time.perf_counter()
-    res, warn = _render_one_group(src_scenes, settings)
+    res, warn = render_batch(src_scenes, settings)
     t_src = (time.perf_counter() - t0) / len(src_scenes)
     out = []
     direct: list[int] = []
@@ -134,7 +134,7 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
             img = relight(prepared[j], env.path, env.rotate_deg, env.scale)
             t_rel = time.perf_counter() - t1
         except Exception as exc:  # noqa: BLE001 - a broken map fails its own sample
-            out.append(([k], None, [], _failure(exc), {}))
+            out.append(([k], None, [], failure_reason(exc), {}))
             continue
         one = RenderResult(img, res.coverage[j:j + 1], _strip(passes, scene), (scene,),
                            {"relight": t_rel, "total": t_rel})
@@ -144,10 +144,10 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
         note = (f"relight: the matte of {ssid} folded or merged more than {MAX_FOLDED:g} "
                 f"of a pixel's energy; rendered directly")
         try:
-            r, w = _render_one_group([scene], settings)
+            r, w = render_batch([scene], settings)
             out.append(([k], r, w + [note], None, {}))
         except Exception as exc:  # noqa: BLE001
-            out.append(([k], None, [], _failure(exc), {}))
+            out.append(([k], None, [], failure_reason(exc), {}))
     return out
 
 

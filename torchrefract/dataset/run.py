@@ -60,7 +60,8 @@ from typing import Callable
 
 from torchrefract.checks import ConfigError
 from torchrefract.dataset.encode import _encode, channel_layout, encode_exr, encode_png
-from torchrefract.dataset.executors import _failure, _make_executor, render_items
+from torchrefract.dataset.attempt import failure_reason
+from torchrefract.dataset.executors import _make_executor, render_items
 from torchrefract.dataset.manifest import MANIFEST, _Manifest, latest_entries, read_manifest
 from torchrefract.dataset.paths import map_scene_paths, relative_path
 from torchrefract.dataset.records import _sample_meta, camera_metadata
@@ -360,7 +361,7 @@ def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None
             todo.append(cfg.sample(i))
         except ConfigError as exc:  # an invalid combination: that sample fails alone
             planned_failures.append({"sample_id": sid, "index": i, "status": "failed",
-                                     "reason": _failure(exc),
+                                     "reason": failure_reason(exc),
                                      "config_hash": cfg.config_hash})
     if limit is not None:
         todo = todo[:limit]
@@ -573,7 +574,7 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
                 results = fut.result()
             except Exception as exc:  # noqa: BLE001 - a worker died: fail this batch only
                 results = [{"index": s.params["index"], "sample_id": s.sample_id, "ok": False,
-                            "reason": f"worker failed: {_failure(exc)}", "timings": {},
+                            "reason": f"worker failed: {failure_reason(exc)}", "timings": {},
                             "batch_size": len(batch)} for s in batch]
             now = time.perf_counter()
             summary.wait_s += now - t
@@ -604,7 +605,7 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
             try:
                 res.update(_encode(res.pop("result"), res.pop("result_index"), sample.scene))
             except Exception as exc:  # noqa: BLE001
-                res.update(ok=False, reason=_failure(exc))
+                res.update(ok=False, reason=failure_reason(exc))
             res["timings"]["encode_s"] = time.perf_counter() - te
             batch_encode += res["timings"]["encode_s"]
         timings = dict(res.get("timings", {}))
