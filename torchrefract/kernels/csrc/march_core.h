@@ -176,14 +176,17 @@ static void search_block(const Job *j, int64_t r0, int m, float *lo_out, float *
     }
 }
 
-/* march._exit's values for ray r leaving through ``tri`` (-1: not found): the hit with
- * the triangle, the clamped barycentric interpolation of its corner normals, normalized,
- * and the position p1 + s t. */
-static void exit_values(const Job *j, int64_t r, int64_t tri) {
+/* march._exit's values for ray r leaving through ``tri`` (-1: not found), given the ray's
+ * hit with it (``hit_s``, ``hit_bt``: ``intersect``'s, computed while the exit was found):
+ * the clamped barycentric interpolation of its corner normals, normalized, and the
+ * position p1 + s t. */
+static void exit_values(const Job *j, int64_t r, int64_t tri, float hit_s,
+                        const float *hit_bt) {
     float s = 0.0f, bt[3] = {0.0f, 0.0f, 0.0f}, n[3] = {0.0f, 0.0f, 0.0f};
     const float *p1 = j->p1 + 3 * r, *t = j->t + 3 * r;
     if (tri >= 0) {
-        s = intersect(p1, t, j->tv + 9 * tri, bt);
+        s = hit_s;
+        for (int m = 0; m < 3; m++) bt[m] = hit_bt[m];
         interpolate(bt, j->tn + 9 * tri, 3, n);
         float len = norm3(n);
         if (len < 1e-20f) len = 1e-20f;
@@ -346,7 +349,7 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     }
     int64_t tri = -1;
     int layer = -1;
-    float bary[3] = {0.0f, 0.0f, 0.0f};
+    float bary[3] = {0.0f, 0.0f, 0.0f}, hit_s = 0.0f, hit_bt[3] = {0.0f, 0.0f, 0.0f};
     for (int i = 0; i < ntries; i++) {
         int64_t cand;
         float st, bt[3];
@@ -354,6 +357,8 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
             tri = cand;
             layer = fronts[i] ? 0 : 1;
             bary[0] = bt[0]; bary[1] = bt[1]; bary[2] = bt[2];
+            hit_s = st;
+            hit_bt[0] = bt[0]; hit_bt[1] = bt[1]; hit_bt[2] = bt[2];
             break;
         }
     }
@@ -380,6 +385,8 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
             if (score > best) {
                 tri = nxt;
                 best = score;
+                hit_s = st;
+                hit_bt[0] = bt[0]; hit_bt[1] = bt[1]; hit_bt[2] = bt[2];
             }
             if (!(score < eps)) break;
         }
@@ -387,7 +394,7 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     j->found[r] = tri >= 0;
     j->tri[r] = tri;
     j->layer[r] = layer;
-    if (j->s_out) exit_values(j, r, tri);
+    if (j->s_out) exit_values(j, r, tri, hit_s, hit_bt);
 }
 
 #endif
