@@ -9,11 +9,15 @@ is the shading outside those two (lobes, table and environment lookups, bounces)
 runs in a fresh process (``--in-process``: all in this one, faster, but then the memory
 column is the peak so far), so its peak resident memory is its own: ``peakMB``, with the
 process's memory before the row's first render (torch, pyrender, the scene) in the JSON
-as ``baseline_rss_mb``.
+as ``baseline_rss_mb``. ``--interleave`` runs every row in this process in rounds, one
+render of each row per round, Mitsuba's rows among them: on a machine whose load drifts
+(other jobs, another session's) every row sees the same drift, so the ratios between rows
+hold where back-to-back rows can differ by 2x.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
-        [--no-native] [--no-fused] [--no-heap-reuse] [--in-process] [--views shared distinct]
+        [--no-native] [--no-fused] [--no-heap-reuse] [--in-process | --interleave]
+        [--views shared distinct]
         [--mitsuba | --no-mitsuba] [--out outputs/bench]
 
 Heap reuse (``RenderSettings(heap_reuse=True)``) is on, as in the ``torchrefract`` command:
@@ -128,37 +132,61 @@ def bench_scenes(base: tr.Scene, size: int, batch: int, views: str = "distinct"
             for i in range(batch)]
 
 
+class OursRow:
+    """One of our rows: its scenes and settings, a warm-up render and timed renders."""
+
+    def __init__(self, base: tr.Scene, method: str, size: int, batch: int,
+                 views: str = "distinct", settings: tr.RenderSettings | None = None):
+        self.spec, self.size, self.batch, self.views = method, size, batch, views
+        self.method, self.options = parse_method_spec(method)
+        self.scenes = bench_scenes(base.replace(method_options=self.options), size, batch,
+                                   views)
+        self.settings = settings
+        self.baseline = rss_mb("VmRSS")
+        self.warmup = 0.0
+        self.totals: list[float] = []
+        self.stages: dict[str, list[float]] = {}
+
+    def warm(self) -> None:
+        t0 = time.perf_counter()
+        tr.render(self.scenes, method=self.method, settings=self.settings)  # caches, compiling
+        self.warmup = time.perf_counter() - t0
+
+    def once(self) -> None:
+        t0 = time.perf_counter()
+        out = tr.render(self.scenes, method=self.method, settings=self.settings)
+        self.totals.append(time.perf_counter() - t0)
+        for k, v in out.timings.items():
+            self.stages.setdefault(k, []).append(v)
+
+    def result(self) -> dict:
+        n, stages = len(self.totals), dict(self.stages)
+        for i in range(n):  # the method's own time outside its marches, mips and kernel
+            stages.setdefault("shading_rest", []).append(
+                stages["shading"][i] - sum(stages.get(k, [0.0] * n)[i]
+                                           for k in ("march", "mips", "fused")))
+        s = self.settings
+        return {
+            "method": self.method, "options": self.options, "size": self.size,
+            "batch": self.batch, "views": self.views, "repeats": n,
+            "ms_per_frame": 1000 * statistics.median(self.totals) / self.batch,
+            "ms_per_frame_stage": {k: 1000 * statistics.median(v) / self.batch
+                                   for k, v in stages.items()},
+            "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": self.baseline,
+            "warmup_s": self.warmup, "compiled": bool(s and s.compile),
+            "native": native.available() if s is None or s.native else False,
+            "fused": bool((s is None or s.fused) and native.available()),
+            "heap_reuse": heap.heap_reuse(), "threads": torch.get_num_threads(),
+        }
+
+
 def bench_one(base: tr.Scene, method: str, size: int, batch: int, repeats: int,
               views: str = "distinct", settings: tr.RenderSettings | None = None) -> dict:
-    method, options = parse_method_spec(method)
-    scenes = bench_scenes(base.replace(method_options=options), size, batch, views)
-    baseline = rss_mb("VmRSS")
-    t0 = time.perf_counter()
-    tr.render(scenes, method=method, settings=settings)  # warm-up (context, caches, compiling)
-    warmup = time.perf_counter() - t0
-    totals, stages = [], {}
+    row = OursRow(base, method, size, batch, views, settings)
+    row.warm()
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = tr.render(scenes, method=method, settings=settings)
-        totals.append(time.perf_counter() - t0)
-        for k, v in out.timings.items():
-            stages.setdefault(k, []).append(v)
-    for i in range(repeats):  # the method's own time outside its marches, mips and kernel
-        stages.setdefault("shading_rest", []).append(
-            stages["shading"][i] - sum(stages.get(k, [0.0] * repeats)[i]
-                                       for k in ("march", "mips", "fused")))
-    return {
-        "method": method, "options": options, "size": size, "batch": batch, "views": views,
-        "repeats": repeats,
-        "ms_per_frame": 1000 * statistics.median(totals) / batch,
-        "ms_per_frame_stage": {k: 1000 * statistics.median(v) / batch
-                               for k, v in stages.items()},
-        "peak_rss_mb": rss_mb("VmHWM"), "baseline_rss_mb": baseline,
-        "warmup_s": warmup, "compiled": bool(settings and settings.compile),
-        "native": native.available() if settings is None or settings.native else False,
-        "fused": bool((settings is None or settings.fused) and native.available()),
-        "heap_reuse": heap.heap_reuse(), "threads": torch.get_num_threads(),
-    }
+        row.once()
+    return row.result()
 
 
 def run_row(args: argparse.Namespace, method: str, size: int, batch: int, views: str) -> dict:
@@ -210,53 +238,80 @@ def bench_mitsuba(base: tr.Scene, size: int, batch: int, repeats: int,
     Raises:
         ImportError: Mitsuba (or, with ``denoise``, pyoidn) is not installed.
     """
-    from torchrefract.methods.reference import denoise_oidn  # noqa: PLC0415
-    from torchrefract.truth.mitsuba import mitsuba, to_mitsuba_dict  # noqa: PLC0415
+    row = MitsubaRow(base, size, batch, views, spp, denoise, threads)
+    row.warm()
+    for _ in range(repeats):
+        row.once()
+    return row.result()
 
-    mi = mitsuba()
-    import drjit as dr  # noqa: PLC0415 (mitsuba's own dependency)
 
-    default_threads = dr.thread_count()
-    scenes = bench_scenes(base, size, batch, views)
+class MitsubaRow:
+    """One Mitsuba row (:func:`bench_mitsuba`): a warm-up pass and timed passes."""
 
-    def one_pass() -> tuple[float, float, float]:
+    def __init__(self, base: tr.Scene, size: int, batch: int, views: str = "distinct",
+                 spp: int = 1, denoise: bool = False, threads: int | None = None):
+        from torchrefract.truth.mitsuba import mitsuba  # noqa: PLC0415
+
+        self.mi = mitsuba()
+        import drjit as dr  # noqa: PLC0415 (mitsuba's own dependency)
+
+        self.dr, self.default_threads = dr, dr.thread_count()
+        self.size, self.batch, self.views = size, batch, views
+        self.spp, self.denoise, self.threads = spp, denoise, threads
+        self.scenes = bench_scenes(base, size, batch, views)
+        self.warmup = 0.0
+        self.passes: list[tuple[float, float, float]] = []
+
+    def _pass(self) -> tuple[float, float, float]:
+        from torchrefract.methods.reference import denoise_oidn  # noqa: PLC0415
+        from torchrefract.truth.mitsuba import to_mitsuba_dict  # noqa: PLC0415
+
+        mi, dr = self.mi, self.dr
         t0 = time.perf_counter()
-        built = [mi.load_dict(to_mitsuba_dict(s, spp=spp, seed=MITSUBA_SEED,
-                                              max_depth=MITSUBA_MAX_DEPTH)) for s in scenes]
+        built = [mi.load_dict(to_mitsuba_dict(s, spp=self.spp, seed=MITSUBA_SEED,
+                                              max_depth=MITSUBA_MAX_DEPTH))
+                 for s in self.scenes]
         t1 = time.perf_counter()
-        if threads:
-            dr.set_thread_count(threads)
+        if self.threads:
+            dr.set_thread_count(self.threads)
         try:
             t1b = time.perf_counter()
             images = [np.array(mi.render(m), dtype=np.float32)[..., :3] for m in built]
             t2 = time.perf_counter()
-            if denoise:
+            if self.denoise:
                 for img in images:
                     denoise_oidn(torch.from_numpy(np.ascontiguousarray(img)))
             t3 = time.perf_counter()
         finally:
-            if threads:
-                dr.set_thread_count(default_threads)
-        return t1 - t0, t2 - t1b, t3 - t2 if denoise else 0.0
+            if self.threads:
+                dr.set_thread_count(self.default_threads)
+        return t1 - t0, t2 - t1b, t3 - t2 if self.denoise else 0.0
 
-    t0 = time.perf_counter()
-    one_pass()  # warm-up: LLVM kernels, the map's first read, OIDN's device and weights
-    warmup = time.perf_counter() - t0
-    passes = [one_pass() for _ in range(repeats)]
+    def warm(self) -> None:
+        t0 = time.perf_counter()
+        self._pass()  # LLVM kernels, the map's first read, OIDN's device and weights
+        self.warmup = time.perf_counter() - t0
 
-    def per_frame(values) -> float:
-        return 1000 * statistics.median(values) / batch
+    def once(self) -> None:
+        self.passes.append(self._pass())
 
-    return {
-        "spp": spp, "denoise": denoise, "size": size, "views": views, "batch": batch,
-        "repeats": repeats, "seed": MITSUBA_SEED, "max_depth": MITSUBA_MAX_DEPTH,
-        "ms_per_frame": per_frame([r + d for _, r, d in passes]),
-        "render_ms_per_frame": per_frame([r for _, r, _ in passes]),
-        "denoise_ms_per_frame": per_frame([d for _, _, d in passes]),
-        "build_ms_per_frame": per_frame([b for b, _, _ in passes]),
-        "warmup_s": warmup, "variant": mi.variant(), "threads": threads or default_threads,
-        "build_threads": default_threads,
-    }
+    def result(self) -> dict:
+        def per_frame(values) -> float:
+            return 1000 * statistics.median(values) / self.batch
+
+        p = self.passes
+        return {
+            "spp": self.spp, "denoise": self.denoise, "size": self.size, "views": self.views,
+            "batch": self.batch, "repeats": len(p), "seed": MITSUBA_SEED,
+            "max_depth": MITSUBA_MAX_DEPTH,
+            "ms_per_frame": per_frame([r + d for _, r, d in p]),
+            "render_ms_per_frame": per_frame([r for _, r, _ in p]),
+            "denoise_ms_per_frame": per_frame([d for _, _, d in p]),
+            "build_ms_per_frame": per_frame([b for b, _, _ in p]),
+            "warmup_s": self.warmup, "variant": self.mi.variant(),
+            "threads": self.threads or self.default_threads,
+            "build_threads": self.default_threads,
+        }
 
 
 def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
@@ -301,6 +356,62 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
               f"{r['render_ms_per_frame']:>9.1f}{r['denoise_ms_per_frame']:>8.1f}"
               f"{r['build_ms_per_frame']:>9.1f}")
     return meta
+
+
+def interleaved(args: argparse.Namespace, base: tr.Scene, combos: list[tuple],
+                settings: tr.RenderSettings) -> tuple[list[dict], dict]:
+    """``--interleave``: our rows (``combos``) and Mitsuba's (the scenes of the largest
+    batch, as :func:`mitsuba_rows`), each warmed up once, then timed in ``--repeats``
+    rounds of one render (pass) per row. Returns our rows and the Mitsuba meta."""
+    ours = [OursRow(base, m, size, batch, views, settings) for m, views, size, batch in combos]
+    theirs: list[MitsubaRow] = []
+    meta: dict = {"skipped": "--no-mitsuba", "rows": []}
+    if args.mitsuba is not False:
+        mi, why = load_mitsuba()
+        if mi is None:
+            meta = {"skipped": why, "rows": []}
+        else:
+            import drjit as dr  # noqa: PLC0415
+
+            if args.threads:
+                os.environ.setdefault("OIDN_NUM_THREADS", str(args.threads))
+            for views, size, (spp, dn) in itertools.product(args.views, args.sizes,
+                                                             MITSUBA_ROWS):
+                theirs.append(MitsubaRow(base, size, max(args.batches), views, spp, dn,
+                                         args.threads))
+            meta = {"variant": mi.variant(), "version": mi.__version__,
+                    "threads": args.threads or dr.thread_count(),
+                    "build_threads": dr.thread_count(), "seed": MITSUBA_SEED,
+                    "max_depth": MITSUBA_MAX_DEPTH,
+                    "timed": "interleaved with our rows: one pass per round, render (+ OIDN) "
+                             "per frame, median of the rounds after one untimed warm-up",
+                    "rows": [], "skipped_rows": []}
+    runnable = []
+    for row in ours + theirs:
+        try:
+            row.warm()
+            runnable.append(row)
+        except ImportError as exc:  # pyoidn missing: the denoised Mitsuba row only
+            meta["skipped_rows"].append({"spp": row.spp, "denoise": row.denoise,
+                                         "reason": str(exc)})
+    for k in range(args.repeats):
+        for row in runnable:
+            row.once()
+        print(f"round {k + 1}/{args.repeats} done", file=sys.stderr, flush=True)
+    meta["rows"] = [r.result() for r in theirs if r in runnable]
+    return [r.result() for r in ours], meta
+
+
+def print_mitsuba(meta: dict, note: str) -> None:
+    """The Mitsuba rows' table."""
+    print(f"Mitsuba {meta['version']} {meta['variant']}, {meta['threads']} threads, {note}")
+    print(f"{'mitsuba':<28}{'views':>9}{'size':>6}{'frames':>7}{'ms/frame':>10}{'render':>9}"
+          f"{'oidn':>8}{'(build)':>9}")
+    for r in meta["rows"]:
+        name = f"{r['spp']} spp{' + OIDN' if r['denoise'] else ''}"
+        print(f"{name:<28}{r['views']:>9}{r['size']:>6}{r['batch']:>7}"
+              f"{r['ms_per_frame']:>10.1f}{r['render_ms_per_frame']:>9.1f}"
+              f"{r['denoise_ms_per_frame']:>8.1f}{r['build_ms_per_frame']:>9.1f}")
 
 
 def compare_rows(rows: list[dict], mitsuba: list[dict]) -> list[dict]:
@@ -352,6 +463,10 @@ def main() -> None:
                     help="after our rows, time Mitsuba 3 at 1 spp and at 4 spp + OIDN on "
                          "the same scenes, in this process, and print the ratios (default: "
                          "on where Mitsuba imports; --mitsuba: an error where it does not)")
+    ap.add_argument("--interleave", action="store_true",
+                    help="every row in this process, timed in rounds (each row once per "
+                         "round, Mitsuba's too): a machine whose load drifts shifts every "
+                         "row alike, so the ratios hold (memory: the peak so far)")
     ap.add_argument("--row", nargs=3, metavar=("METHOD", "SIZE", "BATCH"),
                     help=argparse.SUPPRESS)  # one row, printed as JSON (the child process)
     args = ap.parse_args()
@@ -375,22 +490,29 @@ def main() -> None:
           f"{', heap reuse' if heap_reuse else ''}")
     print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ms/frame':>10}{'gbuffer':>9}"
           f"{'shading':>9}{'(mips':>7}{'march':>7}{'fused':>7}{'rest)':>7}{'peakMB':>8}")
-    for method, views, size, batch in itertools.product(args.methods, args.views, args.sizes,
-                                                        args.batches):
-        if batch == 1 and views == "shared" and "distinct" in args.views:
-            continue  # one item: the same row
-        r = (bench_one(base, method, size, batch, args.repeats, views, settings)
-             if args.in_process
-             else run_row(args, method, size, batch, views))
-        rows.append(r)
+    combos = [(method, views, size, batch) for method, views, size, batch in
+              itertools.product(args.methods, args.views, args.sizes, args.batches)
+              if not (batch == 1 and views == "shared" and "distinct" in args.views)]
+    mitsuba = {"skipped": "--no-mitsuba", "rows": []}
+    if args.interleave:
+        rows, mitsuba = interleaved(args, base, combos, settings)
+    for i, (method, views, size, batch) in enumerate(combos):
+        if args.interleave:
+            r = rows[i]
+        else:
+            r = (bench_one(base, method, size, batch, args.repeats, views, settings)
+                 if args.in_process
+                 else run_row(args, method, size, batch, views))
+            rows.append(r)
         st = r["ms_per_frame_stage"]
         print(f"{method[:28]:<28}{views:>9}{size:>6}{batch:>6}{r['ms_per_frame']:>10.1f}"
               f"{st['gbuffer']:>9.1f}{st['shading']:>9.1f}{st['mips']:>7.1f}"
               f"{st['march']:>7.1f}{st['fused']:>7.1f}{st['shading_rest']:>7.1f}"
               f"{r['peak_rss_mb']:>8.0f}")
-    mitsuba = {"skipped": "--no-mitsuba", "rows": []}
-    if args.mitsuba is not False:
+    if args.mitsuba is not False and not args.interleave:
         mitsuba = mitsuba_rows(args, base)
+    elif mitsuba["rows"]:
+        print_mitsuba(mitsuba, "interleaved with our rows, scene build not timed in ms/frame")
     versus = compare_rows(rows, mitsuba["rows"])
     if mitsuba["rows"]:
         print("ms per frame, ours against Mitsuba's (ratio: Mitsuba / ours, above 1: ours "
@@ -414,7 +536,7 @@ def main() -> None:
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.platform(),
             "compiled": args.compile, "native": not args.no_native, "fused": not args.no_fused,
-            "heap_reuse": heap_reuse,
+            "heap_reuse": heap_reuse, "interleaved": args.interleave,
             "scene": args.scene, "results": rows,
             "mitsuba": mitsuba, "vs_mitsuba": versus}
     (out / "bench.json").write_text(json.dumps(meta, indent=2) + "\n")

@@ -85,6 +85,28 @@ def test_bench_mitsuba_rows_time_the_same_scenes_and_give_ratios(tmp_path):
                             rel_tol=1e-12)
 
 
+def test_bench_interleaved_rounds_time_every_row_the_same_number_of_times(tmp_path):
+    """--interleave: our rows and Mitsuba's in one process, one render each per round; every
+    row has the run's repeats, and the ratios are Mitsuba's over ours."""
+    pytest.importorskip("mitsuba")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "bench.py"), "--methods", "specular",
+         "rousiers", "--sizes", "32", "--batches", "2", "--repeats", "2", "--threads", "1",
+         "--interleave", "--out", str(tmp_path)], capture_output=True, text=True,
+        timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stderr.count("round ") == 2
+    meta = json.loads((tmp_path / "bench.json").read_text())
+    assert meta["interleaved"]
+    assert [r["method"] for r in meta["results"]] == ["specular", "rousiers"]
+    assert all(r["repeats"] == 2 and r["ms_per_frame"] > 0 for r in meta["results"])
+    rows = meta["mitsuba"]["rows"]
+    assert rows and all(m["repeats"] == 2 and m["ms_per_frame"] > 0 for m in rows)
+    for c, ours in zip(meta["vs_mitsuba"], meta["results"]):
+        assert math.isclose(c["mitsuba_1spp_ratio"],
+                            rows[0]["ms_per_frame"] / ours["ms_per_frame"], rel_tol=1e-12)
+
+
 def test_bench_distinct_views_orbit_the_target():
     """``--views distinct`` turns each batch item's camera around the target about its up
     vector: same distance and height, the requested angle apart."""
