@@ -1,4 +1,6 @@
-"""The native twin of :func:`.shade.evaluate` (``csrc/sh_eval.c``), built on first use.
+"""The native twins of :func:`.shade.evaluate` (``csrc/sh_eval.c``) and of the
+precomputation's :func:`.paths.trace_paths` (``csrc/sh_paths.c``), built on first use into
+one library.
 
 Eq. 2's evaluation is 3 samples x E view directions x 45 coefficients x C channels per
 pixel: in eager torch a chain of gathers and small matrix products over 10^6-10^7-element
@@ -9,10 +11,18 @@ package's native kernels are enabled (``RenderSettings(native=...)``); elsewhere
 the build fails (a warning, once), the tensor code runs: the same values to float32
 rounding (the sums run in another order; tests/test_sh.py).
 
+The path kernel follows each path to its end with Embree called from C (the scene of
+:class:`.tracer.EmbreeNative`, ``rtcIntersect16`` packets), in blocks of live rays kept
+compact, with the tensor code's float operations in its order and torch's own square root
+(:func:`torch_sqrt_function`): its path ends, and so the tables, are bit-equal to the
+tensor code's on embreex (tests/test_sh.py), ~3-4x faster where the tensor path step
+dominated (teapot) and Embree-bound elsewhere (docs/decisions_sh.md).
+
 Built like :mod:`torchrefract.kernels.native` (its compiler lookup, CPU key and thread
 split, ``csrc/common.h``) into the same cache folder, as its own small library, with
-``-O3 -march=native`` where the compiler takes it (contracted multiply-adds allowed: the
-kernel does not claim bit equality, only float32 rounding).
+``-O3 -march=native`` where the compiler takes it and ``-ffp-contract=off`` (no
+contracted multiply-adds: the path kernel claims bit equality; eq. 2's kernel sums in
+another order and claims float32 rounding).
 """
 
 from __future__ import annotations
@@ -33,6 +43,8 @@ from torchrefract.kernels import native as _native
 from torchrefract.output.atomic import atomic_path
 
 SOURCE = Path(__file__).with_name("csrc") / "sh_eval.c"
+SOURCES = (SOURCE, SOURCE.with_name("sh_paths.c"))
+"""Compiled together into one library: eq. 2's evaluation and the precomputation's paths."""
 HEADER = Path(_native.__file__).with_name("csrc") / "common.h"
 FLAGS = ("-O3", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
 CPAD = 8
@@ -52,6 +64,17 @@ class _ShEvalJob(ctypes.Structure):
                 ("weights", _p), ("out", _p)]
 
 
+class _ShPathJob(ctypes.Structure):
+    """ctypes mirror of ``ShPathJob`` in csrc/sh_paths.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("max_events", ctypes.c_int64),
+                ("greedy", ctypes.c_int64), ("ior", ctypes.c_float), ("inv_ior", ctypes.c_float),
+                ("eps", ctypes.c_float), ("pad0", ctypes.c_float), ("p", _p), ("nrm", _p),
+                ("omega", _p), ("tri_n", _p), ("g_n", _p), ("scene", _p), ("intersect1", _p),
+                ("intersect16", _p), ("vsqrt", _p), ("direction", _p), ("length", _p),
+                ("cos_exit", _p), ("throughput", _p), ("events", _p)]
+
+
 _LOCK = threading.Lock()
 _LIB: ctypes.CDLL | None = None
 _FAILED: str | None = None
@@ -59,7 +82,7 @@ _FAILED: str | None = None
 
 def library_path() -> Path:
     """Where the built kernel lives for this source, flags and platform."""
-    h = hashlib.sha256(SOURCE.read_bytes() + HEADER.read_bytes())
+    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES) + HEADER.read_bytes())
     h.update(repr((FLAGS, platform.machine(), sys.platform, _native._compiler(),
                    _native._cpu_key())).encode())
     return settings.cache_folder() / "native" / f"sh_eval_{h.hexdigest()[:16]}.so"
@@ -79,7 +102,7 @@ def build() -> Path:
         raise RuntimeError("no C compiler found (set $CC, or install gcc)")
     with atomic_path(out, suffix=".so") as tmp:
         for extra in (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], []):
-            cmd = cc.split() + list(FLAGS) + extra + ["-o", str(tmp), str(SOURCE), "-lm"]
+            cmd = cc.split() + list(FLAGS) + extra + ["-o", str(tmp), *map(str, SOURCES), "-lm"]
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if proc.returncode == 0:
                 break
@@ -101,7 +124,11 @@ def _load() -> ctypes.CDLL | None:
                 lib.torchrefract_sh_eval.restype = ctypes.c_int
                 lib.torchrefract_sh_eval_job_size.restype = ctypes.c_int64
                 lib.torchrefract_sh_eval_half.restype = ctypes.c_int
-                if lib.torchrefract_sh_eval_job_size() != ctypes.sizeof(_ShEvalJob):
+                lib.torchrefract_sh_paths.argtypes = [ctypes.POINTER(_ShPathJob), ctypes.c_int]
+                lib.torchrefract_sh_paths.restype = ctypes.c_int
+                lib.torchrefract_sh_paths_job_size.restype = ctypes.c_int64
+                if (lib.torchrefract_sh_eval_job_size() != ctypes.sizeof(_ShEvalJob)
+                        or lib.torchrefract_sh_paths_job_size() != ctypes.sizeof(_ShPathJob)):
                     raise RuntimeError("the library's job layout differs from native.py's")
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
@@ -197,5 +224,76 @@ def evaluate_points(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Te
                 spread=None if spread is None else spread.detach().float())
 
 
-__all__ = ["CPAD", "available", "build", "evaluate", "evaluate_points", "library_path",
-           "padded_coeffs", "table_half"]
+_VSQRT: list = []
+
+
+def torch_sqrt_function() -> int | None:
+    """The address of the function behind ``torch.sqrt`` on float32 CPU tensors where it
+    is not the correctly rounded square root: MKL's ``vsSqrt`` (exported by libtorch_cpu
+    where torch is built with MKL; ~20% of its values are one ulp from sqrtf), checked on
+    100k values; None where torch.sqrt is sqrtf (the kernel's own) or neither matches
+    (then the paths agree with the tensor code to float32 rounding, not bit for bit)."""
+    if _VSQRT:
+        return _VSQRT[0]
+    x = torch.rand(100_000, generator=torch.Generator().manual_seed(0)) * 4.0
+    ref = x.sqrt()
+    found = None
+    if not torch.equal(ref, x.double().sqrt().float()):
+        lib_dir = Path(torch.__file__).parent / "lib"
+        for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
+            try:
+                fn = ctypes.CDLL(str(lib_dir / name)).vsSqrt
+            except (OSError, AttributeError):
+                continue
+            fn.argtypes, fn.restype = [ctypes.c_int, _p, _p], None
+            out = torch.empty_like(x)
+            fn(x.numel(), x.data_ptr(), out.data_ptr())
+            if torch.equal(out, ref):
+                found = ctypes.cast(fn, _p).value
+            break
+    _VSQRT.append(found)
+    return found
+
+
+def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: torch.Tensor,
+                n: torch.Tensor, omega: torch.Tensor, ior: float, max_events: int, eps: float,
+                branch: str, threads: int = 1, packets: bool = True):
+    """:func:`.paths.trace_paths` in C (``csrc/sh_paths.c``) on a :class:`.tracer.EmbreeNative`
+    scene: the same :class:`.paths.PathEnds`, bit for bit (tests/test_sh.py), or None where
+    the library is unavailable (the caller runs the tensor code).
+
+    Args:
+        embree: the mesh's :class:`.tracer.EmbreeNative`.
+        tri_normals: (F, 3, 3) unit shading normals at the corners.
+        g_normals: (F, 3) unit geometric normals, as :func:`.paths.geometric_normals`.
+        p, n, omega: (P, 3) entry points, outward normals, directions to the viewer.
+        ior, max_events, eps, branch: as :func:`.paths.trace_paths`.
+        threads: threads of the call (1 where the caller runs chunks in threads).
+        packets: cast 16 rays per Embree call (``rtcIntersect16``), else one by one.
+    """
+    from torchrefract.methods.sh.paths import PathEnds  # noqa: PLC0415 (cycle)
+
+    if _load() is None:
+        return None
+    count = p.shape[0]
+    out = {"direction": torch.empty(count, 3), "length": torch.empty(count),
+           "cos_exit": torch.empty(count), "throughput": torch.empty(count),
+           "events": torch.empty(count, dtype=torch.int64)}
+    held = {"p": p.float().contiguous(), "nrm": n.float().contiguous(),
+            "omega": omega.float().contiguous(), "tri_n": tri_normals.float().contiguous(),
+            "g_n": g_normals.float().contiguous()}
+    # the scalars rounded to float32 as torch rounds a Python float against float32 tensors
+    f32 = lambda x: float(torch.tensor(x, dtype=torch.float32))  # noqa: E731
+    job = _ShPathJob(n=count, max_events=int(max_events), greedy=int(branch == "greedy"),
+                     ior=f32(ior), inv_ior=f32(1.0 / ior), eps=f32(eps), pad0=0.0,
+                     scene=embree.scene, intersect1=embree.intersect1,
+                     intersect16=embree.intersect16 if packets else None,
+                     vsqrt=torch_sqrt_function(),
+                     **{k: v.data_ptr() for k, v in {**held, **out}.items()})
+    if _LIB.torchrefract_sh_paths(ctypes.byref(job), max(1, int(threads))) != 0:
+        return None
+    return PathEnds(**out)
+
+
+__all__ = ["CPAD", "SOURCES", "available", "build", "evaluate", "evaluate_points",
+           "library_path", "padded_coeffs", "table_half", "torch_sqrt_function", "trace_paths"]

@@ -50,6 +50,13 @@ class PathEnds:
     events: torch.Tensor
 
 
+def geometric_normals(tri_vertices: torch.Tensor) -> torch.Tensor:
+    """(F, 3, 3) corners -> (F, 3) unit flat normals, outward by the winding."""
+    g_n = torch.cross(tri_vertices[:, 1] - tri_vertices[:, 0],
+                      tri_vertices[:, 2] - tri_vertices[:, 0], dim=-1)
+    return normalize(g_n)
+
+
 def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals: torch.Tensor,
                 p: torch.Tensor, n: torch.Tensor, omega: torch.Tensor, ior: float,
                 max_events: int, eps: float, branch: str = "greedy") -> PathEnds:
@@ -81,9 +88,7 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
     throughput = torch.ones(count)
     events = torch.zeros(count, dtype=torch.int64)
     live = torch.arange(count)
-    g_n = torch.cross(tri_vertices[:, 1] - tri_vertices[:, 0],
-                      tri_vertices[:, 2] - tri_vertices[:, 0], dim=-1)
-    g_n = normalize(g_n)
+    g_n = geometric_normals(tri_vertices)
     for k in range(max_events + 1):
         if live.numel() == 0:
             break
@@ -132,4 +137,4 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
                     throughput=throughput, events=events)
 
 
-__all__ = ["PathEnds", "trace_paths"]
+__all__ = ["PathEnds", "geometric_normals", "trace_paths"]

@@ -27,8 +27,9 @@ from tqdm.auto import tqdm
 from torchrefract.geometry.mesh import MeshData
 from torchrefract.methods.sh.basis import MAX_ORDER, projection_matrix, view_directions
 from torchrefract.methods.sh.layout import Layout, build_layout, lattice_rate
-from torchrefract.methods.sh.paths import trace_paths
-from torchrefract.methods.sh.tracer import intersector
+from torchrefract.methods.sh import native as sh_native
+from torchrefract.methods.sh.paths import geometric_normals, trace_paths
+from torchrefract.methods.sh.tracer import EmbreeNative, intersector
 
 CHANNELS = ("dir_x", "dir_y", "dir_z", "length", "cos_exit", "throughput")
 """What each coefficient vector holds (length: inside the object over the mesh's radius)."""
@@ -101,17 +102,37 @@ def precompute_workers() -> int:
     return max(1, min(MAX_WORKERS, cores // max(1, torch.get_num_threads())))
 
 
+def _native_tracer(mesh: MeshData, backend: str, tracer: str) -> EmbreeNative | None:
+    """The mesh as a scene for the native path tracer (``csrc/sh_paths.c``), where the
+    backend is Embree and the native library runs; else None (the tensor path code)."""
+    if backend != "embree" or tracer == "torch" or not sh_native.available():
+        return None
+    try:
+        return EmbreeNative(mesh.vertices.numpy(), mesh.faces.numpy())
+    except (ImportError, OSError, AttributeError):
+        return None
+
+
 def _trace_chunk(layout: Layout, s0: int, s1: int, intersect, tri_v: torch.Tensor,
                  tri_n: torch.Tensor, radius: float, m: torch.Tensor,
-                 omega_local: torch.Tensor, settings: Settings) -> tuple[torch.Tensor, int]:
-    """(s1 - s0, K, C) float16 weights of samples s0..s1 (eq. 10) and the rays cast."""
+                 omega_local: torch.Tensor, settings: Settings,
+                 embree: EmbreeNative | None = None, g_n: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, int]:
+    """(s1 - s0, K, C) float16 weights of samples s0..s1 (eq. 10) and the rays cast; the
+    paths in C where ``embree`` (and ``g_n``, :func:`.paths.geometric_normals`) is given,
+    else in torch (the same values)."""
     n_dir = omega_local.shape[0]
     frame = layout.frame[s0:s1]  # (Sc, 3, 3) rows t, b, n
     omega = torch.einsum("jk,skr->sjr", omega_local, frame).reshape(-1, 3)
     p = layout.position[s0:s1, None, :].expand(-1, n_dir, 3).reshape(-1, 3)
     n = frame[:, None, 2, :].expand(-1, n_dir, 3).reshape(-1, 3)
-    ends = trace_paths(intersect, tri_v, tri_n, p, n, omega, settings.ior,
-                       settings.max_events, EPS * radius, settings.branch)
+    ends = None
+    if embree is not None:
+        ends = sh_native.trace_paths(embree, tri_n, g_n, p, n, omega, settings.ior,
+                                     settings.max_events, EPS * radius, settings.branch)
+    if ends is None:
+        ends = trace_paths(intersect, tri_v, tri_n, p, n, omega, settings.ior,
+                           settings.max_events, EPS * radius, settings.branch)
     r = torch.cat([ends.direction, (ends.length / radius)[:, None],
                    ends.cos_exit[:, None], ends.throughput[:, None]], 1)
     r = r.view(s1 - s0, n_dir, len(CHANNELS))
@@ -127,7 +148,9 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
         mesh: the object-space mesh (``load_mesh(path)`` without transform).
         settings: IOR, direction rings, target sample count, interface limit.
         mesh_hash: recorded in the table.
-        tracer: ``auto``, ``embree`` or ``mitsuba`` (:mod:`.tracer`).
+        tracer: ``auto``, ``embree`` or ``mitsuba`` (:mod:`.tracer`); with Embree the
+            paths run in C (``csrc/sh_paths.c``) where the native library builds, else in
+            torch (``torch``: Embree from torch's path code, the reference; same table).
         progress: a progress bar's description (None: no bar).
         workers: chunks of samples traced at once by threads of this process (None:
             :func:`precompute_workers`; Mitsuba: 1, its own kernels are threaded). The
@@ -139,9 +162,12 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
     t0 = time.perf_counter()
     layout = build_layout(mesh.vertices, mesh.faces, mesh.normals,
                           lattice_rate(mesh.num_faces, settings.samples))
-    intersect, backend = intersector(mesh.vertices, mesh.faces, tracer)
+    intersect, backend = intersector(mesh.vertices, mesh.faces,
+                                     "embree" if tracer == "torch" else tracer)
     tri_v = mesh.vertices[mesh.faces]  # (F, 3, 3)
     tri_n = mesh.normals[mesh.faces]
+    embree = _native_tracer(mesh, backend, tracer)
+    g_n = geometric_normals(tri_v) if embree is not None else None
     radius = float(mesh.face_sphere[1])
     m = projection_matrix(settings.rings, MAX_ORDER)  # (K, J)
     omega_local = view_directions(settings.rings)  # (J, 3)
@@ -157,7 +183,7 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
     def run(s0: int) -> tuple[int, torch.Tensor, int]:
         s1 = min(s_total, s0 + chunk)
         return (s0, *_trace_chunk(layout, s0, s1, intersect, tri_v, tri_n, radius, m,
-                                  omega_local, settings))
+                                  omega_local, settings, embree, g_n))
 
     with tqdm(total=s_total, desc=progress or "sh", unit="sample", disable=progress is None,
               leave=False) as bar:
@@ -176,7 +202,8 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
             if pool is not None:
                 pool.shutdown(cancel_futures=True)
     stats = {"seconds": time.perf_counter() - t0, "paths": s_total * n_dir, "rays": rays,
-             "tracer": backend, "samples": s_total, "rate": layout.rate, "workers": workers,
+             "tracer": backend, "paths_in": "c" if embree is not None else "torch",
+             "samples": s_total, "rate": layout.rate, "workers": workers,
              "torch_threads": torch.get_num_threads()}
     return SHTable(layout=layout, coeffs=coeffs, radius=radius, settings=settings,
                    mesh_hash=mesh_hash, stats=stats)
