@@ -244,29 +244,39 @@ def _cpu_key() -> str:
     return hashlib.sha256("".join(lines).encode()).hexdigest()[:16]
 
 
-def library_path(cache_dir: str | Path | None = None) -> Path:
-    """Where the built kernels live for these sources, flags and platform."""
-    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES + HEADERS))
+def library_path(cache_dir: str | Path | None = None, name: str = "kernels",
+                 sources: tuple[Path, ...] | None = None,
+                 headers: tuple[Path, ...] | None = None) -> Path:
+    """Where a library built from ``sources`` (and ``headers``, part of the key) lives for
+    these sources, flags and platform (None: :data:`SOURCES`, :data:`HEADERS`)."""
+    sources = SOURCES if sources is None else sources
+    headers = HEADERS if headers is None else headers
+    h = hashlib.sha256(b"".join(src.read_bytes() for src in sources + headers))
     h.update(repr((FLAGS, platform.machine(), sys.platform, _compiler(), _cpu_key())
                   ).encode())
     root = Path(cache_dir) if cache_dir is not None else settings.cache_folder()
-    return root / "native" / f"kernels_{h.hexdigest()[:16]}.so"
+    return root / "native" / f"{name}_{h.hexdigest()[:16]}.so"
 
 
-def build(cache_dir: str | Path | None = None) -> Path:
-    """Compile the kernels into the cache (if not there yet); returns the library's path.
+def build(cache_dir: str | Path | None = None, name: str = "kernels",
+          sources: tuple[Path, ...] | None = None,
+          headers: tuple[Path, ...] | None = None) -> Path:
+    """Compile ``sources`` into one library in the cache (if not there yet); returns its
+    path (default: the kernels of this module; ``methods/sh/native.py`` builds its own
+    with this recipe).
 
     Raises:
         RuntimeError: no C compiler, or the compile failed (its output quoted).
     """
-    out = library_path(cache_dir)
+    sources = SOURCES if sources is None else sources
+    out = library_path(cache_dir, name, sources, headers)
     if out.exists():
         return out
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set $CC, or install gcc: "
                            "apt-get install gcc)")
-    print(f"torchrefract: compiling the native kernels into {out.parent} (once per machine "
+    print(f"torchrefract: compiling the native {name} into {out.parent} (once per machine "
           f"and version, a few seconds)", file=sys.stderr, flush=True)
     # The compiler writes a temporary file, renamed when complete: a concurrent process sees
     # no half-written library.
@@ -275,7 +285,7 @@ def build(cache_dir: str | Path | None = None) -> Path:
         # with pthreads alone.
         for extra in (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], []):
             cmd = (cc.split() + list(FLAGS) + extra + ["-o", str(tmp)]
-                   + [str(src) for src in SOURCES] + ["-lm"])
+                   + [str(src) for src in sources] + ["-lm"])
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if proc.returncode == 0:
                 break

@@ -18,7 +18,7 @@ compact, with the tensor code's float operations in its order and torch's own sq
 tensor code's on embreex (tests/test_sh.py), ~3-4x faster where the tensor path step
 dominated (teapot) and Embree-bound elsewhere (docs/decisions_sh.md).
 
-Built like :mod:`torchrefract.kernels.native` (its compiler lookup, CPU key and thread
+Built by :func:`torchrefract.kernels.native.build` (its compiler, flags, CPU key and thread
 split, ``csrc/common.h``) into the same cache folder, as its own small library, with
 ``-O3 -march=native`` where the compiler takes it and ``-ffp-contract=off`` (no
 contracted multiply-adds: the path kernel claims bit equality; eq. 2's kernel sums in
@@ -28,10 +28,6 @@ another order and claims float32 rounding).
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import platform
-import subprocess
-import sys
 import threading
 import warnings
 from pathlib import Path
@@ -40,13 +36,11 @@ import torch
 
 from torchrefract import settings
 from torchrefract.kernels import native as _native
-from torchrefract.output.atomic import atomic_path
 
 SOURCE = Path(__file__).with_name("csrc") / "sh_eval.c"
 SOURCES = (SOURCE, SOURCE.with_name("sh_paths.c"))
 """Compiled together into one library: eq. 2's evaluation and the precomputation's paths."""
 HEADER = Path(_native.__file__).with_name("csrc") / "common.h"
-FLAGS = ("-O3", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-fast-math")
 CPAD = 8
 """Channels per coefficient in the kernel's table (the 6 stored, zero-padded to a vector)."""
 MAX_DIRECTIONS = 5
@@ -81,35 +75,18 @@ _FAILED: str | None = None
 
 
 def library_path() -> Path:
-    """Where the built kernel lives for this source, flags and platform."""
-    h = hashlib.sha256(b"".join(src.read_bytes() for src in SOURCES) + HEADER.read_bytes())
-    h.update(repr((FLAGS, platform.machine(), sys.platform, _native._compiler(),
-                   _native._cpu_key())).encode())
-    return settings.cache_folder() / "native" / f"sh_eval_{h.hexdigest()[:16]}.so"
+    """Where the built kernels live for these sources, flags and platform."""
+    return _native.library_path(name="sh", sources=SOURCES, headers=(HEADER,))
 
 
 def build() -> Path:
-    """Compile the kernel into the cache (if not there yet).
+    """Compile the kernels into the cache (if not there yet), as the package's own
+    (:func:`torchrefract.kernels.native.build`: the same compiler, flags and fallbacks).
 
     Raises:
         RuntimeError: no C compiler, or the compile failed (its output quoted).
     """
-    out = library_path()
-    if out.exists():
-        return out
-    cc = _native._compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set $CC, or install gcc)")
-    with atomic_path(out, suffix=".so") as tmp:
-        for extra in (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], []):
-            cmd = cc.split() + list(FLAGS) + extra + ["-o", str(tmp), *map(str, SOURCES), "-lm"]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-            if proc.returncode == 0:
-                break
-        if proc.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
-                               f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
-    return out
+    return _native.build(name="sh", sources=SOURCES, headers=(HEADER,))
 
 
 def _load() -> ctypes.CDLL | None:
