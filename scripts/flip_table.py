@@ -7,6 +7,11 @@ one sample per pixel.
 
     .venv/bin/python scripts/flip_table.py rousiers:internal_bounces=2 lean:internal_bounces=2 \
         [--scenes sphere_a03 globe_2rough] [--size 128] [--out table.md]
+        [--suite configs/suite_sh] [--relmse]
+
+``--suite``: another folder of scene files (``configs/suite_sh``: method ``sh``'s scenes,
+kept out of ``configs/suite``, whose scenes every suite-wide table must cover);
+``--relmse``: relMSE on object pixels beside each FLIP.
 """
 
 from __future__ import annotations
@@ -46,12 +51,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--truth-dir", default=str(ROOT / "outputs" / "truth"))
     ap.add_argument("--out", default=None, help="also write the markdown table here")
+    ap.add_argument("--suite", default=str(ROOT / "configs" / "suite"),
+                    help="folder of scene files")
+    ap.add_argument("--relmse", action="store_true", help="relMSE beside each FLIP")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    suite = ROOT / "configs" / "suite"
+    suite = Path(args.suite)
     names = args.scenes or sorted(p.stem for p in suite.glob("*.yaml"))
     specs = [variant(v) for v in args.variants]
-    lines = ["| scene | " + " | ".join(args.variants) + " |",
+    lines = [f"| scene{' (FLIP / relMSE)' if args.relmse else ''} | "
+             + " | ".join(args.variants) + " |",
              "|---" * (len(specs) + 1) + "|"]
     cols: list[list[float]] = [[] for _ in specs]
     for name in names:
@@ -62,9 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         row = []
         for i, (method, opts) in enumerate(specs):
             img = tr.render([s.replace(method=method, method_options=opts)]).radiance[0]
-            f = compare(img.numpy(), ref, alpha)["flip_object"]
+            m = compare(img.numpy(), ref, alpha)
+            f = m["flip_object"]
             cols[i].append(f)
-            row.append(f"{f:.3f}")
+            row.append(f"{f:.3f}" + (f" / {m['relmse_object']:.3f}" if args.relmse else ""))
         lines.append(f"| {name} | " + " | ".join(row) + " |")
         print(lines[-1], flush=True)
     lines.append("| mean | " + " | ".join(f"{statistics.mean(c):.4f}" for c in cols) + " |")

@@ -458,3 +458,11 @@ def test_flip_table_script(tmp_path):
     assert all(0.0 <= v <= 1.0 for v in vals)
     assert flip_table.variant("rousiers:internal_bounces=2:tir=clamp") == (
         "rousiers", {"internal_bounces": 2, "tir": "clamp"})
+    # another folder of scenes, relMSE beside FLIP
+    assert flip_table.main(["specular", "--suite", str(ROOT / "configs" / "suite"),
+                            "--scenes", "sphere_a03", "--size", "12", "--relmse",
+                            "--truth-dir", str(tmp_path), "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "| scene (FLIP / relMSE) | specular |"
+    flip, relmse = (float(x) for x in lines[2].strip("|").split("|")[1].split("/"))
+    assert 0.0 <= flip <= 1.0 and relmse >= 0.0
