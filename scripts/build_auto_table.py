@@ -5,8 +5,8 @@
 
 For every suite scene in the CSV: its features (``torchrefract.auto.features`` of
 ``configs/suite/<scene>.yaml``) and, for each of our method variants measured at batch 1
-(``specular``, ``prefiltered``, ``rousiers``, with their options; not Mitsuba, not ``auto``
-itself), the time per frame and the error. The table is small JSON and shipped with the
+(``specular``, ``prefiltered``, ``rousiers``, ``lean``, ``gsr``, with their options; not
+Mitsuba, not ``auto`` itself, not ``sh``, whose precomputation the chart does not time), the time per frame and the error. The table is small JSON and shipped with the
 package; rebuild it after a new ``scripts/pareto.py`` run on the target machine.
 """
 
@@ -22,7 +22,7 @@ import torchrefract as tr
 from torchrefract.auto import DEFAULT_TABLE, features
 
 ROOT = Path(__file__).resolve().parent.parent
-OURS = ("specular", "prefiltered", "rousiers")
+OURS = ("specular", "prefiltered", "rousiers", "lean", "gsr")
 
 
 def build(csv_path: Path, metric: str = "flip_object") -> dict:

@@ -93,6 +93,21 @@ def test_environment_variables_are_the_documented_defaults(monkeypatch):
                                               heap_reuse=False)
 
 
+def test_settings_made_in_code_keep_the_environments_cache_folder(monkeypatch, tmp_path):
+    """TORCHREFRACT_CACHE moves the caches for every render of the process, also those
+    given settings made in code for another field (else two renders of one process read
+    tables and pyramids from two folders); an explicit cache_dir still wins."""
+    from torchrefract.settings import cache_folder
+
+    monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path / "env"))
+    assert cache_folder(RenderSettings(threads=1)) == tmp_path / "env"
+    assert cache_folder(RenderSettings.from_env()) == tmp_path / "env"
+    assert cache_folder(RenderSettings(cache_dir=str(tmp_path / "own"))) == tmp_path / "own"
+    monkeypatch.delenv("TORCHREFRACT_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_folder(RenderSettings()) == tmp_path / "xdg" / "torchrefract"
+
+
 def test_bad_settings_are_named():
     with pytest.raises(ConfigError, match="RenderSettings.threads"):
         RenderSettings(threads=0)

@@ -173,10 +173,17 @@ def deprecated_switch(old: str, field: str, env: str, enabled: bool) -> None:
 
 def cache_folder(s: RenderSettings | None = None) -> Path:
     """The cache folder of ``s`` (default: the current settings): ``cache_dir``, else
-    ``$TORCHREFRACT_CACHE``, ``$XDG_CACHE_HOME/torchrefract`` or ``~/.cache/torchrefract``."""
+    ``$TORCHREFRACT_CACHE``, ``$XDG_CACHE_HOME/torchrefract`` or ``~/.cache/torchrefract``.
+
+    The environment is read here too, not only by :meth:`RenderSettings.from_env`: settings
+    made in code for another field (``RenderSettings(threads=1)``) must not move the caches
+    of a process whose user moved them (two renders would then read different tables)."""
     s = s if s is not None else current()
     if s.cache_dir:
         return Path(s.cache_dir)
+    env = os.environ.get("TORCHREFRACT_CACHE")
+    if env:
+        return Path(env)
     xdg = os.environ.get("XDG_CACHE_HOME")
     return (Path(xdg) if xdg else Path.home() / ".cache") / "torchrefract"
 
