@@ -255,7 +255,7 @@ def test_shipped_table_covers_the_suite_and_its_picks_render():
     for s in table["scenes"]:
         assert len(s["variants"]) >= 10, s["name"]
         for v in s["variants"]:
-            assert v["method"] in ("specular", "prefiltered", "rousiers"), v
+            assert v["method"] in ("specular", "prefiltered", "rousiers", "lean", "gsr"), v
             registry.get(v["method"]).parse(v["options"])  # raises on an unknown option
             assert v["ms"] > 0 and 0 <= v["flip"] <= 1
     # a rough slab and a smooth sphere, the default table: a choice from two neighbours
