@@ -758,29 +758,14 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
     rj->footprint[px] = found ? fp.major : 0.0f;
 }
 
-/* One block of pixels: rousiers_core.h's steps 1-2, then lean_pixel, then the bounces. */
+static void lean_pixel_of(const void *job, const SgAxes *view_axes, Block *k, int i,
+                          int64_t px, int64_t b) {
+    lean_pixel((const LeanJob *)job, view_axes, k, i, px, b);
+}
+
+/* One block of pixels: rousiers_core.h's cone_block with lean_pixel. */
 static void lean_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    const LeanJob *lj = (const LeanJob *)job;
-    const RousJob *rj = &lj->r;
-    const Frame *j = &rj->f;
-    Block k;
-    for (int i = 0; i < m; i++) {  /* the front roughness (pixels.object_pixels) */
-        int64_t b = j->batch[r0 + i], px = j->idx[r0 + i];
-        float a = roughness_at(j, b, j->front_uv + 2 * px);
-        k.alpha[i] = a > 1e-4f ? a : 1e-4f;  /* microfacet.ALPHA_MIN */
-        k.ax[i] = axes_at(j, axes + NAXES * b, b, k.alpha[i], k.own[i]);
-        front_and_cone(j, k.ax[i], &k, i, px, b);
-    }
-    march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
-    for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
-    k.paths.n = 0;
-    for (int i = 0; i < m; i++) {
-        int64_t b = j->batch[r0 + i];
-        lean_pixel(lj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
-    }
-    if (rj->bo.limit > 0)
-        finish_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths,
-                     (const float (*)[3])k.front, k.hidden, r0, m);
+    cone_block(job, &((const LeanJob *)job)->r, axes, r0, m, lean_pixel_of);
 }
 
 /* ---- the LEAN moments of the back layer (moments.lean_mips' level 0) ---- */

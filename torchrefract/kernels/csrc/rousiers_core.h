@@ -514,10 +514,16 @@ static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, i
     return refl;
 }
 
-/* One block of pixels: step 1 per pixel, step 2 (the marches, march_core.h) per ray
- * family over the block, steps 3-5 per pixel. */
-static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    const RousJob *rj = (const RousJob *)job;
+/* A method's steps 3-5 for pixel i of a block (``rousiers``: shade_pixel; ``lean`` and
+ * ``gsr``: lean.c's lean_pixel), given the job it was handed. */
+typedef void (*cone_pixel_fn)(const void *job, const SgAxes *view_axes, Block *k, int i,
+                              int64_t px, int64_t b);
+
+/* One block of pixels of a method on the cone (``rousiers``, ``lean``, ``gsr``): step 1
+ * per pixel, step 2 (the marches, march_core.h) per ray family over the block, then
+ * ``pixel`` per pixel, then the bounces. */
+static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, int64_t r0,
+                       int m, cone_pixel_fn pixel) {
     const Frame *j = &rj->f;
     Block k;
     for (int i = 0; i < m; i++) {  /* the front roughness (pixels.object_pixels) */
@@ -532,11 +538,20 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
     k.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        shade_pixel(rj, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
+        pixel(job, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
     if (rj->bo.limit > 0)
         finish_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths,
                      (const float (*)[3])k.front, k.hidden, r0, m);
+}
+
+static void rous_pixel(const void *job, const SgAxes *view_axes, Block *k, int i, int64_t px,
+                       int64_t b) {
+    shade_pixel((const RousJob *)job, view_axes, k, i, px, b);
+}
+
+static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
+    cone_block(job, (const RousJob *)job, axes, r0, m, rous_pixel);
 }
 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
