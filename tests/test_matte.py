@@ -39,6 +39,8 @@ CASES = [
     ("slab_light.yaml", "specular", {}),
     ("sphere_a03.yaml", "lean", {}),
     ("sphere_a03.yaml", "gsr", {"internal_bounces": 1}),
+    # sh at a table that takes about a second (200 directions per sample)
+    ("sphere_a03.yaml", "sh", {"view_rings": 10, "surface_samples": 2048}),
 ]
 
 
