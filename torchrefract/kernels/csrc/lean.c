@@ -684,7 +684,7 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
     float ior = j->ior[b];
     int found = k->axis.found[i], nk = lj->k, bounce = rj->bo.limit > 0;
     int mode = bounce ? SPLIT : j->tir_mode;
-    const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
+    const float *p1 = k->axis.p + 3 * i;
     Foot fp;
     footprint(j, k, i, b, &fp);
     PixelExit pe = {.p_t1 = k->axis.t + 3 * i, .k_t1 = k->k_t1[i], .alpha = k->alpha[i],
@@ -721,37 +721,9 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
         }
     }
     /* the front reflection; rousiers.shade.finish */
-    float l_refl[3], er = k->e_r[i], et = k->e_t1[i];
-    float d[3] = {-v[0], -v[1], -v[2]};
+    float l_refl[3];
     incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
-    if (ior == 1.0f) {  /* index-matched: no interface (shade.index_matched) */
-        incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
-        er = 0.0f;
-        et = 1.0f;
-    }
-    float thick = j->back_dist[px] - j->front_dist[px];
-    float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
-    int64_t l;  /* a light between the eye and the object hides it (shade.composite) */
-    int hidden = j->lights.nl > 0 &&
-                 hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
-    float w1[3];
-    for (int c = 0; c < 3; c++) {
-        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
-        if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
-    }
-    if (bounce) {  /* the pixel is written once its bounces are followed (lean_block) */
-        k->hidden[i] = (uint8_t)hidden;
-        for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
-        float a_x = pe.alpha;  /* the exit's reflection: the roughness at the exit point */
-        if (found) {
-            a_x = roughness_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]);
-            a_x = a_x > 1e-4f ? a_x : 1e-4f;
-        }
-        SgAxes own_x[AXES];
-        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
-                         found && ior != 1.0f, pe.p_t1, xe.n_in, xe.cos2, xe.var1, xe.p2, w1,
-                         l_trans, apart, sectors);
-    }
+    finish_pixel(rj, view_axes, k, i, px, b, &xe, l_refl, l_trans, apart, sectors);
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = xe.tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = sqrtf(variance > 0.0f ? variance : (variance != variance ? variance : 0.0f));

@@ -368,6 +368,52 @@ static float transmitted(const RousJob *rj, const SgAxes *view_axes, const SgAxe
     return 1.0f / (ksum > 1e-12f ? ksum : 1e-12f);
 }
 
+/* rousiers.shade.finish for pixel i, given the light of its front reflection ``l_refl``
+ * and of its exit lobe(s) ``l_trans`` and its exit interface ``e``: an index-matched object
+ * left invisible (shade.index_matched), a light in front hiding it (shade.composite), the
+ * absorption along the axis' path inside; without bounces the pixel's radiance, with them
+ * the first exit's reflection handed on (first_reflection; ``apart``, ``sectors``: gsr's
+ * blend, 0 elsewhere). Shared by rousiers' and lean.c's pixels. */
+static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
+                         int64_t px, int64_t b, const ExitGeo *e, const float *l_refl,
+                         float *l_trans, float apart, float sectors) {
+    const Frame *j = &rj->f;
+    float ior = j->ior[b];
+    int found = k->axis.found[i], bounce = rj->bo.limit > 0;
+    float er = k->e_r[i], et = k->e_t1[i];
+    const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
+    float d[3] = {-v[0], -v[1], -v[2]};
+    if (ior == 1.0f) {  /* index-matched: no interface (shade.index_matched) */
+        incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
+        er = 0.0f;
+        et = 1.0f;
+    }
+    float thick = j->back_dist[px] - j->front_dist[px];
+    float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
+    int64_t l;  /* a light between the eye and the object hides it (shade.composite) */
+    int hidden = j->lights.nl > 0 &&
+                 hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
+    float w1[3];
+    for (int c = 0; c < 3; c++) {
+        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
+        if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
+    }
+    if (bounce) {  /* the pixel is written once its bounces are followed (cone_block) */
+        k->hidden[i] = (uint8_t)hidden;
+        for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
+        /* the exit's internal reflection lobe uses the roughness at the exit point */
+        float a_x = k->alpha[i];
+        if (found) {
+            a_x = roughness_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]);
+            a_x = a_x > 1e-4f ? a_x : 1e-4f;
+        }
+        SgAxes own_x[AXES];
+        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
+                         found && ior != 1.0f, k->axis.t + 3 * i, e->n_in, e->cos2, e->var1,
+                         e->p2, w1, l_trans, apart, sectors);
+    }
+}
+
 /* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
  * exit lobe widened by the bounding rays, the environment around it and around the
  * reflected lobe, the absorption; the pixel and its passes written. */
@@ -401,42 +447,13 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
     e.var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
                            (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
     int bounce = rj->bo.limit > 0, mode = bounce ? SPLIT : j->tir_mode;
-    float thick = j->back_dist[px] - j->front_dist[px];
-    float path = found ? k->axis.s[i] : (thick > 0.0f ? thick : 0.0f);
-    float l_refl[3], l_trans[3], er = k->e_r[i], et = k->e_t1[i], c_xy[2], minor;
-    const float *p1 = k->axis.p + 3 * i, *v = k->view + 3 * i;
-    float d[3] = {-v[0], -v[1], -v[2]};
+    float l_refl[3], l_trans[3], c_xy[2], minor;
+    const float *p1 = k->axis.p + 3 * i;
     for (int c = 0; c < 3; c++) e.p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
     float major = footprint_major(j, k, i, b, c_xy, &minor);
     incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
     float kk = transmitted(rj, view_axes, ax, b, alpha, mode, &e, c_xy, minor, l_trans);
-    if (ior == 1.0f) {  /* index-matched: no interface (shade.index_matched) */
-        incident_sg(&j->lights, &j->env, b, p1, d, INFINITY, l_trans);
-        er = 0.0f;
-        et = 1.0f;
-    }
-    int64_t l;  /* a light between the eye and the object hides it (shade.composite) */
-    int hidden = j->lights.nl > 0 &&
-                 hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
-    float w1[3];
-    for (int c = 0; c < 3; c++) {
-        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
-        if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
-    }
-    if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
-        k->hidden[i] = (uint8_t)hidden;
-        for (int c = 0; c < 3; c++) k->front[i][c] = er * l_refl[c];
-        /* the exit's internal reflection lobe uses the roughness at the exit point */
-        float a_x = alpha;
-        if (found) {
-            a_x = roughness_on(j, b, k->axis.bary + 3 * i, k->axis.tri[i]);
-            a_x = a_x > 1e-4f ? a_x : 1e-4f;
-        }
-        SgAxes own_x[AXES];
-        first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
-                         found && ior != 1.0f, p_t1, e.n_in, e.cos2, e.var1, e.p2, w1,
-                         l_trans, 0.0f, 0.0f);
-    }
+    finish_pixel(rj, view_axes, k, i, px, b, &e, l_refl, l_trans, 0.0f, 0.0f);
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = e.tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
