@@ -8,8 +8,8 @@ cd "$(dirname "$0")/.."
 mkdir -p outputs/bench_sitting
 B=".venv/bin/python scripts/bench.py"
 echo "== machine"; nproc; grep -m1 "model name" /proc/cpuinfo; date -u
-echo "== A fused, 256+512 b8, with Mitsuba"
-$B --methods specular prefiltered rousiers rousiers:internal_bounces=2 --sizes 256 512 --batches 8 --repeats 5 --out outputs/bench_sitting/A 2>&1 | grep -v saved
+echo "== A fused, 256+512 b8, with Mitsuba, interleaved (every row once per round)"
+$B --methods specular prefiltered rousiers rousiers:internal_bounces=2 lean gsr --sizes 256 512 --batches 8 --repeats 5 --interleave --out outputs/bench_sitting/A 2>&1 | grep -v "saved\|^round"
 echo "== B tensor code (--no-fused), 256 b8"
 $B --methods specular prefiltered rousiers rousiers:internal_bounces=2 --sizes 256 --batches 8 --repeats 5 --no-fused --no-mitsuba --out outputs/bench_sitting/B 2>&1 | grep -v saved
 echo "== C API defaults (--no-heap-reuse), 256 b8"
