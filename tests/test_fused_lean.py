@@ -20,7 +20,7 @@ from torchrefract.methods.lean import shade as lean_shade
 from torchrefract.methods.lean.moments import lean_mips
 from torchrefract.settings import RenderSettings
 from torchrefract.shading import fused_lean
-from test_fused import BOUNCES, _compare, _nudged, _small
+from test_fused import BOUNCES, _compare, _small, check_bounces_match
 
 SUITE = sorted((Path(__file__).resolve().parent.parent / "configs" / "suite").glob("*.yaml"))
 FUSED, TENSOR = RenderSettings(fused=True), RenderSettings(fused=False)
@@ -95,20 +95,7 @@ def test_fused_lean_bounces_match_the_tensor_code(name, variant, method):
     itself does when the eye moves by 3 float32 roundings."""
     s = _small(SUITE[0].parent / f"{name}.yaml", 64, method=method,
                method_options=BOUNCES[variant])
-    a, b = tr.render(s, settings=TENSOR), tr.render(s, settings=FUSED)
-    assert b.timings.get("fused", 0) > 0
-    m = _compare(a, b)[0]
-    assert m["background"] <= 1e-4, m
-    for k in ("exit_found", "tir"):
-        assert torch.equal(a.passes[k], b.passes[k]), k
-    if m["beyond"] > 1e-3 or m["flip"] > 0.002:  # chaotic paths: the tensor code's own
-        own = _compare(a, tr.render(_nudged(s), settings=TENSOR))[0]
-        assert m["beyond"] <= own["beyond"] and m["flip"] <= own["flip"] + 1e-4, (m, own)
-    else:
-        obj = a.coverage[0] > 0
-        for k in ("bounces", "bounce_residual"):
-            d = (a.passes[k][0, ..., 0] - b.passes[k][0, ..., 0]).abs()[obj]
-            assert float((d > 1e-4).float().mean()) <= 1e-3, k
+    check_bounces_match(s)
 
 
 def test_fused_lean_batch_of_views_with_and_without_a_map():
