@@ -295,6 +295,25 @@ def build(cache_dir: str | Path | None = None, name: str = "kernels",
     return out
 
 
+def bind(lib: ctypes.CDLL, kernels: dict[str, type]) -> None:
+    """Declare each entry point ``torchrefract_<name>(job*, threads) -> int`` of ``lib``
+    (``kernels``: name -> its job's ctypes mirror), checking each mirror's size against
+    the library's ``torchrefract_<name>_job_size()``.
+
+    Raises:
+        RuntimeError: a job layout differs from its mirror.
+    """
+    for name, job in kernels.items():
+        fn = getattr(lib, f"torchrefract_{name}")
+        fn.argtypes = [ctypes.POINTER(job), ctypes.c_int]
+        fn.restype = ctypes.c_int
+        size = getattr(lib, f"torchrefract_{name}_job_size")
+        size.restype = ctypes.c_int64
+        if size() != ctypes.sizeof(job):
+            raise RuntimeError(f"the library's {name} job layout differs from its ctypes "
+                               f"mirror")
+
+
 def _load() -> ctypes.CDLL | None:
     global _LIB, _FAILED
     if _LIB is not None or _FAILED is not None:
@@ -303,15 +322,7 @@ def _load() -> ctypes.CDLL | None:
         if _LIB is None and _FAILED is None:
             try:
                 lib = ctypes.CDLL(str(build()))
-                for name, job in _KERNELS.items():
-                    fn = getattr(lib, f"torchrefract_{name}")
-                    fn.argtypes = [ctypes.POINTER(job), ctypes.c_int]
-                    fn.restype = ctypes.c_int
-                    size = getattr(lib, f"torchrefract_{name}_job_size")
-                    size.restype = ctypes.c_int64
-                    if size() != ctypes.sizeof(job):
-                        raise RuntimeError(f"the library's {name} job layout differs from "
-                                           f"native.py's")
+                bind(lib, _KERNELS)
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
                 _FAILED = f"{type(exc).__name__}: {exc}"

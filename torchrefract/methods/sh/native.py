@@ -97,16 +97,8 @@ def _load() -> ctypes.CDLL | None:
         if _LIB is None and _FAILED is None:
             try:
                 lib = ctypes.CDLL(str(build()))
-                lib.torchrefract_sh_eval.argtypes = [ctypes.POINTER(_ShEvalJob), ctypes.c_int]
-                lib.torchrefract_sh_eval.restype = ctypes.c_int
-                lib.torchrefract_sh_eval_job_size.restype = ctypes.c_int64
+                _native.bind(lib, {"sh_eval": _ShEvalJob, "sh_paths": _ShPathJob})
                 lib.torchrefract_sh_eval_half.restype = ctypes.c_int
-                lib.torchrefract_sh_paths.argtypes = [ctypes.POINTER(_ShPathJob), ctypes.c_int]
-                lib.torchrefract_sh_paths.restype = ctypes.c_int
-                lib.torchrefract_sh_paths_job_size.restype = ctypes.c_int64
-                if (lib.torchrefract_sh_eval_job_size() != ctypes.sizeof(_ShEvalJob)
-                        or lib.torchrefract_sh_paths_job_size() != ctypes.sizeof(_ShPathJob)):
-                    raise RuntimeError("the library's job layout differs from native.py's")
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
                 _FAILED = f"{type(exc).__name__}: {exc}"
