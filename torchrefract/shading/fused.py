@@ -170,12 +170,7 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
         return None
     frame, keep, radiance, passes = made
     b, h, w = g.shape
-    sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
-    passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
-    job = native._RousJob(
-        f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
-        two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
-        bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var)
+    job = rous_job(g, options, frame, keep, passes, diffuse_var)
     if coverage is not None:  # one exit lobe per roughness level (sec. 5.1)
         levels, mips = coverage
         job.levels, job.mips = levels.shape[1], len(mips)
@@ -185,6 +180,20 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
     if frame.n and not _run("rousiers", job):
         return None
     return radiance.view(b, h, w, 3), passes
+
+
+def rous_job(g, options, frame, keep: _Keep, passes: dict, diffuse_var: float
+             ) -> native._RousJob:
+    """The ``RousJob`` of csrc/rousiers_core.h's cone methods (``rousiers``, and inside
+    csrc/lean.c's job ``lean``/``gsr``) over ``frame``: the cone's march, the bounces, and
+    the passes ``lobe_sigma``, ``footprint`` it writes (added to ``passes``)."""
+    b, h, w = g.shape
+    sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
+    passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
+    return native._RousJob(
+        f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
+        two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
+        bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var)
 
 
 def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:

@@ -19,7 +19,6 @@ holds the two to the same images.
 from __future__ import annotations
 
 import ctypes
-import math
 import threading
 import warnings
 
@@ -59,18 +58,11 @@ def _ready() -> bool:
     if _READY is None:
         with _LOCK:
             if _READY is None:
-                lib, ok = native._LIB, False
                 try:
+                    native.bind(native._LIB, {"lean": _LeanJob, "lean_moments": _MomentsJob})
                     ok = True
-                    for name, job in (("lean", _LeanJob), ("lean_moments", _MomentsJob)):
-                        fn = getattr(lib, f"torchrefract_{name}")
-                        fn.argtypes = [ctypes.POINTER(job), ctypes.c_int]
-                        fn.restype = ctypes.c_int
-                        size = getattr(lib, f"torchrefract_{name}_job_size")
-                        size.restype = ctypes.c_int64
-                        ok = ok and size() == ctypes.sizeof(job)
-                except AttributeError:
-                    pass
+                except (AttributeError, RuntimeError):  # missing, or another layout
+                    ok = False
                 if not ok:
                     warnings.warn("torchrefract: the native library's lean kernel is missing "
                                   "or its job layout differs from fused_lean.py's; lean and "
@@ -98,20 +90,13 @@ def lean(g, lighting, materials, options, radiance: torch.Tensor, subdivisions: 
         return None
     frame, keep, radiance, passes = made
     b, h, w = g.shape
-    sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
-    passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
-    bo = fused._bounces(g, options.bounces, frame, keep, passes)
+    rous = fused.rous_job(g, options, frame, keep, passes, DIFFUSE_VAR)
     if frame.n == 0:
         return radiance.view(b, h, w, 3), passes
     lobes = options.roughness_lobes if materials.has_maps else 1
     mips, texel = _mips(g, materials, subdivisions, lobes)
     job = _LeanJob(
-        r=native._RousJob(
-            f=frame, cone_steps=options.cone_march_steps,
-            cone_refine=options.cone_refine_steps, two_ln4=2.0 * math.log(4.0),
-            lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(), bo=bo,
-            diffuse_var=DIFFUSE_VAR),
-        k=subdivisions, lobes=lobes, taps=options.ewa_taps, mips=len(mips), texel=texel,
+        r=rous, k=subdivisions, lobes=lobes, taps=options.ewa_taps, mips=len(mips), texel=texel,
         lean=keep.array(mips),
         lean_hw=keep.ptr(torch.tensor([m.shape[1:3] for m in mips]), torch.int64))
     if not fused._run("lean", job):
