@@ -475,21 +475,8 @@ def _texels_last(pyr: SGPyramid | None, texels: torch.Tensor) -> torch.Tensor:
 def relight_reference(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
                       scale: float | torch.Tensor = 1.0) -> torch.Tensor:
     """The relit image by the renderer's own lookups, lobe by lobe (slow; what
-    :func:`relight` computes, kept to check it). Arguments and result as :func:`relight`.
-
-    Args:
-        matte: a :class:`~torchrefract.matte.matte.Matte`, a
-            :class:`~torchrefract.render.RenderResult` rendered with ``passes: [matte]``,
-            or its ``passes`` dict.
-        envmap: a map file (``.exr``/``.hdr``), an ``EnvMap`` (its path only: give its
-            rotation and scale here), an ``SGPyramid``, or (H, W, 3) texels (their SG
-            pyramid is built here: seconds for a 1k map; pass a pyramid to reuse it).
-        rotate_deg: rotation of the map about world +Y (degrees), scalar or (B,).
-        scale: radiance multiplier, scalar or (B,).
-
-    Returns:
-        (B, H, W, 3) float32 linear RGB, always finite.
-    """
+    :func:`relight` computes, kept to check it, and the path a gradient takes). Arguments
+    and result as :func:`relight`, but ``matte`` not a :class:`Prepared` one."""
     m = _as_matte(matte)
     b, h, w, n_lobes = m.sharpness.shape
     dev = m.weight.device  # the matte's (a GPU render's stays there)
