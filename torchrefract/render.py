@@ -273,25 +273,24 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     if current().adaptive and g.supersample > 1 and entry.shades_object_index:
         g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
                                 _front_roughness(g, materials))
-    device = current().torch_device()
-    if device.type != "cpu" and device.type in entry.devices:
+    want = current().torch_device()
+    # a CPU-only method shades on the CPU; its result is moved at the end
+    device = want if want.type in entry.devices else torch.device("cpu")
+    if device.type != "cpu":
         g, lighting, materials, plan = to_device((g, lighting, materials, plan), device)
-    else:
-        device = torch.device("cpu")  # a CPU-only method: its result is moved at the end
     t2 = time.perf_counter()
     with on_device(device):
         result = _finish_pass(scenes, entry, g, lighting, materials, options, state, budget,
-                              plan)
+                              plan, t2)
     result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1,
-                           "shading": result.timings["shading"] - t2,
                            "total": time.perf_counter() - t0})
-    out = current().torch_device()
-    return result if out == device else to_device(result, out)
+    return result if want == device else to_device(result, want)
 
 
-def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan
-                 ) -> RenderResult:
-    """The method's shading of a built G-buffer and the passes, on the tensors' device."""
+def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan,
+                 t_start: float) -> RenderResult:
+    """The method's shading of a built G-buffer and the passes, on the tensors' device
+    (``timings["shading"]``: from ``t_start``)."""
     method = entry.name
     n = g.supersample
     extra = render_hook.requested(scenes)
@@ -333,7 +332,7 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
         coverage=_mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
-        timings={"shading": t3,  # the caller subtracts the start
+        timings={"shading": t3 - t_start,
                  "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
                  "fused": stage_times.get("fused", 0.0),
                  **({"matte": stage_times["matte"]} if "matte" in stage_times else {})},
