@@ -337,10 +337,6 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
                            "no coverage pass",
                   "rows": [], "skipped_rows": []}
     batch = max(args.batches)
-    print(f"Mitsuba {mi.__version__} {mi.variant()}, {threads} threads, the scenes of "
-          f"batch {batch}, scene build not timed in ms/frame")
-    print(f"{'mitsuba':<28}{'views':>9}{'size':>6}{'frames':>7}{'ms/frame':>10}{'render':>9}"
-          f"{'oidn':>8}{'(build)':>9}")
     for views, size, (spp, denoise) in itertools.product(args.views, args.sizes,
                                                          MITSUBA_ROWS):
         name = f"{spp} spp{' + OIDN' if denoise else ''}"
@@ -352,9 +348,7 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
             meta["skipped_rows"].append({"spp": spp, "denoise": denoise, "reason": str(exc)})
             continue
         meta["rows"].append(r)
-        print(f"{name:<28}{views:>9}{size:>6}{batch:>7}{r['ms_per_frame']:>10.1f}"
-              f"{r['render_ms_per_frame']:>9.1f}{r['denoise_ms_per_frame']:>8.1f}"
-              f"{r['build_ms_per_frame']:>9.1f}")
+    print_mitsuba(meta, f"the scenes of batch {batch}, scene build not timed in ms/frame")
     return meta
 
 
@@ -412,6 +406,26 @@ def print_mitsuba(meta: dict, note: str) -> None:
         print(f"{name:<28}{r['views']:>9}{r['size']:>6}{r['batch']:>7}"
               f"{r['ms_per_frame']:>10.1f}{r['render_ms_per_frame']:>9.1f}"
               f"{r['denoise_ms_per_frame']:>8.1f}{r['build_ms_per_frame']:>9.1f}")
+
+
+def print_versus(versus: list[dict]) -> None:
+    """The table of :func:`compare_rows`: ours against Mitsuba's, per row."""
+    print("ms per frame, ours against Mitsuba's (ratio: Mitsuba / ours, above 1: ours "
+          "faster)")
+    print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ours':>8}{'mi 1spp':>9}"
+          f"{'ratio':>7}{'mi 4spp+oidn':>14}{'ratio':>7}")
+
+    def cell(v, width: int, fmt: str) -> str:
+        return f"{'-':>{width}}" if v is None else f"{v:>{width}{fmt}}"
+
+    for c in versus:
+        name = c["method"] + (":" + ",".join(f"{k}={v}" for k, v in c["options"].items())
+                              if c["options"] else "")
+        print(f"{name[:28]:<28}{c['views']:>9}{c['size']:>6}{c['batch']:>6}"
+              f"{c['ms_per_frame']:>8.1f}{cell(c['mitsuba_1spp_ms_per_frame'], 9, '.1f')}"
+              f"{cell(c['mitsuba_1spp_ratio'], 7, '.2f')}"
+              f"{cell(c['mitsuba_4spp_oidn_ms_per_frame'], 14, '.1f')}"
+              f"{cell(c['mitsuba_4spp_oidn_ratio'], 7, '.2f')}")
 
 
 def compare_rows(rows: list[dict], mitsuba: list[dict]) -> list[dict]:
@@ -515,22 +529,7 @@ def main() -> None:
         print_mitsuba(mitsuba, "interleaved with our rows, scene build not timed in ms/frame")
     versus = compare_rows(rows, mitsuba["rows"])
     if mitsuba["rows"]:
-        print("ms per frame, ours against Mitsuba's (ratio: Mitsuba / ours, above 1: ours "
-              "faster)")
-        print(f"{'method':<28}{'views':>9}{'size':>6}{'batch':>6}{'ours':>8}{'mi 1spp':>9}"
-              f"{'ratio':>7}{'mi 4spp+oidn':>14}{'ratio':>7}")
-
-        def cell(v, width: int, fmt: str) -> str:
-            return f"{'-':>{width}}" if v is None else f"{v:>{width}{fmt}}"
-
-        for c in versus:
-            name = c["method"] + (":" + ",".join(f"{k}={v}" for k, v in c["options"].items())
-                                  if c["options"] else "")
-            print(f"{name[:28]:<28}{c['views']:>9}{c['size']:>6}{c['batch']:>6}"
-                  f"{c['ms_per_frame']:>8.1f}{cell(c['mitsuba_1spp_ms_per_frame'], 9, '.1f')}"
-                  f"{cell(c['mitsuba_1spp_ratio'], 7, '.2f')}"
-                  f"{cell(c['mitsuba_4spp_oidn_ms_per_frame'], 14, '.1f')}"
-                  f"{cell(c['mitsuba_4spp_oidn_ratio'], 7, '.2f')}")
+        print_versus(versus)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"torchrefract": tr.__version__, "torch": torch.__version__,
