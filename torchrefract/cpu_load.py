@@ -53,7 +53,7 @@ def busy_cores(samples: int = 3, gap_s: float = 0.0005) -> int:
 MAX_AGE_S = 1.0
 """How long a reading of :func:`busy_cores` serves the renders that follow it: renders in
 quick succession (a training loop's batches) read /proc once a second, not every call
-(under load a reading takes up to ~5 ms: its samples wait for each other)."""
+(under load a reading waits between its samples: docs/benchmarks.md)."""
 
 _last: tuple[float, int] | None = None  # (monotonic time, busy cores) of the last reading
 
