@@ -406,6 +406,20 @@ def test_scenes_built_in_python_are_validated_on_render(tmp_path):
         tr.render([s.replace(camera=cam)])
 
 
+def test_validation_is_remembered_per_object_but_sees_changed_options(tmp_path):
+    from torchrefract.scene.loader import validate
+
+    s = load_scene(write(tmp_path, base(tmp_path))).replace(method="rousiers",
+                                                            method_options={})
+    first = validate(s)
+    assert validate(s) is first  # the same object again: checked once
+    as_spec = validate(s, "specular")
+    assert as_spec.method == "specular" and validate(s).method == "rousiers"
+    s.method_options["no_such_option"] = 1  # a dict field changed in place is checked anew
+    with pytest.raises(ConfigError, match="no_such_option"):
+        validate(s)
+
+
 def test_name_key_sets_the_output_stem_and_is_checked(tmp_path):
     data = base(tmp_path)
     data["name"] = "custom"

@@ -192,9 +192,8 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
             raise ConfigError(f"render: expected Scene objects, got {type(s).__name__}")
     if method is not None:  # the options are checked against the method that renders
         registry.get(method)  # an unknown name is a ConfigError before any work
-        scenes = [s if s.method == method else s.replace(method=method) for s in scenes]
     # Scenes built in Python get the same checks as loaded files (cheap: no file reads).
-    scenes = [validate(s) for s in scenes]
+    scenes = [validate(s, method) for s in scenes]
     if method is None:
         methods = {s.method for s in scenes}
         if len(methods) > 1:

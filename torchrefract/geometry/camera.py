@@ -23,6 +23,13 @@ from torchrefract.scene.model import Camera
 
 def camera_frame(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Eye, right, true up, forward as float64 (3,) arrays (Mitsuba ``look_at``)."""
+    return tuple(a.copy() for a in _camera_frame_cached(cam))  # callers may write to theirs
+
+
+@functools.lru_cache(maxsize=64)
+def _camera_frame_cached(cam: Camera) -> tuple[np.ndarray, ...]:
+    """:func:`camera_frame`, kept for the last cameras: a render asks for each view's frame
+    several times (rays, projection, the passes' matrices), each ~25 us of numpy."""
     eye = np.asarray(cam.eye, dtype=np.float64)
     f = np.asarray(cam.target, dtype=np.float64) - eye
     f /= np.linalg.norm(f)
