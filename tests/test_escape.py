@@ -227,3 +227,18 @@ def test_escape_fraction_range_and_monotone(table, ior):
                                    nodes, torch.zeros(grid, dtype=torch.long))
         assert (at_nodes.diff() < 0).all(), at_nodes  # strictly decreasing node to node
         assert esc[-1] < 0.9
+
+
+def test_escape_grid_rows_kept_are_the_rows_computed(table):
+    from torchrefract.shading import bounces
+
+    ior = torch.tensor([1.5, 1.5, 1.33, 2.4, 1.5, 1.1, 1.33, 1.5])
+    dist = torch.tensor([0, 0, 1, 0, 0, 1, 1, 0])
+    for dtype in (torch.float32, torch.float64):
+        fresh = bounces._escape_rows(table, ior, dist, dtype, 16, 41)
+        for _ in range(2):  # computed, then taken from the kept rows
+            assert torch.equal(bounces.escape_grid(table, ior, dist, dtype), fresh)
+    # with a gradient through the IOR the rows are computed, and carry it
+    g = ior.clone().requires_grad_(True)
+    bounces.escape_grid(table, g, dist, torch.float32).sum().backward()
+    assert g.grad is not None and torch.isfinite(g.grad).all()

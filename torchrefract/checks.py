@@ -7,6 +7,7 @@ value came from (file and key path), what was expected and what was found. Never
 
 from __future__ import annotations
 
+import functools
 import math
 from numbers import Real
 from pathlib import Path
@@ -138,4 +139,11 @@ def file_version(path: str | Path, what: str) -> tuple[str, int, int]:
         st = p.stat()
     except OSError:
         raise ConfigError(f"{what} {str(path)!r}: file not found") from None
-    return str(p.resolve()), st.st_mtime_ns, st.st_size
+    return _resolved(str(p)), st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=1024)
+def _resolved(path: str) -> str:
+    """``Path.resolve`` of a path, kept: a render checks each scene's files' versions, and
+    resolving (a ``lstat`` per path component) cost more than the check."""
+    return str(Path(path).resolve())
