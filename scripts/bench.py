@@ -2,7 +2,7 @@
 
 Prints a table and saves JSON (default outputs/bench/bench.json). Quote medians, measured
 with the machine quiet; the thread count is recorded. Stages (``RenderResult.timings``):
-G-buffer (the pyrender passes and exact intersections) and the method's shading, which
+G-buffer (the id passes and exact intersections) and the method's shading, which
 includes the back layer's mip pyramids (``mips``), the ray marches (``march``) and a fused
 shading kernel (``fused``, its marches included); ``rest``
 is the shading outside those two (lobes, table and environment lookups, bounces). Each row

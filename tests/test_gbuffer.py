@@ -1,4 +1,5 @@
-"""G-buffers (pyrender id passes + exact torch attributes) against trimesh ray casting.
+"""G-buffers (id passes, native and OpenGL, + exact torch attributes) against trimesh ray
+casting.
 
 Reference: for every pixel, the camera ray of SCENE_SPEC.md (built by hand here, not with
 ``torchrefract.geometry.camera``) is cast with ``trimesh`` (``multiple_hits=True``). The front layer
@@ -27,7 +28,9 @@ import torchrefract.geometry.raster as raster
 from torchrefract.geometry.camera import project
 from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
+from torchrefract.kernels import native
 from torchrefract.scene.model import Camera, Transform
+from torchrefract.settings import RenderSettings, using
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
 EDGE_TOL_PX = 1.0 / 256.0  # sub-pixel precision of the rasterizer's vertex snapping
@@ -258,13 +261,17 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
 # Tests
 # --------------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("rasterizer", ["native", "opengl"])
 @pytest.mark.parametrize("cam_index", [0, 1])
 @pytest.mark.parametrize("name", ["spot", "suzanne", "icosphere"])
-def test_gbuffer_matches_ray_casting(mesh_paths, name, cam_index):
+def test_gbuffer_matches_ray_casting(mesh_paths, name, cam_index, rasterizer):
+    if rasterizer == "native" and not native.available():
+        pytest.skip("native kernels unavailable")
     transform, cams = CASES[name]
     cam = cams[cam_index]
     mesh = load_mesh(mesh_paths[name], transform)
-    g = build_gbuffer([mesh], [cam])
+    with using(RenderSettings(rasterizer=rasterizer)):
+        g = build_gbuffer([mesh], [cam])
     assert g.shape == (1, H, W)
     # rays are the spec's rays
     assert np.abs(g.ray_dir[0].numpy() - spec_rays(cam)).max() < 1e-6
@@ -382,16 +389,20 @@ def test_egl_context_is_reused_across_calls_and_sizes(mesh_paths):
     transform, cams = CASES["icosphere"]
     mesh = load_mesh(mesh_paths["icosphere"], transform)
     cam = cams[0]
-    g1 = build_gbuffer([mesh], [cam])
+    opengl = RenderSettings(rasterizer="opengl")
+    with using(opengl):
+        g1 = build_gbuffer([mesh], [cam])
     r1 = raster._renderer
     assert r1 is not None
     assert (r1.viewport_width, r1.viewport_height) == (W, H)
     small = dataclasses.replace(cam, width=40, height=30)
-    g2 = build_gbuffer([mesh], [small])
+    with using(opengl):
+        g2 = build_gbuffer([mesh], [small])
     assert raster._renderer is r1
     assert (r1.viewport_width, r1.viewport_height) == (40, 30)
     assert g2.shape == (1, 30, 40) and g2.front.mask.any()
-    g3 = build_gbuffer([mesh], [cam])
+    with using(opengl):
+        g3 = build_gbuffer([mesh], [cam])
     assert raster._renderer is r1
     # resizing back gives the same ids as the first call (no stale framebuffer)
     assert torch.equal(g1.front.tri, g3.front.tri) and torch.equal(g1.back.tri, g3.back.tri)
@@ -411,31 +422,41 @@ def test_passes_leave_pyrender_unpatched():
     assert (prr.glEnable, prr.glRenderbufferStorageMultisample) == before
 
 
-def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, monkeypatch):
+@pytest.mark.parametrize("rasterizer", ["native", "opengl"])
+def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, monkeypatch,
+                                                                 rasterizer):
     """A batch that repeats (mesh, camera) pairs (a material or environment sweep over one
     view) rasterizes each distinct view once, stores each distinct mesh's faces once, and
     gives every batch item exactly the layers of a G-buffer built for it alone."""
+    if rasterizer == "native" and not native.available():
+        pytest.skip("native kernels unavailable")
     t_spot, cams_spot = CASES["spot"]
     t_suz, cams_suz = CASES["suzanne"]
     spot = load_mesh(mesh_paths["spot"], t_spot)
     suz = load_mesh(mesh_paths["suzanne"], t_suz)
     meshes = [spot, suz, spot, spot, suz]
     cams = [cams_spot[0], cams_suz[0], cams_spot[1], cams_spot[0], cams_suz[0]]
-    calls = []
-    real_pass = raster.visibility_pass
+    calls = []  # (mesh, camera, layer) per view and layer drawn
+    real_pass, real_native = raster.visibility_pass, raster.native_layers
 
     def counting(mesh, cam, n=1, back=False):
         calls.append((id(mesh), cam, back))
         return real_pass(mesh, cam, n, back=back)
 
-    import torchrefract.geometry.gbuffer as gbuffer_mod
-    monkeypatch.setattr(gbuffer_mod, "visibility_pass", counting)
-    g = build_gbuffer(meshes, cams)
+    def counting_native(ms, cs, n, offsets):
+        calls.extend((id(m), c, back) for m, c in zip(ms, cs) for back in (False, True))
+        return real_native(ms, cs, n, offsets)
+
+    monkeypatch.setattr(raster, "visibility_pass", counting)
+    monkeypatch.setattr(raster, "native_layers", counting_native)
+    with using(RenderSettings(rasterizer=rasterizer)):
+        g = build_gbuffer(meshes, cams)
     assert len(calls) == 2 * 3  # three distinct views, two layers each
     assert g.meshes.tri_vertices.shape[0] == spot.num_faces + suz.num_faces
     assert g.meshes.face_offset.tolist() == [0, spot.num_faces, 0, 0, spot.num_faces]
     for b, (mesh, cam) in enumerate(zip(meshes, cams)):
-        single = build_gbuffer([mesh], [cam])
+        with using(RenderSettings(rasterizer=rasterizer)):
+            single = build_gbuffer([mesh], [cam])
         off = int(g.meshes.face_offset[b])
         for name in ("front", "back"):
             lb, ls = getattr(g, name), getattr(single, name)

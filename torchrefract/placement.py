@@ -2,13 +2,13 @@
 the device the shading runs on (``RenderSettings.device``), and the shading run with that
 device as torch's default for the tensors it creates.
 
-The G-buffer is rasterized by pyrender and built on the CPU (its C kernel or tensor code);
-a CUDA render moves it, the lighting and the materials once, then runs the methods' tensor
-code there (the fused C kernels are CPU-only). Inside :func:`on_device`, factory calls
-without an explicit device (``torch.zeros(n)``, ``torch.tensor([...])``) create on the
-render's device, so the tensor code needs no device argument threaded through every
-function; code that builds tensors from numpy states the device (``torch.as_tensor(a,
-device=x.device)``).
+The G-buffer is rasterized (``RenderSettings.rasterizer``) and built on the CPU (its C
+kernel or tensor code); a CUDA render moves it, the lighting and the materials once, then
+runs the methods' tensor code there (the fused C kernels are CPU-only). Inside
+:func:`on_device`, factory calls without an explicit device (``torch.zeros(n)``,
+``torch.tensor([...])``) create on the render's device, so the tensor code needs no device
+argument threaded through every function; code that builds tensors from numpy states the
+device (``torch.as_tensor(a, device=x.device)``).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The one data flow: scenes -> G-buffer (pyrender) -> method (torch) -> radiance and passes.
+"""The one data flow: scenes -> G-buffer (rasterized ids) -> method (torch) -> radiance and passes.
 
 Example:
     >>> import torchrefract as tr

@@ -20,6 +20,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_MEMORY_MB=N``           ``memory_budget_mb=N``
 ``TORCHREFRACT_CACHE=DIR``             ``cache_dir=DIR``
 ``TORCHREFRACT_DEVICE=cuda``           ``device="cuda"``: shade on the GPU (tensor code)
+``TORCHREFRACT_RASTERIZER=opengl``     ``rasterizer="opengl"``: the OpenGL visibility passes
 ====================================  =============================================
 
 Only ``threads`` and ``heap_reuse`` touch process-wide state: ``threads`` (or, where it is
@@ -49,6 +50,8 @@ from torchrefract.checks import ConfigError
 
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("0", "false", "no", "off")
+RASTERIZERS = ("auto", "native", "opengl")
+"""The values of :attr:`RenderSettings.rasterizer`."""
 
 
 def _env_count(name: str) -> int | None:
@@ -105,9 +108,16 @@ class RenderSettings:
     ``~/.cache/torchrefract``)."""
     device: str = "cpu"
     """Where the shading runs: ``cpu``, ``cuda`` / ``cuda:N`` (the tensor code on that GPU;
-    the G-buffer is still rasterized by pyrender and built on the CPU, then moved), or
+    the G-buffer is still rasterized and built on the CPU, then moved), or
     ``auto`` (``cuda`` where torch sees a GPU, else ``cpu``). The result's tensors are on
     that device."""
+    rasterizer: str = "auto"
+    """What draws the G-buffer's triangle ids (:mod:`torchrefract.geometry.raster`):
+    ``native`` (the C rasterizer, csrc/raster.c: both layers in one pass; an error where
+    the native kernels do not build), ``opengl`` (pyrender's EGL context: two passes per
+    view), or ``auto`` (``native`` where the native kernels run, else ``opengl``). The
+    exact G-buffer built from either is the same but for pixel centers within ~1/256
+    pixel of an edge."""
 
     def __post_init__(self):
         for name in ("threads", "memory_budget_mb"):
@@ -119,6 +129,12 @@ class RenderSettings:
                                                                  self.device):
             raise ConfigError(f"RenderSettings.device: expected 'cpu', 'cuda', 'cuda:N' or "
                               f"'auto', got {self.device!r}")
+        if self.rasterizer not in RASTERIZERS:
+            raise ConfigError(f"RenderSettings.rasterizer: expected one of "
+                              f"{', '.join(map(repr, RASTERIZERS))}, got {self.rasterizer!r}")
+        if self.rasterizer == "native" and not self.native:
+            raise ConfigError("RenderSettings.rasterizer: 'native' needs the native kernels, "
+                              "which native=False turns off")
 
     def torch_device(self):
         """The torch.device the shading runs on (``auto`` resolved).
@@ -154,6 +170,7 @@ class RenderSettings:
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),
             cache_dir=os.environ.get("TORCHREFRACT_CACHE") or None,
             device=os.environ.get("TORCHREFRACT_DEVICE") or "cpu",
+            rasterizer=os.environ.get("TORCHREFRACT_RASTERIZER") or "auto",
         )
         return dataclasses.replace(base, **overrides)
 

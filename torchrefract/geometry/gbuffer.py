@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from torchrefract.geometry.camera import pixel_rays, projection_params
 from torchrefract.geometry.mesh import MeshData
-from torchrefract.geometry.raster import visibility_pass
+from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.optics.smooth import dot
@@ -306,7 +306,8 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
 
 
 def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
-    """Render both visibility passes for each view and build the exact G-buffer.
+    """Rasterize both layers' ids of each view (``RenderSettings.rasterizer``: the native
+    rasterizer, or the OpenGL passes) and build the exact G-buffer.
 
     Args:
         meshes: B world-space meshes.
@@ -335,12 +336,11 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
             slot[id(m), c] = len(views)
             views.append((b, m, c))
         inverse.append(slot[id(m), c])
-    front_ids, back_ids, dirs, eyes, fwd, proj = [], [], [], [], [], []
-    for b, mesh, cam in views:
-        off = int(batch.face_offset[b])
-        for back, out in ((False, front_ids), (True, back_ids)):
-            ids = visibility_pass(mesh, cam, n, back=back)
-            out.append(torch.where(ids >= 0, ids + off, ids))
+    # both layers' ids of every distinct view, global (the MeshBatch's face indices)
+    front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
+                                            n, [int(batch.face_offset[b]) for b, _, _ in views])
+    dirs, eyes, fwd, proj = [], [], [], []
+    for _, _, cam in views:
         dirs.append(pixel_rays(cam, n))
         eyes.append(torch.tensor(cam.eye, dtype=torch.float32))
         f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
@@ -349,8 +349,8 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
         p[14:16] *= n
         proj.append(p)
     dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
-    front = _layer(torch.stack(front_ids), eye_t, dirs_t, fwd_t, batch, back=False)
-    back_layer = _layer(torch.stack(back_ids), eye_t, dirs_t, fwd_t, batch, back=True)
+    front = _layer(front_ids, eye_t, dirs_t, fwd_t, batch, back=False)
+    back_layer = _layer(back_ids, eye_t, dirs_t, fwd_t, batch, back=True)
     proj_t = torch.stack(proj)
     if len(views) < len(meshes):  # copy the distinct views to their batch items
         inv = torch.tensor(inverse, dtype=torch.int64)

@@ -59,7 +59,13 @@ class MeshData:
         return c, (v - c).norm(dim=-1).max()
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
-        """Center (3,) and radius of the axis-aligned box's circumscribed sphere."""
+        """Center (3,) and radius of the axis-aligned box's circumscribed sphere (computed
+        once per mesh: the visibility passes ask for it every view; the center a copy)."""
+        c, r = self._bounding_sphere
+        return c.copy(), r
+
+    @functools.cached_property
+    def _bounding_sphere(self) -> tuple[np.ndarray, float]:
         v = self.vertices.numpy().astype(np.float64)
         lo, hi = v.min(0), v.max(0)
         c = 0.5 * (lo + hi)

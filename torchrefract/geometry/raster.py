@@ -1,5 +1,9 @@
 """Visibility passes: per-pixel triangle ids of the front and back layers, rasterized with
-OpenGL on the EGL context pyrender creates (Mesa's llvmpipe on a CPU).
+OpenGL on the EGL context pyrender creates (Mesa's llvmpipe on a CPU), or by the native
+rasterizer (csrc/raster.c: both layers of every view of a batch in one call, with these
+passes' matrices, vertex snapping, fill rule and depth order; no EGL context), as
+``RenderSettings.rasterizer`` picks (:func:`visibility_layers`). The OpenGL passes below
+are the reference and the fallback.
 
 pyrender has no id buffer, no integer readback and no back-face pass (DESIGN.md), so the
 passes draw directly on its context: one small shader writes ``gl_PrimitiveID + 1`` into a
@@ -27,8 +31,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from torchrefract import settings  # noqa: E402
 from torchrefract.geometry.camera import camera_pose  # noqa: E402
 from torchrefract.geometry.mesh import MeshData  # noqa: E402
+from torchrefract.kernels import native  # noqa: E402
 from torchrefract.scene.model import Camera  # noqa: E402
 
 _MAX_ID = (1 << 24) - 1
@@ -183,6 +189,13 @@ def _view_matrices(cam: Camera, sphere) -> tuple[np.ndarray, np.ndarray, float, 
     proj[2][2] = (zfar + znear) / (znear - zfar)
     proj[2][3] = (2 * zfar * znear) / (znear - zfar)
     return proj, np.linalg.inv(camera_pose(cam)), znear, zfar
+
+
+def view_projection(cam: Camera, sphere) -> np.ndarray:
+    """(4, 4) float64 ``P V`` of :func:`_view_matrices`: world to clip space, as the OpenGL
+    passes transform (their near and far planes from the mesh's bounding sphere)."""
+    proj, view, _, _ = _view_matrices(cam, sphere)
+    return proj @ view
 
 
 _VERTEX = """#version 330 core
@@ -380,3 +393,87 @@ def _pyrender_ids(mesh: MeshData, cam: Camera, renderer, back: bool) -> np.ndarr
         color, _ = renderer.render(ps.scene, flags=pyrender.RenderFlags.FLAT)
     c = color.astype(np.int64)
     return (c[..., 0] << 16) | (c[..., 1] << 8) | c[..., 2]
+
+
+def use_native() -> bool:
+    """Whether the current settings' ``rasterizer`` draws with the native rasterizer:
+    ``native``, or ``auto`` where the native kernels run (``opengl``: never).
+
+    Raises:
+        RuntimeError: ``native`` is asked for and the native kernels did not build.
+    """
+    choice = settings.current().rasterizer
+    if choice == "opengl":
+        return False
+    if native.available():
+        return True
+    if choice == "native":
+        raise RuntimeError("RenderSettings.rasterizer='native': the native kernels are "
+                           f"unavailable ({native.failure() or 'turned off'})")
+    return False
+
+
+def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
+                  id_offsets: list[int]) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Both layers of B views by the native rasterizer (``native.raster_ids``), or ``None``
+    where it is unavailable. Each distinct mesh object is passed once; the planes are
+    those of the OpenGL passes (:func:`view_projection`).
+
+    Args:
+        meshes, cameras: B views (equal resolutions).
+        supersample: n; the ids are drawn at (n H, n W).
+        id_offsets: (B,) added to each view's face indices (the batch's global ids).
+
+    Returns:
+        front, back: (B, n H, n W) int64 global ids, -1 where no face is seen.
+    """
+    for m in meshes:
+        if m.num_faces > _MAX_ID:  # the kernel's 24-bit face index, as the id buffer's
+            raise ValueError(f"mesh has {m.num_faces} triangles; the id buffer holds {_MAX_ID}")
+    ranges: dict[int, tuple[int, int, int, int]] = {}  # id(mesh) -> its vertex and face range
+    spheres: dict[int, tuple[np.ndarray, float]] = {}
+    verts, faces = [], []
+    nv = nf = 0
+    for m in meshes:
+        if id(m) not in ranges:
+            ranges[id(m)] = (nv, m.vertices.shape[0], nf, m.num_faces)
+            spheres[id(m)] = m.bounding_sphere()
+            verts.append(m.vertices)
+            faces.append(m.faces)
+            nv, nf = nv + m.vertices.shape[0], nf + m.num_faces
+    views = torch.tensor([ranges[id(m)] + (int(off),) for m, off in zip(meshes, id_offsets)],
+                         dtype=torch.int64)
+    mvp = torch.from_numpy(np.stack([view_projection(c, spheres[id(m)])
+                                     for m, c in zip(meshes, cameras)]))
+    c0 = cameras[0]
+    return native.raster_ids(verts[0] if len(verts) == 1 else torch.cat(verts),
+                             faces[0] if len(faces) == 1 else torch.cat(faces), views, mvp,
+                             c0.height * supersample, c0.width * supersample)
+
+
+def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
+                      id_offsets: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Front and back ids of B views, drawn by the rasterizer the current settings pick
+    (:func:`use_native`; the OpenGL passes, :func:`visibility_pass`, otherwise).
+
+    Args:
+        meshes, cameras: B views (equal resolutions).
+        supersample: n; the ids are drawn at (n H, n W).
+        id_offsets: (B,) added to each view's face indices (the batch's global ids).
+
+    Returns:
+        front, back: (B, n H, n W) int64 global ids, -1 where no face is seen.
+    """
+    if use_native():
+        out = native_layers(meshes, cameras, supersample, id_offsets)
+        if out is not None:
+            return out
+        if settings.current().rasterizer == "native":
+            raise RuntimeError("RenderSettings.rasterizer='native': the native rasterizer "
+                               "could not run (a thread or memory was unavailable)")
+    fronts, backs = [], []
+    for mesh, cam, off in zip(meshes, cameras, id_offsets):
+        for back, out in ((False, fronts), (True, backs)):
+            ids = visibility_pass(mesh, cam, supersample, back=back)
+            out.append(torch.where(ids >= 0, ids + int(off), ids))
+    return torch.stack(fronts), torch.stack(backs)

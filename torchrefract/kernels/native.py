@@ -1,6 +1,7 @@
 """Native kernels: the ray march's discrete part (``csrc/march.c``), the exact G-buffer
-layer (``csrc/gbuffer.c``) and the cone's footprint and spread (``csrc/cone.c``), built on
-first use.
+layer (``csrc/gbuffer.c``), the G-buffer's triangle ids (``csrc/raster.c``, in place of
+the OpenGL passes: ``RenderSettings.rasterizer``) and the cone's footprint and spread
+(``csrc/cone.c``), built on first use.
 
 Where each marched ray crosses the back-face layer, and which triangle it leaves through,
 is a discrete choice with no gradient (``march.py``). In tensor code it is a chain of
@@ -46,7 +47,7 @@ from torchrefract.output.atomic import atomic_path
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
                                                                 "cone.c", "specular.c",
                                                                 "background.c", "rousiers.c",
-                                                                "lean.c"))
+                                                                "lean.c", "raster.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
@@ -216,10 +217,18 @@ class _PlanesJob(ctypes.Structure):
                 ("mask_f", _p), ("eye", _p), ("basis", _p), ("out", _p)]
 
 
+class _RasterJob(ctypes.Structure):
+    """ctypes mirror of ``RasterJob`` in csrc/raster.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("vertices", _p), ("faces", _p), ("views", _p), ("mvp", _p),
+                ("front", _p), ("back", _p)]
+
+
 _KERNELS = {"march": _Job, "planes": _PlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "specular": _SpecJob,
-            "background": _BackgroundJob, "rousiers": _RousJob}
+            "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -330,6 +339,11 @@ def _load() -> ctypes.CDLL | None:
                               f"unavailable, using the tensor code (same images, slower): "
                               f"{_FAILED}", RuntimeWarning, stacklevel=3)
     return _LIB
+
+
+def failure() -> str | None:
+    """Why the kernels did not build or load (None where they did, or were not tried)."""
+    return _FAILED
 
 
 def available() -> bool:
@@ -501,6 +515,43 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
     return out
 
 
+def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
+               mvp: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Both visibility layers of B views (csrc/raster.c): per pixel center, the nearest
+    front-facing and the nearest back-facing triangle, as ``raster.visibility_pass`` draws
+    them with OpenGL; ``None`` where the kernel is unavailable or an input is of another
+    dtype or device (the caller then runs the OpenGL passes).
+
+    Args:
+        vertices: (V, 3) float32 world positions of the views' meshes, concatenated.
+        faces: (F, 3) int64 vertex indices, local to their mesh's vertex range.
+        views: (B, 5) int64 per view: its mesh's vertex offset and count, face offset and
+            count, and the offset added to the face index written (the batch's global id).
+        mvp: (B, 4, 4) float64 ``P V`` per view (``raster.view_projection``).
+        h, w: the frame (supersampled).
+
+    Returns:
+        front, back: (B, h, w) int64 id offset + face index, -1 where no face is seen.
+    """
+    if not available():
+        return None
+    keep = _inputs((vertices,), (faces, views))
+    if (keep is None or mvp.dtype != torch.float64 or mvp.device.type != "cpu"
+            or views.dim() != 2 or views.shape[1] != 5 or mvp.shape != (views.shape[0], 4, 4)):
+        return None
+    vertices, faces, views = keep
+    mvp = mvp.detach().contiguous()
+    b = views.shape[0]
+    front = torch.empty(b, h, w, dtype=torch.int64)
+    back = torch.empty(b, h, w, dtype=torch.int64)
+    job = _RasterJob(b=b, h=h, w=w, vertices=vertices.data_ptr(), faces=faces.data_ptr(),
+                     views=views.data_ptr(), mvp=mvp.data_ptr(), front=front.data_ptr(),
+                     back=back.data_ptr())
+    if b and not _call("raster", job):
+        return None
+    return front, back
+
+
 def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
               batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """``kernels.cone.footprint``: the screen footprint of the four bounding rays' exits, or
@@ -571,4 +622,4 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
 
 
 __all__ = ["available", "build", "footprint", "layer", "library_path", "march",
-           "native_enabled", "no_grad_through", "set_native", "spread"]
+           "native_enabled", "no_grad_through", "raster_ids", "set_native", "spread"]

@@ -91,6 +91,8 @@
 
 /* Run fn(job, begin, end) over [0, n) split into one contiguous range per thread (the
  * calling thread takes the last); below min_n items, or with one thread, in this thread.
+ * With OpenMP the ranges are chunks, multiples of ``grain`` items (tr_parallel_for: 64,
+ * for many light items; a few heavy items, as raster.c's row bands, take grain 1).
  * Returns 0, or -1 where a thread could not be started (the started ones are joined). */
 typedef void (*tr_range_fn)(const void *job, int64_t begin, int64_t end);
 
@@ -102,8 +104,8 @@ static void *tr_run_range(void *arg) {
     return NULL;
 }
 
-static int tr_parallel_for(tr_range_fn fn, const void *job, int64_t n, int64_t min_n,
-                           int threads) {
+static int tr_parallel_for_grain(tr_range_fn fn, const void *job, int64_t n, int64_t min_n,
+                                 int threads, int64_t grain) {
     if (threads < 1) threads = 1;
     if (threads > 64) threads = 64;
     if (n < min_n || threads == 1) {
@@ -116,11 +118,12 @@ static int tr_parallel_for(tr_range_fn fn, const void *job, int64_t n, int64_t m
      * that is torch's own pool: its workers, still spinning after the last tensor op,
      * take the ranges at once instead of competing with threads of ours for the cores
      * (measured: the cone kernels ran 2x slower right after tensor ops with pthreads).
-     * The range is cut into 16 chunks per thread (multiples of 64, so a march block of 16
-     * rays is never split), handed out dynamically: a thread whose core is busy with
-     * another process takes fewer, instead of holding up the others at the end. */
+     * The range is cut into 16 chunks per thread (multiples of the grain: 64 so a march
+     * block of 16 rays is never split), handed out dynamically: a thread whose core is
+     * busy with another process takes fewer, instead of holding up the others at the end. */
+    if (grain < 1) grain = 1;
     int64_t chunk = (n + 16 * (int64_t)threads - 1) / (16 * (int64_t)threads);
-    chunk = (chunk + 63) / 64 * 64;
+    chunk = (chunk + grain - 1) / grain * grain;
     int64_t chunks = (n + chunk - 1) / chunk;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
     for (int64_t c = 0; c < chunks; c++)
@@ -144,6 +147,11 @@ static int tr_parallel_for(tr_range_fn fn, const void *job, int64_t n, int64_t m
     if (rc == 0) tr_run_range(&rgs[threads - 1]);
     for (int i = 0; i < started; i++) pthread_join(ids[i], NULL);
     return rc;
+}
+
+static int tr_parallel_for(tr_range_fn fn, const void *job, int64_t n, int64_t min_n,
+                           int threads) {
+    return tr_parallel_for_grain(fn, job, n, min_n, threads, 64);
 }
 
 #endif
