@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -183,20 +184,26 @@ def test_render_stream_skips_broken_samples_with_a_warning(tmp_path):
         list(RenderStream(cfg, batch_size=4, on_error="raise"))
 
 
-def test_forked_worker_after_rendering_raises_instead_of_hanging(cfg_path):
-    """A fork-started DataLoader after the main process rendered: a clear error, no hang."""
+@pytest.mark.parametrize("rasterizer", ["native", "opengl"])
+def test_forked_worker_after_rendering(cfg_path, rasterizer):
+    """A fork-started DataLoader after the main process rendered: with the native
+    rasterizer (no EGL context) the worker renders; after the OpenGL passes (an EGL
+    context, which hangs in a forked child) a clear error, no hang."""
     code = textwrap.dedent(f"""
         import torch, torchrefract as tr
         from torch.utils.data import DataLoader
         from torchrefract.dataset.loaders import RenderStream
         s = RenderStream({str(cfg_path)!r}, batch_size=2)
-        next(iter(s))  # the main process now holds an EGL context
+        next(iter(s))
         try:
-            list(DataLoader(s, num_workers=1, multiprocessing_context="fork",
-                            collate_fn=lambda b: b))
+            got = list(DataLoader(s, num_workers=1, multiprocessing_context="fork",
+                                  collate_fn=lambda b: b))
+            print("RENDERED", sum(len(b) for b in got) == len(s))
         except RuntimeError as e:
             print("RAISED", "multiprocessing_context='spawn'" in str(e))
     """)
+    env = dict(os.environ, TORCHREFRACT_RASTERIZER=rasterizer)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=120)
-    assert "RAISED True" in r.stdout, r.stderr[-2000:]
+                       timeout=120, env=env)
+    want = "RENDERED True" if rasterizer == "native" else "RAISED True"
+    assert want in r.stdout, r.stdout[-500:] + r.stderr[-2000:]

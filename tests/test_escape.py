@@ -235,9 +235,14 @@ def test_escape_grid_rows_kept_are_the_rows_computed(table):
     ior = torch.tensor([1.5, 1.5, 1.33, 2.4, 1.5, 1.1, 1.33, 1.5])
     dist = torch.tensor([0, 0, 1, 0, 0, 1, 1, 0])
     for dtype in (torch.float32, torch.float64):
-        fresh = bounces._escape_rows(table, ior, dist, dtype, 16, 41)
+        fresh = torch.cat([bounces._escape_rows(table, ior[i:i + 1], dist[i:i + 1], dtype, 16,
+                                                41) for i in range(len(ior))])
         for _ in range(2):  # computed, then taken from the kept rows
             assert torch.equal(bounces.escape_grid(table, ior, dist, dtype), fresh)
+        # a scene's row does not depend on the batch around it
+        assert torch.equal(bounces.escape_grid(table, ior[2:3], dist[2:3], dtype), fresh[2:3])
+        assert torch.allclose(fresh, bounces._escape_rows(table, ior, dist, dtype, 16, 41),
+                              rtol=1e-6, atol=1e-7)
     # with a gradient through the IOR the rows are computed, and carry it
     g = ior.clone().requires_grad_(True)
     bounces.escape_grid(table, g, dist, torch.float32).sum().backward()
