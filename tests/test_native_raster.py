@@ -331,3 +331,14 @@ def test_views_split_into_row_bands_give_the_same_ids():
         finally:
             torch.set_num_threads(1)
         assert torch.equal(out[0], ref[0]) and torch.equal(out[1], ref[1])
+
+
+def test_the_cli_sets_the_rasterizer():
+    from torchrefract.cli import _parser, _settings
+
+    args = _parser().parse_args(["render", "x.yaml", "--out", "o", "--rasterizer", "opengl"])
+    assert _settings(args).rasterizer == "opengl"
+    args = _parser().parse_args(["sweep", "x.yaml", "--out", "o", "--rasterizer", "native"])
+    assert _settings(args).rasterizer == "native"
+    with pytest.raises(SystemExit):
+        _parser().parse_args(["render", "x.yaml", "--out", "o", "--rasterizer", "gl"])

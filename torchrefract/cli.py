@@ -50,6 +50,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None,
                    help="cpu, cuda, cuda:N or auto: where the shading runs "
                         "(RenderSettings.device; default cpu, or $TORCHREFRACT_DEVICE)")
+    r.add_argument("--rasterizer", default=None, choices=("auto", "native", "opengl"),
+                   help="what draws the G-buffer's triangle ids: the native rasterizer or "
+                        "pyrender's OpenGL passes (RenderSettings.rasterizer; default auto)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
@@ -92,6 +95,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--device", default=None,
                    help="cpu, cuda, cuda:N or auto: where every rendering process shades "
                         "(RenderSettings.device)")
+    w.add_argument("--rasterizer", default=None, choices=("auto", "native", "opengl"),
+                   help="what draws the G-buffer's triangle ids in every rendering process "
+                        "(RenderSettings.rasterizer)")
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -249,6 +255,8 @@ def _settings(args: argparse.Namespace):
         changes["adaptive"] = True
     if getattr(args, "device", None):
         changes["device"] = args.device
+    if getattr(args, "rasterizer", None):
+        changes["rasterizer"] = args.rasterizer
     return s.replace(**changes)
 
 
