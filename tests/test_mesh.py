@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 from conftest import ASSETS
 from trimesh.exchange.ply import export_ply
@@ -270,3 +271,39 @@ def test_face_neighbors_keep_three_of_a_non_manifold_edge():
     assert np.array_equal(got, _neighbors_by_loop(adj, 6))
     assert got[0].tolist() == [1, 2, 3] and got[5].tolist() == [-1, -1, -1]
     assert (face_neighbors(np.zeros((0, 2), dtype=np.int64), 2) == -1).all()
+
+
+def test_topology_kept_in_the_cache_folder_is_the_computed_one(tmp_path, monkeypatch):
+    """A new process (the in-memory caches cleared) reads the file's topology from the
+    cache folder, gets the same mesh, and is warned as the first was; a file with its own
+    normals then loads without trimesh."""
+    import sys
+
+    import torchrefract.geometry.mesh as mesh_mod
+
+    monkeypatch.setenv("TORCHREFRACT_CACHE", str(tmp_path / "cache"))
+    src = ASSETS / "meshes" / "torus.ply"  # with normals in the file
+    holes = tmp_path / "holes.ply"  # without, and open
+    m = trimesh.load(ASSETS / "meshes" / "bunny.ply", process=False)
+    trimesh.Trimesh(m.vertices, m.faces[:-40], process=False).export(holes)
+    for path in (src, holes):
+        for f in (mesh_mod._topology, mesh_mod._load_mesh_cached):
+            f.cache_clear()
+        with warnings.catch_warnings(record=True) as first:
+            warnings.simplefilter("always")
+            a = load_mesh(str(path), Transform(scale=1.3, rotate_deg=(10.0, 20.0, 30.0)))
+        assert list((tmp_path / "cache" / "mesh").glob("topology_*.npz"))
+        for f in (mesh_mod._topology, mesh_mod._load_mesh_cached):
+            f.cache_clear()
+        if path == src:  # importing trimesh would now fail
+            monkeypatch.setitem(sys.modules, "trimesh", None)
+        try:
+            with warnings.catch_warnings(record=True) as again:
+                warnings.simplefilter("always")
+                b = load_mesh(str(path), Transform(scale=1.3, rotate_deg=(10.0, 20.0, 30.0)))
+        finally:
+            monkeypatch.setitem(sys.modules, "trimesh", trimesh)
+        for name in ("vertices", "faces", "normals", "neighbors", "across"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert a.watertight == b.watertight == (path == src)
+        assert [str(w.message) for w in first] == [str(w.message) for w in again]
