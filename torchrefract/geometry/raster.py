@@ -415,18 +415,9 @@ def use_native() -> bool:
 
 def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
                   id_offsets: list[int]) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Both layers of B views by the native rasterizer (``native.raster_ids``), or ``None``
-    where it is unavailable. Each distinct mesh object is passed once; the planes are
-    those of the OpenGL passes (:func:`view_projection`).
-
-    Args:
-        meshes, cameras: B views (equal resolutions).
-        supersample: n; the ids are drawn at (n H, n W).
-        id_offsets: (B,) added to each view's face indices (the batch's global ids).
-
-    Returns:
-        front, back: (B, n H, n W) int64 global ids, -1 where no face is seen.
-    """
+    """:func:`visibility_layers` by the native rasterizer (``native.raster_ids``; the same
+    arguments and result), or ``None`` where it is unavailable. Each distinct mesh object
+    is passed once; the planes are those of the OpenGL passes (:func:`view_projection`)."""
     for m in meshes:
         if m.num_faces > _MAX_ID:  # the kernel's 24-bit face index, as the id buffer's
             raise ValueError(f"mesh has {m.num_faces} triangles; the id buffer holds {_MAX_ID}")
