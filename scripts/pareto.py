@@ -189,13 +189,23 @@ def sized(scene: tr.Scene, size: int | None, samples_per_pixel: int | None = Non
     return scene.replace(camera=cam)
 
 
-def load_truth(scene: tr.Scene, spp: int, cache: Path) -> dict:
-    """Full truth (seeds 0, 1) and the floors (max_depth 3, 4, 5), cached in ``cache``."""
+def load_truth(scene: tr.Scene, spp: int, cache: Path, floors: bool = True) -> dict:
+    """Full truth (seeds 0, 1) and the floors (max_depth 3, 4, 5), cached in ``cache``;
+    ``floors`` False: the full truth at seed 0 only (``full2`` None, no floors)."""
     cache.mkdir(parents=True, exist_ok=True)
     full, alpha, _ = cached_truth(scene, spp, 64, 0, cache)
+    if not floors:
+        return {"full": full, "alpha": alpha, "full2": None, "floors": {}}
     full2, _, _ = cached_truth(scene, spp, 64, 1, cache)
-    floors = {d: cached_truth(scene, spp, d, 0, cache)[0] for d in FLOOR_DEPTHS}
-    return {"full": full, "alpha": alpha, "full2": full2, "floors": floors}
+    depth = {d: cached_truth(scene, spp, d, 0, cache)[0] for d in FLOOR_DEPTHS}
+    return {"full": full, "alpha": alpha, "full2": full2, "floors": depth}
+
+
+def truth_cached(scene: tr.Scene, spp: int, cache: Path) -> bool:
+    """Whether the full truth (seed 0) of ``scene`` is in ``cache`` (accuracy.truth's
+    name)."""
+    c = scene.camera
+    return (cache / f"{scene.name}_{c.width}x{c.height}_d64_spp{spp}_s0.exr").exists()
 
 
 def batch_of(scene: tr.Scene, batch: int) -> list[tr.Scene]:
@@ -406,6 +416,12 @@ def main(argv: list[str] | None = None) -> int:
                          "--out's results.csv")
     ap.add_argument("--metric", default="flip_object", choices=METRICS,
                     help="y axis of pareto.png (default flip_object)")
+    ap.add_argument("--no-floors", action="store_true",
+                    help="the full truth at seed 0 only: no second seed, no floors (the "
+                         "validation set, scripts/validation_set.py, renders only that)")
+    ap.add_argument("--cached-truth-only", action="store_true",
+                    help="skip a scene whose truth is not in --truth-dir instead of "
+                         "rendering it")
     args = ap.parse_args(argv)
 
     if args.report:
@@ -473,8 +489,12 @@ def main(argv: list[str] | None = None) -> int:
         scene = sized(tr.load_scene(path), size)
         c = scene.camera
         base = {"scene": scene.name, "width": c.width, "height": c.height, **common}
+        if args.cached_truth_only and not truth_cached(scene, truth_spp, cache):
+            print(f"pareto: {scene.name}: no cached truth in {cache}, skipped", flush=True)
+            skipped.append({"scene": scene.name, "variant": "*", "reason": "no cached truth"})
+            continue
         try:
-            t = load_truth(scene, truth_spp, cache)
+            t = load_truth(scene, truth_spp, cache, floors=not args.no_floors)
         except (NotImplementedError, ImportError, ConfigError) as exc:
             warnings.warn(f"pareto: {scene.name}: no Mitsuba truth, scene skipped ({exc})",
                           stacklevel=1)
@@ -486,9 +506,10 @@ def main(argv: list[str] | None = None) -> int:
             m = compare(img, full, alpha)
             return {k: m[k] for k in METRICS}
 
-        emit({**base, "method": "truth", "variant": "truth seed 1", "options": "{}",
-              "batch": 1, "samples_per_pixel": 1, "ms_per_frame": None,
-              **scored(t["full2"])})
+        if t["full2"] is not None:
+            emit({**base, "method": "truth", "variant": "truth seed 1", "options": "{}",
+                  "batch": 1, "samples_per_pixel": 1, "ms_per_frame": None,
+                  **scored(t["full2"])})
         for d, img in t["floors"].items():
             emit({**base, "method": "floor", "variant": f"max_depth {d}",
                   "options": json.dumps({"max_depth": d}), "batch": 1,
