@@ -224,6 +224,29 @@ def shell(outer: trimesh.Trimesh, inner: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(v, f, process=False)
 
 
+def _appender(verts: list, normals: list):
+    """add(v, n): append a block of vertices and their normals; returns the block's first
+    index in the concatenation."""
+    def add(v, n) -> int:
+        base = sum(len(x) for x in verts)
+        verts.append(np.asarray(v, float))
+        normals.append(np.asarray(n, float))
+        return base
+    return add
+
+
+def _add_rim(add, faces: list, ring: np.ndarray, h: float, a: np.ndarray) -> None:
+    """The cylindrical side between the rings (S, 2) at z = +h and -h, its own vertices
+    (split from the caps) with radial normals; a: the rings' S angles."""
+    segments = len(a)
+    radial_n = np.c_[np.cos(a), np.sin(a), np.zeros(segments)]
+    b = add(np.concatenate([np.c_[ring, np.full(segments, h)], np.c_[ring, np.full(segments, -h)]]),
+            np.concatenate([radial_n, radial_n]))
+    for i in range(segments):
+        j = (i + 1) % segments
+        faces += [(b + segments + i, b + segments + j, b + j), (b + segments + i, b + j, b + i)]
+
+
 def disc(radius: float, height: float, segments: int = 128) -> trimesh.Trimesh:
     """Cylinder (axis z) with flat caps and a smooth side, split at the rims (normals
     stored)."""
@@ -231,12 +254,7 @@ def disc(radius: float, height: float, segments: int = 128) -> trimesh.Trimesh:
     ring = np.stack([radius * np.cos(a), radius * np.sin(a)], -1)  # (S, 2)
     h = height / 2
     verts, normals, faces = [], [], []
-
-    def add(v, n):
-        base = sum(len(x) for x in verts)
-        verts.append(np.asarray(v, float))
-        normals.append(np.asarray(n, float))
-        return base
+    add = _appender(verts, normals)
 
     for z, s in ((h, 1.0), (-h, -1.0)):  # caps: center + ring
         b = add(np.concatenate([[[0, 0, z]], np.c_[ring, np.full(segments, z)]]),
@@ -244,12 +262,7 @@ def disc(radius: float, height: float, segments: int = 128) -> trimesh.Trimesh:
         for i in range(segments):
             j = (i + 1) % segments
             faces.append((b, b + 1 + i, b + 1 + j) if s > 0 else (b, b + 1 + j, b + 1 + i))
-    radial_n = np.c_[np.cos(a), np.sin(a), np.zeros(segments)]
-    b = add(np.concatenate([np.c_[ring, np.full(segments, h)], np.c_[ring, np.full(segments, -h)]]),
-            np.concatenate([radial_n, radial_n]))
-    for i in range(segments):
-        j = (i + 1) % segments
-        faces += [(b + segments + i, b + segments + j, b + j), (b + segments + i, b + j, b + i)]
+    _add_rim(add, faces, ring, h, a)
     return _with_normals(np.concatenate(verts), np.asarray(faces), np.concatenate(normals))
 
 
@@ -262,12 +275,7 @@ def lens(aperture: float, center_thickness: float, edge_thickness: float,
     a = 2 * np.pi * np.arange(segments) / segments
     rho = aperture * np.arange(1, rings + 1) / rings  # (R,)
     verts, normals, faces = [], [], []
-
-    def add(v, n):
-        base = sum(len(x) for x in verts)
-        verts.append(np.asarray(v, float))
-        normals.append(np.asarray(n, float))
-        return base
+    add = _appender(verts, normals)
 
     h = edge_thickness / 2
     for s in (1.0, -1.0):
@@ -289,12 +297,7 @@ def lens(aperture: float, center_thickness: float, edge_thickness: float,
             for f in range(len(faces) - segments * (1 + 2 * (rings - 1)), len(faces)):
                 faces[f] = faces[f][::-1]
     ring = np.c_[aperture * np.cos(a), aperture * np.sin(a)]
-    radial_n = np.c_[np.cos(a), np.sin(a), np.zeros(segments)]
-    b = add(np.concatenate([np.c_[ring, np.full(segments, h)], np.c_[ring, np.full(segments, -h)]]),
-            np.concatenate([radial_n, radial_n]))
-    for i in range(segments):
-        j = (i + 1) % segments
-        faces += [(b + segments + i, b + segments + j, b + j), (b + segments + i, b + j, b + i)]
+    _add_rim(add, faces, ring, h, a)
     return _with_normals(np.concatenate(verts), np.asarray(faces), np.concatenate(normals))
 
 
