@@ -8,7 +8,7 @@ procedural meshes and roughness maps they use (``scripts/validation_meshes.py``)
 - a mesh: :data:`validation_meshes.FAMILIES` (8 families, every shipped mesh and 30
   procedural ones), the families in equal shares, each family's meshes in turn;
 - a pose: a uniform random rotation (shipped scanned models: upright, turned about +Y and
-  tilted up to 20 degrees; plates (slab, groove): never closer than 70 degrees to edge-on),
+  tilted up to 20 degrees; plates (slab, groove): at least 20 degrees off edge-on),
   a scale (0.6-1.8, log-uniform) and a small translation;
 - a material: IOR uniform in [1.1, 2.4]; roughness alpha 0 (smooth) in 12% of the scenes,
   else log-uniform in [0.02, 0.6]; 75% of the scenes whose mesh has UVs take a roughness
@@ -514,7 +514,8 @@ def main() -> None:
     t.add_argument("--size", type=int, default=SIZE)
     t.add_argument("--spp", type=int, default=TRUTH_SPP)
     t.add_argument("--noise", type=int, default=8,
-                   help="how many scenes (one per family, in order) also get seed 1")
+                   help="how many scenes also get seed 1: the noise_scenes of splits.json "
+                        "(one per family) first, then the others in order")
     t.add_argument("--cache", default=str(CACHE))
     for s in (c, t):
         s.add_argument("--threads", type=int, default=1, help="torch/drjit threads (0: all)")
@@ -539,7 +540,10 @@ def main() -> None:
         print(f"{len(rows) - len(bad)} of {len(rows)} scenes render; failed: {bad}")
         return
     meta = json.loads((Path(args.dir) / "splits.json").read_text())
-    noise = set(meta["noise_scenes"][:args.noise])
+    # the noise scenes (one per family) first, then every other scene in order
+    order = meta["noise_scenes"] + [p.stem for p in scene_paths(Path(args.dir))
+                                    if p.stem not in meta["noise_scenes"]]
+    noise = set(order[:args.noise])
     run_truth(paths, args.size, args.spp, Path(args.cache), noise)
 
 
