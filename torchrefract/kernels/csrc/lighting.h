@@ -31,10 +31,15 @@ static inline void map_uv(const Lights *L, int64_t b, const float *dir, float *u
     *v = acosf(clampf(y, -1.0f, 1.0f)) * (float)(1.0 / TR_PI);
 }
 
-/* envmap.lookup's texels at the map coordinates (u, v): rows y0, y1 and (wrapped)
- * columns c0, c1 of view b's map, and the bilinear weights fx, fy. */
-static inline void env_texels(const Lights *j, int64_t b, float u, float v, int64_t *y0,
-                              int64_t *y1, int64_t *c0, int64_t *c1, float *fx, float *fy) {
+/* The four texels of one bilinear lookup in view b's map: rows y0, y1, (wrapped) columns
+ * c0, c1, and the weights fx, fy. */
+typedef struct {
+    int64_t b, y0, y1, c0, c1;
+    float fx, fy;
+} EnvTap;
+
+/* envmap.lookup's tap at the map coordinates (u, v). */
+static inline EnvTap env_tap(const Lights *j, int64_t b, float u, float v) {
     int64_t h = j->tex_h[b], w = j->tex_w[b];
     /* the padded image's coordinates (one wrapped column each side), border-clamped */
     float gx = 2.0f * (u * (float)w - 0.5f + 1.0f) / (float)(w + 1) - 1.0f;
@@ -42,46 +47,47 @@ static inline void env_texels(const Lights *j, int64_t b, float u, float v, int6
     /* grid_sample's unnormalization (aligned corners) and border clamp */
     float px = clampf((gx + 1.0f) * ((float)(w + 1) / 2.0f), 0.0f, (float)(w + 1));
     float py = clampf((gy + 1.0f) * ((float)(h - 1) / 2.0f), 0.0f, (float)(h - 1));
-    int64_t x0 = (int64_t)floorf(px);
-    *y0 = (int64_t)floorf(py);
-    int64_t x1 = x0 + 1 <= w + 1 ? x0 + 1 : x0;
-    *y1 = *y0 + 1 <= h - 1 ? *y0 + 1 : *y0;
-    *fx = px - (float)x0;
-    *fy = py - (float)*y0;
-    *c0 = (x0 - 1 + w) % w;
-    *c1 = (x1 - 1 + w) % w;
+    int64_t x0 = (int64_t)floorf(px), y0 = (int64_t)floorf(py);
+    int64_t x1 = x0 + 1 <= w + 1 ? x0 + 1 : x0, y1 = y0 + 1 <= h - 1 ? y0 + 1 : y0;
+    EnvTap t = {b, y0, y1, (x0 - 1 + w) % w, (x1 - 1 + w) % w, px - (float)x0, py - (float)y0};
+    return t;
 }
 
-/* envmap.lookup at the map coordinates (u, v): bilinear, wrapped in u, clamped in v. */
-static void env_lookup_uv(const Lights *j, int64_t b, float u, float v, float *out) {
-    int64_t y0, y1, c0, c1, w = j->tex_w[b];
-    float fx, fy;
-    env_texels(j, b, u, v, &y0, &y1, &c0, &c1, &fx, &fy);
-    const float *t = j->tex[b];
+/* envmap.lookup's tap along dir (normalized, turned as map_uv turns it). */
+static inline EnvTap env_tap_dir(const Lights *j, int64_t b, const float *dir) {
+    float u, v;
+    map_uv(j, b, dir, &u, &v);
+    return env_tap(j, b, u, v);
+}
+
+/* The bilinear read of a tap, scaled by the view's radiance scale. */
+static void env_read(const Lights *j, const EnvTap *p, float *out) {
+    int64_t w = j->tex_w[p->b];
+    const float *t = j->tex[p->b];
     for (int c = 0; c < 3; c++) {
-        float top = t[(y0 * w + c0) * 3 + c] * (1.0f - fx) + t[(y0 * w + c1) * 3 + c] * fx;
-        float bot = t[(y1 * w + c0) * 3 + c] * (1.0f - fx) + t[(y1 * w + c1) * 3 + c] * fx;
-        out[c] = (top * (1.0f - fy) + bot * fy) * j->scale[b];
+        float top = t[(p->y0 * w + p->c0) * 3 + c] * (1.0f - p->fx)
+                    + t[(p->y0 * w + p->c1) * 3 + c] * p->fx;
+        float bot = t[(p->y1 * w + p->c0) * 3 + c] * (1.0f - p->fx)
+                    + t[(p->y1 * w + p->c1) * 3 + c] * p->fx;
+        out[c] = (top * (1.0f - p->fy) + bot * p->fy) * j->scale[p->b];
     }
 }
 
 /* envmap.lookup: bilinear in the lat-long map, wrapped in u, clamped in v. */
 static void env_lookup(const Lights *j, int64_t b, const float *dir, float *out) {
-    float u, v;
-    map_uv(j, b, dir, &u, &v);
-    env_lookup_uv(j, b, u, v, out);
+    EnvTap p = env_tap_dir(j, b, dir);
+    env_read(j, &p, out);
 }
 
-/* The map coordinates of dir (uv), and the texels env_lookup_uv will read there asked
- * into the cache: a pixel's lookups then overlap their memory reads with the work done
- * before them (the refracted directions scatter over the map). */
-static inline void env_prefetch(const Lights *j, int64_t b, const float *dir, float *uv) {
-    map_uv(j, b, dir, uv, uv + 1);
-    int64_t y0, y1, c0, c1, w = j->tex_w[b];
-    float fx, fy;
-    env_texels(j, b, uv[0], uv[1], &y0, &y1, &c0, &c1, &fx, &fy);
-    __builtin_prefetch(j->tex[b] + (y0 * w + c0) * 3);
-    __builtin_prefetch(j->tex[b] + (y1 * w + c0) * 3);
+/* The tap along dir, its texel rows asked into the cache: a pixel's lookups then overlap
+ * their memory reads with the work done before them (the refracted directions scatter
+ * over the map); env_read reads them later. */
+static inline EnvTap env_prefetch(const Lights *j, int64_t b, const float *dir) {
+    EnvTap p = env_tap_dir(j, b, dir);
+    int64_t w = j->tex_w[b];
+    __builtin_prefetch(j->tex[b] + (p.y0 * w + p.c0) * 3);
+    __builtin_prefetch(j->tex[b] + (p.y1 * w + p.c0) * 3);
+    return p;
 }
 
 /* One view's SG-pre-convolved pyramid (lighting/sg_pyramid.py, SGPyramid): the padded
@@ -158,23 +164,22 @@ static float hit_light(const Lights *j, int64_t b, const float *o, const float *
     return best;
 }
 
-/* lights.incident_radiance: the environment, or a light the ray hits (uv: d's map
- * coordinates, env_prefetch). */
-static void incident_uv(const Lights *j, int64_t b, const float *o, const float *d,
-                        const float *uv, float *out) {
+/* lights.incident_radiance: the environment, or a light the ray hits (p: d's tap,
+ * env_prefetch). */
+static void incident_at(const Lights *j, int64_t b, const float *o, const float *d,
+                        const EnvTap *p, float *out) {
     int64_t l;
     if (j->nl > 0 && isfinite(hit_light(j, b, o, d, &l))) {
         for (int c = 0; c < 3; c++) out[c] = j->light_le[(b * j->nl + l) * 3 + c];
         return;
     }
-    env_lookup_uv(j, b, uv[0], uv[1], out);
+    env_read(j, p, out);
 }
 
 /* lights.incident_radiance along d. */
 static void incident(const Lights *j, int64_t b, const float *o, const float *d, float *out) {
-    float uv[2];
-    map_uv(j, b, d, uv, uv + 1);
-    incident_uv(j, b, o, d, uv, out);
+    EnvTap p = env_tap_dir(j, b, d);
+    incident_at(j, b, o, d, &p, out);
 }
 
 /* torch.special.i0e: exp(-|x|) I0(x), by its power series up to 30 and its asymptotic

@@ -196,11 +196,12 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     int tir2 = refract(t1, n2, eta, t2) && ok;
     for (int c = 0; c < 3; c++) t_ref[c] = t2[c];
     if (j->tir_mode == 2 && tir2) reflect(t1, n2, t2);
-    float refl[3], uv_r[2], uv_t[2];
+    float refl[3];
     reflect(d, n1, refl);
-    if (!sj->blur) {  /* both texel pairs asked for now, read after the energies */
-        env_prefetch(&j->lights, b, refl, uv_r);
-        env_prefetch(&j->lights, b, ok ? t2 : t1, uv_t);
+    EnvTap tap_r, tap_t;  /* both taps' texels asked for now, read after the energies */
+    if (!sj->blur) {
+        tap_r = env_prefetch(&j->lights, b, refl);
+        tap_t = env_prefetch(&j->lights, b, ok ? t2 : t1);
     }
     if (j->rough) {
         interface_energies(&j->table, ax, j->dist[b], cos1, f1, &e_t1, &e_r1);
@@ -230,8 +231,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         incident_sg(&j->lights, &j->env, b, p2, t2, k_t, l_trans);
         sj->blur_sigma[px] = 1.0f / sqrtf(k_t);
     } else {
-        incident_uv(&j->lights, b, p1, refl, uv_r, l_refl);
-        incident_uv(&j->lights, b, p2, t2, uv_t, l_trans);
+        incident_at(&j->lights, b, p1, refl, &tap_r, l_refl);
+        incident_at(&j->lights, b, p2, t2, &tap_t, l_trans);
     }
     int64_t l;
     int hidden = j->lights.nl > 0 &&
