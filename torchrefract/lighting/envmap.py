@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import functools
 import math
-import weakref
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrefract.checks import ConfigError, file_version
+from torchrefract.kept import KeptByIdentity
 from torchrefract.output.images import read_exr, read_hdr
 
 
@@ -93,7 +92,7 @@ def direction_to_uv(d: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], -1)
 
 
-_PADDED: "OrderedDict[int, tuple[weakref.ref, int, torch.Tensor]]" = OrderedDict()
+_PADDED = KeptByIdentity(4)
 
 
 def _padded(texels: torch.Tensor) -> torch.Tensor:
@@ -107,15 +106,8 @@ def _padded(texels: torch.Tensor) -> torch.Tensor:
 
     if texels.requires_grad:
         return pad(texels)
-    hit = _PADDED.get(id(texels))
-    if hit is not None and hit[0]() is texels and hit[1] == texels._version:
-        _PADDED.move_to_end(id(texels))
-        return hit[2]
-    out = pad(texels)
-    _PADDED[id(texels)] = (weakref.ref(texels), texels._version, out)
-    while len(_PADDED) > 4:
-        _PADDED.popitem(last=False)
-    return out
+    out = _PADDED.get(texels, texels._version)
+    return out if out is not None else _PADDED.put(texels, texels._version, pad(texels))
 
 
 def lookup(texels: torch.Tensor, d: torch.Tensor, rotate_deg: float | torch.Tensor = 0.0,

@@ -9,7 +9,6 @@ method until one is used).
 from __future__ import annotations
 
 import math
-import weakref
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ from torchrefract.checks import (
     load_yaml_file,
     where,
 )
+from torchrefract.kept import KeptByIdentity
 from torchrefract.matte.passes import parse_passes
 from torchrefract.methods import registry
 from torchrefract.scene.model import Camera, EnvMap, Material, Scene, SphereLight, Transform
@@ -200,19 +200,15 @@ def validate(scene: Scene, method: str | None = None) -> Scene:
         ConfigError: naming the scene and the key, as for a YAML file.
     """
     mutable = repr((method, scene.method_options, scene.passes))
-    hit = _validated.get(id(scene))
-    if hit is not None and hit[0]() is scene and hit[1] == mutable:
-        return hit[2]
-    asked = scene if method is None or method == scene.method else scene.replace(method=method)
-    checked = scene_from_dict(asked.to_dict(), source=f"scene {scene.name!r}", name=scene.name)
-    _validated[id(scene)] = (weakref.ref(scene), mutable, checked)
-    while len(_validated) > _VALIDATED_KEPT:
-        _validated.pop(next(iter(_validated)))
+    checked = _validated.get(scene, mutable)
+    if checked is None:
+        asked = scene if method is None or method == scene.method else scene.replace(
+            method=method)
+        checked = _validated.put(scene, mutable, scene_from_dict(
+            asked.to_dict(), source=f"scene {scene.name!r}", name=scene.name))
     return checked
 
 
-_VALIDATED_KEPT = 256
-_validated: "dict[int, tuple[weakref.ref, str, Scene]]" = {}
-"""validate's memory: id(scene) -> (the scene, the method asked for and its mutable fields'
-repr, the checked scene);
-the oldest entry goes first. A dead or reused id fails the identity check."""
+_validated = KeptByIdentity(256)
+"""validate's memory: per scene object and (the method asked for, its mutable fields'
+repr), the checked scene."""

@@ -37,7 +37,6 @@ smaller steps.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, replace
 from typing import Callable
 
@@ -46,6 +45,7 @@ import torch
 
 from torchrefract.checks import ConfigError, check_number, where
 from torchrefract.geometry.gbuffer import GBuffer, interpolate
+from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels.index import put_, take
 from torchrefract.kernels.march import camera_planes, march_inside
 from torchrefract.optics.smooth import tangent_frame
@@ -294,21 +294,18 @@ def escape_grid(table, ior: torch.Tensor, distribution: torch.Tensor, dtype: tor
         return _escape_rows(table, ior, distribution, dtype, nodes, grid)
     rows = []
     for i, d in zip(ior.tolist(), distribution.tolist()):
-        key = (id(table), i, ior.dtype, d, dtype, nodes, grid)
-        kept = _escape_kept.get(key)
-        if kept is None or kept[0]() is not table:
-            row = _escape_rows(table, torch.tensor([i], dtype=ior.dtype),
-                               torch.tensor([d], dtype=distribution.dtype), dtype, nodes,
-                               grid)[0]
-            kept = _escape_kept[key] = (weakref.ref(table), row)
-            while len(_escape_kept) > 64:
-                _escape_kept.pop(next(iter(_escape_kept)))
-        rows.append(kept[1])
+        key = (i, ior.dtype, d, dtype, nodes, grid)
+        row = _escape_kept.get(table, key)
+        if row is None:
+            row = _escape_kept.put(table, key, _escape_rows(
+                table, torch.tensor([i], dtype=ior.dtype),
+                torch.tensor([d], dtype=distribution.dtype), dtype, nodes, grid)[0])
+        rows.append(row)
     return torch.stack(rows).to(ior.device)
 
 
-_escape_kept: dict = {}
-"""escape_grid's rows: key -> (the table, (grid,) row); the oldest goes first."""
+_escape_kept = KeptByIdentity(64)
+"""escape_grid's rows: per table and (IOR, its dtype, distribution, dtype, nodes, grid)."""
 
 
 def _escape_rows(table, ior: torch.Tensor, distribution: torch.Tensor, dtype: torch.dtype,
