@@ -29,7 +29,10 @@ The batch items differ by their environment map's rotation (10 degrees apart). `
 so every item has its own G-buffer; ``shared`` keeps one camera for the whole batch (a
 sweep of materials or maps over one view), whose G-buffer is then built once per batch.
 
-A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``.
+A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``; a
+trailing ``+adaptive`` renders that row with ``RenderSettings(adaptive=True)`` (adaptive
+sampling: at one sample per pixel, the 2x2 lattice and the pixels between it only where
+not smooth).
 
 Mitsuba rows (``--mitsuba``, the default where Mitsuba 3 imports; ``--no-mitsuba`` to leave
 them out): after our rows, in this (the parent) process, for each size and ``--views`` of the
@@ -91,10 +94,14 @@ def rss_mb(field: str = "VmHWM") -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+ADAPTIVE_SUFFIX = "+adaptive"
+"""A row spec ending in it renders with ``RenderSettings(adaptive=True)``."""
+
+
 def parse_method_spec(spec: str) -> tuple[str, dict]:
-    """``method[:k=v,...]`` (e.g. ``rousiers:cone_rays=plane,march_steps=24``) -> (method,
-    options); integer values become ints."""
-    method, _, rest = spec.partition(":")
+    """``method[:k=v,...][+adaptive]`` (e.g. ``rousiers:cone_rays=plane,march_steps=24``)
+    -> (method, options); integer values become ints."""
+    method, _, rest = spec.removesuffix(ADAPTIVE_SUFFIX).partition(":")
     options: dict = {}
     for kv in filter(None, rest.split(",")):
         k, v = kv.split("=")
@@ -141,6 +148,9 @@ class OursRow:
         self.method, self.options = parse_method_spec(method)
         self.scenes = bench_scenes(base.replace(method_options=self.options), size, batch,
                                    views)
+        self.adaptive = method.endswith(ADAPTIVE_SUFFIX)
+        if self.adaptive:
+            settings = dataclasses.replace(settings or tr.RenderSettings(), adaptive=True)
         self.settings = settings
         self.baseline = rss_mb("VmRSS")
         self.warmup = 0.0
@@ -167,7 +177,8 @@ class OursRow:
                                            for k in ("march", "mips", "fused")))
         s = self.settings
         return {
-            "method": self.method, "options": self.options, "size": self.size,
+            "method": self.method, "options": self.options, "adaptive": self.adaptive,
+            "size": self.size,
             "batch": self.batch, "views": self.views, "repeats": n,
             "ms_per_frame": 1000 * statistics.median(self.totals) / self.batch,
             "ms_per_frame_stage": {k: 1000 * statistics.median(v) / self.batch
@@ -420,7 +431,8 @@ def print_versus(versus: list[dict]) -> None:
 
     for c in versus:
         name = c["method"] + (":" + ",".join(f"{k}={v}" for k, v in c["options"].items())
-                              if c["options"] else "")
+                              if c["options"] else "") + (ADAPTIVE_SUFFIX if c.get("adaptive")
+                                                          else "")
         print(f"{name[:28]:<28}{c['views']:>9}{c['size']:>6}{c['batch']:>6}"
               f"{c['ms_per_frame']:>8.1f}{cell(c['mitsuba_1spp_ms_per_frame'], 9, '.1f')}"
               f"{cell(c['mitsuba_1spp_ratio'], 7, '.2f')}"
@@ -433,7 +445,7 @@ def compare_rows(rows: list[dict], mitsuba: list[dict]) -> list[dict]:
     their ratio (Mitsuba / ours: above 1, ours is faster)."""
     out = []
     for r in rows:
-        c = {k: r[k] for k in ("method", "options", "views", "size", "batch")}
+        c = {k: r.get(k) for k in ("method", "options", "adaptive", "views", "size", "batch")}
         c["ms_per_frame"] = r["ms_per_frame"]
         for spp, denoise in MITSUBA_ROWS:
             key = f"mitsuba_{spp}spp{'_oidn' if denoise else ''}"

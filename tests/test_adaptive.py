@@ -1,5 +1,7 @@
-"""Adaptive supersampling (``RenderSettings(adaptive=True)``, torchrefract.geometry.adaptive):
-one center sample where a pixel's G-buffer is smooth inside, every sub-pixel elsewhere."""
+"""Adaptive sampling (``RenderSettings(adaptive=True)``, torchrefract.geometry.adaptive):
+with n x n samples, one center sample where a pixel's G-buffer is smooth inside, every
+sub-pixel elsewhere; with one, the 2x2 lattice shaded and the pixels between interpolated
+where their G-buffer and the lattice's radiance are smooth."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import torchrefract as tr
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import pixel_rays
 from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.kernels import native
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.settings import RenderSettings
 from torchrefract.truth.metrics import flip_map
@@ -32,11 +35,8 @@ def _plan(s: tr.Scene):
     return g, *adaptive.plan(g, pixel_rays(s.camera)[None], alpha)
 
 
-def test_off_by_default_and_a_no_op_at_one_sample():
+def test_off_by_default():
     assert RenderSettings().adaptive is False
-    s = _scene("sphere_a03", 32, n=1, method="rousiers")
-    a, b = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
-    assert torch.equal(a.radiance, b.radiance)
 
 
 def test_smooth_glass_is_sampled_uniformly():
@@ -90,3 +90,96 @@ def test_reference_is_sampled_uniformly():
     s = _scene("slab_a02", 16, method="reference", method_options={"spp": 4})
     a, b = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
     assert torch.equal(a.radiance, b.radiance)
+
+
+# --- one sample per pixel: the lattice ---------------------------------------------------
+
+def _lattice_inputs(s: tr.Scene):
+    g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
+    from torchrefract.optics.materials import MaterialBatch  # noqa: PLC0415
+    from torchrefract.render import _front_roughness  # noqa: PLC0415
+    alpha = _front_roughness(g, MaterialBatch.from_scenes([s]))
+    return g, (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, alpha)
+
+
+def test_lattice_plan_kernel_equals_tensor_code():
+    """csrc/lattice.c's plan is adaptive._lattice_torch's, status for status, on meshes
+    with folds, a roughness map and odd frame sizes (a last row and column without their
+    second neighbour)."""
+    assert native.available()
+    for name, size in (("sphere_a03", 48), ("bunny_a01", 49), ("globe_gradient", 47),
+                       ("wingnut_a01", 40)):
+        _, args = _lattice_inputs(_scene(name, size, n=1))
+        a = native.lattice_plan(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
+                                adaptive.DEPTH_TOL)
+        b = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
+                                    adaptive.DEPTH_TOL)
+        assert torch.equal(a, b), name
+        assert set(a.unique().tolist()) <= {0, 1, 2}
+        lat = torch.zeros_like(a, dtype=torch.bool)
+        lat[:, ::2, ::2] = True
+        assert not ((a == 2) & lat).any()  # the lattice never waits
+        assert torch.equal(a > 0, args[0])  # every object pixel has a status
+
+
+def test_lattice_fill_kernel_equals_tensor_code():
+    """The fill's decisions and means agree bit for bit, NaN and Inf neighbours included
+    (never interpolated from)."""
+    _, args = _lattice_inputs(_scene("sphere_a03", 41, n=1))
+    st = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
+                                 adaptive.DEPTH_TOL)
+    gen = torch.Generator().manual_seed(3)
+    rad = 1.0 + 0.08 * torch.rand(st.numel(), 3, generator=gen)  # spreads around the tol
+    rad[::97] = float("nan")
+    rad[5::131] = float("inf")
+    s1, s2, r1, r2 = st.clone(), st.clone(), rad.clone(), rad.clone()
+    assert native.lattice_fill(s1, r1, adaptive.LATTICE_RTOL)
+    adaptive._fill_torch(s2, r2, adaptive.LATTICE_RTOL)
+    assert torch.equal(s1, s2)
+    assert torch.equal(r1.nan_to_num(7.0, 8.0), r2.nan_to_num(7.0, 8.0))
+    assert (s1 == 3).sum() > 0 and (s1 == 4).sum() > 0 and not (s1 == 2).any()
+    assert torch.isfinite(r1[(s1 == 3).view(-1)]).all()
+
+
+def test_one_sample_shades_the_lattice_and_interpolates_the_smooth_rest():
+    """The rough sphere: under half of its pixels are shaded; those are the full render's
+    bit for bit, the others interpolated close to it (FLIP); the passes too."""
+    s = _scene("sphere_a03", 64, n=1, method="rousiers")
+    full, ad = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
+    g, args = _lattice_inputs(s)
+    m = g.front.mask[0]
+    same = (ad.radiance[0] == full.radiance[0]).all(-1)
+    assert same[~m].all()  # the background is untouched
+    exact = float(same[m].float().mean())
+    assert 0.2 < exact < 0.5, exact  # the lattice (1/4) and a few more
+    fl = float(flip_map(ad.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
+    assert fl < 0.01, fl
+    for k in ("exit_found", "normal_front", "thickness"):
+        assert torch.isfinite(ad.passes[k]).all() and ad.passes[k].shape == full.passes[k].shape
+
+
+def test_one_sample_with_bounces_a_light_and_a_roughness_map_stays_close():
+    """Every shaded pixel is the full render's; the image stays within FLIP 0.02 of it
+    with internal bounces, a sphere light in front (slab_light) and a roughness map."""
+    for name, opts in (("slab_light", {}), ("globe_gradient", {"internal_bounces": 2}),
+                       ("bunny_a01", {"internal_bounces": 2})):
+        s = _scene(name, 48, n=1, method="rousiers", method_options=opts)
+        full, ad = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
+        g, _ = _lattice_inputs(s)
+        m = g.front.mask[0]
+        fl = float(flip_map(ad.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
+        assert fl < 0.02, (name, fl)
+        assert torch.isfinite(ad.radiance).all()
+
+
+def test_one_sample_smooth_glass_and_fallback():
+    """Smooth glass waits nowhere (the image is the full one); without the native kernels
+    the tensor code plans and fills alike (the same pixels shaded)."""
+    s = _scene("sphere_a0", 40, n=1, method="rousiers")
+    assert torch.equal(tr.render(s, settings=UNIFORM).radiance,
+                       tr.render(s, settings=ADAPTIVE).radiance)
+    s = _scene("sphere_a03", 40, n=1, method="specular")
+    a = tr.render(s, settings=ADAPTIVE)
+    b = tr.render(s, settings=RenderSettings(adaptive=True, native=False, fused=False))
+    close = torch.isclose(a.radiance, b.radiance, rtol=1e-3, atol=1e-5).all(-1)
+    assert float(close.float().mean()) > 0.995

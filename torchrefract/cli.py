@@ -41,8 +41,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="each method's tensor code instead of its fused shading kernel "
                         "(the same images within float32 rounding; slower)")
     r.add_argument("--adaptive", action="store_true",
-                   help="with samples_per_pixel > 1, shade every sub-pixel only where the "
-                        "G-buffer changes inside the pixel (RenderSettings.adaptive)")
+                   help="shade only the (sub-)pixels the image needs: with "
+                        "samples_per_pixel > 1 every sub-pixel only where the G-buffer "
+                        "changes inside the pixel; with 1, a 2x2 lattice, the pixels between "
+                        "interpolated where smooth (RenderSettings.adaptive)")
     r.add_argument("--passes", default=None,
                    help="extra passes for every scene, comma-separated: matte (the lobes "
                         "the method read the environment with, relightable), flow "
@@ -90,7 +92,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="each method's tensor code instead of its fused shading kernel in "
                         "every rendering process")
     w.add_argument("--adaptive", action="store_true",
-                   help="adaptive supersampling in every rendering process "
+                   help="adaptive sampling in every rendering process "
                         "(RenderSettings.adaptive)")
     w.add_argument("--device", default=None,
                    help="cpu, cuda, cuda:N or auto: where every rendering process shades "

@@ -269,9 +269,12 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     materials = MaterialBatch.from_scenes(scenes)
     plan = None
-    if current().adaptive and g.supersample > 1 and entry.shades_object_index:
-        g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
-                                _front_roughness(g, materials))
+    if current().adaptive and entry.shades_object_index:
+        if g.supersample > 1:
+            g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
+                                    _front_roughness(g, materials))
+        else:
+            g, plan = adaptive.lattice(g, _front_roughness(g, materials))
     want = current().torch_device()
     # a CPU-only method shades on the CPU; its result is moved at the end
     device = want if want.type in entry.devices else torch.device("cpu")
@@ -297,8 +300,18 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
     with collect() as stage_times, render_hook.scope(extra) as rec:
         shaded = tiles.shade(entry, g, lighting, materials, options, state, budget)
         radiance, method_passes = shaded.radiance, shaded.passes
-        if plan is not None:  # the pixels shaded once: their sample to every sub-pixel
+        if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
             radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
+        elif isinstance(plan, adaptive.Lattice):  # the waiting pixels: interpolated, or
+            radiance, method_passes, rest = adaptive.fill(plan, radiance, method_passes)
+            if rest is not None:  # shaded now, over the image so far
+                shade = torch.zeros(g.shape, dtype=torch.bool, device=rest.device)
+                shade.view(-1)[rest] = True
+                second = tiles.shade(entry, dataclasses.replace(
+                    g, shade=shade, canvas=radiance.view(-1, 3)), lighting, materials,
+                    options, state, budget)
+                radiance, method_passes = adaptive.merge(radiance, method_passes, second,
+                                                         rest)
         bad = ~torch.isfinite(radiance)
         if bad.any():  # never let NaN/Inf out, and never hide that it happened
             count = int(bad.any(-1).sum())

@@ -1,5 +1,5 @@
 """How a render runs (not what it renders): threads, kernels, compilation, adaptive
-supersampling (an approximation, off by default), the memory budget, the cache folder and
+sampling (an approximation, off by default), the memory budget, the cache folder and
 the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
 ``RenderStream`` as one :class:`RenderSettings`.
 
@@ -12,7 +12,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_NATIVE=0``              ``native=False``: tensor code, not the C kernels
 ``TORCHREFRACT_NATIVE_SIMD=0``         ``native_simd=False``: the march's scalar search
 ``TORCHREFRACT_FUSED=0``               ``fused=False``: the tensor code, not the fused kernels
-``TORCHREFRACT_ADAPTIVE=1``            ``adaptive=True``: adaptive supersampling
+``TORCHREFRACT_ADAPTIVE=1``            ``adaptive=True``: adaptive sampling
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
@@ -90,9 +90,12 @@ class RenderSettings:
     (:mod:`torchrefract.shading.fused`; the tensor code otherwise, and wherever a gradient
     is wanted): the same images within float32 rounding."""
     adaptive: bool = False
-    """With ``samples_per_pixel`` n > 1: shade all n x n sub-pixels only where the G-buffer
-    changes inside the pixel, one center sample elsewhere (:mod:`torchrefract.geometry.
-    adaptive`): an approximation of the uniform sampling, at a fraction of its shading."""
+    """Shade no more pixels than the image needs (:mod:`torchrefract.geometry.adaptive`):
+    with ``samples_per_pixel`` n > 1, all n x n sub-pixels only where the G-buffer changes
+    inside the pixel, one center sample elsewhere; with one sample, the 2x2 lattice's
+    pixels, and the pixels between them only where their G-buffer or the lattice's
+    radiance is not smooth (the others interpolated). An approximation of the full
+    sampling, at a fraction of its shading."""
     compile: bool = False
     """torch.compile the march's tensor code (seconds of start-up per process)."""
     heap_reuse: bool = False

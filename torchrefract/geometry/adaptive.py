@@ -17,6 +17,14 @@ The back layer, which the marches read, stays the n x n one; the center sample l
 the sub-pixel triangle its ray hits (the most inside of the pixel's). What the G-buffer cannot show
 (a TIR boundary, a sharp feature of the environment seen through a smooth pixel) is not
 detected: there one sample stands for the pixel.
+
+At one sample per pixel (:func:`lattice`, :func:`fill`) the same idea runs the other way:
+the object pixels of the 2x2 lattice (even row and column) are shaded first; a pixel
+between lattice pixels whose G-buffer agrees with theirs (the tests above, and
+roughness at least ``smooth_alpha``) waits, and is then the mean of their radiances where
+those agree within ``LATTICE_RTOL``, else it is shaded in a second pass. The shaded
+pixels are the full render's; the others are interpolated where the image is smooth
+(measured: docs/decisions.md, "Adaptive shading at one sample per pixel").
 """
 
 from __future__ import annotations
@@ -26,7 +34,8 @@ from dataclasses import dataclass, replace
 import torch
 
 from torchrefract.geometry.gbuffer import GBuffer, interpolate, intersect_triangles
-from torchrefract.kernels.index import take
+from torchrefract.kernels import native
+from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.optics.smooth import dot, normalize
 
 NORMAL_TOL = 1e-2
@@ -37,6 +46,10 @@ SMOOTH_ALPHA = 0.02
 """Below this roughness every sub-pixel is shaded: a sharp refraction resolves the
 environment's detail inside a pixel, which the G-buffer does not show (measured on the
 smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
+LATTICE_RTOL = 0.2
+"""The largest spread (max - min per channel, over their mean luminance + 1e-3) of a
+waiting pixel's lattice neighbours' radiances at which it is their mean (fit on the
+validation set's fit half: docs/decisions.md, "Adaptive shading at one sample per pixel")."""
 
 
 @dataclass(frozen=True)
@@ -138,4 +151,139 @@ def spread(p: Plan, radiance: torch.Tensor, passes: dict[str, torch.Tensor]
     return radiance, passes
 
 
-__all__ = ["DEPTH_TOL", "NORMAL_TOL", "SMOOTH_ALPHA", "Plan", "plan", "spread"]
+@dataclass(frozen=True)
+class Lattice:
+    """Adaptive shading at one sample per pixel: ``status`` (B, H, W) uint8, 0 not the
+    object, 1 shaded in the first pass, 2 waiting for its lattice neighbours (csrc/lattice.c;
+    :func:`fill` turns 2 into 3, interpolated, or 4, shaded in the second pass)."""
+
+    status: torch.Tensor
+
+
+def _neighbours(idx: torch.Tensor, h: int, w: int
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each flat pixel's lattice neighbours (N, 4) (the two of a pixel between two lattice
+    pixels repeated), whether it has four, and whether it has any inside the frame (False
+    for a lattice pixel, and one on the last row or column without its second)."""
+    x, y = idx % w, (idx // w) % h
+    ox, oy = (x % 2) == 1, (y % 2) == 1
+    diag = ox & oy
+    step = torch.where(ox, torch.ones_like(idx), torch.full_like(idx, w))
+    n0 = torch.where(diag, idx - w - 1, idx - step)
+    n1 = torch.where(diag, idx - w + 1, idx + step)
+    n2 = torch.where(diag, idx + w - 1, n0)
+    n3 = torch.where(diag, idx + w + 1, n1)
+    valid = (ox | oy) & ~(ox & (x + 1 >= w)) & ~(oy & (y + 1 >= h))
+    return torch.stack([n0, n1, n2, n3], 1), diag, valid
+
+
+def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: float,
+                   depth_tol: float) -> torch.Tensor:
+    """The tensor code of csrc/lattice.c's plan: (B, H, W) uint8 status (:class:`Lattice`)."""
+    b, h, w = fm.shape
+    n = b * h * w
+    status = torch.zeros(n, dtype=torch.uint8, device=fm.device)
+    obj = where_true(fm.reshape(-1))
+    status[obj] = 1
+    nb, _, valid = _neighbours(obj, h, w)
+    nb = nb.clamp(0, n - 1)  # out of the frame only where not valid
+    al = alpha.expand(b, h, w).reshape(-1)
+    fmf, bmf, bdf = fm.reshape(-1), bm.reshape(-1), bd.reshape(-1)
+    fnf, bnf = fn.reshape(-1, 3), bn.reshape(-1, 3)
+    p_bm, p_bd = take(bmf, obj), take(bdf, obj)
+    p_fn, p_bn = take(fnf, obj), take(bnf, obj)
+    tol = depth_tol * p_bd.abs()
+    wait = valid & (take(al, obj) >= alpha_min)
+    for k in range(4):
+        q = nb[:, k]
+        wait &= take(fmf, q) & (take(bmf, q) == p_bm) & (take(al, q) >= alpha_min)
+        wait &= 1.0 - dot(take(fnf, q), p_fn) <= normal_tol
+        wait &= ~p_bm | ((1.0 - dot(take(bnf, q), p_bn) <= normal_tol)
+                         & ((take(bdf, q) - p_bd).abs() <= tol))
+    status[take(obj, where_true(wait))] = 2
+    return status.view(b, h, w)
+
+
+def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
+            depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA
+            ) -> tuple[GBuffer, Lattice]:
+    """The G-buffer of the first pass (``shade``: the lattice and the pixels that cannot
+    wait) and the plan, for a G-buffer of one sample per pixel (module docstring). A
+    waiting pixel is rough and so are its lattice neighbours, which the first pass shades:
+    each pass has a rough pixel where the full pass has one (the methods' switch of the
+    rough interfaces' energies, :func:`torchrefract.tiles.shade`).
+
+    Args:
+        alpha: the front roughness, (B, H, W) or per view (B, 1, 1).
+    """
+    args = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, alpha)
+    status = native.lattice_plan(*args, smooth_alpha, normal_tol, depth_tol)
+    if status is None:
+        status = _lattice_torch(*args, smooth_alpha, normal_tol, depth_tol)
+    return replace(g, shade=status == 1), Lattice(status=status)
+
+
+def _mean(v: torch.Tensor, four: torch.Tensor) -> torch.Tensor:
+    """(N, C) mean of the neighbours' values v (N, 4, C): of four, or of the first two."""
+    s = v[:, 0] + v[:, 1]
+    return torch.where(four[:, None], ((s + v[:, 2]) + v[:, 3]) * 0.25, s * 0.5)
+
+
+def _fill_torch(status: torch.Tensor, flat: torch.Tensor, rtol: float,
+                passes: list[torch.Tensor] = ()) -> None:
+    """The tensor code of csrc/lattice.c's fill, in place on ``status`` (B, H, W), ``flat``
+    (B*H*W, 3) and each of ``passes`` (B*H*W, C)."""
+    _, h, w = status.shape
+    st = status.view(-1)
+    idx = where_true(st == 2)
+    nb, four, _ = _neighbours(idx, h, w)
+    v = take(flat, nb.reshape(-1)).view(-1, 4, 3)
+    mean = _mean(v, four)
+    lum = ((mean[:, 0] + mean[:, 1]) + mean[:, 2]) / 3.0 + 1e-3
+    rel = (v.amax(1) - v.amin(1)) / lum[:, None]
+    ok = torch.isfinite(rel).all(-1) & (rel.nan_to_num(float("inf")).amax(-1) <= rtol)
+    sel = where_true(ok)
+    done, nb, four = take(idx, sel), take(nb, sel), take(four, sel)
+    put_(flat, done, take(mean, sel))
+    for x in passes:
+        put_(x, done, _mean(take(x, nb.reshape(-1)).view(len(done), 4, -1), four))
+    st[idx] = torch.where(ok, 3, 4).to(st.dtype)
+
+
+def fill(lat: Lattice, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
+         rtol: float | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor],
+                                             torch.Tensor | None]:
+    """After the first pass: each waiting pixel its lattice neighbours' mean where their
+    radiances agree, in ``radiance`` (B, H, W, 3) and the method's ``passes`` (B, H, W, C)
+    (``lat.status`` in place). Returns the radiance, the passes and the flat indices of
+    the pixels the second pass shades (None: none). ``rtol``: default LATTICE_RTOL."""
+    rtol = LATTICE_RTOL if rtol is None else rtol
+    b, h, w, _ = radiance.shape
+    radiance = radiance.contiguous()
+    passes = {k: v.contiguous() for k, v in passes.items()}
+    flat = radiance.view(-1, 3)
+    pflat = [v.view(b * h * w, -1) for v in passes.values()]
+    grad = radiance.requires_grad or any(v.requires_grad for v in pflat)
+    if grad or not native.lattice_fill(lat.status, flat, rtol, pflat):
+        _fill_torch(lat.status, flat, rtol, pflat)
+    rest = where_true(lat.status.view(-1) == 4)
+    return radiance, passes, (rest if rest.numel() else None)
+
+
+def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
+          rest: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The second pass's radiance (it shaded ``rest`` over the first's image) and the
+    first pass's passes with the second's values at ``rest`` (flat indices)."""
+    out = {}
+    for k, v in second.passes.items():
+        if k not in passes:
+            out[k] = v
+            continue
+        c = v.shape[-1]
+        out[k] = put_(passes[k].reshape(-1, c), rest, take(v.reshape(-1, c), rest)
+                      ).view(passes[k].shape)
+    return second.radiance, {**passes, **out}
+
+
+__all__ = ["DEPTH_TOL", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA", "Lattice", "Plan",
+           "fill", "lattice", "merge", "plan", "spread"]

@@ -127,6 +127,9 @@ class GBuffer:
         supersample: n; (H, W) = n * (camera height, camera width).
         shade: (B, H, W) bool, the object (sub-)pixels a method shades (None: all of
             ``front.mask``; :mod:`torchrefract.geometry.adaptive` sets fewer).
+        canvas: (B*H*W, 3) radiance a method shades its pixels over in place of the
+            background (None: the background; adaptive shading's second pass: the
+            first pass's image, :func:`torchrefract.shading.background.background`).
     """
 
     front: Layer
@@ -137,6 +140,7 @@ class GBuffer:
     meshes: MeshBatch
     supersample: int
     shade: torch.Tensor | None = None
+    canvas: torch.Tensor | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:

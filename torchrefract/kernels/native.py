@@ -47,7 +47,8 @@ from torchrefract.output.atomic import atomic_path
 SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuffer.c",
                                                                 "cone.c", "specular.c",
                                                                 "background.c", "rousiers.c",
-                                                                "lean.c", "raster.c"))
+                                                                "lean.c", "raster.c",
+                                                                "lattice.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
@@ -225,10 +226,23 @@ class _RasterJob(ctypes.Structure):
                 ("front", _p), ("back", _p)]
 
 
+class _LatticeJob(ctypes.Structure):
+    """ctypes mirror of ``LatticeJob`` in csrc/lattice.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("front_mask", _p), ("back_mask", _p), ("front_normal", _p),
+                ("back_normal", _p), ("back_depth", _p), ("alpha", _p),
+                ("per_pixel", ctypes.c_int), ("alpha_min", ctypes.c_float),
+                ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
+                ("rtol", ctypes.c_float), ("radiance", _p), ("status", _p),
+                ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p)]
+
+
 _KERNELS = {"march": _Job, "planes": _PlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "specular": _SpecJob,
-            "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob}
+            "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
+            "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -621,5 +635,53 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
     return var
 
 
-__all__ = ["available", "build", "footprint", "layer", "library_path", "march",
-           "native_enabled", "no_grad_through", "raster_ids", "set_native", "spread"]
+def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
+                 front_normal: torch.Tensor, back_normal: torch.Tensor,
+                 back_depth: torch.Tensor, alpha: torch.Tensor, alpha_min: float,
+                 normal_tol: float, depth_tol: float) -> torch.Tensor | None:
+    """``adaptive._lattice_torch``'s (B, H, W) uint8 status (csrc/lattice.c), or ``None``
+    where the kernel is unavailable or an input is not a float32 / bool CPU tensor.
+
+    Args:
+        front_mask, back_mask: (B, H, W). front_normal, back_normal: (B, H, W, 3).
+        back_depth: (B, H, W). alpha: (B, H, W) or (B, 1, 1) front roughness.
+    """
+    if not available():
+        return None
+    keep = _inputs((front_normal, back_normal, back_depth, alpha), (),
+                   (front_mask, back_mask))
+    if keep is None:
+        return None
+    b, h, w = front_mask.shape
+    status = torch.empty(b, h, w, dtype=torch.uint8)
+    job = _LatticeJob(b=b, h=h, w=w, front_mask=keep[4].data_ptr(),
+                      back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
+                      back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
+                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * h * w),
+                      alpha_min=alpha_min, normal_tol=normal_tol, depth_tol=depth_tol,
+                      rtol=0.0, radiance=None, status=status.data_ptr())
+    return status if _call("lattice_plan", job) else None
+
+
+def lattice_fill(status: torch.Tensor, radiance: torch.Tensor, rtol: float,
+                 passes: list[torch.Tensor] = ()) -> bool:
+    """``adaptive._fill_torch`` in place on ``status`` (B, H, W) uint8, ``radiance``
+    (B*H*W, 3) and each of ``passes`` (B*H*W, C) (float32, contiguous, on the CPU);
+    ``False`` where the kernel did not run (nothing changed)."""
+    arrays = (radiance, *passes)
+    if not (available() and status.is_contiguous() and all(
+            x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
+            for x in arrays)):
+        return False
+    b, h, w = status.shape
+    ptrs = (ctypes.c_void_p * max(1, len(passes)))(*[x.data_ptr() for x in passes])
+    chans = torch.tensor([x.shape[-1] for x in passes] or [0], dtype=torch.int64)
+    job = _LatticeJob(b=b, h=h, w=w, rtol=rtol, radiance=radiance.data_ptr(),
+                      status=status.data_ptr(), npass=len(passes),
+                      pass_ptr=ctypes.cast(ptrs, ctypes.c_void_p), pass_ch=chans.data_ptr())
+    return _call("lattice_fill", job)
+
+
+__all__ = ["available", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
+           "library_path", "march", "native_enabled", "no_grad_through", "raster_ids",
+           "set_native", "spread"]

@@ -1,0 +1,129 @@
+/* Adaptive shading at one sample per pixel (geometry/adaptive.py, ``lattice`` and
+ * ``fill``): the object pixels of the 2x2 lattice (even row, even column) are shaded, and
+ * a pixel between lattice pixels waits for them where its G-buffer agrees with theirs; it
+ * is then their mean where their radiances agree too, else it is shaded after all.
+ *
+ * A pixel's lattice neighbours: (y, x -+ 1) for an even row and odd column, (y -+ 1, x)
+ * for an odd row and even column, the four diagonal ones for an odd row and column. The
+ * same float32 operations as the tensor code (adaptive._lattice_torch, _fill_torch):
+ * optics.dot's order, explicit sums, no contraction.
+ *
+ * Status per pixel (uint8): 0 not the object, 1 shaded in the first pass, 2 waiting;
+ * after ``fill`` a waiting pixel is 3 (interpolated) or 4 (shaded in the second pass). */
+
+#include "optics.h"
+
+typedef struct {
+    int64_t b, h, w;
+    const uint8_t *front_mask, *back_mask;      /* (B*H*W,) */
+    const float *front_normal, *back_normal;    /* (B*H*W, 3) */
+    const float *back_depth;                    /* (B*H*W,) */
+    const float *alpha;                         /* (B*H*W,) or (B,): per_pixel 0 */
+    int per_pixel;
+    float alpha_min, normal_tol, depth_tol, rtol;
+    float *radiance;                            /* (B*H*W, 3): fill's in and out */
+    uint8_t *status;                            /* (B*H*W,) out (plan), in and out (fill) */
+    int npass;                                  /* fill: the method's passes, interpolated */
+    float *const *pass;                         /* (npass,) each (B*H*W, pass_ch[k]) */
+    const int64_t *pass_ch;
+} LatticeJob;
+
+/* The mean of the neighbours' values (k = 2 or 4) of channel c of a (B*H*W, ch) array. */
+static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, int k,
+                                 int64_t c) {
+    float s = x[nb[0] * ch + c] + x[nb[1] * ch + c];
+    return k == 4 ? ((s + x[nb[2] * ch + c]) + x[nb[3] * ch + c]) * 0.25f : s * 0.5f;
+}
+
+/* The flat indices of pixel p's lattice neighbours (2 or 4; 0 where p is a lattice pixel
+ * or a neighbour leaves the frame). */
+static int lattice_neighbours(const LatticeJob *j, int64_t p, int64_t *nb) {
+    int64_t x = p % j->w, y = (p / j->w) % j->h;
+    int oy = (int)(y & 1), ox = (int)(x & 1);
+    if (!oy && !ox) return 0;
+    if ((ox && x + 1 >= j->w) || (oy && y + 1 >= j->h)) return 0;
+    if (oy && ox) {
+        nb[0] = p - j->w - 1; nb[1] = p - j->w + 1; nb[2] = p + j->w - 1; nb[3] = p + j->w + 1;
+        return 4;
+    }
+    if (ox) { nb[0] = p - 1; nb[1] = p + 1; }
+    else { nb[0] = p - j->w; nb[1] = p + j->w; }
+    return 2;
+}
+
+static inline float alpha_of(const LatticeJob *j, int64_t p) {
+    return j->per_pixel ? j->alpha[p] : j->alpha[p / (j->h * j->w)];
+}
+
+static void plan_range(const void *job, int64_t begin, int64_t end) {
+    const LatticeJob *j = (const LatticeJob *)job;
+    for (int64_t p = begin; p < end; p++) {
+        if (!j->front_mask[p]) { j->status[p] = 0; continue; }
+        int64_t nb[4];
+        int k = lattice_neighbours(j, p, nb);
+        int wait = k > 0 && alpha_of(j, p) >= j->alpha_min;
+        const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
+        int back = j->back_mask[p];
+        float bd = j->back_depth[p], tol = j->depth_tol * fabsf(bd);
+        for (int i = 0; i < k && wait; i++) {
+            int64_t q = nb[i];
+            wait = j->front_mask[q] && j->back_mask[q] == back
+                   && alpha_of(j, q) >= j->alpha_min
+                   && 1.0f - dot3(j->front_normal + 3 * q, fn) <= j->normal_tol;
+            if (wait && back)
+                wait = 1.0f - dot3(j->back_normal + 3 * q, bn) <= j->normal_tol
+                       && fabsf(j->back_depth[q] - bd) <= tol;
+        }
+        j->status[p] = wait ? 2 : 1;
+    }
+}
+
+/* No pass lacks a rough pixel that the full pass has (the methods' switch of the rough
+ * interfaces' energies, tiles.shade): a waiting pixel's lattice neighbours are rough and in
+ * the first pass, and the second pass shades waiting pixels only, all rough. */
+int torchrefract_lattice_plan(LatticeJob *job, int threads) {
+    return tr_parallel_for(plan_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+static void fill_range(const void *job, int64_t begin, int64_t end) {
+    const LatticeJob *j = (const LatticeJob *)job;
+    for (int64_t p = begin; p < end; p++) {
+        if (j->status[p] != 2) continue;
+        int64_t nb[4];
+        int k = lattice_neighbours(j, p, nb);
+        const float *v[4];
+        for (int i = 0; i < k; i++) v[i] = j->radiance + 3 * nb[i];
+        float mean[3], rel = 0.0f;
+        for (int c = 0; c < 3; c++) mean[c] = lattice_mean(j->radiance, 3, nb, k, c);
+        float lum = ((mean[0] + mean[1]) + mean[2]) / 3.0f + 1e-3f;
+        int finite = 1;
+        for (int c = 0; c < 3; c++) {
+            float lo = v[0][c], hi = v[0][c];
+            for (int i = 1; i < k; i++) {
+                lo = v[i][c] < lo ? v[i][c] : lo;
+                hi = v[i][c] > hi ? v[i][c] : hi;
+            }
+            float r = (hi - lo) / lum;
+            finite &= isfinite(r);
+            rel = r > rel ? r : rel;
+        }
+        if (finite && rel <= j->rtol) {
+            for (int c = 0; c < 3; c++) j->radiance[3 * p + c] = mean[c];
+            for (int q = 0; q < j->npass; q++) {
+                float *x = j->pass[q];
+                int64_t ch = j->pass_ch[q];
+                for (int64_t c = 0; c < ch; c++) x[p * ch + c] = lattice_mean(x, ch, nb, k, c);
+            }
+            j->status[p] = 3;
+        } else {
+            j->status[p] = 4;
+        }
+    }
+}
+
+int torchrefract_lattice_fill(LatticeJob *job, int threads) {
+    return tr_parallel_for(fill_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+int64_t torchrefract_lattice_plan_job_size(void) { return (int64_t)sizeof(LatticeJob); }
+int64_t torchrefract_lattice_fill_job_size(void) { return (int64_t)sizeof(LatticeJob); }
