@@ -11,7 +11,11 @@ mean time, no scene worse than that variant by more than 0.03, and no scene wors
 plain ``rousiers`` by more than 0.01.
 
     .venv/bin/python scripts/validation_report.py [outputs/validation_chart/results.csv]
+        [--auto outputs/validation_chart_auto2/results.csv]
         [--splits configs/validation/splits.json] [--json out.json]
+
+``--auto CSV`` takes ``auto``'s rows from another chart run (a new table rendered on the
+same scenes, same truth) in place of those in the main CSV; the fixed variants keep theirs.
 """
 
 from __future__ import annotations
@@ -28,12 +32,14 @@ MEAN_SLACK, SCENE_SLACK, ROUSIERS_SLACK = 0.005, 0.03, 0.01
 that variant's, any one scene above plain rousiers'."""
 
 
-def read_rows(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
-    """variant -> scene -> (FLIP on object pixels, ms per frame), timed rows only."""
+def read_rows(path: Path, only: str | None = None) -> dict[str, dict[str, tuple[float, float]]]:
+    """variant -> scene -> (FLIP on object pixels, ms per frame), timed rows only (of variant
+    ``only`` if given)."""
     out: dict[str, dict[str, tuple[float, float]]] = {}
     with open(path, newline="") as f:
         for r in csv.DictReader(f):
-            if r["ms_per_frame"] and r["method"] not in ("truth", "floor"):
+            if r["ms_per_frame"] and r["method"] not in ("truth", "floor") \
+                    and only in (None, r["variant"]):
                 out.setdefault(r["variant"], {})[r["scene"]] = (float(r["flip_object"]),
                                                                 float(r["ms_per_frame"]))
     return out
@@ -92,10 +98,18 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", nargs="?",
                     default=str(ROOT / "outputs" / "validation_chart" / "results.csv"))
+    ap.add_argument("--auto", default=None, metavar="CSV",
+                    help="take auto's rows from this chart run instead (same scenes and truth)")
     ap.add_argument("--splits", default=str(ROOT / "configs" / "validation" / "splits.json"))
     ap.add_argument("--json", default=None, help="also write the figures as JSON")
     args = ap.parse_args(argv)
     rows = read_rows(Path(args.results))
+    if args.auto:
+        rows.pop("auto", None)
+        auto = read_rows(Path(args.auto), only="auto")
+        if not auto:
+            raise SystemExit(f"validation_report: no timed auto rows in {args.auto}")
+        rows.update(auto)
     if not rows:
         raise SystemExit(f"validation_report: no timed rows in {args.results}")
     splits = json.loads(Path(args.splits).read_text())

@@ -443,7 +443,8 @@ def test_auto_records_what_it_rendered(tmp_path):
     assert all(e["method"] == "auto" for e in lines)
     for e in lines:
         assert abs(sum(b["weight"] for b in e["auto_blend"]) - 1) < 1e-9
-    assert lines[0]["auto_blend"][0]["method"] == "specular"  # smooth: no cone
+    # smooth: no lobe split into rays (auto.SPLIT_MIN_ALPHA); rough: the cone method
+    assert all(b["options"].get("bounce_rays", 1) == 1 for b in lines[0]["auto_blend"])
     assert lines[2]["auto_blend"][0]["method"] == "rousiers"
     run_sweep(cfg, tmp_path / "w", fmt="webdataset", quiet=True)
     with tarfile.open(next((tmp_path / "w").glob("*.tar"))) as tar:

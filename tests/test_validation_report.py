@@ -10,6 +10,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -67,3 +69,29 @@ def test_chart_skips_scenes_without_cached_truth(tmp_path, capsys):
                         "--out", str(tmp_path / "chart"), "--size", "16"]) == 1
     assert "sphere_a03: no cached truth" in capsys.readouterr().out
     assert not (tmp_path / "none").exists() or not list((tmp_path / "none").iterdir())
+
+
+def test_auto_rows_from_another_run_replace_the_charts(tmp_path):
+    """``--auto``: auto's rows come from a second run (a new table), the fixed variants' from
+    the first; a variant of the second run other than auto is ignored."""
+    rep = _script("validation_report")
+    old, new = [], []
+    for scene in "abcd":
+        old += [(scene, "rousiers", 0.30, 10.0), (scene, "rousiers ib2", 0.20, 20.0),
+                (scene, "auto", 0.50, 15.0)]
+        new += [(scene, "auto", 0.20, 18.0), (scene, "rousiers ib2", 0.90, 99.0)]
+    _chart(tmp_path / "old.csv", old)
+    _chart(tmp_path / "new.csv", new)
+    splits = tmp_path / "splits.json"
+    splits.write_text(json.dumps({"fit": ["a", "b"], "heldout": ["c", "d"]}))
+    out = tmp_path / "report.json"
+    assert rep.main([str(tmp_path / "old.csv"), "--auto", str(tmp_path / "new.csv"),
+                     "--splits", str(splits), "--json", str(out)]) == 0
+    held = json.loads(out.read_text())["heldout"]
+    assert held["means"]["auto"] == [0.20, 18.0]
+    assert held["means"]["rousiers ib2"] == [0.20, 20.0]  # the first run's, not 0.90
+    assert held["auto"]["meets"] == {"mean": True, "every_scene": True, "rousiers": True}
+    _chart(tmp_path / "none.csv", [("a", "rousiers", 0.3, 10.0)])
+    with pytest.raises(SystemExit, match="no timed auto rows"):
+        rep.main([str(tmp_path / "old.csv"), "--auto", str(tmp_path / "none.csv"),
+                  "--splits", str(splits)])

@@ -2,27 +2,34 @@
 similar scenes is within ``auto_tolerance`` of the best one ("model no more than a scene
 needs"). It picks methods; it shades nothing itself.
 
-The measurements are the speed/accuracy chart's (``scripts/pareto.py``), condensed by
-``scripts/build_auto_table.py`` into ``torchrefract/tables/auto_v1.json``: per suite scene
-its features and, per variant, time per frame and FLIP against Mitsuba truth. For a scene:
+The measurements are a speed/accuracy chart's (``scripts/pareto.py``), condensed by
+``scripts/build_auto_table.py`` into a table: per measured scene its features and, per
+variant, time per frame and FLIP against Mitsuba truth. The shipped table
+(``tables/auto_v2.json``) holds the validation set's ``fit`` half (32 generated scenes,
+docs/validation.md); ``tables/auto_v1.json`` (the chart's suite scenes) is kept for
+``auto_table``. For a scene:
 
 1. Features from the scene alone: roughness alpha (a map: the middle of its range), IOR,
    and thinness (smallest / largest principal extent of the area-weighted surface).
-2. The two nearest table scenes in (log10 alpha / 0.5, thinness / 0.2, IOR / 0.5),
-   weighted by inverse distance, predict each variant's FLIP and time.
-3. The fastest variant predicted within ``auto_tolerance`` of the best predicted FLIP.
-4. Below ``SMOOTH_ALPHA`` only ``specular``'s variants (a smooth surface needs no cone).
-5. ``tir: clamp`` is never a candidate (it fails the furnace and continuity suites).
-6. Blend (``auto_blend``, default): 1.-4. evaluated on a box kernel of ``BLEND_POINTS``
+2. The ``NEIGHBOURS`` nearest table scenes in (asinh(alpha / ALPHA_U0) / 1.15, thinness / 0.2,
+   IOR / 0.5), weighted by inverse distance, predict each variant's FLIP and time.
+3. A candidate is within ``auto_tolerance`` of the best predicted FLIP, and on each of those
+   neighbours within ``auto_tolerance`` of what the predicted best measured there (a cheap
+   variant that lost badly on one similar scene is not risked); the fastest candidate wins.
+4. Below ``SPLIT_MIN_ALPHA`` no variant splits a lobe into rays (``bounce_rays`` > 1): a
+   smooth surface has no lobe to split. ``tir: clamp`` is never a candidate (it fails the
+   furnace and continuity suites).
+5. Blend (``auto_blend``, default): 1.-4. evaluated on a box kernel of ``BLEND_POINTS``
    points around the scene (alpha on u = asinh(alpha / BLEND_A0) +- BLEND_HALF_WIDTH[0],
    IOR +- BLEND_HALF_WIDTH[1]); each variant weighs its share of the points less
    ``BLEND_MIN`` (renormalized) and the image is the weighted sum, so a roughness or IOR
    sweep changes the image continuously instead of jumping where the pick changes.
 
-Without a table a rule stands in for 1.-4. (alpha < SMOOTH_ALPHA: ``specular``, else
+Without a table a rule stands in for 1.-3. (alpha < SMOOTH_ALPHA: ``specular``, else
 ``rousiers``). A single pick is recorded as the result's scene, a blend keeps ``auto``; every
 share goes to ``RenderResult.blends``, the sidecar JSON and a sweep's manifest. Why each
-threshold is where it is, and what it was measured to cost: docs/decisions.md.
+constant is what it is, and what it was measured to cost: docs/decisions.md ("auto" sections)
+and docs/validation.md.
 """
 
 from __future__ import annotations
@@ -39,17 +46,34 @@ from torchrefract.checks import ConfigError
 from torchrefract.options import option, parse_options
 from torchrefract.scene.model import Scene
 
-DEFAULT_TABLE = Path(__file__).resolve().parent / "tables" / "auto_v1.json"
-SCALES = {"log_alpha": 0.5, "thin": 0.2, "ior": 0.5}
+DEFAULT_TABLE = Path(__file__).resolve().parent / "tables" / "auto_v2.json"
+SCALES = {"u_alpha": 1.15, "thin": 0.2, "ior": 0.5}
+"""Feature scales of the distance (docstring, 2.): above ALPHA_U0 a factor ~3 in alpha
+(asinh(x) ~ ln(2x): 1.15 = ln(10) / 2), a fifth of the thinness range and half an IOR unit
+count alike (other scales and extra features, on the fit half: docs/decisions.md)."""
+ALPHA_U0 = 0.05
+"""Roughness where the alpha feature turns from linear to logarithmic: a log scale all the
+way down put smooth glass as far from alpha 0.025 as 0.025 is from 0.125 (docs/decisions.md)."""
+NEIGHBOURS = 6
+"""Table scenes a prediction averages (docstring, 2.): fewer follow one scene's noise, more
+leave only the costliest variant (the fit half's leave-one-out: docs/decisions.md)."""
 SMOOTH_ALPHA = 0.04
-"""Roughness below which a surface is smooth: ``specular`` only (module docstring, 4.)."""
+"""Roughness below which the table-less rule renders ``specular``. With a table smooth
+scenes follow its measurements (on the fit half ``rousiers`` with bounces beat ``specular``
+on smooth scenes: docs/decisions.md)."""
+SPLIT_MIN_ALPHA = 0.06
+"""Roughness below which no variant splits a lobe into rays (docstring, 4.): four rays step
+sharply in alpha near 0 (the continuity suite's suzanne) and gained little there on the fit
+half; the blend's kernel ramps them in above it (docs/decisions.md)."""
 ALPHA_FLOOR = 0.005
-"""log10 alpha is taken of max(alpha, ALPHA_FLOOR) (the smooth sphere's row: -2.3)."""
+"""``features``' log10 alpha (kept in the tables for reading) is of max(alpha, ALPHA_FLOOR)."""
 EXCLUDED_TIR = ("clamp",)
-"""Exit rules ``auto`` never picks (module docstring, 5.)."""
+"""Exit rules ``auto`` never picks (module docstring, 4.)."""
+SPLIT_OPTION = "bounce_rays"
+"""The option whose values above 1 split a lobe into rays (docstring, 4.)."""
 BLEND_A0 = 0.1
 BLEND_HALF_WIDTH = (0.5, 0.1)
-"""The blend's box kernel (module docstring, 6.): half-widths in u = asinh(alpha / BLEND_A0)
+"""The blend's box kernel (module docstring, 5.): half-widths in u = asinh(alpha / BLEND_A0)
 and in IOR."""
 BLEND_MIN = 0.15
 """Kernel shares below this are not rendered (the others: share - BLEND_MIN, renormalized)."""
@@ -61,8 +85,9 @@ BLEND_POINTS = (32, 16)
 class AutoOptions:
     """Settings of ``auto`` (``method_options`` in a scene)."""
 
-    auto_tolerance: float = option(0.05, minimum=0.0, maximum=1.0)
-    """FLIP (object pixels, against full truth) allowed above the most accurate variant."""
+    auto_tolerance: float = option(0.02, minimum=0.0, maximum=1.0)
+    """FLIP (object pixels, against full truth) allowed above the most accurate variant, on
+    average over the neighbours and on each one (docstring, 3.)."""
     auto_table: str | None = option(None, path=True)
     """Path of a table built by ``scripts/build_auto_table.py`` (default: the shipped one;
     relative to the scene file)."""
@@ -131,7 +156,7 @@ class _Arrays:
     x: np.ndarray  # (S, 3) scaled features
     flip: np.ndarray  # (S, V)
     ms: np.ndarray  # (S, V)
-    specular: np.ndarray  # (V,) bool
+    split: np.ndarray  # (V,) bool: splits a lobe into rays (docstring, 4.)
     names: tuple[str, ...]
 
 
@@ -156,12 +181,17 @@ def _arrays(table: dict) -> _Arrays:
             j = col.get(_key(v))
             if j is not None:
                 flip[i, j], ms[i, j] = v["flip"], v["ms"]
-    x = np.array([[r["features"][k] / s for k, s in SCALES.items()] for r in rows])
-    out = _Arrays(tuple(keys), x.reshape(len(rows), len(SCALES)), flip, ms,
-                  np.array([k[0] == "specular" for k in keys], bool),
+    x = np.array([_point(r["features"]) for r in rows]) / np.array(list(SCALES.values()))
+    split = np.array([json.loads(k[1]).get(SPLIT_OPTION, 1) not in (1, "1") for k in keys], bool)
+    out = _Arrays(tuple(keys), x.reshape(len(rows), len(SCALES)), flip, ms, split,
                   tuple(r["name"] for r in rows))
     _ARRAYS[id(table)] = (table, out)
     return out
+
+
+def _point(f: dict[str, float]) -> list[float]:
+    """A scene's unscaled feature point (u_alpha, thinness, IOR) from :func:`features`."""
+    return [math.asinh(max(f["alpha"], 0.0) / ALPHA_U0), f["thin"], f["ior"]]
 
 
 def _key(v: dict) -> tuple[str, str]:
@@ -170,23 +200,28 @@ def _key(v: dict) -> tuple[str, str]:
 
 def _crisp(t: _Arrays, f: np.ndarray, tolerance: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The rule of the module docstring (1.-4.) at P feature points ``f`` (P, 3: log10 alpha,
-    thinness, IOR): per point the picked variant's column (-1: no variant measured on both
-    neighbours), every variant's predicted FLIP and time (P, V), and the (P, 2) neighbour
-    rows."""
+    """The rule of the module docstring (1.-4.) at P feature points ``f`` (P, 3: u_alpha,
+    thinness, IOR; :func:`_point`): per point the picked variant's column (-1: no variant
+    measured on every neighbour), every variant's predicted FLIP and time (P, V), and the
+    (P, k) neighbour rows."""
     x = f / np.array(list(SCALES.values()))
     dist = np.sqrt(((x[:, None, :] - t.x[None]) ** 2).sum(-1))  # (P, S)
-    near = np.argsort(dist, axis=1, kind="stable")[:, :2]  # (P, k)
+    near = np.argsort(dist, axis=1, kind="stable")[:, :NEIGHBOURS]  # (P, k)
     w = 1.0 / (np.take_along_axis(dist, near, 1) + 1e-3)
     w = w / w.sum(1, keepdims=True)
-    pf = (w[..., None] * t.flip[near]).sum(1)  # (P, V); NaN where a neighbour lacks it
+    fn = t.flip[near]  # (P, k, V); NaN where a neighbour lacks a variant
+    pf = (w[..., None] * fn).sum(1)  # (P, V); NaN where a neighbour lacks it
     pm = (w[..., None] * t.ms[near]).sum(1)
     ok = np.isfinite(pf) & np.isfinite(pm)
-    smooth = 10 ** f[:, 0] < SMOOTH_ALPHA
-    spec = ok & t.specular[None]
-    ok = np.where((smooth & spec.any(1))[:, None], spec, ok)  # no cone when smooth (4.)
-    best = np.where(ok, pf, np.inf).min(1, keepdims=True)
+    smooth = ALPHA_U0 * np.sinh(f[:, 0]) < SPLIT_MIN_ALPHA  # no lobe to split (4.)
+    whole = ok & ~t.split[None]
+    ok = np.where((smooth & whole.any(1))[:, None], whole, ok)
+    best_col = np.where(ok, pf, np.inf).argmin(1)  # (P,)
+    best = np.take_along_axis(pf, best_col[:, None], 1)
     ok &= pf <= best + tolerance
+    # ... and on every neighbour within tolerance of what the predicted best measured there
+    ref = np.take_along_axis(fn, best_col[:, None, None].repeat(fn.shape[1], 1), 2)
+    ok &= (fn <= ref + tolerance).all(1)
     fastest = np.where(ok, pm, np.inf).min(1, keepdims=True)
     pick = np.where(ok & (pm == fastest), pf, np.inf).argmin(1)  # ties: the more accurate
     return np.where(ok.any(1), pick, -1), pf, pm, near
@@ -196,11 +231,12 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
     """The variants ``auto`` renders ``scene`` with, and their weights (module docstring)."""
     path = options.auto_table or str(DEFAULT_TABLE)
     f = features(scene)
-    centre = np.array([[f["log_alpha"], f["thin"], f["ior"]]])
+    centre = np.array([_point(f)])
     pts = _kernel_points(f) if options.auto_blend else centre
     table = load_table(path)
     if not table["scenes"]:
-        keys = [("specular" if 10 ** p[0] < SMOOTH_ALPHA else "rousiers", "{}") for p in pts]
+        smooth = ALPHA_U0 * np.sinh(pts[:, 0]) < SMOOTH_ALPHA
+        keys = [("specular" if sm else "rousiers", "{}") for sm in smooth]
         blend = _shares(keys)
         return Choice(blend[0][0], blend[0][1], None, None, (), blend)
     t = _arrays(table)
@@ -229,7 +265,7 @@ def _shares(keys: list[tuple[str, str]]) -> tuple[tuple[str, dict, float], ...]:
 
 
 def _kernel_points(f: dict[str, float]) -> np.ndarray:
-    """(P, 3) feature points of the blend's box kernel around a scene's features: alpha on
+    """(P, 3) feature points (:func:`_point`) of the blend's box kernel around a scene: alpha on
     u = asinh(alpha / BLEND_A0) (linear near 0, logarithmic above BLEND_A0; negative alpha
     counts as 0), IOR around the scene's (at least 1), the scene's thinness."""
     na, ni = BLEND_POINTS
@@ -239,8 +275,8 @@ def _kernel_points(f: dict[str, float]) -> np.ndarray:
     a = np.maximum(BLEND_A0 * np.sinh(u), 0.0)
     n = np.maximum(f["ior"] + BLEND_HALF_WIDTH[1] * gi, 1.0)
     aa, nn = np.meshgrid(a, n, indexing="ij")
-    return np.stack([np.log10(np.maximum(aa.ravel(), ALPHA_FLOOR)),
-                     np.full(aa.size, f["thin"]), nn.ravel()], 1)
+    return np.stack([np.arcsinh(aa.ravel() / ALPHA_U0), np.full(aa.size, f["thin"]),
+                     nn.ravel()], 1)
 
 
 class Auto:
