@@ -80,8 +80,9 @@ def build(csv_path: Path, metric: str = "flip_object", split: str | None = None,
         # chart's "1x1" variants) are not choices it can make
         if int(r["samples_per_pixel"] or 0) != spp[name]:
             continue
-        # compiled rows are a render setting (RenderSettings.compile), not an option
-        if "compile" in json.loads(r["options"] or "{}"):
+        # compiled and adaptive rows are render settings (RenderSettings.compile,
+        # .adaptive), not options
+        if {"compile", "adaptive"} & set(json.loads(r["options"] or "{}")):
             continue
         scenes[name]["variants"].append({
             "method": r["method"], "options": json.loads(r["options"] or "{}"),

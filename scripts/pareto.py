@@ -66,6 +66,8 @@ from accuracy import truth as cached_truth  # noqa: E402  (the one truth rendere
 # --------------------------------------------------------------------------------------
 SPP = "samples_per_pixel"  # in a variant's options: the camera's n x n grid, not a method option
 COMPILE = "compile"  # in a variant's options: RenderSettings(compile=True) while it runs
+ADAPTIVE = "adaptive"  # in a variant's options: RenderSettings(adaptive=True) while it runs
+SETTINGS_KEYS = (SPP, COMPILE, ADAPTIVE)
 STEPS_FEWER = {"march_steps": 12, "cone_march_steps": 4, "refine_steps": 6}
 STEPS_MORE = {"march_steps": 64, "cone_march_steps": 16, "refine_steps": 12}
 VARIANTS: list[tuple[str, str, dict, int, bool]] = [
@@ -120,6 +122,14 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
      8, False),
     ("rousiers ib2 1x1 compiled b8", "rousiers", {"internal_bounces": 2, SPP: 1, COMPILE: True},
      8, False),
+    # Adaptive shading at one sample per pixel (geometry/adaptive.py: the 2x2 lattice, the
+    # pixels between it only where not smooth):
+    ("specular 1x1 adaptive b8", "specular", {SPP: 1, ADAPTIVE: True}, 8, False),
+    ("rousiers 1x1 adaptive b8", "rousiers", {SPP: 1, ADAPTIVE: True}, 8, False),
+    ("rousiers ib2 1x1 adaptive b8", "rousiers", {"internal_bounces": 2, SPP: 1, ADAPTIVE: True},
+     8, False),
+    ("rousiers ib auto 1x1 adaptive b8", "rousiers",
+     {"internal_bounces": "auto", SPP: 1, ADAPTIVE: True}, 8, False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
@@ -521,10 +531,11 @@ def main(argv: list[str] | None = None) -> int:
                 s = sized(scene, None, 1)
             if SPP in options:
                 s = sized(scene, None, options[SPP])
-            render_options = {k: v for k, v in options.items() if k not in (SPP, COMPILE)}
+            render_options = {k: v for k, v in options.items() if k not in SETTINGS_KEYS}
             try:
                 reps = 1 if method == "reference" and options["spp"] >= LONG_SPP else repeats
-                run = settings.replace(compile=bool(options.get(COMPILE)))
+                run = settings.replace(compile=bool(options.get(COMPILE)),
+                                       adaptive=bool(options.get(ADAPTIVE)))
                 img, ms = time_variant(s, method, render_options, batch, reps, run)
             except (ConfigError, NotImplementedError, ImportError) as exc:
                 print(f"warning: {scene.name}: variant {name!r} skipped: {exc}", flush=True)

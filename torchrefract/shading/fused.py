@@ -20,6 +20,7 @@ import math
 import torch
 
 from torchrefract import settings
+from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes
 from torchrefract.lighting.lights import _GL_W, _GL_X
@@ -116,19 +117,36 @@ def background(g, lighting) -> torch.Tensor | None:
     return out if native._call("background", job) else None
 
 
+def _sg_meta(pyr) -> torch.Tensor:
+    """A pyramid's constants for ``sg_env_lookup`` (csrc/lighting.h) as
+    ``sg_pyramid._blend_weights`` takes them: the base texel's variance v0, the level
+    count, each level's blended sharpness, the atlas rectangles and the sharpnesses (kept
+    per pyramid: a batch of views of one map reads the same)."""
+    hit = _SG_META.get(pyr)
+    if hit is not None:
+        return hit
+    _, _, h0, w0 = pyr.rects[0]
+    v0 = _texel_angle(h0, w0) ** 2 / 6
+    ks = torch.tensor(pyr.sharpness[1:], dtype=torch.float32)
+    kap = torch.cat([ks.new_tensor([1 / v0]), ks / (1 + v0 * ks), ks.new_zeros(1)])
+    meta = torch.cat([torch.tensor([v0, float(len(ks))]), kap,
+                      torch.tensor(pyr.rects, dtype=torch.float32).reshape(-1), ks])
+    return _SG_META.put(pyr, None, meta)
+
+
+_SG_META = KeptByIdentity(8)
+
+
 def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
     """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_lookup`` in
-    csrc/lighting.h, with the blend's constants as ``sg_pyramid._blend_weights`` takes
-    them."""
+    csrc/lighting.h (a map's pyramid looked up once per batch)."""
     bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
+    pyramids: dict = {}
     for b in range(len(lighting.texels)):
-        pyr = lighting.pyramid(b)
-        _, _, h0, w0 = pyr.rects[0]
-        v0 = _texel_angle(h0, w0) ** 2 / 6
-        ks = torch.tensor(pyr.sharpness[1:], dtype=torch.float32)
-        kap = torch.cat([ks.new_tensor([1 / v0]), ks / (1 + v0 * ks), ks.new_zeros(1)])
-        metas.append(torch.cat([torch.tensor([v0, float(len(ks))]), kap,
-                                torch.tensor(pyr.rects, dtype=torch.float32).reshape(-1), ks]))
+        path = lighting.paths[b]
+        pyr = pyramids[path] if path in pyramids else pyramids.setdefault(
+            path, lighting.pyramid(b))
+        metas.append(_sg_meta(pyr))
         bases.append(pyr.base)
         atlases.append(pyr.atlas)
         base_hw.append(pyr.base.shape[1:])
