@@ -153,7 +153,10 @@ def test_one_sample_shades_the_lattice_and_interpolates_the_smooth_rest():
     exact = float(same[m].float().mean())
     assert 0.2 < exact < 0.5, exact  # the lattice (1/4) and a few more
     fl = float(flip_map(ad.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
-    assert fl < 0.01, fl
+    # the interpolated pixels differ from the full render's (not from the truth: on the
+    # validation set FLIP against the truth moves by < 0.003, docs/decisions.md); 64 px
+    # is coarse for a lattice of stride 4, the largest here
+    assert fl < 0.02, fl
     for k in ("exit_found", "normal_front", "thickness"):
         assert torch.isfinite(ad.passes[k]).all() and ad.passes[k].shape == full.passes[k].shape
 
@@ -183,3 +186,31 @@ def test_one_sample_smooth_glass_and_fallback():
     b = tr.render(s, settings=RenderSettings(adaptive=True, native=False, fused=False))
     close = torch.isclose(a.radiance, b.radiance, rtol=1e-3, atol=1e-5).all(-1)
     assert float(close.float().mean()) > 0.995
+
+
+def test_two_levels_where_smooth_over_several_pixels_one_elsewhere():
+    """The rough sphere is smooth over several pixels: the even pixels get their own
+    level (stride 4) first; the bunny keeps one level. With two levels every pixel that
+    is shaded is still the full render's bit for bit, and the image stays close to it."""
+    s = _scene("sphere_a03", 96, n=1, method="rousiers")
+    g, args = _lattice_inputs(s)
+    _, lat = adaptive.lattice(g, args[-1])
+    assert [lv.stride for lv in lat.levels] == [2, 1]
+    assert lat.levels[0].status.shape == (1, 48, 48)
+    gb, argsb = _lattice_inputs(_scene("bunny_a01", 96, n=1))
+    assert [lv.stride for lv in adaptive.lattice(gb, argsb[-1])[1].levels] == [1]
+    full, ad = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
+    m = g.front.mask[0]
+    same = (ad.radiance[0] == full.radiance[0]).all(-1)[m]
+    exact = float(same.float().mean())
+    assert 0.05 < exact < 0.25, exact  # under the one-level lattice's quarter
+    fl = float(flip_map(ad.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
+    assert fl < 0.02, fl
+    # forced to one level: more pixels shaded, the image closer to the full one
+    old = adaptive.COARSE_SHARE
+    try:
+        adaptive.COARSE_SHARE = 1.01
+        one = tr.render(s, settings=ADAPTIVE)
+    finally:
+        adaptive.COARSE_SHARE = old
+    assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact

@@ -302,15 +302,18 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
         radiance, method_passes = shaded.radiance, shaded.passes
         if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
             radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
-        elif isinstance(plan, adaptive.Lattice):  # the waiting pixels: interpolated, or
-            radiance, method_passes, rest = adaptive.fill(plan, radiance, method_passes)
-            if rest is not None:  # shaded now, over the image so far
+        elif isinstance(plan, adaptive.Lattice):  # level by level, the waiting pixels:
+            for level in plan.levels:  # interpolated, or shaded over the image so far
+                radiance, method_passes, rest = adaptive.fill(level, radiance,
+                                                              method_passes)
+                if rest is None:
+                    continue
                 shade = torch.zeros(g.shape, dtype=torch.bool, device=rest.device)
                 shade.view(-1)[rest] = True
-                second = tiles.shade(entry, dataclasses.replace(
+                again = tiles.shade(entry, dataclasses.replace(
                     g, shade=shade, canvas=radiance.view(-1, 3)), lighting, materials,
                     options, state, budget)
-                radiance, method_passes = adaptive.merge(radiance, method_passes, second,
+                radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest)
         bad = ~torch.isfinite(radiance)
         if bad.any():  # never let NaN/Inf out, and never hide that it happened

@@ -47,6 +47,10 @@ SMOOTH_ALPHA = 0.02
 environment's detail inside a pixel, which the G-buffer does not show (measured on the
 smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
 LATTICE_RTOL = 0.2
+COARSE_SHARE = 0.5
+"""The share of the even object pixels that must be able to wait on the pixels of stride
+4 for that coarser level to be planned (each level costs a shading pass's set-up:
+docs/decisions.md, "Adaptive shading at one sample per pixel")."""
 """The largest spread (max - min per channel, over their mean luminance + 1e-3) of a
 waiting pixel's lattice neighbours' radiances at which it is their mean (fit on the
 validation set's fit half: docs/decisions.md, "Adaptive shading at one sample per pixel")."""
@@ -152,12 +156,23 @@ def spread(p: Plan, radiance: torch.Tensor, passes: dict[str, torch.Tensor]
 
 
 @dataclass(frozen=True)
-class Lattice:
-    """Adaptive shading at one sample per pixel: ``status`` (B, H, W) uint8, 0 not the
-    object, 1 shaded in the first pass, 2 waiting for its lattice neighbours (csrc/lattice.c;
-    :func:`fill` turns 2 into 3, interpolated, or 4, shaded in the second pass)."""
+class Level:
+    """One level of adaptive shading at one sample per pixel, on the pixels of stride
+    ``stride`` (1: every pixel; 2: the even rows and columns): ``status`` (B, H/s, W/s)
+    uint8 on them, 0 not the object, 1 shaded before the level is filled, 2 waiting for its
+    lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, or 4,
+    shaded in the level's own pass)."""
 
+    stride: int
     status: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """Adaptive shading at one sample per pixel: its levels, coarsest first (the even
+    pixels' level, where it pays, then every pixel's)."""
+
+    levels: tuple[Level, ...]
 
 
 def _neighbours(idx: torch.Tensor, h: int, w: int
@@ -204,23 +219,43 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
     return status.view(b, h, w)
 
 
+def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
+          depth_tol: float) -> torch.Tensor:
+    """A level's status over (B, H, W) layers (csrc/lattice.c, else the tensor code)."""
+    args = (fm, bm, fn, bn, bd, alpha, smooth_alpha, normal_tol, depth_tol)
+    status = native.lattice_plan(*args)
+    return _lattice_torch(*args) if status is None else status
+
+
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
-            depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA
-            ) -> tuple[GBuffer, Lattice]:
-    """The G-buffer of the first pass (``shade``: the lattice and the pixels that cannot
-    wait) and the plan, for a G-buffer of one sample per pixel (module docstring). A
-    waiting pixel is rough and so are its lattice neighbours, which the first pass shades:
-    each pass has a rough pixel where the full pass has one (the methods' switch of the
-    rough interfaces' energies, :func:`torchrefract.tiles.shade`).
+            depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA,
+            coarse_share: float | None = None) -> tuple[GBuffer, Lattice]:
+    """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
+    sample per pixel (module docstring). Every pixel's level waits on the even pixels;
+    where at least ``coarse_share`` (default COARSE_SHARE) of the even object pixels can
+    themselves wait on the pixels of stride 4 (smooth regions spanning several pixels), a
+    level on the even pixels comes first, and the first pass shades only what neither
+    level lets wait. A waiting pixel is rough and so are its lattice neighbours, which an
+    earlier pass shades: each pass has a rough pixel where the full pass has one (the
+    methods' switch of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
 
     Args:
         alpha: the front roughness, (B, H, W) or per view (B, 1, 1).
     """
-    args = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, alpha)
-    status = native.lattice_plan(*args, smooth_alpha, normal_tol, depth_tol)
-    if status is None:
-        status = _lattice_torch(*args, smooth_alpha, normal_tol, depth_tol)
-    return replace(g, shade=status == 1), Lattice(status=status)
+    share = COARSE_SHARE if coarse_share is None else coarse_share
+    layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
+    tol = (smooth_alpha, normal_tol, depth_tol)
+    fine = Level(1, _plan(*layers, alpha, *tol))
+    even = (slice(None), slice(None, None, 2), slice(None, None, 2))
+    sub = [x[even].contiguous() for x in layers]
+    a2 = alpha[even].contiguous() if alpha.shape[1:] == g.shape[1:] else alpha
+    coarse = Level(2, _plan(*sub, a2, *tol))
+    first = fine.status == 1
+    objects = int(sub[0].sum())
+    if objects and int((coarse.status == 2).sum()) >= share * objects:
+        first[even] &= coarse.status == 1
+        return replace(g, shade=first), Lattice(levels=(coarse, fine))
+    return replace(g, shade=first), Lattice(levels=(fine,))
 
 
 def _mean(v: torch.Tensor, four: torch.Tensor) -> torch.Tensor:
@@ -250,24 +285,42 @@ def _fill_torch(status: torch.Tensor, flat: torch.Tensor, rtol: float,
     st[idx] = torch.where(ok, 3, 4).to(st.dtype)
 
 
-def fill(lat: Lattice, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
+def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
          rtol: float | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor],
                                              torch.Tensor | None]:
-    """After the first pass: each waiting pixel its lattice neighbours' mean where their
-    radiances agree, in ``radiance`` (B, H, W, 3) and the method's ``passes`` (B, H, W, C)
-    (``lat.status`` in place). Returns the radiance, the passes and the flat indices of
-    the pixels the second pass shades (None: none). ``rtol``: default LATTICE_RTOL."""
-    rtol = LATTICE_RTOL if rtol is None else rtol
+    """After the passes before ``level``: each of its waiting pixels its lattice
+    neighbours' mean where their radiances agree, in ``radiance`` (B, H, W, 3) and the
+    method's ``passes`` (B, H, W, C) (``level.status`` in place). Returns the radiance,
+    the passes and the flat (B*H*W) indices of the pixels the level's own pass shades
+    (None: none). ``rtol``: default LATTICE_RTOL over the stride (the error of a mean
+    over twice the spacing grows faster than the neighbours' spread)."""
+    rtol = LATTICE_RTOL / level.stride if rtol is None else rtol
     b, h, w, _ = radiance.shape
     radiance = radiance.contiguous()
     passes = {k: v.contiguous() for k, v in passes.items()}
-    flat = radiance.view(-1, 3)
-    pflat = [v.view(b * h * w, -1) for v in passes.values()]
-    grad = radiance.requires_grad or any(v.requires_grad for v in pflat)
-    if grad or not native.lattice_fill(lat.status, flat, rtol, pflat):
-        _fill_torch(lat.status, flat, rtol, pflat)
-    rest = where_true(lat.status.view(-1) == 4)
-    return radiance, passes, (rest if rest.numel() else None)
+    s = level.stride
+    on = (slice(None), slice(None, None, s), slice(None, None, s))
+    # the level's pixels, contiguous (copies at a stride above 1, written back below)
+    sub = radiance if s == 1 else radiance[on].contiguous()
+    psub = {k: (v if s == 1 else v[on].contiguous()) for k, v in passes.items()}
+    n = level.status.numel()
+    flat = sub.view(-1, 3)
+    pflat = [v.view(n, -1) for v in psub.values()]
+    grad = flat.requires_grad or any(v.requires_grad for v in pflat)
+    if grad or not native.lattice_fill(level.status, flat, rtol, pflat):
+        _fill_torch(level.status, flat, rtol, pflat)
+    if s > 1:
+        radiance[on] = sub
+        for k, v in psub.items():
+            passes[k][on] = v
+    rest = level.status == 4
+    if not bool(rest.any()):
+        return radiance, passes, None
+    if s > 1:
+        full = torch.zeros(b, h, w, dtype=torch.bool, device=rest.device)
+        full[on] = rest
+        rest = full
+    return radiance, passes, where_true(rest.view(-1))
 
 
 def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
@@ -285,5 +338,5 @@ def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
     return second.radiance, {**passes, **out}
 
 
-__all__ = ["DEPTH_TOL", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA", "Lattice", "Plan",
-           "fill", "lattice", "merge", "plan", "spread"]
+__all__ = ["COARSE_SHARE", "DEPTH_TOL", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
+           "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread"]
