@@ -124,7 +124,8 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
         if j not in prepared:
             m = from_passes(passes)
             exact = float((m.folded + m.merged).max()) <= MAX_FOLDED
-            prepared[j] = prepare(m) if exact else None
+            # the source's rotation: relit there op for op, elsewhere u shifted (cheaper)
+            prepared[j] = prepare(m, src_scenes[j].envmap.rotate_deg) if exact else None
         if prepared[j] is None:
             direct.append(k)
             continue

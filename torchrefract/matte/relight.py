@@ -19,17 +19,24 @@ part of a lobe hides that part of any map alike, so this is exact).
 
 Cost (docs/matte.md, "Speed"). Nothing of a relight depends on the map but the texels
 read: per matte, once (:func:`prepare`), the used lobe slots, each lobe's normalized
-direction and its row coordinate v (a rotation about +Y leaves it alone); per pyramid
-layout (the level sharpnesses and sizes follow the map's resolution), each lookup's level
-pair and blend weight, rows and row weights; per rotation (kept for the last 8), each
-lobe's u and each lookup's four texel indices and weights. A relight is then one
-``embedding_bag`` (a weighted gather of 4 texels per lookup) from a channels-last copy of
-the map and its pyramid (made once per map), a sum of the SG lobes' two levels and a sum
-into the pixels. The texel coordinates are computed op for op as the renderer's lookups
-compute them (``rotate_y``, ``direction_to_uv``, the lookups' grid and ``grid_sample``'s
-unnormalization, in float32), so they are the same to the bit; only the weighted sums are
-added in another order (<= 4e-7 relative against :func:`relight_reference`, the lookups
-one by one).
+direction, its row coordinate v (a rotation about +Y leaves it alone) and its azimuth at
+rotation 0, u0 (a rotation about +Y shifts it); per pyramid layout (the level sharpnesses
+and sizes follow the map's resolution), each lookup's level pair and blend weight, rows
+and row weights, and each lookup's u0; per rotation (kept for the last 8), each lookup's
+u and its four texel indices and weights. A relight is then one ``embedding_bag`` (a
+weighted gather of 4 texels per lookup) from a channels-last copy of the map and its
+pyramid (made once per map), a sum of the SG lobes' two levels and a sum into the pixels.
+
+Exactness. At the rotation the matte was rendered with (:func:`prepare`'s ``rotate_deg``;
+a RenderResult's own), or at any rotation where that is unknown, u is the renderer's op
+for op (``rotate_y``, ``direction_to_uv``), and so are the texel coordinates that follow
+(the lookups' grid and ``grid_sample``'s unnormalization, in float32): the same to the
+bit, only the weighted sums are added in another order (<= 4e-7 relative against
+:func:`relight_reference`, the lookups one by one). At any other rotation u is u0 shifted
+(:func:`_shifted`): within a few units in the last place of the renderer's u, not its bits
+(measured up to 1.6e-4 relative on a background pixel next to a sun, 1.8e-5 on object
+pixels, FLIP 0.0000 against the direct render: docs/matte.md), and without the C
+library's ``atan2f`` per lobe, which was half the cost of a new rotation.
 
 Example:
     >>> out = tr.render(scene.replace(passes={"matte": {}}))              # doctest: +SKIP
@@ -38,7 +45,6 @@ Example:
 
 from __future__ import annotations
 
-import math
 import weakref
 from collections import OrderedDict
 from pathlib import Path
@@ -100,14 +106,18 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     few rotations. A relight is then one weighted gather of 4 texels per lookup
     (``embedding_bag`` over a channels-last copy of the map and its pyramid, made once per
     map; a plain lobe is one lookup, an SG lobe two: its levels) and sums into the lobes
-    and pixels. The result equals :func:`relight_reference` (the renderer's lookups one by
-    one) to float32 rounding: the texel coordinates are the same to the bit, the weighted
-    sums are added in another order.
+    and pixels. At the rendered rotation (or any, where it is unknown: a bare Matte or
+    passes dict, unless prepared with :func:`prepare`'s ``rotate_deg``) the result equals
+    :func:`relight_reference` (the renderer's lookups one by one) to float32 rounding: the
+    texel coordinates are the same to the bit, the weighted sums are added in another
+    order. At another rotation each lobe's u is its rotation-0 azimuth shifted (module
+    docstring, "Exactness").
 
     Args:
         matte: a :class:`~torchrefract.matte.matte.Matte`, a
             :class:`~torchrefract.render.RenderResult` rendered with ``passes: [matte]``,
-            its ``passes`` dict, or a :class:`Prepared` matte.
+            its ``passes`` dict, or a :class:`Prepared` matte (:func:`prepare`; give it
+            the rendered rotation where the matte is not a RenderResult).
         envmap: a map file (``.exr``/``.hdr``), an ``EnvMap`` (its path only: give its
             rotation and scale here), an ``SGPyramid``, or (H, W, 3) texels (their SG
             pyramid is built here: seconds for a 1k map; pass a pyramid to reuse it).
@@ -140,8 +150,8 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
         tuple(pyr.base.shape[1:])
     taps = p.taps(base_hw, pyr)
     idx, wts = taps.reads(p, rot)
-    offsets = torch.arange(0, idx.numel(), 4, device=dev)  # a bag of 4 texels per lookup
-    vals = F.embedding_bag(idx, tex, offsets, mode="sum", per_sample_weights=wts)  # (L, 3)
+    vals = F.embedding_bag(idx, tex, taps.offsets, mode="sum",
+                           per_sample_weights=wts)  # (L, 3)
     val = vals[:taps.n_plain]
     if p.n_soft:  # an SG lobe: its lower level's lookup plus its upper level's
         val = torch.cat([val, vals.index_select(0, taps.lo_at)
@@ -149,6 +159,24 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     val = val * (sc[:, None] if taps.view is None else sc.index_select(0, taps.view)[:, None])
     img.index_add_(0, taps.pix, val * taps.weight)
     return torch.nan_to_num(img.view(p.b, p.h, p.w, 3), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _shifted(u0: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+    """u of directions whose u at rotation 0 is ``u0`` (float64), for a rotation of the map
+    by ``rot`` degrees about +Y (scalar or one per element), rounded to float32.
+
+    ``envmap.rotate_y`` turns a direction by -rot before the lookup, which adds rot to its
+    azimuth: with ``u = atan2(x, -z) / 2 pi`` (``direction_to_uv``; SCENE_SPEC.md), x =
+    sin(phi), -z = cos(phi), and R_y(-rot) maps phi to phi + rot, so u = (u0 + rot / 360)
+    mod 1. Within float32 rounding of the renderer's own u (a few units in its last place:
+    see :meth:`Prepared.u`)."""
+    u = u0 + rot.double() * (1.0 / 360.0)
+    return (u - torch.floor(u)).float()
+
+
+_INDEX = torch.int32
+"""Texel indices into :func:`_texels_last`'s rows (< 2^31: 8M rows for a 1024 x 512 map's
+pyramid): half the bytes of int64 to write per new rotation and to read per relight."""
 
 
 class _Group:
@@ -159,11 +187,15 @@ class _Group:
     ``align_corners=True``, border padding), op for op in float32, so the texel
     coordinates are the renderer's to the bit."""
 
-    def __init__(self, offset: int, lobe: torch.Tensor, v: torch.Tensor, blend: torch.Tensor,
+    def __init__(self, p: "Prepared", offset: int, lobe: torch.Tensor, blend: torch.Tensor,
                  *, plain: bool, hw: tuple[int, int], x0p1: torch.Tensor | None = None,
                  w: torch.Tensor | None = None, y0: torch.Tensor | None = None,
                  hh: torch.Tensor | None = None, map_hw: tuple[int, int] = (0, 0)):
         self.offset, self.lobe, self.plain = offset, lobe, plain
+        v = p.v.index_select(0, lobe)
+        # each lookup's lobe's azimuth at rotation 0 and view: a shifted u without a gather
+        self.u0 = p.u0.index_select(0, lobe)
+        self.view = None if p.view is None else p.view.index_select(0, lobe)
         rows, cols = hw  # the image's (padded) shape
         self.cols, self.numel = cols, rows * cols
         if plain:  # envmap.lookup: x = u W - 0.5 + 1, y = v (H - 1), on the (H, W + 2) pad
@@ -181,41 +213,48 @@ class _Group:
         n = iy - y_n
         # the rows' weights (upper, lower), times the level's share of the lobe
         self.sn = torch.stack([(1.0 - n) * blend, n * blend], 1)  # (n, 2)
-        self.row = y_n.long() * cols + offset
+        self.row = y_n.to(_INDEX) * cols + offset
         self.last = offset + self.numel - 1
 
     def select(self, order: torch.Tensor) -> None:
         """Keep the lookups ``order`` (in that order)."""
-        for name in ("lobe", "sn", "row", "x0p1", "w"):
+        for name in ("lobe", "sn", "row", "x0p1", "w", "u0", "view"):
             t = getattr(self, name, None)
             if t is not None and t.dim() >= 1:
                 setattr(self, name, t.index_select(0, order))
 
-    def reads(self, u: torch.Tensor, out: tuple[torch.Tensor, torch.Tensor] | None = None
+    def reads(self, u: torch.Tensor | None, rot: torch.Tensor,
+              out: tuple[torch.Tensor, torch.Tensor] | None = None
               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(n, 4) texel indices and weights for per-lobe u (S,) (written into ``out``
-        where given)."""
-        uu = u.index_select(0, self.lobe)
-        if self.plain:
-            x = uu * self.w_map - 0.5 + 1.0
-            gx = 2.0 * x / (self.w_map + 1) - 1.0
+        """(n, 4) texel indices and weights (written into ``out`` where given) for
+        per-lobe u (S,) (:meth:`Prepared.u`), or where None, each lookup's u0 shifted for
+        the rotations ``rot`` (B,) (:func:`_shifted`)."""
+        if u is None:
+            x = _shifted(self.u0, rot if self.view is None else rot.index_select(0, self.view))
         else:
-            x = self.x0p1 + uu * self.w - 0.5
-            gx = 2 * x / (self.cols - 1) - 1
-        ix = ((gx + 1.0) * ((self.cols - 1) / 2)).clamp(0.0, float(self.cols - 1))
+            x = u.index_select(0, self.lobe)
+        # x: u, then x, then gx, then ix, in place (the same ops in the same order, so the
+        # same bits)
+        if self.plain:  # x = u W - 0.5 + 1; gx = 2 x / (W + 1) - 1
+            x.mul_(self.w_map).sub_(0.5).add_(1.0).mul_(2.0).div_(self.w_map + 1).sub_(1.0)
+        else:  # x = x0 + 1 + u w - 0.5; gx = 2 x / (cols - 1) - 1
+            x.mul_(self.w).add_(self.x0p1).sub_(0.5).mul_(2).div_(self.cols - 1).sub_(1)
+        ix = x.add_(1.0).mul_((self.cols - 1) / 2).clamp_(0.0, float(self.cols - 1))
         x_w = torch.floor(ix)
-        we = ix - x_w  # the right column's weight
+        we = ix.sub_(x_w)  # the right column's weight
         e = 1.0 - we
         n = we.shape[0]
         if out is None:
-            out = (torch.empty(n, 4, dtype=torch.long, device=u.device),
-                   torch.empty(n, 4, dtype=u.dtype, device=u.device))
+            out = (torch.empty(n, 4, dtype=_INDEX, device=we.device),
+                   torch.empty(n, 4, dtype=we.dtype, device=we.device))
         idx, wts = out
         # taps (row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1); column by
         # column (a broadcast op over 4 was 5-20x slower). A tap right of / below the
         # image's last column / row has weight 0 exactly: any texel there will do, clamped
-        # into the image.
-        torch.add(self.row, x_w.long(), out=idx[:, 0])
+        # into the image. (Two bags, one per column, with the rows' weights fixed and the
+        # columns blended after, wrote half as much per rotation but read each texel pair
+        # twice: slower per relight, and no faster at a new rotation.)
+        torch.add(self.row, x_w.to(_INDEX), out=idx[:, 0])
         for k, d in ((1, 1), (2, self.cols), (3, self.cols + 1)):
             torch.add(idx[:, 0], d, out=idx[:, k])
         idx.clamp_(max=self.last)
@@ -239,13 +278,13 @@ class _Taps:
         offset = {"base": 0, "atlas": base_hw[0] * base_hw[1]}  # in _texels_last's rows
         self.groups: list[_Group] = []
         self._reads: OrderedDict = OrderedDict()
-        u0 = p.u(torch.zeros(p.b, device=dev))
+        rot0 = torch.zeros(p.b, device=dev)  # for the order only
         one = torch.ones((), device=dev)
         n_p, n_s = p.n_plain, p.n_soft
 
         def add(g: _Group) -> torch.Tensor:
             """Append g with its lookups sorted; their positions among all lookups."""
-            order = torch.argsort(g.reads(u0)[0][:, 0], stable=True)
+            order = torch.argsort(g.reads(None, rot0)[0][:, 0], stable=True)  # upper left
             g.select(order)
             at = sum(x.lobe.numel() for x in self.groups)
             self.groups.append(g)
@@ -255,7 +294,7 @@ class _Taps:
 
         lobes = []
         if n_p:
-            g = _Group(offset["base"], torch.arange(n_p, device=dev), p.v[:n_p], one,
+            g = _Group(p, offset["base"], torch.arange(n_p, device=dev), one,
                        plain=True, hw=base_hw, map_hw=(h, w))
             add(g)
             lobes.append(g.lobe)  # sorted
@@ -264,11 +303,10 @@ class _Taps:
             i, t = _blend_weights(pyr, p.k_soft)  # the lower level, the upper one's share
             rects = torch.tensor(pyr.rects, dtype=torch.float32, device=dev)
             atlas_hw = tuple(pyr.atlas.shape[1:])
-            vq = p.v[n_p:]
 
             def group(image, sel, level, blend):
                 y0, x0, hh, ww = rects.index_select(0, level).unbind(-1)
-                return _Group(offset[image], n_p + sel, vq.index_select(0, sel), blend,
+                return _Group(p, offset[image], n_p + sel, blend,
                               plain=False, hw=base_hw if image == "base" else atlas_hw,
                               x0p1=x0 + 1, w=ww, y0=y0, hh=hh)
 
@@ -283,6 +321,8 @@ class _Taps:
             self.hi_at = add(group("atlas", every, i + 1, t))
             lobes.append(n_p + every)
         self.n_lookups = sum(g.lobe.numel() for g in self.groups)
+        self.offsets = torch.arange(0, 4 * self.n_lookups, 4, dtype=_INDEX,
+                                    device=dev)  # a bag of 4 texels per lookup
         order = torch.cat(lobes)  # the prepared lobe of each value
         self.pix = p.pix.index_select(0, order)
         self.weight = p.weight.index_select(0, order)
@@ -291,16 +331,17 @@ class _Taps:
     def reads(self, p: "Prepared", rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every lookup's four texel indices (into :func:`_texels_last`'s rows) and
         weights, lookup-major, for rotations (B,) (kept for the last 8 rotations)."""
-        key = tuple(rot.tolist())
+        exact = p.exact_views(rot)
+        key = (tuple(rot.tolist()), exact)
         hit = self._reads.get(key)
         if hit is None:
-            u = p.u(rot)
-            hit = (torch.empty(self.n_lookups, 4, dtype=torch.long, device=u.device),
-                   torch.empty(self.n_lookups, 4, dtype=u.dtype, device=u.device))
+            u = p.u(rot, exact) if any(exact) else None  # else shifted per lookup
+            hit = (torch.empty(self.n_lookups, 4, dtype=_INDEX, device=rot.device),
+                   torch.empty(self.n_lookups, 4, dtype=torch.float32, device=rot.device))
             at = 0
             for g in self.groups:
                 n = g.lobe.numel()
-                g.reads(u, (hit[0][at:at + n], hit[1][at:at + n]))
+                g.reads(u, rot, (hit[0][at:at + n], hit[1][at:at + n]))
                 at += n
             hit = (hit[0].view(-1), hit[1].view(-1))
             self._reads[key] = hit
@@ -313,17 +354,24 @@ class _Taps:
 class Prepared:
     """What relighting a matte needs that does not depend on the map: its used lobe slots
     (pixel, view, RGB weight), each lobe's normalized direction (as the lookups normalize
-    it) and v (the row coordinate: a rotation about +Y leaves it unchanged), and per
-    pyramid layout each lookup's level pair, blend weight, row and row weights
-    (:class:`_Taps`). Lobes are ordered plain ones first, then the SG lobes. Made by
-    :func:`prepare` (kept for the last few mattes); may be passed to :func:`relight` in
-    place of the matte."""
+    it), its row coordinate v and its rotation-free azimuth u0 (a rotation about +Y leaves
+    v unchanged and shifts u), and per pyramid layout each lookup's level pair, blend
+    weight, row and row weights (:class:`_Taps`). Lobes are ordered plain ones first, then
+    the SG lobes. Made by :func:`prepare` (kept for the last few mattes); may be passed to
+    :func:`relight` in place of the matte.
 
-    def __init__(self, m: Matte):
+    ``rotate_deg``: the rotation the matte was rendered with (scalar or one per view), or
+    None where unknown. A view relit at its rendered rotation, or at any rotation where
+    it is unknown, gets the renderer's u op for op (:meth:`u`): its relit image is the
+    render to float32 rounding. Every other rotation shifts u0."""
+
+    def __init__(self, m: Matte, rotate_deg: float | torch.Tensor | None = None):
         self.matte = m
         b, h, w, n_lobes = m.sharpness.shape
         self.b, self.h, self.w = b, h, w
         self.device = m.weight.device
+        self.rendered = None if rotate_deg is None else \
+            _per_view(rotate_deg, b, "the rendered rotate_deg").to(self.device)
         wt = m.weight.reshape(-1, 3)
         live = (wt != 0).any(-1).nonzero().squeeze(1)  # the used slots only
         k = m.sharpness.reshape(-1).index_select(0, live)
@@ -339,9 +387,10 @@ class Prepared:
         self.pix = live // n_lobes
         self.view = None if b == 1 else self.pix // (h * w)
         d = m.direction.reshape(-1, 3).index_select(0, live)
-        d = d / d.norm(dim=-1, keepdim=True).clamp(min=1e-30)  # as both lookups do
-        self.x, self.z = d[:, 0].contiguous(), d[:, 2].contiguous()
-        self.v = torch.acos(d[:, 1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
+        self.d = d / d.norm(dim=-1, keepdim=True).clamp(min=1e-30)  # as both lookups do
+        self.v = envmap_mod.direction_to_uv(self.d)[:, 1].contiguous()  # the lookups' v
+        # u at rotation 0 in float64, so that a shifted u (:func:`_shifted`) rounds once
+        self.u0 = envmap_mod.direction_to_uv(self.d.double())[:, 0].contiguous()
         self.lights = m.lights.reshape(-1, 3).clone()
         self._taps: OrderedDict = OrderedDict()
         self._u: OrderedDict = OrderedDict()
@@ -367,32 +416,40 @@ class Prepared:
         for t in self._taps.values():
             t._reads.clear()
 
-    def u(self, rot: torch.Tensor) -> torch.Tensor:
-        """(S,) u of every lobe for per-view rotations (B,): ``envmap.rotate_y`` and
-        ``direction_to_uv`` op for op (the cosine and sine per view as a 0-d tensor); kept
-        for the last 8 rotations."""
-        key = tuple(rot.tolist())
+    def exact_views(self, rot: torch.Tensor) -> tuple[bool, ...]:
+        """Per view, whether rotation ``rot`` (B,) takes the renderer's u op for op: at the
+        rendered rotation, or anywhere where that is unknown."""
+        if self.rendered is None:
+            return (True,) * self.b
+        return tuple((rot == self.rendered).tolist())
+
+    def u(self, rot: torch.Tensor, exact: tuple[bool, ...] | None = None) -> torch.Tensor:
+        """(S,) float32 u of every lobe for per-view rotations (B,); kept for the last 8.
+
+        The views in ``exact`` (default :meth:`exact_views`) take the renderer's own
+        functions (``rotate_y``, ``direction_to_uv``): the same bits as its lookups, at the
+        cost of the C library's atan2f per lobe. The others take u0 shifted
+        (:func:`_shifted`), within a few units in the last place of those (atan2f's own
+        last bit moves reads next to a sun by up to 3e-4 relative: docs/matte.md, "Speed").
+        Where no view is exact, the taps shift each lookup's u0 instead (no gather)."""
+        exact = self.exact_views(rot) if exact is None else exact
+        key = (tuple(rot.tolist()), exact)
         hit = self._u.get(key)
         if hit is not None:
             self._u.move_to_end(key)
             return hit
-        cs = []
-        for i in range(self.b):
-            a = torch.as_tensor(-rot[i], dtype=self.x.dtype) * (math.pi / 180.0)
-            cs.append((torch.cos(a), torch.sin(a)))
-        if self.view is None:
-            c, s = cs[0]
-        else:
-            c = torch.stack([x[0] for x in cs]).index_select(0, self.view)
-            s = torch.stack([x[1] for x in cs]).index_select(0, self.view)
-        xz = torch.empty(self.size, 2, dtype=self.x.dtype, device=self.x.device)
-        torch.add(c * self.x, s * self.z, out=xz[:, 0])
-        z = -s * self.x + c * self.z
-        # atan2 of a strided x as the lookups' (rotate_y's output unbound): torch's scalar
-        # loop, the C library's atan2f. Its vectorized loop (SLEEF) differs in the last bit
-        # for ~5% of the lobes, which moved reads next to a sun by up to 3e-4 relative.
-        u = torch.atan2(xz[:, 0], -z) * (0.5 / math.pi)
-        u = u - torch.floor(u)
+        u = _shifted(self.u0, rot if self.view is None else rot.index_select(0, self.view))
+        for i in (i for i in range(self.b) if exact[i]):
+            sel = None if self.view is None else (self.view == i).nonzero().squeeze(1)
+            d = self.d if sel is None else self.d.index_select(0, sel)
+            # the lookups' own: rotate_y(d, -rot) of an (N, 3) d, then atan2 of its strided
+            # columns (torch's scalar loop, the C library's atan2f; its vectorized SLEEF
+            # loop differs in the last bit for ~5% of the lobes)
+            ui = envmap_mod.direction_to_uv(envmap_mod.rotate_y(d, -rot[i]))[:, 0]
+            if sel is None:
+                u = ui
+            else:
+                u[sel] = ui
         self._u[key] = u
         while len(self._u) > 8:
             self._u.popitem(last=False)
@@ -412,17 +469,26 @@ def _anchors(matte) -> list[torch.Tensor]:
     return []
 
 
-def prepare(matte) -> Prepared:
+def prepare(matte, rotate_deg: float | torch.Tensor | None = None) -> Prepared:
     """The map-independent part of relighting ``matte`` (a Matte, a RenderResult or its
     passes), computed once: kept for the 4 most recent mattes (keyed by their tensors and
-    those tensors' versions: an in-place change prepares again)."""
+    those tensors' versions: an in-place change prepares again, and by ``rotate_deg``).
+
+    ``rotate_deg``: the rotation the matte was rendered with (scalar or per view; a
+    RenderResult's own scenes' when not given), where a relight takes the renderer's u op
+    for op (:class:`Prepared`); None where unknown: then every rotation does (exact, but a
+    new rotation costs the C library's atan2f per lobe: docs/matte.md, "Speed")."""
+    if rotate_deg is None and getattr(matte, "scenes", None):
+        rotate_deg = [s.envmap.rotate_deg for s in matte.scenes]
+    rendered = None if rotate_deg is None else tuple(torch.as_tensor(
+        rotate_deg, dtype=torch.float32).reshape(-1).tolist())
     anchors = _anchors(matte)
-    key = tuple((id(t), t._version) for t in anchors)
+    key = (tuple((id(t), t._version) for t in anchors), rendered)
     hit = _PREPARED.get(key) if anchors else None
     if hit is not None and all(r() is t for r, t in zip(hit[0], anchors)):
         _PREPARED.move_to_end(key)
         return hit[1]
-    p = Prepared(_as_matte(matte))
+    p = Prepared(_as_matte(matte), rotate_deg)
     if anchors:
         _PREPARED[key] = ([weakref.ref(t) for t in anchors], p)
         while len(_PREPARED) > 4:
