@@ -198,7 +198,8 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere():
     assert [lv.stride for lv in lat.levels] == [2, 1]
     assert lat.levels[0].status.shape == (1, 48, 48)
     gb, argsb = _lattice_inputs(_scene("bunny_a01", 96, n=1))
-    assert [lv.stride for lv in adaptive.lattice(gb, argsb[-1])[1].levels] == [1]
+    lat_b = adaptive.lattice(gb, argsb[-1])[1]  # None: too little waits (FINE_SHARE)
+    assert lat_b is None or [lv.stride for lv in lat_b.levels] == [1]
     full, ad = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
     m = g.front.mask[0]
     same = (ad.radiance[0] == full.radiance[0]).all(-1)[m]
@@ -214,3 +215,18 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere():
     finally:
         adaptive.COARSE_SHARE = old
     assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact
+
+
+def test_no_lattice_where_too_little_could_wait():
+    """Under FINE_SHARE of the object pixels waiting, no lattice: the full render."""
+    s = _scene("sphere_a03", 48, n=1, method="specular")
+    g, args = _lattice_inputs(s)
+    old = adaptive.FINE_SHARE
+    try:
+        adaptive.FINE_SHARE = 1.01
+        g2, lat = adaptive.lattice(g, args[-1])
+        assert g2 is g and lat is None
+        ad = tr.render(s, settings=ADAPTIVE)
+    finally:
+        adaptive.FINE_SHARE = old
+    assert torch.equal(ad.radiance, tr.render(s, settings=UNIFORM).radiance)

@@ -47,6 +47,10 @@ SMOOTH_ALPHA = 0.02
 environment's detail inside a pixel, which the G-buffer does not show (measured on the
 smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
 LATTICE_RTOL = 0.2
+FINE_SHARE = 0.4
+"""Below this share of the object pixels waiting, the lattice is not used (one full pass):
+too little is left to interpolate to pay for the fill and a second pass's set-up (the
+bunny at 256x256, 0.35 waiting: 1.05x the full time with the lattice)."""
 COARSE_SHARE = 0.5
 """The share of the even object pixels that must be able to wait on the pixels of stride
 4 for that coarser level to be planned (each level costs a shading pass's set-up:
@@ -229,9 +233,11 @@ def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
             depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA,
-            coarse_share: float | None = None) -> tuple[GBuffer, Lattice]:
+            coarse_share: float | None = None) -> tuple[GBuffer, Lattice | None]:
     """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
-    sample per pixel (module docstring). Every pixel's level waits on the even pixels;
+    sample per pixel (module docstring); ``g`` and None where under FINE_SHARE of the
+    object pixels could wait (every pixel shaded at once). Every pixel's level waits on
+    the even pixels;
     where at least ``coarse_share`` (default COARSE_SHARE) of the even object pixels can
     themselves wait on the pixels of stride 4 (smooth regions spanning several pixels), a
     level on the even pixels comes first, and the first pass shades only what neither
@@ -246,6 +252,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     tol = (smooth_alpha, normal_tol, depth_tol)
     fine = Level(1, _plan(*layers, alpha, *tol))
+    if int((fine.status == 2).sum()) < FINE_SHARE * int(g.front.mask.sum()):
+        return g, None
     even = (slice(None), slice(None, None, 2), slice(None, None, 2))
     sub = [x[even].contiguous() for x in layers]
     a2 = alpha[even].contiguous() if alpha.shape[1:] == g.shape[1:] else alpha
@@ -338,5 +346,5 @@ def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
     return second.radiance, {**passes, **out}
 
 
-__all__ = ["COARSE_SHARE", "DEPTH_TOL", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
+__all__ = ["COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
            "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread"]
