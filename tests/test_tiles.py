@@ -84,6 +84,7 @@ CASES = [
     ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {"fused": False}),
     ("globe_2rough", "specular", {}, 1, {"fused": False}),
     ("sphere_a03", "rousiers", {}, 2, {"adaptive": True}),
+    ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {"adaptive": True}),
     ("slab_light", "rousiers", {}, 1, {}),
 ]
 
@@ -94,14 +95,18 @@ def test_tiles_give_the_untiled_pixels(counted, name, method, options, spp, sett
     geometry's, the material's and the method's) equal the one-pass render exactly, with
     supersampling (box filter over sub-pixels of different tiles), internal bounces (marches
     through both layers), roughness maps (coverage mips), the fused kernels and the tensor
-    code, adaptive supersampling and a sphere light."""
+    code, adaptive sampling (supersampling, and the lattice's passes at one sample) and a
+    sphere light."""
     size = (128, 112) if spp == 1 else (64, 56)
     scene = _scene(name, size, spp, method, options)
     whole = tr.render(scene, settings=RenderSettings(**settings))
     assert counted == []  # the default budget: one pass
     tiled = tr.render(scene, settings=RenderSettings(memory_budget_mb=_tight_budget_mb(scene),
                                                      **settings))
-    assert len(counted) == 1 and len(counted[0]) >= 3, counted
+    if settings.get("adaptive") and spp == 1:  # the lattice's first pass shades a quarter
+        assert counted and len(counted[0]) >= 2, counted  # or so: fewer tiles
+    else:
+        assert len(counted) == 1 and len(counted[0]) >= 3, counted
     _assert_same(whole, tiled)
 
 
