@@ -221,10 +221,19 @@ def test_a_blended_render_is_the_weighted_sum_of_its_variants(tmp_path):
     assert [(b["method"], b["options"]) for b in meta["auto_blend"]] == [
         (m, o) for m, o, _ in c.blend]
     assert abs(sum(b["weight"] for b in meta["auto_blend"]) - 1) < 1e-9
-    # auto_blend: false renders one variant, recorded as the scene's method
+    # what the table predicted goes with the image (issue #26): the choice's figures
+    pred = meta["auto_prediction"]
+    assert pred == out.predictions[0] == c.record()
+    assert pred["predicted_flip"] == c.predicted_flip and pred["predicted_ms"] > 0
+    assert pred["tolerance"] == AutoOptions().auto_tolerance and len(pred["neighbours"]) >= 2
+    # auto_blend: false renders one variant, recorded as the scene's method; its predicted
+    # FLIP is within the tolerance of the most accurate candidate's
     single = tr.render([scene.replace(method_options={"auto_blend": False})])
     assert len(single.blends[0]) == 1
     assert single.scenes[0].method == single.blends[0][0][0] != "auto"
+    p1 = single.predictions[0]
+    assert p1["best_predicted_flip"] <= p1["predicted_flip"] <= (p1["best_predicted_flip"]
+                                                                + p1["tolerance"] + 1e-12)
 
 
 def test_without_measurements_a_rule_stands_in_blended(tmp_path):
@@ -309,7 +318,7 @@ def test_held_out_picks_predict_no_worse_than_plain_rousiers():
         scene = tr.load_scene(ROOT / "configs" / "validation" / f"{name}.yaml")
         c = choose(scene)
         assert name not in c.neighbours
-        _, pf, _, _ = auto._crisp(t, np.array([auto._point(features(scene))]), tol)
+        _, pf, _, _, _ = auto._crisp(t, np.array([auto._point(features(scene))]), tol)
         picked = sum(w * pf[0, col[(m, json.dumps(o, sort_keys=True))]] for m, o, w in c.blend)
         assert abs(picked - c.predicted_flip) < 1e-9
         assert picked <= pf[0, col[("rousiers", "{}")]] + 0.01, (name, c.blend)

@@ -443,6 +443,7 @@ def test_auto_records_what_it_rendered(tmp_path):
     assert all(e["method"] == "auto" for e in lines)
     for e in lines:
         assert abs(sum(b["weight"] for b in e["auto_blend"]) - 1) < 1e-9
+        assert e["auto_prediction"]["predicted_flip"] > 0  # what the table predicted
     # smooth: no lobe split into rays (auto.SPLIT_MIN_ALPHA); rough: the cone method
     assert all(b["options"].get("bounce_rays", 1) == 1 for b in lines[0]["auto_blend"])
     assert lines[2]["auto_blend"][0]["method"] == "rousiers"

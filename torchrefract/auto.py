@@ -108,6 +108,19 @@ class Choice:
     blend: tuple[tuple[str, dict, float], ...] = ()
     """(method, options, weight) of every variant rendered, weights adding up to 1, the
     largest first (``method`` and ``options`` are its); one entry away from thresholds."""
+    best_flip: float | None = None
+    """The most accurate candidate's predicted FLIP at the scene (``predicted_flip`` is
+    within ``auto_tolerance`` of it for a single pick)."""
+    tolerance: float | None = None
+
+    def record(self) -> dict | None:
+        """What ``auto`` predicted, JSON-ready, for the sidecar and the manifest (None
+        without a table)."""
+        if self.predicted_flip is None:
+            return None
+        return {"predicted_flip": self.predicted_flip, "predicted_ms": self.predicted_ms,
+                "best_predicted_flip": self.best_flip, "tolerance": self.tolerance,
+                "neighbours": list(self.neighbours)}
 
 
 def features(scene: Scene) -> dict[str, float]:
@@ -202,8 +215,8 @@ def _crisp(t: _Arrays, f: np.ndarray, tolerance: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The rule of the module docstring (1.-4.) at P feature points ``f`` (P, 3: u_alpha,
     thinness, IOR; :func:`_point`): per point the picked variant's column (-1: no variant
-    measured on every neighbour), every variant's predicted FLIP and time (P, V), and the
-    (P, k) neighbour rows."""
+    measured on every neighbour), every variant's predicted FLIP and time (P, V), the
+    (P, k) neighbour rows and the most accurate candidate's predicted FLIP (P,)."""
     x = f / np.array(list(SCALES.values()))
     dist = np.sqrt(((x[:, None, :] - t.x[None]) ** 2).sum(-1))  # (P, S)
     near = np.argsort(dist, axis=1, kind="stable")[:, :NEIGHBOURS]  # (P, k)
@@ -224,7 +237,7 @@ def _crisp(t: _Arrays, f: np.ndarray, tolerance: float
     ok &= (fn <= ref + tolerance).all(1)
     fastest = np.where(ok, pm, np.inf).min(1, keepdims=True)
     pick = np.where(ok & (pm == fastest), pf, np.inf).argmin(1)  # ties: the more accurate
-    return np.where(ok.any(1), pick, -1), pf, pm, near
+    return np.where(ok.any(1), pick, -1), pf, pm, near, best[:, 0]
 
 
 def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
@@ -241,14 +254,16 @@ def choose(scene: Scene, options: AutoOptions = AutoOptions()) -> Choice:
         return Choice(blend[0][0], blend[0][1], None, None, (), blend)
     t = _arrays(table)
     # the kernel's points, and the scene's own (last row: the predictions quoted)
-    pick, pf, pm, near = _crisp(t, np.concatenate([pts, centre]), options.auto_tolerance)
+    pick, pf, pm, near, best = _crisp(t, np.concatenate([pts, centre]),
+                                      options.auto_tolerance)
     if (pick < 0).any():
         raise ConfigError("auto table: the nearest scenes share no measured variant")
     blend = _shares([t.keys[i] for i in pick[:len(pts)]])
     cols = [t.keys.index(_key({"method": m, "options": o})) for m, o, _ in blend]
     w = np.array([b[2] for b in blend])
     return Choice(blend[0][0], blend[0][1], float((w * pf[-1, cols]).sum()),
-                  float(pm[-1, cols].sum()), tuple(t.names[i] for i in near[-1]), blend)
+                  float(pm[-1, cols].sum()), tuple(t.names[i] for i in near[-1]), blend,
+                  float(best[-1]), float(options.auto_tolerance))
 
 
 def _shares(keys: list[tuple[str, str]]) -> tuple[tuple[str, dict, float], ...]:

@@ -52,6 +52,10 @@ class RenderResult:
             the back layer's mip pyramids; :mod:`torchrefract.stages`), ``total``.
         blends: ``auto`` only: per scene the (method, options, weight) of every variant
             whose image went into it (weights add up to 1; passes are blended alike).
+        predictions: ``auto`` only: per scene what its table predicted (``Choice.record``:
+            the image's FLIP against converged truth and ms per frame, the most accurate
+            candidate's FLIP, the tolerance, the table scenes it was read from), or None
+            without a table.
     """
 
     radiance: torch.Tensor
@@ -60,6 +64,7 @@ class RenderResult:
     scenes: tuple[Scene, ...]
     timings: dict[str, float] = field(default_factory=dict)
     blends: tuple[tuple[tuple[str, dict, float], ...], ...] | None = None
+    predictions: tuple[dict | None, ...] | None = None
 
 
 def _box(x: torch.Tensor, n: int) -> torch.Tensor:
@@ -378,7 +383,7 @@ def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
     return dataclasses.replace(
         out, scenes=tuple(scenes[i].replace(method=c.method, method_options=c.options)
                           if len(c.blend) == 1 else scenes[i] for i, c in enumerate(picked)),
-        blends=tuple(c.blend for c in picked))
+        blends=tuple(c.blend for c in picked), predictions=tuple(c.record() for c in picked))
 
 
 def _merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]]

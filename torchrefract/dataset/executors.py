@@ -81,6 +81,8 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
                 if res.blends is not None:  # auto: the variants in the image, weighted
                     from torchrefract.output.export import blend_records  # noqa: PLC0415
                     rec["auto_blend"] = blend_records(res, j)
+                if res.predictions is not None and res.predictions[j] is not None:
+                    rec["auto_prediction"] = res.predictions[j]  # what auto's table said
                 if encode:
                     t0 = time.perf_counter()
                     try:

@@ -619,8 +619,9 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
             records.append(dict(meta, status="failed", reason=res["reason"],
                                 timings=timings, worker=run))
             continue
-        if "auto_blend" in res:
-            meta["auto_blend"] = res["auto_blend"]
+        for key in ("auto_blend", "auto_prediction"):  # auto: what it rendered and predicted
+            if key in res:
+                meta[key] = res[key]
         if res.get("relit_from"):  # relight mode: relit from that sample's matte
             meta["relit_from"] = res["relit_from"]
         rec = dict(meta, channels=res["channels"], status="ok", reason=None,

@@ -52,6 +52,8 @@ def metadata(result: RenderResult, i: int) -> dict:
     }
     if result.blends is not None:
         meta["auto_blend"] = blend_records(result, i)
+    if result.predictions is not None and result.predictions[i] is not None:
+        meta["auto_prediction"] = result.predictions[i]
     return meta
 
 
