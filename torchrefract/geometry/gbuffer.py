@@ -17,7 +17,7 @@ copied to each of their batch items.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -130,6 +130,10 @@ class GBuffer:
         canvas: (B*H*W, 3) radiance a method shades its pixels over in place of the
             background (None: the background; adaptive shading's second pass: the
             first pass's image, :func:`torchrefract.shading.background.background`).
+        derived: values computed from the layers on first use (the march's camera planes,
+            :func:`torchrefract.kernels.march.camera_planes`), keyed with the layers'
+            versions; shared by the G-buffers ``dataclasses.replace`` makes of this one
+            (a render's tiles and adaptive passes), so they are computed once.
     """
 
     front: Layer
@@ -141,6 +145,7 @@ class GBuffer:
     supersample: int
     shade: torch.Tensor | None = None
     canvas: torch.Tensor | None = None
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def shape(self) -> tuple[int, int, int]:

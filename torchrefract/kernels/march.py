@@ -87,6 +87,18 @@ def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     as ``planes``. The native kernel (csrc/march.c) computes the same operations in one
     pass over the layers.
     """
+    key = ("camera_planes", both, g.back.position._version, g.back.geo_normal._version,
+           g.front.position._version, g.front.geo_normal._version)
+    kept = g.derived.get(key)
+    if kept is not None:  # computed for this G-buffer already (another tile or pass)
+        return kept
+    out = _camera_planes(g, both)
+    g.derived[key] = out
+    return out
+
+
+def _camera_planes(g: GBuffer, both: bool) -> torch.Tensor:
+    """:func:`camera_planes`, computed."""
     b = g.eye.shape[0]
     basis = g.proj[:, 3:12]  # rows: right, up, forward
     front = (g.front.position, g.front.geo_normal, g.front.mask) if both else (None,) * 3
