@@ -1,6 +1,8 @@
-"""Adaptive supersampling: all n x n sub-pixels of a pixel are shaded only where they can
-differ; elsewhere one sample at the pixel's center stands for them (issue #28, "model no
-more than a scene needs"). Opt-in: ``RenderSettings(adaptive=True)``.
+"""Adaptive sampling (issue #28, "model no more than a scene needs"), opt-in:
+``RenderSettings(adaptive=True)``. With n x n samples per pixel, all n x n sub-pixels of a
+pixel are shaded only where they can differ; elsewhere one sample at the pixel's center
+stands for them. With one sample, a lattice of pixels is shaded and the pixels between are
+interpolated where the image is smooth (last paragraph).
 
 A pixel's sub-pixels can differ where the G-buffer changes inside it: a silhouette or a
 layer's edge (the front or back coverage differs among them), a fold (their front or back
@@ -18,13 +20,16 @@ the sub-pixel triangle its ray hits (the most inside of the pixel's). What the G
 (a TIR boundary, a sharp feature of the environment seen through a smooth pixel) is not
 detected: there one sample stands for the pixel.
 
-At one sample per pixel (:func:`lattice`, :func:`fill`) the same idea runs the other way:
-the object pixels of the 2x2 lattice (even row and column) are shaded first; a pixel
-between lattice pixels whose G-buffer agrees with theirs (the tests above, and
-roughness at least ``smooth_alpha``) waits, and is then the mean of their radiances where
-those agree within ``LATTICE_RTOL``, else it is shaded in a second pass. The shaded
-pixels are the full render's; the others are interpolated where the image is smooth
-(measured: docs/decisions.md, "Adaptive shading at one sample per pixel").
+At one sample per pixel (:func:`lattice`, :func:`fill`, csrc/lattice.c) the same idea runs
+the other way: the object pixels of the 2x2 lattice (even row and column) are shaded
+first; a pixel between lattice pixels whose G-buffer agrees with theirs (the tests above,
+and roughness at least ``smooth_alpha``) waits, and is then the mean of their radiances
+where those agree within ``LATTICE_RTOL``, else it is shaded in a further pass over the
+image so far. Where the image is smooth over several pixels the even pixels are first a
+level of their own on the pixels of stride 4 (``COARSE_SHARE``); where little could wait
+there is no lattice (``FINE_SHARE``). The shaded pixels are the full render's; the others
+are interpolated where the image is smooth (measured: docs/decisions.md, "Adaptive shading
+at one sample per pixel").
 """
 
 from __future__ import annotations
@@ -47,6 +52,10 @@ SMOOTH_ALPHA = 0.02
 environment's detail inside a pixel, which the G-buffer does not show (measured on the
 smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
 LATTICE_RTOL = 0.2
+"""The largest spread (max - min per channel, over their mean luminance + 1e-3) of a
+waiting pixel's lattice neighbours' radiances at which it is their mean (fit on the
+validation set's fit half: docs/decisions.md, "Adaptive shading at one sample per pixel");
+halved at the coarser level."""
 FINE_SHARE = 0.4
 """Below this share of the object pixels waiting, the lattice is not used (one full pass):
 too little is left to interpolate to pay for the fill and a second pass's set-up (the
@@ -55,9 +64,6 @@ COARSE_SHARE = 0.5
 """The share of the even object pixels that must be able to wait on the pixels of stride
 4 for that coarser level to be planned (each level costs a shading pass's set-up:
 docs/decisions.md, "Adaptive shading at one sample per pixel")."""
-"""The largest spread (max - min per channel, over their mean luminance + 1e-3) of a
-waiting pixel's lattice neighbours' radiances at which it is their mean (fit on the
-validation set's fit half: docs/decisions.md, "Adaptive shading at one sample per pixel")."""
 
 
 @dataclass(frozen=True)
