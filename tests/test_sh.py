@@ -556,3 +556,126 @@ def test_accuracy_against_mitsuba_truth(one_thread):
         e_sh = compare(sh.radiance[0].numpy(), r, a)["flip_object"]
         e_ro = compare(ro.radiance[0].numpy(), r, a)["flip_object"]
         assert e_sh < bound and e_sh < e_ro + 0.03, (name, e_sh, e_ro)
+
+
+# ------------------------------------------------------------------ branches: 2 (issue #25)
+
+def test_second_branch_on_a_sphere_is_the_first_internal_reflection(one_thread):
+    """``branches=2`` on a unit sphere (no TIR within 75 degrees): the main path is
+    unchanged, the branch splits at the exit, is reflected inside and leaves at the next
+    hit: energy F (1 - F) (the same angle at both, a sphere), twice the chord, the
+    reflected direction refracted out; the main throughput is 1 - F."""
+    _tracer_or_skip()
+    tm = trimesh.creation.icosphere(subdivisions=4)
+    v = torch.tensor(tm.vertices, dtype=torch.float32)
+    f = torch.tensor(tm.faces, dtype=torch.int64)
+    n = normalize(v)
+    lay = build_layout(v, f, n, 1)
+    g = torch.Generator().manual_seed(5)
+    idx = torch.randint(0, lay.num_samples, (20000,), generator=g)
+    p, nrm = lay.position[idx], lay.frame[idx, 2]
+    om = normalize(torch.randn(20000, 3, generator=g))
+    om = torch.where((dot(om, nrm) < 0)[:, None], -om, om)
+    inter, _ = intersector(v, f, "auto")
+    one = trace_paths(inter, v[f], n[f], p, nrm, om, 1.5, 16, 1e-5, "tir")
+    two = trace_paths(inter, v[f], n[f], p, nrm, om, 1.5, 16, 1e-5, "tir", branches=2)
+    assert one.branch is None and two.branch is not None
+    for k in ("direction", "length", "cos_exit", "throughput", "events"):
+        assert torch.equal(getattr(one, k), getattr(two, k)), k
+    within = dot(om, nrm) > math.cos(math.radians(75))
+    t1, _ = refract(-om, nrm, 1 / 1.5)
+    chord = -2.0 * dot(p, t1)
+    cos2 = -dot(t1, -(p + chord[:, None] * t1))  # at the exit, against the inward normal
+    fr = fresnel_dielectric(cos2.abs(), 1.5)
+    b = two.branch
+    assert (b.events[within] == 1).all()
+    assert (b.throughput[within] - fr[within] * (1 - fr[within])).abs().max() < 0.01
+    assert (two.throughput[within] - (1 - fr[within])).abs().max() < 0.01
+    assert (b.length - 2 * chord)[within].abs().max() < 0.02
+    # the branch leaves mirrored across the plane of p and the second exit point
+    x2 = p + chord[:, None] * t1
+    x3 = x2 + chord[:, None] * (t1 - 2 * dot(t1, x2)[:, None] * x2)
+    t3, _ = refract(t1 - 2 * dot(t1, x2)[:, None] * x2, -x3, 1.5)
+    ang = torch.acos(dot(b.direction, normalize(t3)).clamp(-1, 1))[within]
+    assert ang.quantile(0.99) < 0.02
+
+
+def test_second_branch_c_paths_equal_the_tensor_code(tmp_path, one_thread):
+    """``branches: 2``: the C paths (the branch as a second wavefront in the same block)
+    give the tensor code's table bit for bit on the shell with a bead (rays counted alike);
+    its first 6 channels are the ``branches: 1`` table's; the path ends of an open mesh,
+    branch included, agree with packets and one ray at a time; the cache keeps the
+    ``branches: 1`` key and file of before and gives ``branches: 2`` its own."""
+    sh_native, EmbreeNative = _native_paths_or_skip()
+    from torchrefract.methods.sh.paths import geometric_normals
+    from torchrefract.methods.sh.precompute import precompute
+
+    mesh = load_mesh(str(ASSETS / "meshes" / "shell_bead.ply"))
+    s1 = Settings(ior=1.5, rings=8, samples=1024, max_events=8)
+    s2 = dataclasses.replace(s1, branches=2)
+    ref = precompute(mesh, s2, "x", tracer="torch")
+    nat = precompute(mesh, s2, "x", tracer="auto")
+    one = precompute(mesh, s1, "x", tracer="auto")
+    assert nat.stats["paths_in"] == "c" and ref.stats["rays"] == nat.stats["rays"]
+    assert nat.coeffs.shape[-1] == 12 and torch.equal(ref.coeffs, nat.coeffs)
+    assert torch.equal(one.coeffs, nat.coeffs[..., :6])
+    assert "branches" not in sh_cache.settings_key(s1)
+    assert sh_cache.cache_path(tmp_path, "k", s1) != sh_cache.cache_path(tmp_path, "k", s2)
+    sh_cache.clear_memory()
+    t2, _ = sh_cache.get_table(mesh, s2, tmp_path / "c")
+    sh_cache.clear_memory()
+    t3, src = sh_cache.get_table(mesh, s2, tmp_path / "c")
+    assert src == "disk" and torch.equal(t3.coeffs, t2.coeffs)
+    # an open mesh: leaks from inside, the branch included
+    tm = trimesh.creation.icosphere(subdivisions=3)
+    keep = tm.triangles_center[:, 2] < 0.7
+    v = torch.tensor(tm.vertices, dtype=torch.float32)
+    f = torch.tensor(tm.faces[keep], dtype=torch.int64)
+    nrm = normalize(v)
+    g = torch.Generator().manual_seed(13)
+    idx = torch.randint(0, v.shape[0], (5000,), generator=g)
+    p, pn = v[idx], nrm[idx]
+    om = normalize(pn + 0.9 * torch.randn(5000, 3, generator=g))
+    om = torch.where((dot(om, pn) < 0)[:, None], -om, om)
+    inter, _ = intersector(v, f, "embree")
+    emb = EmbreeNative(v.numpy(), f.numpy())
+    want = trace_paths(inter, v[f], nrm[f], p, pn, om, 1.5, 16, 1e-5, "tir", branches=2)
+    assert (want.branch.throughput > 0).float().mean() > 0.5
+    for packets in (True, False):
+        got = sh_native.trace_paths(emb, nrm[f], geometric_normals(v[f]), p, pn, om, 1.5, 16,
+                                    1e-5, "tir", packets=packets, branches=2)
+        for k in ("direction", "length", "cos_exit", "throughput", "events"):
+            assert torch.equal(getattr(got, k), getattr(want, k)), (k, packets)
+            assert torch.equal(getattr(got.branch, k), getattr(want.branch, k)), (k, packets)
+
+
+def test_second_branch_keeps_the_smooth_furnace_and_changes_the_shell(one_thread, tmp_path):
+    """With ``exit_weight: conserve`` the branch's energy is taken from the main path:
+    smooth glass in a white furnace stays at 1 (the shell with its bead: every interface
+    refracts); the branch changes the image of the shell (native kernel and tensor code
+    alike); ``branches: 1`` is the default."""
+    _tracer_or_skip()
+    from torchrefract.output.images import write_exr
+    from torchrefract.settings import RenderSettings, using
+
+    assert parse_options(SHOptions, {}).branches == 1
+    with pytest.raises(ConfigError, match=r"method_options\.branches"):
+        parse_options(SHOptions, {"branches": 3})
+    white = tmp_path / "white.exr"
+    img = np.ones((16, 32, 3), np.float32)
+    write_exr(white, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})
+    cam = tr.Camera(eye=(0.0, 0.3, 3.4), width=32, height=32)
+    base = tr.Scene(mesh=str(ASSETS / "meshes" / "shell_bead.ply"), camera=cam,
+                    material=tr.Material(ior=1.5, roughness=0.0), method="sh",
+                    envmap=tr.EnvMap(path=str(white)))
+    out = tr.render([base.replace(method_options={**SMALL, "branches": 2})])
+    vals = out.radiance[0][out.coverage[0] > 0.99]
+    assert vals.numel() > 100 and (vals - 1.0).abs().max() < 2e-3, (vals.min(), vals.max())
+    lit = base.replace(envmap=tr.EnvMap(path=ENV, rotate_deg=60.0),
+                       material=tr.Material(ior=1.5, roughness=0.1))
+    a = tr.render([lit.replace(method_options=SMALL)]).radiance[0]
+    b = tr.render([lit.replace(method_options={**SMALL, "branches": 2})]).radiance[0]
+    assert (a - b).abs().mean() > 1e-3
+    with using(RenderSettings(native=False)):
+        c = tr.render([lit.replace(method_options={**SMALL, "branches": 2})]).radiance[0]
+    assert ((b - c).abs() <= 1e-4 * c.abs().clamp(min=1e-2)).all()

@@ -7,7 +7,9 @@ outer hemisphere of directions (:mod:`.basis`), each following the refracted bra
 every interface, the reflected one under TIR (``branch: tir``) or wherever Fresnel makes it
 the most significant (``branch: greedy``, the paper's) (:mod:`.paths`, with Embree or Mitsuba:
 :mod:`.tracer`); exit direction, length inside, exit cosine and throughput are compressed
-per sample into real spherical harmonics up to band 8 (eqs. 3-10, mirrored hemisphere).
+per sample into real spherical harmonics up to band 8 (eqs. 3-10, mirrored hemisphere);
+with ``branches: 2`` also those of the Fresnel-reflected branch at each path's first
+refraction out from inside.
 
 Per frame (``shade``; :mod:`.shade`): the front hit and the view direction read the
 mapping (eq. 2, SH order and ringing window of sec. 4.3 as options), the environment is
@@ -47,7 +49,7 @@ def prepare_tables(scenes: Sequence, options: SHOptions) -> tuple[SceneTable, ..
         if ior != 1.0:
             settings = Settings(ior=ior, rings=options.view_rings,
                                 samples=options.surface_samples, max_events=options.max_bounces,
-                                branch=options.branch)
+                                branch=options.branch, branches=options.branches)
             table, _ = get_table(mesh, settings, cache_folder(), options.tracer,
                                  name=str(s.mesh).rsplit("/", 1)[-1])
         out.append(scene_table(table, mesh, s.transform))

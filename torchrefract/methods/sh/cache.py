@@ -2,10 +2,11 @@
 
 Key: the SHA-256 of the *object-space* mesh (vertices, faces, shading normals as the
 renderer loads them, before the scene's transform) and the settings the paths depend on
-(IOR, direction rings, sample target, interface limit; not the SH order or window, applied
-when shading). A scene's rigid transform and uniform scale are a remapping at shading time
-(sec. 5.4), so every pose of a mesh file shares one table; a mesh whose content changes (a
-deformed or re-exported file) gets a new key and a new precomputation, never a stale table.
+(IOR, direction rings, sample target, interface limit, branch rule, branches stored; not
+the SH order or window, applied when shading). A scene's rigid transform and uniform scale
+are a remapping at shading time (sec. 5.4), so every pose of a mesh file shares one table;
+a mesh whose content changes (a deformed or re-exported file) gets a new key and a new
+precomputation, never a stale table.
 
 Files: ``<cache folder>/sh/sh_<mesh>_<settings>.npz`` (the user cache folder of
 :func:`torchrefract.settings.cache_folder`), written atomically
@@ -30,7 +31,7 @@ import torch
 
 from torchrefract.geometry.mesh import MeshData
 from torchrefract.methods.sh.layout import Layout
-from torchrefract.methods.sh.precompute import CHANNELS, SHTable, Settings, precompute
+from torchrefract.methods.sh.precompute import SHTable, Settings, channels, precompute
 from torchrefract.output.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,8 @@ def settings_key(settings: Settings) -> str:
     """Canonical text of the settings (and the format version)."""
     d = asdict(settings)
     d["ior"] = float(np.float32(d["ior"]))  # the renderer's IOR is float32
+    if d["branches"] == 1:  # the key (and file) of the tables made before the option
+        del d["branches"]
     d["format"] = FORMAT
     return json.dumps(d, sort_keys=True)
 
@@ -73,7 +76,7 @@ def save_table(table: SHTable, path: Path) -> None:
     """Write a table atomically (uncompressed npz: float16 weights hardly compress)."""
     lay = table.layout
     meta = {"mesh_hash": table.mesh_hash, "settings": settings_key(table.settings),
-            "radius": table.radius, "rate": lay.rate, "channels": list(CHANNELS),
+            "radius": table.radius, "rate": lay.rate, "channels": list(channels(table.settings)),
             "stats": table.stats}
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, coeffs=table.coeffs.numpy(), lattice=lay.lattice.numpy().astype(np.int32),
@@ -92,14 +95,14 @@ def load_table(path: Path, mesh_key: str, settings: Settings) -> SHTable:
         meta = json.loads(str(z["meta"]))
         if meta.get("mesh_hash") != mesh_key or meta.get("settings") != settings_key(settings):
             raise ValueError(f"{path} holds another mesh or settings")
-        if meta.get("channels") != list(CHANNELS):
+        if meta.get("channels") != list(channels(settings)):
             raise ValueError(f"{path} has channels {meta.get('channels')}")
         layout = Layout(rate=int(meta["rate"]),
                         lattice=torch.from_numpy(z["lattice"].astype(np.int64)),
                         position=torch.from_numpy(np.array(z["position"])),
                         frame=torch.from_numpy(np.array(z["frame"])))
         coeffs = torch.from_numpy(np.array(z["coeffs"]))
-    if coeffs.shape[0] != layout.num_samples or coeffs.shape[2] != len(CHANNELS):
+    if coeffs.shape[0] != layout.num_samples or coeffs.shape[2] != len(channels(settings)):
         raise ValueError(f"{path}: coefficient shape {tuple(coeffs.shape)} does not match "
                          f"{layout.num_samples} samples")
     return SHTable(layout=layout, coeffs=coeffs, radius=float(meta["radius"]),

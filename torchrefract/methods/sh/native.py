@@ -66,7 +66,9 @@ class _ShPathJob(ctypes.Structure):
                 ("eps", ctypes.c_float), ("pad0", ctypes.c_float), ("p", _p), ("nrm", _p),
                 ("omega", _p), ("tri_n", _p), ("g_n", _p), ("scene", _p), ("intersect1", _p),
                 ("intersect16", _p), ("vsqrt", _p), ("direction", _p), ("length", _p),
-                ("cos_exit", _p), ("throughput", _p), ("events", _p)]
+                ("cos_exit", _p), ("throughput", _p), ("events", _p),
+                ("branches", ctypes.c_int64), ("b_direction", _p), ("b_length", _p),
+                ("b_cos_exit", _p), ("b_throughput", _p), ("b_events", _p), ("b_split", _p)]
 
 
 _LOCK = threading.Lock()
@@ -226,7 +228,7 @@ def torch_sqrt_function() -> int | None:
 
 def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: torch.Tensor,
                 n: torch.Tensor, omega: torch.Tensor, ior: float, max_events: int, eps: float,
-                branch: str, threads: int = 1, packets: bool = True):
+                branch: str, threads: int = 1, packets: bool = True, branches: int = 1):
     """:func:`.paths.trace_paths` in C (``csrc/sh_paths.c``) on a :class:`.tracer.EmbreeNative`
     scene: the same :class:`.paths.PathEnds`, bit for bit (tests/test_sh.py), or None where
     the library is unavailable (the caller runs the tensor code).
@@ -236,7 +238,7 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
         tri_normals: (F, 3, 3) unit shading normals at the corners.
         g_normals: (F, 3) unit geometric normals, as :func:`.paths.geometric_normals`.
         p, n, omega: (P, 3) entry points, outward normals, directions to the viewer.
-        ior, max_events, eps, branch: as :func:`.paths.trace_paths`.
+        ior, max_events, eps, branch, branches: as :func:`.paths.trace_paths`.
         threads: threads of the call (1 where the caller runs chunks in threads).
         packets: cast 16 rays per Embree call (``rtcIntersect16``), else one by one.
     """
@@ -248,6 +250,11 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
     out = {"direction": torch.empty(count, 3), "length": torch.empty(count),
            "cos_exit": torch.empty(count), "throughput": torch.empty(count),
            "events": torch.empty(count, dtype=torch.int64)}
+    fork = {"b_direction": torch.empty(count, 3), "b_length": torch.empty(count),
+            "b_cos_exit": torch.empty(count), "b_throughput": torch.empty(count),
+            "b_events": torch.zeros(count, dtype=torch.int64),
+            "b_split": torch.zeros(count, dtype=torch.uint8)}
+    two = int(branches) == 2
     held = {"p": p.float().contiguous(), "nrm": n.float().contiguous(),
             "omega": omega.float().contiguous(), "tri_n": tri_normals.float().contiguous(),
             "g_n": g_normals.float().contiguous()}
@@ -257,11 +264,22 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
                      ior=f32(ior), inv_ior=f32(1.0 / ior), eps=f32(eps), pad0=0.0,
                      scene=embree.scene, intersect1=embree.intersect1,
                      intersect16=embree.intersect16 if packets else None,
-                     vsqrt=torch_sqrt_function(),
-                     **{k: v.data_ptr() for k, v in {**held, **out}.items()})
+                     vsqrt=torch_sqrt_function(), branches=2 if two else 1,
+                     **{k: v.data_ptr() for k, v in {**held, **out}.items()},
+                     **{k: v.data_ptr() if two else None for k, v in fork.items()})
     if _LIB.torchrefract_sh_paths(ctypes.byref(job), max(1, int(threads))) != 0:
         return None
-    return PathEnds(**out)
+    if not two:
+        return PathEnds(**out)
+    split = fork["b_split"].bool()
+    s1 = split[:, None]
+    branch_ends = PathEnds(
+        direction=torch.where(s1, fork["b_direction"], out["direction"]),
+        length=torch.where(split, fork["b_length"], out["length"]),
+        cos_exit=torch.where(split, fork["b_cos_exit"], out["cos_exit"]),
+        throughput=torch.where(split, fork["b_throughput"], 0.0),
+        events=fork["b_events"])
+    return PathEnds(**out, branch=branch_ends)
 
 
 __all__ = ["CPAD", "SOURCES", "available", "build", "evaluate", "evaluate_points",

@@ -14,7 +14,7 @@ BRANCHES = ("tir", "greedy")
 
 @dataclass(frozen=True)
 class SHOptions:
-    """Settings of ``sh``. The first five choose the precomputed table (and its cache
+    """Settings of ``sh``. The first six choose the precomputed table (and its cache
     file); the others only how it is read."""
 
     view_rings: int = option(32, minimum=2, maximum=64, integer=True)
@@ -31,6 +31,11 @@ class SHOptions:
     only under total internal reflection; the greedy switch at F = 1/2 is a jump in the
     mapping that rings over the whole hemisphere: on a sphere the order-8 median direction
     error falls from 0.045 to 0.009 rad, docs/decisions_sh.md)."""
+    branches: int = option(1, choices=(1, 2))
+    """Branches stored per path: 1 (the followed path only) or 2 (also the Fresnel-reflected
+    branch at the first interface where the path refracts out from inside, e.g. the cavity
+    wall or a bead, with its share F of the energy; the main path's weight is reduced by the
+    same share at shading; a second table of 6 channels, docs/decisions_sh.md)."""
     tracer: str = option("auto", choices=TRACERS)
     """Ray caster of the precomputation: ``embree`` (embreex), ``mitsuba`` (LLVM variant)
     or ``auto`` (the first available)."""

@@ -17,6 +17,12 @@ use the flat triangles, refraction the interpolated shading normals (SCENE_SPEC.
 Recorded per path: the final direction, the length travelled inside (sec. 5.4, for
 absorption exp(-sigma d)), the cosine at the last exit (for the rough exit lobe), and the
 throughput of the branches taken after the entry (the product of F or 1 - F).
+
+With ``branches=2`` (ours, the Fresnel share a single path loses inside a shell or at a
+bead): at the first interface where the path refracts out from inside (not at the last
+one allowed), the reflected ray is followed too, as a second path of the same wavefront
+with the same rules and the same interface limit; its ends are recorded alike, its
+throughput starting from the main path's there times F (:attr:`PathEnds.branch`).
 """
 
 from __future__ import annotations
@@ -41,6 +47,12 @@ class PathEnds:
             it never met an exit).
         throughput: product of the Fresnel factors of the branches taken after the entry.
         events: interfaces met after the entry.
+        branch: with ``branches=2``, the reflected branch's ends (a :class:`PathEnds`
+            without ``branch``): direction, length (from the entry), exit cosine,
+            throughput = the energy it carries (the main path's throughput at the split
+            times F times its own factors after it; 0 where the path never split, its
+            other channels then the main path's), events = the interfaces the branch met
+            after the split (0: no split); else None.
     """
 
     direction: torch.Tensor
@@ -48,6 +60,7 @@ class PathEnds:
     cos_exit: torch.Tensor
     throughput: torch.Tensor
     events: torch.Tensor
+    branch: "PathEnds | None" = None
 
 
 def geometric_normals(tri_vertices: torch.Tensor) -> torch.Tensor:
@@ -59,7 +72,8 @@ def geometric_normals(tri_vertices: torch.Tensor) -> torch.Tensor:
 
 def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals: torch.Tensor,
                 p: torch.Tensor, n: torch.Tensor, omega: torch.Tensor, ior: float,
-                max_events: int, eps: float, branch: str = "greedy") -> PathEnds:
+                max_events: int, eps: float, branch: str = "greedy", branches: int = 1
+                ) -> PathEnds:
     """Follow the most significant Fresnel branch of P view rays (module docstring).
 
     Args:
@@ -72,21 +86,28 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         eps: origin offset off a surface (object units).
         branch: ``greedy`` (the paper: reflect where F > 1/2) or ``tir`` (reflect only
             under total internal reflection, F = 1).
+        branches: 1, or 2: also the reflected branch at the first refraction out from
+            inside (module docstring).
 
     Returns:
         :class:`PathEnds`.
     """
     count = p.shape[0]
+    # rows count.. hold the reflected branches (branches=2), live once split off
+    rows = count * (2 if branches == 2 else 1)
     d0 = -omega
     n_in = face_forward(n, d0)
     t1, _ = refract(d0, n_in, 1.0 / ior)
-    direction = t1.clone()
-    origin = p - eps * n  # just inside the surface
-    inside = torch.ones(count, dtype=torch.bool)
-    length = torch.zeros(count)
-    cos_exit = torch.ones(count)
-    throughput = torch.ones(count)
-    events = torch.zeros(count, dtype=torch.int64)
+    direction = torch.zeros(rows, 3)
+    direction[:count] = t1
+    origin = torch.zeros(rows, 3)
+    origin[:count] = p - eps * n  # just inside the surface
+    inside = torch.ones(rows, dtype=torch.bool)
+    length = torch.zeros(rows)
+    cos_exit = torch.ones(rows)
+    throughput = torch.ones(rows)
+    events = torch.zeros(rows, dtype=torch.int64)
+    split = torch.zeros(count, dtype=torch.bool)  # the main path has split off its branch
     live = torch.arange(count)
     g_n = geometric_normals(tri_vertices)
     for k in range(max_events + 1):
@@ -122,19 +143,44 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         else:
             take_r = tir if branch == "tir" else f > 0.5
         new_d = torch.where(take_r[:, None], r_dir, t_dir)
+        exits = ~take_r & leaving
+        fork = None
+        if branches == 2 and not last:  # the first refraction out of a main path: split
+            main = live < count
+            fork = (exits & main & ~split[live.clamp(max=count - 1)]).nonzero(as_tuple=True)[0]
+            src = live[fork]
+            br = src + count
+            split[src] = True
+            origin[br] = x[fork] + (eps * -1.0) * -ng_f[fork]
+            direction[br] = normalize(r_dir[fork])
+            throughput[br] = throughput[src] * f[fork]
+            length[br] = length[src]
+            cos_exit[br] = cos_exit[src]
+            inside[br] = ins[fork]
         # the reflected branch stays on the incident side, the refracted crosses
         side = torch.where(take_r, -1.0, 1.0)
         origin[live] = x + (eps * side)[:, None] * -ng_f
         direction[live] = normalize(new_d)
         throughput[live] *= torch.where(take_r, f, 1.0 - f)
         events[live] += 1
-        exits = ~take_r & leaving
         cos_exit[live] = torch.where(exits, cos_i, cos_exit[live])
         inside[live] = torch.where(take_r, ins, ~ins)
         if last:
             break
-    return PathEnds(direction=direction, length=length, cos_exit=cos_exit,
-                    throughput=throughput, events=events)
+        if fork is not None and fork.numel() > 0:
+            live = torch.cat([live, live[fork] + count])
+    if branches != 2:
+        return PathEnds(direction=direction, length=length, cos_exit=cos_exit,
+                        throughput=throughput, events=events)
+    m, b = slice(0, count), slice(count, rows)
+    s1 = split[:, None]
+    fork_ends = PathEnds(direction=torch.where(s1, direction[b], direction[m]),
+                         length=torch.where(split, length[b], length[m]),
+                         cos_exit=torch.where(split, cos_exit[b], cos_exit[m]),
+                         throughput=torch.where(split, throughput[b], 0.0),
+                         events=events[b])
+    return PathEnds(direction=direction[m], length=length[m], cos_exit=cos_exit[m],
+                    throughput=throughput[m], events=events[m], branch=fork_ends)
 
 
 __all__ = ["PathEnds", "geometric_normals", "trace_paths"]

@@ -11,6 +11,8 @@ projection's coefficients of bands <= L do not depend on the bands kept above L,
 table serves every order and window.
 
 The coefficients are stored as float16 (the paper found 8 bits per weight enough, fig. 5).
+With ``branches: 2`` the reflected branch of each path (:attr:`.paths.PathEnds.branch`)
+adds 6 channels (:data:`BRANCH_CHANNELS`) after these.
 """
 
 from __future__ import annotations
@@ -34,6 +36,16 @@ from torchrefract.methods.sh.tracer import EmbreeNative, intersector
 CHANNELS = ("dir_x", "dir_y", "dir_z", "length", "cos_exit", "throughput")
 """What each coefficient vector holds (length: inside the object over the mesh's radius)."""
 
+BRANCH_CHANNELS = ("b_dir_x", "b_dir_y", "b_dir_z", "b_length", "b_cos_exit", "b_energy")
+"""With ``branches: 2``, the reflected branch's (:attr:`.paths.PathEnds.branch`), after
+:data:`CHANNELS`: the same quantities, its throughput being the energy it carries (F at
+the split times the rest; 0 where the path never split)."""
+
+
+def channels(settings: "Settings") -> tuple[str, ...]:
+    """The channels a table at ``settings`` stores."""
+    return CHANNELS + (BRANCH_CHANNELS if settings.branches == 2 else ())
+
 PATHS_PER_CHUNK = 1 << 19
 """Paths traced per batch (bounds the memory: ~0.2 GB of temporaries)."""
 
@@ -53,6 +65,7 @@ class Settings:
     samples: int
     max_events: int
     branch: str = "tir"
+    branches: int = 1
 
 
 @dataclass(frozen=True)
@@ -61,7 +74,8 @@ class SHTable:
 
     Attributes:
         layout: the surface samples (object space).
-        coeffs: (S, K, C) float16, K = 45 even coefficients up to band 8, C = ``CHANNELS``.
+        coeffs: (S, K, C) float16, K = 45 even coefficients up to band 8, C = ``CHANNELS``
+            (and ``BRANCH_CHANNELS`` after them with ``branches: 2``: :func:`channels`).
         radius: the mesh's bounding radius (object units; lengths are stored over it).
         settings: what it was computed for.
         mesh_hash: content hash of the object-space mesh (:func:`.cache.mesh_hash`).
@@ -81,7 +95,16 @@ class SHTable:
         layout (:func:`.native.padded_coeffs`), made once per table."""
         from torchrefract.methods.sh.native import padded_coeffs  # noqa: PLC0415
 
-        return padded_coeffs(self.coeffs)
+        return padded_coeffs(self.coeffs[:, :, :len(CHANNELS)])
+
+    @functools.cached_property
+    def padded_branch(self) -> torch.Tensor:
+        """:attr:`padded` of the reflected branch's channels (``branches: 2``; the
+        kernel's second table)."""
+        from torchrefract.methods.sh.native import padded_coeffs  # noqa: PLC0415
+
+        c = len(CHANNELS)
+        return padded_coeffs(self.coeffs[:, :, c:2 * c])
 
     @property
     def nbytes(self) -> int:
@@ -129,15 +152,24 @@ def _trace_chunk(layout: Layout, s0: int, s1: int, intersect, tri_v: torch.Tenso
     ends = None
     if embree is not None:
         ends = sh_native.trace_paths(embree, tri_n, g_n, p, n, omega, settings.ior,
-                                     settings.max_events, EPS * radius, settings.branch)
+                                     settings.max_events, EPS * radius, settings.branch,
+                                     branches=settings.branches)
     if ends is None:
         ends = trace_paths(intersect, tri_v, tri_n, p, n, omega, settings.ior,
-                           settings.max_events, EPS * radius, settings.branch)
-    r = torch.cat([ends.direction, (ends.length / radius)[:, None],
-                   ends.cos_exit[:, None], ends.throughput[:, None]], 1)
-    r = r.view(s1 - s0, n_dir, len(CHANNELS))
-    w = torch.einsum("kj,sjc->skc", m, r).to(torch.float16)  # eq. 10
-    return w, int(ends.events.sum()) + p.shape[0]
+                           settings.max_events, EPS * radius, settings.branch,
+                           settings.branches)
+    ws = []
+    for e in [ends] if ends.branch is None else [ends, ends.branch]:
+        r = torch.cat([e.direction, (e.length / radius)[:, None], e.cos_exit[:, None],
+                       e.throughput[:, None]], 1)
+        r = r.view(s1 - s0, n_dir, len(CHANNELS))
+        ws.append(torch.einsum("kj,sjc->skc", m, r).to(torch.float16))  # eq. 10
+    # (the main path's channels as a branches: 1 table's, bit for bit)
+    w = ws[0] if len(ws) == 1 else torch.cat(ws, 2)
+    rays = int(ends.events.sum()) + p.shape[0]
+    if ends.branch is not None:  # a branch's rays: its interfaces and its last cast
+        rays += int(ends.branch.events.sum()) + int((ends.branch.throughput > 0).sum())
+    return w, rays
 
 
 def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str = "auto",
@@ -177,7 +209,7 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
     starts = list(range(0, s_total, chunk))
     workers = precompute_workers() if workers is None else max(1, int(workers))
     workers = 1 if backend != "embree" else min(workers, len(starts))
-    coeffs = torch.empty((s_total, m.shape[0], len(CHANNELS)), dtype=torch.float16)
+    coeffs = torch.empty((s_total, m.shape[0], len(channels(settings))), dtype=torch.float16)
     rays = 0
 
     def run(s0: int) -> tuple[int, torch.Tensor, int]:
@@ -209,5 +241,5 @@ def precompute(mesh: MeshData, settings: Settings, mesh_hash: str, tracer: str =
                    mesh_hash=mesh_hash, stats=stats)
 
 
-__all__ = ["CHANNELS", "EPS", "MAX_WORKERS", "PATHS_PER_CHUNK", "SHTable", "Settings",
-           "precompute", "precompute_workers"]
+__all__ = ["BRANCH_CHANNELS", "CHANNELS", "EPS", "MAX_WORKERS", "PATHS_PER_CHUNK", "SHTable",
+           "Settings", "channels", "precompute", "precompute_workers"]

@@ -21,6 +21,11 @@ Per object pixel (all pixels of a batch, compacted):
    adds the table's transmitted lobe at the stored exit cosine: k = 1 / (1/k_t2 + var_geo).
 4. L = E_r L_env(axis_r, k_r) + E_t1 W2 exp(-sigma d) L_env(exit, k), the environment
    read from the SG-pre-convolved pyramid, sphere lights included; W2 per ``exit_weight``.
+5. ``branches: 2``: the reflected branch's channels (the table's second half) are read
+   the same way (steps 2-3, its own spread, exit cosine and length) and its lobe added
+   with E_t1 W2' E_b, E_b its stored energy, the main path's W2 times (1 - E_b)
+   (``conserve``: W2 and W2' the exit's conserving weights, so a smooth white furnace
+   stays at 1; ``path``: W2 the main path's throughput, W2' = 1).
 
 An index-matched object (IOR 1) has no interface: it is invisible (no table needed).
 """
@@ -44,7 +49,7 @@ from torchrefract.methods.sh import native as sh_native
 from torchrefract.methods.sh.basis import num_even, real_sh_even, window
 from torchrefract.methods.sh.layout import interpolation
 from torchrefract.methods.sh.options import SHOptions
-from torchrefract.methods.sh.precompute import SHTable
+from torchrefract.methods.sh.precompute import CHANNELS, SHTable
 from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
@@ -115,7 +120,8 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
 
 
 def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
-             order: int, weights: torch.Tensor, channels: int | None = None) -> torch.Tensor:
+             order: int, weights: torch.Tensor, channels: int | None = None, first: int = 0
+             ) -> torch.Tensor:
     """Eq. 2: the mapping at surface points for view directions.
 
     Args:
@@ -124,18 +130,25 @@ def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: tor
         omega: (N, E, 3) unit view directions (towards the viewer, object space), E per point.
         order: highest band; weights: (K,) window of the even coefficients up to it.
         channels: the first ``channels`` of :data:`.precompute.CHANNELS` (None: all).
+        first: 0, or ``len(CHANNELS)``: the reflected branch's channels
+            (:data:`.precompute.BRANCH_CHANNELS`, ``branches: 2``).
 
     Returns:
         (N, E, channels) the interpolated channels.
     """
     samples, s_w = interpolation(table.layout.lattice, table.layout.rate, faces, bary)  # (N, 3)
-    return evaluate_samples(table, samples, s_w, omega, order, weights, channels)
+    return evaluate_samples(table, samples, s_w, omega, order, weights, channels, first=first)
+
+
+def _padded(table: SHTable, first: int) -> torch.Tensor:
+    """The native kernel's table of the main path (``first`` 0) or of the branch."""
+    return table.padded if first == 0 else table.padded_branch
 
 
 def evaluate_samples(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
                      omega: torch.Tensor, order: int, weights: torch.Tensor,
-                     channels: int | None = None, rest_channels: int | None = None
-                     ) -> torch.Tensor:
+                     channels: int | None = None, rest_channels: int | None = None,
+                     first: int = 0) -> torch.Tensor:
     """:func:`evaluate` from the points' three samples (N, 3) and their weights S_oi (N, 3)
     (:func:`.layout.interpolation`): the native kernel (:mod:`.native`) where it runs and
     no gradient is wanted through ``omega``, else the tensor code in chunks of
@@ -143,12 +156,16 @@ def evaluate_samples(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
 
     ``rest_channels``: only the first ``rest_channels`` are evaluated for the directions
     after the first (``omega[:, 1:]``), the others are 0 (None: all ``channels``).
+    ``first``: as :func:`evaluate`.
     """
-    c = table.coeffs.shape[-1] if channels is None else channels
+    c = len(CHANNELS) if channels is None else channels
     cr = c if rest_channels is None else min(rest_channels, c)
+    if first not in (0, len(CHANNELS)) or table.coeffs.shape[-1] < first + c:
+        raise ValueError(f"sh table of {table.coeffs.shape[-1]} channels: no channels "
+                         f"{first}..{first + c}")
     if sh_native.available() and native.no_grad_through(omega, s_w, weights):
-        out = sh_native.evaluate(table.padded, table.layout.frame, samples, s_w, omega, order,
-                                 weights, c, cr)
+        out = sh_native.evaluate(_padded(table, first), table.layout.frame, samples, s_w,
+                                 omega, order, weights, c, cr)
         if out is not None:
             return out
     parts = []
@@ -156,23 +173,25 @@ def evaluate_samples(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
         sl = slice(c0, c0 + CHUNK)
         if cr == c or omega.shape[1] == 1:
             parts.append(_evaluate_tensor(table, samples[sl], s_w[sl], omega[sl], order,
-                                          weights, c))
+                                          weights, c, first))
             continue
-        first = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, :1], order, weights, c)
-        rest = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, 1:], order, weights, cr)
-        parts.append(torch.cat([first, torch.nn.functional.pad(rest, (0, c - cr))], 1))
+        head = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, :1], order, weights, c,
+                                first)
+        rest = _evaluate_tensor(table, samples[sl], s_w[sl], omega[sl, 1:], order, weights, cr,
+                                first)
+        parts.append(torch.cat([head, torch.nn.functional.pad(rest, (0, c - cr))], 1))
     return torch.cat(parts, 0) if len(parts) != 1 else parts[0]
 
 
 def _evaluate_tensor(table: SHTable, samples: torch.Tensor, s_w: torch.Tensor,
-                     omega: torch.Tensor, order: int, weights: torch.Tensor, channels: int
-                     ) -> torch.Tensor:
+                     omega: torch.Tensor, order: int, weights: torch.Tensor, channels: int,
+                     first: int = 0) -> torch.Tensor:
     """The tensor code of :func:`evaluate_samples` (differentiable in ``omega``)."""
     k = num_even(order)
     frames = table.layout.frame[samples]  # (N, 3, 3, 3): per sample, rows t, b, n
     local = torch.einsum("ner,nsar->nsea", omega, frames)  # (N, 3, E, 3)
     y = real_sh_even(local, order)  # (N, 3, E, K)
-    w = table.coeffs.index_select(0, samples.reshape(-1))[:, :k, :channels].float()
+    w = table.coeffs.index_select(0, samples.reshape(-1))[:, :k, first:first + channels].float()
     w = w.view(*samples.shape, k, channels) * weights[None, None, :, None]  # (N, 3, K, c)
     vals = torch.einsum("nsek,nskc->nsec", y, w)  # (N, 3, E, c)
     return (s_w[:, :, None, None] * vals).sum(1)
@@ -191,16 +210,18 @@ def _snell_spread(px: Pixels, var1: torch.Tensor) -> torch.Tensor:
 
 
 def _map_values(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
-                r: torch.Tensor | None, order: int, weights: torch.Tensor) -> torch.Tensor:
+                r: torch.Tensor | None, order: int, weights: torch.Tensor, first: int = 0
+                ) -> torch.Tensor:
     """(n, E, C) the mapping at the front hits (``faces``, ``bary``) for the view ``omega``
     (n, 3) (object space) and, with ``r`` (n,), the four views at angle r around it (E = 5;
     only the exit direction, 3 channels, at those): the native kernel where it runs and no
-    gradient is wanted (samples and directions made there), else the tensor code."""
+    gradient is wanted (samples and directions made there), else the tensor code.
+    ``first``: as :func:`evaluate`."""
     if sh_native.available() and native.no_grad_through(omega, weights, *(
             () if r is None else (r,))):
-        out = sh_native.evaluate_points(table.padded, table.layout.frame, table.layout.lattice,
-                                        table.layout.rate, faces, bary, omega, r, order,
-                                        weights, table.coeffs.shape[-1], 3)
+        out = sh_native.evaluate_points(_padded(table, first), table.layout.frame,
+                                        table.layout.lattice, table.layout.rate, faces, bary,
+                                        omega, r, order, weights, len(CHANNELS), 3)
         if out is not None:
             return out
     samples, s_w = interpolation(table.layout.lattice, table.layout.rate, faces, bary)
@@ -209,13 +230,15 @@ def _map_values(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: 
         u, v = tangent_frame(omega)
         dirs += [normalize(omega + r[:, None] * t) for t in (u, -u, v, -v)]
     # all channels at the view itself, the exit direction (3) at the offsets
-    return evaluate_samples(table, samples, s_w, torch.stack(dirs, 1), order, weights, None, 3)
+    return evaluate_samples(table, samples, s_w, torch.stack(dirs, 1), order, weights, None, 3,
+                            first)
 
 
 def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneTable,
-                options: SHOptions, var_view: torch.Tensor, rough: bool):
+                options: SHOptions, var_view: torch.Tensor, rough: bool, first: int = 0):
     """Exit direction (world), length (world), exit cosine, throughput and the geometric
-    variance of the pixels ``sel`` (positions in ``px``) of one batch item."""
+    variance of the pixels ``sel`` (positions in ``px``) of one batch item; of the main
+    path, or of the reflected branch (``first``: as :func:`evaluate`)."""
     table = item.table
     weights = window(options.order, options.window, options.window_width)
     b_idx = take(px.idx, sel)
@@ -227,7 +250,7 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
     if rough:
         var_v = take(var_view, sel)
         r = torch.sqrt(var_v).clamp(max=MAX_SPREAD)
-    vals = _map_values(table, faces, bary, omega, r, options.order, weights)
+    vals = _map_values(table, faces, bary, omega, r, options.order, weights, first)
     exit_obj = vals[:, 0, :3]
     center = normalize(exit_obj)
     var_geo = torch.zeros_like(center[:, 0])
@@ -279,6 +302,10 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
         cos_exit, thr, var_geo = torch.ones(n), torch.ones(n), torch.zeros(n)
         length_fallback = take((g.back.dist - g.front.dist).reshape(-1), idx).clamp(min=0.0)
         matched = torch.zeros(n, dtype=torch.bool)
+        two = options.branches == 2
+        if two:  # the reflected branch's (energy 0: none)
+            direction_b, length_b = px.d.clone(), torch.zeros(n)
+            cos_b, energy_b, var_geo_b = torch.ones(n), torch.zeros(n), torch.zeros(n)
         for bi, item in enumerate(items):
             sel = where_true(px.bi == bi)
             if sel.numel() == 0:
@@ -296,28 +323,56 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
             outs = _map_pixels(g, px, bi, sel, item, options, var_view, rough)
             for dst, v in zip((direction, length, cos_exit, thr, var_geo), outs):
                 put_(dst, sel, v)
+            if two:
+                if item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
+                    raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
+                                     "channels (branches: 1); re-run prepare()")
+                outs = _map_pixels(g, px, bi, sel, item, options, var_view, rough,
+                                   len(CHANNELS))
+                for dst, v in zip((direction_b, length_b, cos_b, energy_b, var_geo_b), outs):
+                    put_(dst, sel, v)
         # The exit interface (leaving: eta = 1 / ior), its lobe at the exit cosine (held
         # just outside TIR, where interpolation may dip below the critical angle).
         eta2 = 1.0 / px.ior
-        cos_in = torch.maximum(cos_exit, critical_cosine(px.ior) + CRITICAL_MARGIN).clamp(max=1.0)
-        k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
-        k = 1.0 / (1.0 / k_t2 + var_geo).clamp(min=1e-12)
-        if options.exit_weight == "conserve":
+        esc = None
+
+        def exit_lobe(cos_out, var_g, thr_path):
+            """The exit's lobe sharpness and leaving weight (``exit_weight``)."""
+            nonlocal esc
+            cos_in = torch.maximum(cos_out, critical_cosine(px.ior) + CRITICAL_MARGIN
+                                   ).clamp(max=1.0)
+            k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
+            k_out = 1.0 / (1.0 / k_t2 + var_g).clamp(min=1e-12)
+            if options.exit_weight != "conserve":
+                return k_out, thr_path
             e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist)
-            esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi)
-            weight2 = leaving_weight("conserve", torch.zeros_like(matched), e_t2, e_r2, esc)
-        else:
-            weight2 = thr
+            if esc is None:
+                esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi)
+            return k_out, leaving_weight("conserve", torch.zeros_like(matched), e_t2, e_r2, esc)
+
+        k, weight2 = exit_lobe(cos_exit, var_geo, thr)
+        if two:
+            # the branch carries its energy; conserve: the main path's share less it
+            energy_b = torch.where(matched, torch.zeros_like(energy_b), energy_b)
+            k_b, weight_b = exit_lobe(cos_b, var_geo_b, torch.ones_like(thr))
+            weight_b = weight_b * energy_b
+            if options.exit_weight == "conserve":
+                weight2 = weight2 * (1.0 - energy_b)
         e_r, e_t1 = front.e_r, front.e_t1
         # Index-matched: invisible (the straight ray, unblurred, all the light).
         e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
         e_t1 = torch.where(matched, torch.ones_like(e_t1), e_t1)
         weight2 = torch.where(matched, torch.ones_like(weight2), weight2)
         k = torch.where(matched, torch.full_like(k, float("inf")), k)
-        att = torch.exp(-take(materials.absorption, px.bi) * length[:, None])  # (N, 3), sec. 5.4
+        absorption = take(materials.absorption, px.bi)
+        att = torch.exp(-absorption * length[:, None])  # (N, 3), sec. 5.4
         l_refl = incident_radiance_sg(lighting, px.bi, px.p1, front.axis_r, front.k_r)
         l_trans = incident_radiance_sg(lighting, px.bi, px.p1, direction, k)
         l_obj = e_r[:, None] * l_refl + (e_t1 * weight2)[:, None] * att * l_trans
+        if two:
+            att_b = torch.exp(-absorption * length_b[:, None])
+            l_b = incident_radiance_sg(lighting, px.bi, px.p1, direction_b, k_b)
+            l_obj = l_obj + (e_t1 * weight_b)[:, None] * att_b * l_b
         l_obj = torch.nan_to_num(l_obj, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
         composite(g, lighting, px, radiance, l_obj)
         put_(values["lobe_sigma"], idx,

@@ -8,7 +8,11 @@
  * the flat triangle, the interpolated shading normal, the exact Fresnel term, the branch
  * (tir or greedy), refraction or reflection, the length inside, the throughput and the
  * last exit cosine. Paths run in blocks of SH_BLOCK as a wavefront: the live ones stay compact in
- * the block's arrays (no scatter back per interface), ended ones are written out.
+ * the block's arrays (no scatter back per interface), ended ones are written out. With
+ * branches = 2, a path refracting out from inside for the first time (not at the last
+ * interface) also appends its reflected branch to the block's live rays (room for 2 x
+ * SH_BLOCK), followed from the next interface on with the same rules, and written to the
+ * branch outputs (paths.trace_paths' rows count.. and PathEnds.branch).
  *
  * Every float operation is the tensor code's, in its order (optics.smooth.dot, refract,
  * reflect, fresnel_dielectric, normalize; Tensor.norm and torch.cross as in common.h;
@@ -82,6 +86,13 @@ typedef struct {
     float *cos_exit;      /* (n,) out */
     float *throughput;    /* (n,) out */
     int64_t *events;      /* (n,) out */
+    int64_t branches;     /* 1, or 2: also the reflected branch at the first exit */
+    float *b_direction;   /* (n, 3) out (branches 2): the branch's, where it split */
+    float *b_length;      /* (n,) out */
+    float *b_cos_exit;    /* (n,) out */
+    float *b_throughput;  /* (n,) out: its energy (0 where the path never split) */
+    int64_t *b_events;    /* (n,) out: its interfaces after the split */
+    uint8_t *b_split;     /* (n,) out: whether the path split (0: the branch outputs unset) */
 } ShPathJob;
 
 /* optics.smooth.normalize */
@@ -132,22 +143,25 @@ static inline float fresnel_with(float cos_i, float eta, float cos_t, int tir) {
 }
 
 #define SH_BLOCK 256
+#define SH_CAP (2 * SH_BLOCK) /* live rays of a block: its paths and their branches */
 
 /* The paths of one block, as a wavefront: the live ones compacted after every interface
  * (no scatter back), one vector square root per interface for them all. */
 typedef struct {
-    int64_t idx[SH_BLOCK];
-    float org[SH_BLOCK][3], dir[SH_BLOCK][3];
-    float length[SH_BLOCK], cos_exit[SH_BLOCK], thr[SH_BLOCK];
-    int inside[SH_BLOCK];
-    int64_t events[SH_BLOCK];
+    int64_t idx[SH_CAP];
+    float org[SH_CAP][3], dir[SH_CAP][3];
+    float length[SH_CAP], cos_exit[SH_CAP], thr[SH_CAP];
+    int inside[SH_CAP];
+    int fork[SH_CAP];    /* 1: a reflected branch (branches 2) */
+    int split[SH_CAP];   /* a main path that has split off its branch */
+    int64_t events[SH_CAP];
     /* this interface's */
-    float x[SH_BLOCK][3], ngf[SH_BLOCK][3], nsf[SH_BLOCK][3];
-    float eta[SH_BLOCK], cos_i[SH_BLOCK], sq_in[SH_BLOCK], sq_out[SH_BLOCK];
-    int leaving[SH_BLOCK], tir[SH_BLOCK];
+    float x[SH_CAP][3], ngf[SH_CAP][3], nsf[SH_CAP][3];
+    float eta[SH_CAP], cos_i[SH_CAP], sq_in[SH_CAP], sq_out[SH_CAP];
+    int leaving[SH_CAP], tir[SH_CAP];
     /* the nearest hits of the live rays */
-    float hit_t[SH_BLOCK], hit_u[SH_BLOCK], hit_v[SH_BLOCK];
-    int64_t hit_f[SH_BLOCK];
+    float hit_t[SH_CAP], hit_u[SH_CAP], hit_v[SH_CAP];
+    int64_t hit_f[SH_CAP];
 } ShBlock;
 
 /* The nearest hits of the block's `live` rays (hit_f -1: none), as EmbreeScene.run fills
@@ -213,6 +227,15 @@ static void cast_rays(const ShPathJob *job, ShBlock *b, int live) {
 
 static void finish(const ShPathJob *job, const ShBlock *b, int j) {
     const int64_t i = b->idx[j];
+    if (b->fork[j]) {
+        for (int t = 0; t < 3; t++) job->b_direction[3 * i + t] = b->dir[j][t];
+        job->b_length[i] = b->length[j];
+        job->b_cos_exit[i] = b->cos_exit[j];
+        job->b_throughput[i] = b->thr[j];
+        job->b_events[i] = b->events[j];
+        job->b_split[i] = 1;
+        return;
+    }
     for (int t = 0; t < 3; t++) job->direction[3 * i + t] = b->dir[j][t];
     job->length[i] = b->length[j];
     job->cos_exit[i] = b->cos_exit[j];
@@ -234,6 +257,8 @@ static void copy_live(ShBlock *b, int to, int from) {
     b->cos_exit[to] = b->cos_exit[from];
     b->thr[to] = b->thr[from];
     b->inside[to] = b->inside[from];
+    b->fork[to] = b->fork[from];
+    b->split[to] = b->split[from];
     b->events[to] = b->events[from];
     b->eta[to] = b->eta[from];
     b->cos_i[to] = b->cos_i[from];
@@ -274,6 +299,8 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
             b->length[j] = 0.0f;
             b->cos_exit[j] = 1.0f;
             b->thr[j] = 1.0f;
+            b->fork[j] = 0;
+            b->split[j] = 0;
             b->events[j] = 0;
         }
         for (int64_t k = 0; k <= job->max_events && live > 0; k++) {
@@ -313,6 +340,7 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
             live = kept;
             vsqrt(job, live, b->sq_in, b->sq_out);
             const int last = k == job->max_events;
+            int added = 0;
             for (int j = 0; j < live; j++) {
                 const float *d = b->dir[j], *nsf = b->nsf[j];
                 const float eta = b->eta[j], cos_i = b->cos_i[j], cos_t = b->sq_out[j];
@@ -322,6 +350,26 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
                 const float dn = dot3p(d, nsf);
                 for (int t = 0; t < 3; t++) rdir[t] = d[t] - (2.0f * dn) * nsf[t];
                 const int take_r = last ? 0 : (job->greedy ? fr > 0.5f : b->tir[j]);
+                if (job->branches == 2 && !last && !take_r && b->leaving[j] && !b->fork[j]
+                    && !b->split[j]) {
+                    /* the first refraction out: the reflected branch joins the wavefront */
+                    const int q = live + added++;
+                    const float offr = eps * -1.0f;
+                    for (int t = 0; t < 3; t++) {
+                        b->org[q][t] = b->x[j][t] + offr * -b->ngf[j][t];
+                        b->dir[q][t] = rdir[t];
+                    }
+                    normalize3p(b->dir[q]);
+                    b->idx[q] = b->idx[j];
+                    b->thr[q] = b->thr[j] * fr;
+                    b->length[q] = b->length[j];
+                    b->cos_exit[q] = b->cos_exit[j];
+                    b->inside[q] = b->inside[j];
+                    b->fork[q] = 1;
+                    b->split[q] = 0;
+                    b->events[q] = 0;
+                    b->split[j] = 1;
+                }
                 const float off = eps * (take_r ? -1.0f : 1.0f);
                 for (int t = 0; t < 3; t++) {
                     b->org[j][t] = b->x[j][t] + off * -b->ngf[j][t];
@@ -335,6 +383,7 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
             }
             if (last)
                 for (int j = 0; j < live; j++) finish(job, b, j);
+            live += added;
         }
     }
     free(b);
