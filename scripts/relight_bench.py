@@ -9,7 +9,8 @@ medians of ``--repeats``. Relight times:
 - ``ms_relight``: a relight of a prepared matte with the map's textures and the rotation
   seen before (what a sweep pays for every map after the first at a rotation);
 - ``ms_relight_new_rotation``: the rotation's caches dropped first (each lobe's u and its
-  texel indices computed again: what the first map at a rotation pays). ``exact_u``: the
+  texel indices computed again, by csrc/relight.c where the native kernels run (the
+  summary's ``native``): what the first map at a rotation pays). ``exact_u``: the
   row's rotation is the rendered one, where u is the renderer's op for op (the C library's
   atan2f per lobe); at every other rotation it is each lobe's azimuth at rotation 0,
   shifted (``Prepared.u``; docs/matte.md, "Speed");
@@ -37,6 +38,7 @@ import torch
 import torchrefract as tr
 import torchrefract.matte.relight as relight_mod
 from torchrefract.heap import set_heap_reuse
+from torchrefract.kernels import native
 from torchrefract.lighting.sg_pyramid import sg_pyramid_for
 from torchrefract.matte.matte import from_passes
 from torchrefract.output.images import linear_to_srgb8
@@ -150,6 +152,7 @@ def main() -> None:
     sp_new = [r["speedup_new_rotation_vs_default"] for r in rows if not r["exact_u"]]
     sp_exact = [r["speedup_new_rotation_vs_default"] for r in rows if r["exact_u"]]
     summary = {"date": date.today().isoformat(), "threads": torch.get_num_threads(),
+               "native": native.available(),
                "size": args.size, "rows": rows,
                "speedup_min": min(sp), "speedup_median": float(np.median(sp)),
                "speedup_new_rotation_min": min(sp_new),

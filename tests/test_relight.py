@@ -138,3 +138,77 @@ def test_prepared_equals_lookups(one_thread):
     m.weight.mul_(2.0)  # in place: prepared again
     assert torch.allclose(tr.relight(m, OTHER, 5.0) - m.lights, 2 * (before - m.lights),
                           rtol=1e-5, atol=1e-6)
+
+
+def test_native_reads_equal_tensor_code(one_thread):
+    """The C kernel of a rotation's texel reads (csrc/relight.c, ``native.relight_reads``)
+    against ``_Group.reads``' tensor code (its reference and fallback): indices and weights
+    equal, for plain and SG groups, shifted u (one rotation, and one per view) and the
+    renderer's u, rotations negative, beyond a turn and beyond 1e11 degrees (floor()
+    itself), a NaN azimuth (carried as torch carries it). Its gather
+    (``native.relight_values``) against ``embedding_bag`` over those reads: the same sum
+    (measured: the same bits), and so the relit images (the same map's exactness at the
+    rendered rotation: test_other_map_rotation_scale). A NaN azimuth (an index outside
+    the image: embedding_bag raises) leaves the gather to the tensor code."""
+    import copy
+
+    import torch.nn.functional as F
+
+    import torchrefract.matte.relight as relight_mod
+    from torchrefract import settings
+    from torchrefract.kernels import native
+    from torchrefract.lighting.sg_pyramid import sg_pyramid_for
+
+    if not native.available():
+        pytest.skip(f"native kernels unavailable: {native.failure()}")
+    off = tr.RenderSettings(native=False)
+    tex = relight_mod._texels_last(sg_pyramid_for(OTHER), None)
+
+    def close(a, b):  # float32 rounding of the sums (measured: the same bits)
+        return torch.allclose(a, b, rtol=1e-6, atol=1e-30)
+
+    s = _scene("suzanne_a01.yaml", "rousiers", {"internal_bounces": 1}, size=32)
+    out = tr.render([s.replace(passes={"matte": {}}),
+                     s.replace(passes={"matte": {}}, material=tr.Material(roughness=0.02))])
+    for m in (out, from_passes(out.passes)):  # views at their rendered rotation; unknown
+        p = prepare(m)
+        img = tr.relight(p, OTHER, 0.0)
+        taps = next(reversed(p._taps.values()))
+        assert {g.plain for g in taps.groups} == {True, False}  # plain lobes, SG levels
+        for rot in ([0.0, 0.0], [60.0, -75.0], [725.5, -359.0], [3e11, -1e12]):
+            rot = torch.tensor(rot)
+            for u in (None, p.u(rot)):
+                for g in taps.groups:
+                    n = g.lobe.numel()
+                    got = (torch.empty(n, 4, dtype=torch.int32), torch.empty(n, 4))
+                    assert native.relight_reads(
+                        *got, g.row, g.sn, rot, u0=g.u0, view=g.view, u=u, lobe=g.lobe,
+                        plain=g.plain, w_map=getattr(g, "w_map", 0), cols=g.cols,
+                        last=g.last, x0p1=getattr(g, "x0p1", None), w=getattr(g, "w", None))
+                    assert torch.equal(g.reads(None if u is None else u.clone(), rot)[0],
+                                       got[0])
+                    with settings.using(off):
+                        ref = g.reads(None if u is None else u.clone(), rot)
+                    assert torch.equal(ref[0], got[0]) and torch.equal(ref[1], got[1])
+                    vals = torch.empty(n, 3)
+                    assert g.values(u, rot, tex, vals)
+                    bag = F.embedding_bag(ref[0].view(-1), tex, torch.arange(
+                        0, 4 * n, 4, dtype=torch.int32), mode="sum",
+                        per_sample_weights=ref[1].view(-1))
+                    assert torch.allclose(vals, bag, rtol=1e-6, atol=1e-30)
+            with settings.using(off):
+                p.forget_rotations()
+                ref = tr.relight(p, OTHER, rot)
+            p.forget_rotations()
+            assert close(tr.relight(p, OTHER, rot), ref)
+        assert close(img, tr.relight(p, OTHER, 0.0))
+    g = copy.copy(taps.groups[-1])  # a NaN azimuth: both write x86's index and NaN weights
+    g.u0 = g.u0.clone()
+    g.u0[::7] = float("nan")
+    rot = torch.tensor([30.0, -40.0])
+    got = g.reads(None, rot)
+    with settings.using(off):
+        ref = g.reads(None, rot)
+    assert torch.equal(ref[0], got[0]) and bool(got[1][::7].isnan().all())
+    assert torch.allclose(ref[1], got[1], rtol=0, atol=0, equal_nan=True)
+    assert not g.values(None, rot, tex, torch.empty(g.lobe.numel(), 3))

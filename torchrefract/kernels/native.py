@@ -48,7 +48,7 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "cone.c", "specular.c",
                                                                 "background.c", "rousiers.c",
                                                                 "lean.c", "raster.c",
-                                                                "lattice.c"))
+                                                                "lattice.c", "relight.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
@@ -238,11 +238,23 @@ class _LatticeJob(ctypes.Structure):
                 ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p)]
 
 
+class _RelightJob(ctypes.Structure):
+    """ctypes mirror of ``RelightJob`` in csrc/relight.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("u0", _p), ("view", _p), ("rot", _p),
+                ("nrot", ctypes.c_int64), ("u", _p), ("lobe", _p), ("plain", ctypes.c_int),
+                ("w_map", ctypes.c_int64), ("cols", ctypes.c_int64), ("last", ctypes.c_int64),
+                ("x0p1", _p), ("w", _p),
+                ("row", _p), ("sn", _p), ("idx", _p), ("wts", _p), ("tex", _p),
+                ("vals", _p), ("status", _p)]
+
+
 _KERNELS = {"march": _Job, "planes": _PlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
-            "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob}
+            "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
+            "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -682,6 +694,109 @@ def lattice_fill(status: torch.Tensor, radiance: torch.Tensor, rtol: float,
     return _call("lattice_fill", job)
 
 
+def _relight_job(n: int, row: torch.Tensor, sn: torch.Tensor, rot: torch.Tensor,
+                 u0: torch.Tensor | None, view: torch.Tensor | None, u: torch.Tensor | None,
+                 lobe: torch.Tensor | None, plain: bool, w_map: int, cols: int, last: int,
+                 x0p1: torch.Tensor | None, w: torch.Tensor | None,
+                 outs: list[torch.Tensor]) -> tuple[_RelightJob, list] | None:
+    """A ``RelightJob`` for :func:`relight_reads` and :func:`relight_values` (its
+    contiguous inputs kept alive in the list returned), or ``None`` where the kernel does
+    not run: unavailable, a gradient wanted, an input of another dtype or device, ``outs``
+    (written by the kernel) not contiguous CPU tensors."""
+    shifted = u is None
+    f32 = [sn, rot] + ([] if shifted else [u]) + ([] if plain else [x0p1, w])
+    if not (available() and no_grad_through(*f32, *([u0] if shifted else []))):
+        return None
+    keep = _inputs(tuple(f32), ())
+    ints = ([row] + ([u0] + ([] if view is None else [view]) if shifted else [lobe]))
+    want = ([torch.int32] + ([torch.float64] + ([] if view is None else [torch.int64])
+                             if shifted else [torch.int64]))
+    if (keep is None or any(x is None or x.dtype != d or x.device.type != "cpu"
+                            for x, d in zip(ints, want))
+            or not all(x.is_contiguous() and x.device.type == "cpu" for x in outs)
+            or row.shape != (n,) or sn.shape != (n, 2)):
+        return None
+    ints = [x.detach().contiguous() for x in ints]
+    sn, rot = keep[0], keep[1]
+    u = None if shifted else keep[2]
+    x0p1, w = (None, None) if plain else keep[-2:]
+    row = ints[0]
+    u0, view = (ints[1], ints[2] if view is not None else None) if shifted else (None, None)
+    lobe = None if shifted else ints[1]
+    keep += ints
+
+    def ptr(t):
+        return None if t is None else t.data_ptr()
+
+    job = _RelightJob(n=n, u0=ptr(u0), view=ptr(view), rot=rot.data_ptr(), nrot=rot.numel(),
+                      u=ptr(u), lobe=ptr(lobe), plain=int(plain), w_map=w_map, cols=cols,
+                      last=last, x0p1=ptr(x0p1), w=ptr(w), row=row.data_ptr(),
+                      sn=sn.data_ptr())
+    return job, keep
+
+
+def relight_reads(idx: torch.Tensor, wts: torch.Tensor, row: torch.Tensor,
+                  sn: torch.Tensor, rot: torch.Tensor, *, u0: torch.Tensor | None = None,
+                  view: torch.Tensor | None = None, u: torch.Tensor | None = None,
+                  lobe: torch.Tensor | None = None, plain: bool, w_map: int = 0, cols: int,
+                  last: int, x0p1: torch.Tensor | None = None, w: torch.Tensor | None = None
+                  ) -> bool:
+    """``relight._Group.reads`` (csrc/relight.c): each lookup's u (``u0`` shifted by its
+    view's rotation, or its lobe's given ``u``), column, four texel indices and weights,
+    written into ``idx`` (n, 4) int32 and ``wts`` (n, 4) float32 (contiguous, CPU); the
+    same values as the tensor code. ``False`` where the kernel did not run (unavailable,
+    an input of another dtype or device, or a gradient wanted): nothing written, the
+    caller runs its tensor code.
+
+    Args:
+        row: (n,) int32 upper row's first texel index. sn: (n, 2) the rows' weights.
+        rot: (B,) float32 rotations (degrees). u0: (n,) float64 azimuth at rotation 0 and
+            view: (n,) int64 (None: one view), for the shifted u; or u: (S,) float32 per
+            lobe and lobe: (n,) int64.
+        plain: ``envmap.lookup``'s grid on a map of width ``w_map``; else the SG level's
+            ``x0p1``, ``w`` (n,) float32. cols: the image's columns; last: its last index.
+    """
+    n = row.shape[0]
+    if (idx.dtype, wts.dtype) != (torch.int32, torch.float32) or \
+            idx.shape != (n, 4) or wts.shape != (n, 4):
+        return False
+    made = _relight_job(n, row, sn, rot, u0, view, u, lobe, plain, w_map, cols, last, x0p1,
+                        w, [idx, wts])
+    if made is None:
+        return False
+    job, _keep = made
+    job.idx, job.wts = idx.data_ptr(), wts.data_ptr()
+    return n == 0 or _call("relight_reads", job)
+
+
+def relight_values(vals: torch.Tensor, tex: torch.Tensor, row: torch.Tensor,
+                   sn: torch.Tensor, rot: torch.Tensor, *, u0: torch.Tensor | None = None,
+                   view: torch.Tensor | None = None, u: torch.Tensor | None = None,
+                   lobe: torch.Tensor | None = None, plain: bool, w_map: int = 0, cols: int,
+                   last: int, x0p1: torch.Tensor | None = None,
+                   w: torch.Tensor | None = None) -> bool:
+    """:func:`relight_reads` and the gather after it in one pass (csrc/relight.c): each
+    lookup's value, the weighted sum of its four texels of ``tex`` (T, 3) float32 as
+    ``F.embedding_bag`` (mode sum, per-sample weights) sums them, written into ``vals``
+    (n, 3) float32 (contiguous, CPU); nothing kept per rotation. ``False`` where the
+    kernel did not run (as :func:`relight_reads`; also where an index falls outside the
+    image, a NaN u, where ``embedding_bag`` raises): the caller runs its tensor code.
+    Other arguments as :func:`relight_reads`' (``last`` < T)."""
+    n = row.shape[0]
+    if (vals.dtype != torch.float32 or vals.shape != (n, 3) or tex.dtype != torch.float32
+            or tex.dim() != 2 or tex.shape[1] != 3 or not 0 <= last < tex.shape[0]
+            or tex.requires_grad and torch.is_grad_enabled()):
+        return False
+    made = _relight_job(n, row, sn, rot, u0, view, u, lobe, plain, w_map, cols, last, x0p1,
+                        w, [vals, tex])
+    if made is None:
+        return False
+    job, _keep = made
+    status = torch.zeros(1, dtype=torch.int32)
+    job.tex, job.vals, job.status = tex.data_ptr(), vals.data_ptr(), status.data_ptr()
+    return n == 0 or (_call("relight_reads", job) and int(status) == 0)
+
+
 __all__ = ["available", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
            "library_path", "march", "native_enabled", "no_grad_through", "raster_ids",
-           "set_native", "spread"]
+           "relight_reads", "relight_values", "set_native", "spread"]

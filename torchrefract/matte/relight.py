@@ -22,10 +22,14 @@ read: per matte, once (:func:`prepare`), the used lobe slots, each lobe's normal
 direction, its row coordinate v (a rotation about +Y leaves it alone) and its azimuth at
 rotation 0, u0 (a rotation about +Y shifts it); per pyramid layout (the level sharpnesses
 and sizes follow the map's resolution), each lookup's level pair and blend weight, rows
-and row weights, and each lookup's u0; per rotation (kept for the last 8), each lookup's
-u and its four texel indices and weights. A relight is then one ``embedding_bag`` (a
-weighted gather of 4 texels per lookup) from a channels-last copy of the map and its
-pyramid (made once per map), a sum of the SG lobes' two levels and a sum into the pixels.
+and row weights, and each lookup's u0. Where the native kernels run (the CPU, no
+gradient), a relight is then one pass of a C kernel (csrc/relight.c, :meth:`_Taps.values`)
+that computes each lookup's u, column, four texel indices and weights op for op as the
+tensor code (:meth:`_Group.reads`, the reference) and sums its 4 texels of a
+channels-last copy of the map and its pyramid (made once per map) as ``embedding_bag``
+does, nothing kept per rotation; elsewhere those indices and weights are kept for the
+last 8 rotations and gathered by one ``embedding_bag``. Then a sum of the SG lobes' two
+levels and a sum into the pixels.
 
 Exactness. At the rotation the matte was rendered with (:func:`prepare`'s ``rotate_deg``;
 a RenderResult's own), or at any rotation where that is unknown, u is the renderer's op
@@ -53,6 +57,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrefract.checks import ConfigError
+from torchrefract.kernels import native
 from torchrefract.lighting import envmap as envmap_mod
 from torchrefract.lighting.sg_pyramid import (SGPyramid, _blend_weights, _pad_level,
                                               build_sg_pyramid, sg_pyramid_for)
@@ -101,13 +106,14 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     """The image of a matte under an environment map (module docstring).
 
     What does not depend on the map is computed once per matte and pyramid layout and
-    kept (:class:`Prepared`, :func:`prepare`); what depends on the rotation alone (each
-    lobe's u, each lookup's four texel indices and bilinear weights) is kept for the last
-    few rotations. A relight is then one weighted gather of 4 texels per lookup
-    (``embedding_bag`` over a channels-last copy of the map and its pyramid, made once per
-    map; a plain lobe is one lookup, an SG lobe two: its levels) and sums into the lobes
-    and pixels. At the rendered rotation (or any, where it is unknown: a bare Matte or
-    passes dict, unless prepared with :func:`prepare`'s ``rotate_deg``) the result equals
+    kept (:class:`Prepared`, :func:`prepare`). A relight is then one weighted gather of 4
+    texels per lookup from a channels-last copy of the map and its pyramid (made once per
+    map; a plain lobe is one lookup, an SG lobe two: its levels), with each lookup's texel
+    indices and bilinear weights computed in the same pass by a C kernel where it runs,
+    else by the tensor code and kept for the last few rotations (:meth:`_Taps.values`),
+    and sums into the lobes and pixels. At the rendered rotation (or any, where it is
+    unknown: a bare Matte or passes dict, unless prepared with :func:`prepare`'s
+    ``rotate_deg``) the result equals
     :func:`relight_reference` (the renderer's lookups one by one) to float32 rounding: the
     texel coordinates are the same to the bit, the weighted sums are added in another
     order. At another rotation each lobe's u is its rotation-0 azimuth shifted (module
@@ -149,9 +155,7 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     base_hw = (texels.shape[0] + 1, texels.shape[1] + 2) if pyr is None else \
         tuple(pyr.base.shape[1:])
     taps = p.taps(base_hw, pyr)
-    idx, wts = taps.reads(p, rot)
-    vals = F.embedding_bag(idx, tex, taps.offsets, mode="sum",
-                           per_sample_weights=wts)  # (L, 3)
+    vals = taps.values(p, rot, tex)  # (L, 3)
     val = vals[:taps.n_plain]
     if p.n_soft:  # an SG lobe: its lower level's lookup plus its upper level's
         val = torch.cat([val, vals.index_select(0, taps.lo_at)
@@ -223,12 +227,37 @@ class _Group:
             if t is not None and t.dim() >= 1:
                 setattr(self, name, t.index_select(0, order))
 
+    def _kernel_args(self, u: torch.Tensor | None, rot: torch.Tensor) -> dict:
+        """What ``native.relight_reads`` / ``relight_values`` take of this group."""
+        return dict(row=self.row, sn=self.sn, rot=rot, u0=self.u0, view=self.view, u=u,
+                    lobe=self.lobe, plain=self.plain, w_map=getattr(self, "w_map", 0),
+                    cols=self.cols, last=self.last, x0p1=getattr(self, "x0p1", None),
+                    w=getattr(self, "w", None))
+
+    def values(self, u: torch.Tensor | None, rot: torch.Tensor, tex: torch.Tensor,
+               out: torch.Tensor) -> bool:
+        """Each lookup's value (the weighted sum of its 4 texels of ``tex``) into ``out``
+        (n, 3) by the C kernel (``native.relight_values``: :meth:`reads` and
+        ``F.embedding_bag``'s sum in one pass, the same bits); ``False`` where it did not
+        run (then :meth:`reads` and ``embedding_bag``)."""
+        return native.relight_values(out, tex, **self._kernel_args(u, rot))
+
     def reads(self, u: torch.Tensor | None, rot: torch.Tensor,
               out: tuple[torch.Tensor, torch.Tensor] | None = None
               ) -> tuple[torch.Tensor, torch.Tensor]:
         """(n, 4) texel indices and weights (written into ``out`` where given) for
         per-lobe u (S,) (:meth:`Prepared.u`), or where None, each lookup's u0 shifted for
-        the rotations ``rot`` (B,) (:func:`_shifted`)."""
+        the rotations ``rot`` (B,) (:func:`_shifted`).
+
+        The C kernel (``native.relight_reads``, csrc/relight.c) computes the same in one
+        pass where it runs (the CPU, no gradient), op for op as the code below, which stays
+        the reference and the fallback (tests/test_relight.py holds them equal)."""
+        n = self.lobe.shape[0]
+        if out is None:
+            out = (torch.empty(n, 4, dtype=_INDEX, device=rot.device),
+                   torch.empty(n, 4, dtype=torch.float32, device=rot.device))
+        if native.relight_reads(*out, **self._kernel_args(u, rot)):
+            return out
         if u is None:
             x = _shifted(self.u0, rot if self.view is None else rot.index_select(0, self.view))
         else:
@@ -243,10 +272,6 @@ class _Group:
         x_w = torch.floor(ix)
         we = ix.sub_(x_w)  # the right column's weight
         e = 1.0 - we
-        n = we.shape[0]
-        if out is None:
-            out = (torch.empty(n, 4, dtype=_INDEX, device=we.device),
-                   torch.empty(n, 4, dtype=we.dtype, device=we.device))
         idx, wts = out
         # taps (row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1); column by
         # column (a broadcast op over 4 was 5-20x slower). A tap right of / below the
@@ -327,6 +352,29 @@ class _Taps:
         self.pix = p.pix.index_select(0, order)
         self.weight = p.weight.index_select(0, order)
         self.view = None if p.view is None else p.view.index_select(0, order)
+
+    def values(self, p: "Prepared", rot: torch.Tensor, tex: torch.Tensor) -> torch.Tensor:
+        """(n_lookups, 3) every lookup's value: the weighted sum of its 4 texels of ``tex``
+        (:func:`_texels_last`) at rotations (B,). Where the C kernel runs (the CPU, no
+        gradient), computed in one pass from each lookup's u, nothing kept per rotation
+        but the renderer's u of the exact views (:meth:`Prepared.u`); else ``embedding_bag``
+        over :meth:`reads` (kept for the last 8 rotations). The same bits either way
+        (measured; the kernel sums as ``embedding_bag`` does on the CPU, with fused
+        multiply-adds)."""
+        if native.available() and tex.device.type == "cpu":
+            exact = p.exact_views(rot)
+            u = p.u(rot, exact) if any(exact) else None  # else shifted per lookup
+            vals = torch.empty(self.n_lookups, 3, dtype=tex.dtype)
+            at = 0
+            for g in self.groups:
+                n = g.lobe.numel()
+                if not g.values(u, rot, tex, vals[at:at + n]):
+                    break
+                at += n
+            else:
+                return vals
+        idx, wts = self.reads(p, rot)
+        return F.embedding_bag(idx, tex, self.offsets, mode="sum", per_sample_weights=wts)
 
     def reads(self, p: "Prepared", rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every lookup's four texel indices (into :func:`_texels_last`'s rows) and
