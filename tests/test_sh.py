@@ -173,16 +173,7 @@ def test_paths_through_a_sphere_match_the_analytic_refraction(one_thread):
     """The traced paths (both tracers where available) against Snell on a unit sphere:
     exact but for the tessellation (5120 faces: normals and chord within ~0.01)."""
     _tracer_or_skip()
-    tm = trimesh.creation.icosphere(subdivisions=4)
-    v = torch.tensor(tm.vertices, dtype=torch.float32)
-    f = torch.tensor(tm.faces, dtype=torch.int64)
-    n = normalize(v)
-    lay = build_layout(v, f, n, 1)
-    g = torch.Generator().manual_seed(3)
-    idx = torch.randint(0, lay.num_samples, (20000,), generator=g)
-    p, nrm = lay.position[idx], lay.frame[idx, 2]
-    om = normalize(torch.randn(20000, 3, generator=g))
-    om = torch.where((dot(om, nrm) < 0)[:, None], -om, om)
+    v, f, n, p, nrm, om = _sphere_rays(3)
     t2, chord = _analytic_sphere_exit(p, om, 1.5)
     f_in = fresnel_dielectric(dot(om, nrm), 1 / 1.5)
     direct, graze = f_in < 0.45, f_in > 0.55  # the exit refracts / reflects
@@ -361,18 +352,7 @@ def test_native_paths_give_the_tensor_codes_table_bit_for_bit(mesh_name, branch,
     assert ref.stats["rays"] == nat.stats["rays"]
     assert torch.equal(ref.coeffs, nat.coeffs)
     # an open mesh: a sphere with a cap cut off
-    tm = trimesh.creation.icosphere(subdivisions=3)
-    keep = tm.triangles_center[:, 2] < 0.7
-    v = torch.tensor(tm.vertices, dtype=torch.float32)
-    f = torch.tensor(tm.faces[keep], dtype=torch.int64)
-    nrm = normalize(v)
-    g = torch.Generator().manual_seed(12)
-    idx = torch.randint(0, v.shape[0], (5000,), generator=g)
-    p, pn = v[idx], nrm[idx]
-    om = normalize(pn + 0.9 * torch.randn(5000, 3, generator=g))
-    om = torch.where((dot(om, pn) < 0)[:, None], -om, om)
-    inter, _ = intersector(v, f, "embree")
-    emb = EmbreeNative(v.numpy(), f.numpy())
+    v, f, nrm, p, pn, om, inter, emb = _open_mesh_rays(12, EmbreeNative)
     want = trace_paths(inter, v[f], nrm[f], p, pn, om, 1.5, 16, 1e-5, branch)
     assert (want.events == 0).any()  # some leave through the hole from inside at once
     for packets in (True, False):
@@ -566,16 +546,7 @@ def test_second_branch_on_a_sphere_is_the_first_internal_reflection(one_thread):
     hit: energy F (1 - F) (the same angle at both, a sphere), twice the chord, the
     reflected direction refracted out; the main throughput is 1 - F."""
     _tracer_or_skip()
-    tm = trimesh.creation.icosphere(subdivisions=4)
-    v = torch.tensor(tm.vertices, dtype=torch.float32)
-    f = torch.tensor(tm.faces, dtype=torch.int64)
-    n = normalize(v)
-    lay = build_layout(v, f, n, 1)
-    g = torch.Generator().manual_seed(5)
-    idx = torch.randint(0, lay.num_samples, (20000,), generator=g)
-    p, nrm = lay.position[idx], lay.frame[idx, 2]
-    om = normalize(torch.randn(20000, 3, generator=g))
-    om = torch.where((dot(om, nrm) < 0)[:, None], -om, om)
+    v, f, n, p, nrm, om = _sphere_rays(5)
     inter, _ = intersector(v, f, "auto")
     one = trace_paths(inter, v[f], n[f], p, nrm, om, 1.5, 16, 1e-5, "tir")
     two = trace_paths(inter, v[f], n[f], p, nrm, om, 1.5, 16, 1e-5, "tir", branches=2)
@@ -627,18 +598,7 @@ def test_second_branch_c_paths_equal_the_tensor_code(tmp_path, one_thread):
     t3, src = sh_cache.get_table(mesh, s2, tmp_path / "c")
     assert src == "disk" and torch.equal(t3.coeffs, t2.coeffs)
     # an open mesh: leaks from inside, the branch included
-    tm = trimesh.creation.icosphere(subdivisions=3)
-    keep = tm.triangles_center[:, 2] < 0.7
-    v = torch.tensor(tm.vertices, dtype=torch.float32)
-    f = torch.tensor(tm.faces[keep], dtype=torch.int64)
-    nrm = normalize(v)
-    g = torch.Generator().manual_seed(13)
-    idx = torch.randint(0, v.shape[0], (5000,), generator=g)
-    p, pn = v[idx], nrm[idx]
-    om = normalize(pn + 0.9 * torch.randn(5000, 3, generator=g))
-    om = torch.where((dot(om, pn) < 0)[:, None], -om, om)
-    inter, _ = intersector(v, f, "embree")
-    emb = EmbreeNative(v.numpy(), f.numpy())
+    v, f, nrm, p, pn, om, inter, emb = _open_mesh_rays(13, EmbreeNative)
     want = trace_paths(inter, v[f], nrm[f], p, pn, om, 1.5, 16, 1e-5, "tir", branches=2)
     assert (want.branch.throughput > 0).float().mean() > 0.5
     for packets in (True, False):
@@ -679,3 +639,37 @@ def test_second_branch_keeps_the_smooth_furnace_and_changes_the_shell(one_thread
     with using(RenderSettings(native=False)):
         c = tr.render([lit.replace(method_options={**SMALL, "branches": 2})]).radiance[0]
     assert ((b - c).abs() <= 1e-4 * c.abs().clamp(min=1e-2)).all()
+
+
+def _open_mesh_rays(seed: int, native_scene):
+    """An open mesh (a sphere with a cap cut off: paths leak out from inside), 5000 surface
+    points with outward views, its Embree intersector (embreex) and ``native_scene``
+    (tracer.EmbreeNative) of it."""
+    tm = trimesh.creation.icosphere(subdivisions=3)
+    keep = tm.triangles_center[:, 2] < 0.7
+    v = torch.tensor(tm.vertices, dtype=torch.float32)
+    f = torch.tensor(tm.faces[keep], dtype=torch.int64)
+    nrm = normalize(v)
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, v.shape[0], (5000,), generator=g)
+    p, pn = v[idx], nrm[idx]
+    om = normalize(pn + 0.9 * torch.randn(5000, 3, generator=g))
+    om = torch.where((dot(om, pn) < 0)[:, None], -om, om)
+    inter, _ = intersector(v, f, "embree")
+    return v, f, nrm, p, pn, om, inter, native_scene(v.numpy(), f.numpy())
+
+
+def _sphere_rays(seed: int):
+    """A unit icosphere (5120 faces), its corner normals, and 20000 surface samples of its
+    layout with views over their outer hemisphere."""
+    tm = trimesh.creation.icosphere(subdivisions=4)
+    v = torch.tensor(tm.vertices, dtype=torch.float32)
+    f = torch.tensor(tm.faces, dtype=torch.int64)
+    n = normalize(v)
+    lay = build_layout(v, f, n, 1)
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, lay.num_samples, (20000,), generator=g)
+    p, nrm = lay.position[idx], lay.frame[idx, 2]
+    om = normalize(torch.randn(20000, 3, generator=g))
+    om = torch.where((dot(om, nrm) < 0)[:, None], -om, om)
+    return v, f, n, p, nrm, om
