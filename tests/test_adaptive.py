@@ -230,3 +230,20 @@ def test_no_lattice_where_too_little_could_wait():
     finally:
         adaptive.FINE_SHARE = old
     assert torch.equal(ad.radiance, tr.render(s, settings=UNIFORM).radiance)
+
+
+def test_camera_planes_are_kept_per_g_buffer_and_follow_its_inputs():
+    """GBuffer.derived: a render's passes and tiles (dataclasses.replace of one G-buffer)
+    share the march's planes; a G-buffer with another camera or layers changed in place
+    gets its own."""
+    from torchrefract.kernels.march import _camera_planes, camera_planes  # noqa: PLC0415
+
+    g, _ = _lattice_inputs(_scene("sphere_a03", 32, n=1))
+    a = camera_planes(g)
+    assert camera_planes(dataclasses.replace(g, shade=g.front.mask)) is a  # shared
+    moved = dataclasses.replace(g, eye=g.eye + 0.5)
+    assert torch.equal(camera_planes(moved), _camera_planes(moved, False))
+    assert not torch.equal(camera_planes(moved), a)
+    g.back.position.add_(0.01)  # in place: the version moves
+    assert torch.equal(camera_planes(g), _camera_planes(g, False))
+    assert not torch.equal(camera_planes(g), a)

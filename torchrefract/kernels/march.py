@@ -87,8 +87,12 @@ def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     as ``planes``. The native kernel (csrc/march.c) computes the same operations in one
     pass over the layers.
     """
-    key = ("camera_planes", both, g.back.position._version, g.back.geo_normal._version,
-           g.front.position._version, g.front.geo_normal._version)
+    # the inputs by their memory and version: a replaced G-buffer with other layers or
+    # cameras, or one changed in place, computes its own
+    key = ("camera_planes", both) + tuple(
+        (t.data_ptr(), t._version) for t in (g.back.position, g.back.geo_normal, g.back.mask,
+                                            g.front.position, g.front.geo_normal,
+                                            g.front.mask, g.eye, g.proj))
     kept = g.derived.get(key)
     if kept is not None:  # computed for this G-buffer already (another tile or pass)
         return kept
