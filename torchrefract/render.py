@@ -313,10 +313,8 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
                                                               method_passes)
                 if rest is None:
                     continue
-                shade = torch.zeros(g.shape, dtype=torch.bool, device=rest.device)
-                shade.view(-1)[rest] = True
                 again = tiles.shade(entry, dataclasses.replace(
-                    g, shade=shade, canvas=radiance.view(-1, 3)), lighting, materials,
+                    g, shade=rest, canvas=radiance.view(-1, 3)), lighting, materials,
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest)

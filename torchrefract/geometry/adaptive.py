@@ -243,11 +243,10 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
     sample per pixel (module docstring); ``g`` and None where under FINE_SHARE of the
     object pixels could wait (every pixel shaded at once). Every pixel's level waits on
-    the even pixels;
-    where at least ``coarse_share`` (default COARSE_SHARE) of the even object pixels can
-    themselves wait on the pixels of stride 4 (smooth regions spanning several pixels), a
-    level on the even pixels comes first, and the first pass shades only what neither
-    level lets wait. A waiting pixel is rough and so are its lattice neighbours, which an
+    the even pixels; where at least ``coarse_share`` (default COARSE_SHARE) of the even
+    object pixels can themselves wait on the pixels of stride 4 (smooth regions spanning
+    several pixels), a level on the even pixels comes first, and the first pass shades
+    only what neither level lets wait. A waiting pixel is rough and so are its lattice neighbours, which an
     earlier pass shades: each pass has a rough pixel where the full pass has one (the
     methods' switch of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
 
@@ -305,8 +304,8 @@ def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
     """After the passes before ``level``: each of its waiting pixels its lattice
     neighbours' mean where their radiances agree, in ``radiance`` (B, H, W, 3) and the
     method's ``passes`` (B, H, W, C) (``level.status`` in place). Returns the radiance,
-    the passes and the flat (B*H*W) indices of the pixels the level's own pass shades
-    (None: none). ``rtol``: default LATTICE_RTOL over the stride (the error of a mean
+    the passes and the (B, H, W) mask of the pixels the level's own pass shades (None:
+    none). ``rtol``: default LATTICE_RTOL over the stride (the error of a mean
     over twice the spacing grows faster than the neighbours' spread)."""
     rtol = LATTICE_RTOL / level.stride if rtol is None else rtol
     b, h, w, _ = radiance.shape
@@ -334,13 +333,14 @@ def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
         full = torch.zeros(b, h, w, dtype=torch.bool, device=rest.device)
         full[on] = rest
         rest = full
-    return radiance, passes, where_true(rest.view(-1))
+    return radiance, passes, rest
 
 
 def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
           rest: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The second pass's radiance (it shaded ``rest`` over the first's image) and the
-    first pass's passes with the second's values at ``rest`` (flat indices)."""
+    """The second pass's radiance (it shaded ``rest`` (B, H, W) over the first's image)
+    and the first pass's passes with the second's values at ``rest``."""
+    rest = where_true(rest.view(-1))
     out = {}
     for k, v in second.passes.items():
         if k not in passes:

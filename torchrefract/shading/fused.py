@@ -144,8 +144,9 @@ def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
     pyramids: dict = {}
     for b in range(len(lighting.texels)):
         path = lighting.paths[b]
-        pyr = pyramids[path] if path in pyramids else pyramids.setdefault(
-            path, lighting.pyramid(b))
+        if path not in pyramids:
+            pyramids[path] = lighting.pyramid(b)
+        pyr = pyramids[path]
         metas.append(_sg_meta(pyr))
         bases.append(pyr.base)
         atlases.append(pyr.atlas)
