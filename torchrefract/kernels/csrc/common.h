@@ -19,7 +19,11 @@
 #include <omp.h>
 #endif
 
-#define TR_DEFINE_VEC3(T, S, FMA, FABS, SQRT, DET_EPS)                                     \
+/* The operations written once for any lane type T: a scalar (M, its comparisons' type, is
+ * int; SEL a ternary) or a GCC vector of 4 doubles (gbuffer.c's AVX2 path: M the integer
+ * vector of a comparison, SEL a blend), so that both compute the same bits. K(T, x) is
+ * the constant x as a T. The triangle's corners come as T values (9: v0, v1, v2). */
+#define TR_DEFINE_LANES(T, M, S, FMA, FABS, SQRT, DET_EPS, SEL, K)                        \
     static inline T dot3##S(const T *a, const T *b) {                                      \
         T x = a[0] * b[0];                                                                  \
         T y = a[1] * b[1];                                                                  \
@@ -40,53 +44,74 @@
         return SQRT(acc);                                                                   \
     }                                                                                       \
     static inline T min3##S(const T *b) {                                                   \
-        if (b[0] != b[0] || b[1] != b[1] || b[2] != b[2]) return (T)NAN;                    \
         T m = b[0];                                                                         \
-        if (b[1] < m) m = b[1];                                                             \
-        if (b[2] < m) m = b[2];                                                             \
-        return m;                                                                           \
+        m = SEL(b[1] < m, b[1], m);                                                         \
+        m = SEL(b[2] < m, b[2], m);                                                         \
+        M nan = (b[0] != b[0]) | (b[1] != b[1]) | (b[2] != b[2]);                           \
+        return SEL(nan, K(T, NAN), m);                                                      \
     }                                                                                       \
-    /* gbuffer.intersect_triangles for one ray and the float32 triangle tv (9 values):    \
-     * returns t (inf where the ray is parallel to the plane), writes the barycentrics    \
+    /* gbuffer.intersect_triangles for one ray and the triangle v (9 values): returns t   \
+     * (inf where the ray is parallel to the plane), writes the barycentrics               \
      * (1 - u - v, u, v). */                                                                \
-    static T intersect##S(const T *o, const T *d, const float *tv, T *bary) {               \
-        T v[9], e1[3], e2[3], p[3], s[3], q[3];                                             \
-        for (int i = 0; i < 9; i++) v[i] = (T)tv[i];                                        \
+    static inline T hit##S(const T *o, const T *d, const T *v, T *bary) {                  \
+        T e1[3], e2[3], p[3], s[3], q[3];                                                   \
         for (int i = 0; i < 3; i++) {                                                       \
             e1[i] = v[3 + i] - v[i];                                                        \
             e2[i] = v[6 + i] - v[i];                                                        \
         }                                                                                   \
         cross3##S(d, e2, p);                                                                \
         T det = dot3##S(e1, p);                                                             \
-        int ok = FABS(det) > (T)DET_EPS;                                                    \
-        T inv = ok ? (T)1 / det : (T)0;                                                     \
+        M ok = FABS(det) > K(T, DET_EPS);                                                   \
+        T inv = SEL(ok, K(T, 1) / SEL(ok, det, K(T, 1)), K(T, 0));                          \
         for (int i = 0; i < 3; i++) s[i] = o[i] - v[i];                                     \
         T u = dot3##S(s, p) * inv;                                                          \
         cross3##S(s, e1, q);                                                                \
         T vv = dot3##S(d, q) * inv;                                                         \
         T t = dot3##S(e2, q) * inv;                                                         \
-        if (!ok) t = (T)INFINITY;                                                           \
-        T one_u = (T)1 - u;                                                                 \
+        t = SEL(ok, t, K(T, INFINITY));                                                     \
+        T one_u = K(T, 1) - u;                                                              \
         bary[0] = one_u - vv;                                                               \
         bary[1] = u;                                                                        \
         bary[2] = vv;                                                                       \
         return t;                                                                           \
     }                                                                                       \
-    /* gbuffer.interpolate: barycentrics clamped to the triangle and renormalized, then   \
-     * the c-channel float32 corner values (3 x c) blended */                              \
-    static void interpolate##S(const T *bary, const float *corners, int c, T *out) {        \
-        T w[3];                                                                             \
+    /* gbuffer.interpolate's weights: barycentrics clamped to the triangle (NaN kept),     \
+     * renormalized */                                                                      \
+    static inline void weights##S(const T *bary, T *w) {                                    \
         for (int i = 0; i < 3; i++)                                                         \
-            w[i] = bary[i] != bary[i] ? bary[i] : (bary[i] < (T)0 ? (T)0 : bary[i]);        \
+            w[i] = SEL(bary[i] != bary[i], bary[i],                                         \
+                       SEL(bary[i] < K(T, 0), K(T, 0), bary[i]));                           \
         T sum = (w[0] + w[1]) + w[2];                                                       \
-        if (sum < (T)1e-12) sum = (T)1e-12;                                                 \
+        sum = SEL(sum < K(T, 1e-12), K(T, 1e-12), sum);                                     \
         for (int i = 0; i < 3; i++) w[i] = w[i] / sum;                                      \
+    }                                                                                       \
+    /* ... and the c-channel corner values (3 x c, as T) blended with them */               \
+    static inline void blend##S(const T *w, const T *corners, int c, T *out) {              \
         for (int m = 0; m < c; m++) {                                                       \
-            T a = w[0] * (T)corners[m];                                                     \
-            T b = w[1] * (T)corners[c + m];                                                 \
-            T z = w[2] * (T)corners[2 * c + m];                                             \
+            T a = w[0] * corners[m];                                                        \
+            T b = w[1] * corners[c + m];                                                    \
+            T z = w[2] * corners[2 * c + m];                                                \
             out[m] = (a + b) + z;                                                           \
         }                                                                                   \
+    }
+
+#define TR_SEL_SCALAR(m, a, b) ((m) ? (a) : (b))
+#define TR_K_SCALAR(T, x) ((T)(x))
+
+/* The scalar instance, with the corners read from float32 arrays (the kernels' tables):
+ * intersect##S(o, d, tv, bary) and interpolate##S(bary, corners, c, out). */
+#define TR_DEFINE_VEC3(T, S, FMA, FABS, SQRT, DET_EPS)                                     \
+    TR_DEFINE_LANES(T, int, S, FMA, FABS, SQRT, DET_EPS, TR_SEL_SCALAR, TR_K_SCALAR)       \
+    static T intersect##S(const T *o, const T *d, const float *tv, T *bary) {               \
+        T v[9];                                                                             \
+        for (int i = 0; i < 9; i++) v[i] = (T)tv[i];                                        \
+        return hit##S(o, d, v, bary);                                                       \
+    }                                                                                       \
+    static void interpolate##S(const T *bary, const float *corners, int c, T *out) {        \
+        T w[3], cv[9];                                                                      \
+        weights##S(bary, w);                                                                \
+        for (int i = 0; i < 3 * c; i++) cv[i] = (T)corners[i];                              \
+        blend##S(w, cv, c, out);                                                            \
     }
 
 /* Run fn(job, begin, end) over [0, n) split into one contiguous range per thread (the
