@@ -113,6 +113,13 @@ def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int, cache: BoxCache | N
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
 
 
+def _all_finite(x: torch.Tensor) -> bool:
+    """Whether every value of ``x`` is finite: the sum of finite values is finite unless it
+    overflows, where the elementwise test decides (NaN and Inf make the sum non-finite)."""
+    with torch.no_grad():
+        return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
+
+
 def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, torch.Tensor]:
     n = g.supersample
     thick = (g.back.dist - g.front.dist).clamp(min=0.0)
@@ -318,8 +325,10 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest)
-        bad = ~torch.isfinite(radiance)
-        if bad.any():  # never let NaN/Inf out, and never hide that it happened
+        # never let NaN/Inf out, and never hide that it happened; a finite sum (one
+        # reduction) proves every value finite, a non-finite one (or an overflow) is checked
+        if not _all_finite(radiance):
+            bad = ~torch.isfinite(radiance)
             count = int(bad.any(-1).sum())
             warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and "
                           "were set to 0; please report the scene", RuntimeWarning,

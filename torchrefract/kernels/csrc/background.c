@@ -17,8 +17,13 @@ typedef struct {
 
 static void background_range(const void *job, int64_t begin, int64_t end) {
     const BackgroundJob *j = (const BackgroundJob *)job;
+    int64_t b = begin / j->hw, next = (b + 1) * j->hw;  /* the view, without a division
+                                                          * per pixel */
     for (int64_t p = begin; p < end; p++) {
-        int64_t b = p / j->hw;
+        if (p == next) {
+            b++;
+            next += j->hw;
+        }
         const float *d = j->ray_dir + 3 * p;
         float *o = j->out + 3 * p;
         int obj = j->front_mask[p];

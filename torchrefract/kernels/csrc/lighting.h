@@ -49,7 +49,11 @@ static inline EnvTap env_tap(const Lights *j, int64_t b, float u, float v) {
     float py = clampf((gy + 1.0f) * ((float)(h - 1) / 2.0f), 0.0f, (float)(h - 1));
     int64_t x0 = (int64_t)floorf(px), y0 = (int64_t)floorf(py);
     int64_t x1 = x0 + 1 <= w + 1 ? x0 + 1 : x0, y1 = y0 + 1 <= h - 1 ? y0 + 1 : y0;
-    EnvTap t = {b, y0, y1, (x0 - 1 + w) % w, (x1 - 1 + w) % w, px - (float)x0, py - (float)y0};
+    /* (x - 1) mod w for x in [0, w + 1]: at most one wrap each way (no division) */
+    int64_t c0 = x0 - 1, c1 = x1 - 1;
+    c0 = c0 < 0 ? c0 + w : (c0 >= w ? c0 - w : c0);
+    c1 = c1 < 0 ? c1 + w : (c1 >= w ? c1 - w : c1);
+    EnvTap t = {b, y0, y1, c0, c1, px - (float)x0, py - (float)y0};
     return t;
 }
 
