@@ -247,3 +247,22 @@ def test_camera_planes_are_kept_per_g_buffer_and_follow_its_inputs():
     g.back.position.add_(0.01)  # in place: the version moves
     assert torch.equal(camera_planes(g), _camera_planes(g, False))
     assert not torch.equal(camera_planes(g), a)
+
+
+def test_each_view_decides_alone_so_a_batch_is_its_views_rendered_alone():
+    """The lattice's levels are chosen per view: a batch of a smooth view (two levels) and
+    a detailed one (one level, or none) gives each view's image alone, bit for bit (a large
+    batch is rendered in chunks: its images must not depend on its neighbours)."""
+    a = _scene("sphere_a03", 96, n=1, method="rousiers")
+    b = _scene("bunny_a01", 96, n=1, method="rousiers")
+    ga, aa = _lattice_inputs(a)
+    gb, ab = _lattice_inputs(b)
+    lat_a, lat_b = adaptive.lattice(ga, aa[-1])[1], adaptive.lattice(gb, ab[-1])[1]
+    levels = (len(lat_a.levels), 0 if lat_b is None else len(lat_b.levels))
+    assert levels[0] == 2 and levels[1] < 2, levels  # the views decide differently
+    both = tr.render([a, b], settings=ADAPTIVE)
+    for i, s in enumerate((a, b)):
+        alone = tr.render(s, settings=ADAPTIVE)
+        assert torch.equal(both.radiance[i], alone.radiance[0]), i
+        for k, v in alone.passes.items():
+            assert torch.equal(both.passes[k][i], v[0]), (i, k)

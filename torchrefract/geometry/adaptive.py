@@ -241,14 +241,16 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
             depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA,
             coarse_share: float | None = None) -> tuple[GBuffer, Lattice | None]:
     """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
-    sample per pixel (module docstring); ``g`` and None where under FINE_SHARE of the
-    object pixels could wait (every pixel shaded at once). Every pixel's level waits on
-    the even pixels; where at least ``coarse_share`` (default COARSE_SHARE) of the even
-    object pixels can themselves wait on the pixels of stride 4 (smooth regions spanning
-    several pixels), a level on the even pixels comes first, and the first pass shades
-    only what neither level lets wait. A waiting pixel is rough and so are its lattice neighbours, which an
-    earlier pass shades: each pass has a rough pixel where the full pass has one (the
-    methods' switch of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
+    sample per pixel (module docstring). Each view decides alone, so that a batch's images
+    are those of its views rendered alone (and of any chunking): a view where under
+    FINE_SHARE of the object pixels could wait shades every pixel at once; every other
+    view's pixels wait on its even pixels, and where at least ``coarse_share`` (default
+    COARSE_SHARE) of its even object pixels can themselves wait on the pixels of stride 4
+    (smooth regions spanning several pixels), a level on the even pixels comes first. The
+    first pass shades what no level lets wait; ``g`` and None where no view waits at all.
+    A waiting pixel is rough and so are its lattice neighbours, which an earlier pass
+    shades: each pass has a rough pixel where the full pass has one (the methods' switch
+    of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
 
     Args:
         alpha: the front roughness, (B, H, W) or per view (B, 1, 1).
@@ -256,19 +258,34 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     share = COARSE_SHARE if coarse_share is None else coarse_share
     layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     tol = (smooth_alpha, normal_tol, depth_tol)
-    fine = Level(1, _plan(*layers, alpha, *tol))
-    if int((fine.status == 2).sum()) < FINE_SHARE * int(g.front.mask.sum()):
+    status = _plan(*layers, alpha, *tol)
+    objects = g.front.mask.flatten(1).sum(1)  # (B,) per view
+    fine_views = (status == 2).flatten(1).sum(1) >= FINE_SHARE * objects
+    if not bool(fine_views.any()):
         return g, None
+    _no_wait(status, fine_views)
+    fine = Level(1, status)
     even = (slice(None), slice(None, None, 2), slice(None, None, 2))
     sub = [x[even].contiguous() for x in layers]
     a2 = alpha[even].contiguous() if alpha.shape[1:] == g.shape[1:] else alpha
-    coarse = Level(2, _plan(*sub, a2, *tol))
+    coarse_status = _plan(*sub, a2, *tol)
+    even_objects = sub[0].flatten(1).sum(1)
+    coarse_views = fine_views & (even_objects > 0) & (
+        (coarse_status == 2).flatten(1).sum(1) >= share * even_objects)
     first = fine.status == 1
-    objects = int(sub[0].sum())
-    if objects and int((coarse.status == 2).sum()) >= share * objects:
-        first[even] &= coarse.status == 1
-        return replace(g, shade=first), Lattice(levels=(coarse, fine))
-    return replace(g, shade=first), Lattice(levels=(fine,))
+    if not bool(coarse_views.any()):
+        return replace(g, shade=first), Lattice(levels=(fine,))
+    _no_wait(coarse_status, coarse_views)
+    first[even] &= coarse_status == 1
+    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status), fine))
+
+
+def _no_wait(status: torch.Tensor, views: torch.Tensor) -> None:
+    """In place: the (B, H, W) status of every view not in ``views`` (B,) bool without
+    waiting pixels (its object pixels shaded in the first pass)."""
+    off = ~views
+    if bool(off.any()):
+        status[off] = status[off].clamp(max=1)
 
 
 def _mean(v: torch.Tensor, four: torch.Tensor) -> torch.Tensor:
