@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [v for v in args.variants if v not in table]
     if unknown:
         raise SystemExit(f"adaptive_accuracy: unknown variants {unknown} (pareto.VARIANTS)")
-    full_s, ad_s = tr.RenderSettings(), tr.RenderSettings(adaptive=True)
+    full_s, ad_s = tr.RenderSettings(adaptive=False), tr.RenderSettings(adaptive=True)
     rows = []
     todo = scenes(args.split)
     for k, (path, spp) in enumerate(todo, 1):

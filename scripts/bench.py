@@ -31,8 +31,9 @@ sweep of materials or maps over one view), whose G-buffer is then built once per
 
 A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``; a
 trailing ``+adaptive`` renders that row with ``RenderSettings(adaptive=True)`` (adaptive
-sampling: at one sample per pixel, the 2x2 lattice and the pixels between it only where
-not smooth).
+sampling, the library's default: at one sample per pixel, the 2x2 lattice and the pixels
+between it only where not smooth); a row without it shades every pixel
+(``adaptive=False``), as the bench's rows always have.
 
 Mitsuba rows (``--mitsuba``, the default where Mitsuba 3 imports; ``--no-mitsuba`` to leave
 them out): after our rows, in this (the parent) process, for each size and ``--views`` of the
@@ -149,8 +150,7 @@ class OursRow:
         self.scenes = bench_scenes(base.replace(method_options=self.options), size, batch,
                                    views)
         self.adaptive = method.endswith(ADAPTIVE_SUFFIX)
-        if self.adaptive:
-            settings = dataclasses.replace(settings or tr.RenderSettings(), adaptive=True)
+        settings = dataclasses.replace(settings or tr.RenderSettings(), adaptive=self.adaptive)
         self.settings = settings
         self.baseline = rss_mb("VmRSS")
         self.warmup = 0.0

@@ -20,7 +20,7 @@ from torchrefract.settings import RenderSettings
 from torchrefract.truth.metrics import flip_map
 
 SUITE = Path(__file__).resolve().parent.parent / "configs" / "suite"
-UNIFORM, ADAPTIVE = RenderSettings(), RenderSettings(adaptive=True)
+UNIFORM, ADAPTIVE = RenderSettings(adaptive=False), RenderSettings(adaptive=True)
 
 
 def _scene(name: str, size: int = 48, n: int = 2, **changes) -> tr.Scene:
@@ -35,8 +35,12 @@ def _plan(s: tr.Scene):
     return g, *adaptive.plan(g, pixel_rays(s.camera)[None], alpha)
 
 
-def test_off_by_default():
-    assert RenderSettings().adaptive is False
+def test_on_by_default(monkeypatch):
+    assert RenderSettings().adaptive is True
+    monkeypatch.delenv("TORCHREFRACT_ADAPTIVE", raising=False)
+    assert RenderSettings.from_env().adaptive is True
+    monkeypatch.setenv("TORCHREFRACT_ADAPTIVE", "0")
+    assert RenderSettings.from_env().adaptive is False
 
 
 def test_smooth_glass_is_sampled_uniformly():
@@ -107,6 +111,7 @@ def test_lattice_plan_kernel_equals_tensor_code():
     with folds, a roughness map and odd frame sizes (a last row and column without their
     second neighbour)."""
     assert native.available()
+    blends = []  # whether some waiting pixels of a scene are near a tolerance (blended)
     for name, size in (("sphere_a03", 48), ("bunny_a01", 49), ("globe_gradient", 47),
                        ("wingnut_a01", 40)):
         _, args = _lattice_inputs(_scene(name, size, n=1))
@@ -114,31 +119,37 @@ def test_lattice_plan_kernel_equals_tensor_code():
                                 adaptive.DEPTH_TOL)
         b = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
                                     adaptive.DEPTH_TOL)
-        assert torch.equal(a, b), name
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]), name
+        a, gap = a
+        assert (gap[a == 2] <= 1).all() and (gap[a == 2] >= 0).all() and (gap[a != 2] == 0).all()
+        blends.append(bool((gap[a == 2] > adaptive.BLEND_FROM).any()))
         assert set(a.unique().tolist()) <= {0, 1, 2}
         lat = torch.zeros_like(a, dtype=torch.bool)
         lat[:, ::2, ::2] = True
         assert not ((a == 2) & lat).any()  # the lattice never waits
         assert torch.equal(a > 0, args[0])  # every object pixel has a status
+    assert any(blends), blends
 
 
 def test_lattice_fill_kernel_equals_tensor_code():
     """The fill's decisions and means agree bit for bit, NaN and Inf neighbours included
     (never interpolated from)."""
     _, args = _lattice_inputs(_scene("sphere_a03", 41, n=1))
-    st = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
-                                 adaptive.DEPTH_TOL)
+    st, gap = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
+                                      adaptive.DEPTH_TOL)
     gen = torch.Generator().manual_seed(3)
     rad = 1.0 + 0.08 * torch.rand(st.numel(), 3, generator=gen)  # spreads around the tol
     rad[::97] = float("nan")
     rad[5::131] = float("inf")
     s1, s2, r1, r2 = st.clone(), st.clone(), rad.clone(), rad.clone()
-    assert native.lattice_fill(s1, r1, adaptive.LATTICE_RTOL)
-    adaptive._fill_torch(s2, r2, adaptive.LATTICE_RTOL)
-    assert torch.equal(s1, s2)
+    w1, w2 = torch.zeros(st.shape), torch.zeros(st.shape)
+    assert native.lattice_fill(s1, gap, w1, r1, adaptive.LATTICE_RTOL, adaptive.BLEND_FROM)
+    adaptive._fill_torch(s2, gap, w2, r2, adaptive.LATTICE_RTOL, adaptive.BLEND_FROM)
+    assert torch.equal(s1, s2) and torch.equal(w1, w2)
     assert torch.equal(r1.nan_to_num(7.0, 8.0), r2.nan_to_num(7.0, 8.0))
-    assert (s1 == 3).sum() > 0 and (s1 == 4).sum() > 0 and not (s1 == 2).any()
-    assert torch.isfinite(r1[(s1 == 3).view(-1)]).all()
+    assert all((s1 == k).sum() > 0 for k in (3, 4, 5)) and not (s1 == 2).any()
+    assert torch.isfinite(r1[(s1 >= 3).view(-1) & (s1 != 4).view(-1)]).all()
+    assert ((w1[s1 == 5] > 0) & (w1[s1 == 5] < 1)).all() and (w1[s1 != 5] == 0).all()
 
 
 def test_one_sample_shades_the_lattice_and_interpolates_the_smooth_rest():
@@ -151,7 +162,7 @@ def test_one_sample_shades_the_lattice_and_interpolates_the_smooth_rest():
     same = (ad.radiance[0] == full.radiance[0]).all(-1)
     assert same[~m].all()  # the background is untouched
     exact = float(same[m].float().mean())
-    assert 0.2 < exact < 0.5, exact  # the lattice (1/4) and a few more
+    assert 0.1 < exact < 0.5, exact  # the lattice (1/4, less with the coarse level) and more
     fl = float(flip_map(ad.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
     # the interpolated pixels differ from the full render's (not from the truth: on the
     # validation set FLIP against the truth moves by < 0.003, docs/decisions.md); 64 px
@@ -188,17 +199,18 @@ def test_one_sample_smooth_glass_and_fallback():
     assert float(close.float().mean()) > 0.995
 
 
-def test_two_levels_where_smooth_over_several_pixels_one_elsewhere():
+def test_two_levels_where_smooth_over_several_pixels_one_elsewhere(monkeypatch):
     """The rough sphere is smooth over several pixels: the even pixels get their own
-    level (stride 4) first; the bunny keeps one level. With two levels every pixel that
-    is shaded is still the full render's bit for bit, and the image stays close to it."""
+    level (stride 4) first; with COARSE_SHARE at 0.5 the bunny keeps one level. With two
+    levels every pixel that is shaded is still the full render's bit for bit, and the
+    image stays close to it."""
     s = _scene("sphere_a03", 96, n=1, method="rousiers")
     g, args = _lattice_inputs(s)
     _, lat = adaptive.lattice(g, args[-1])
     assert [lv.stride for lv in lat.levels] == [2, 1]
     assert lat.levels[0].status.shape == (1, 48, 48)
     gb, argsb = _lattice_inputs(_scene("bunny_a01", 96, n=1))
-    lat_b = adaptive.lattice(gb, argsb[-1])[1]  # None: too little waits (FINE_SHARE)
+    lat_b = adaptive.lattice(gb, argsb[-1], coarse_share=0.5)[1]
     assert lat_b is None or [lv.stride for lv in lat_b.levels] == [1]
     full, ad = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
     m = g.front.mask[0]
@@ -249,10 +261,13 @@ def test_camera_planes_are_kept_per_g_buffer_and_follow_its_inputs():
     assert not torch.equal(camera_planes(g), a)
 
 
-def test_each_view_decides_alone_so_a_batch_is_its_views_rendered_alone():
-    """The lattice's levels are chosen per view: a batch of a smooth view (two levels) and
-    a detailed one (one level, or none) gives each view's image alone, bit for bit (a large
-    batch is rendered in chunks: its images must not depend on its neighbours)."""
+def test_each_view_decides_alone_so_a_batch_is_its_views_rendered_alone(monkeypatch):
+    """The lattice's levels are chosen per view: with shares that make a smooth view take
+    two levels and a detailed one one level (or none), a batch of both gives each view's
+    image alone, bit for bit (a large batch is rendered in chunks: its images must not
+    depend on its neighbours)."""
+    monkeypatch.setattr(adaptive, "FINE_SHARE", 0.4)
+    monkeypatch.setattr(adaptive, "COARSE_SHARE", 0.5)
     a = _scene("sphere_a03", 96, n=1, method="rousiers")
     b = _scene("bunny_a01", 96, n=1, method="rousiers")
     ga, aa = _lattice_inputs(a)
@@ -266,3 +281,24 @@ def test_each_view_decides_alone_so_a_batch_is_its_views_rendered_alone():
         assert torch.equal(both.radiance[i], alone.radiance[0]), i
         for k, v in alone.passes.items():
             assert torch.equal(both.passes[k][i], v[0]), (i, k)
+
+
+def test_ior_one_stays_close_to_the_bare_environment():
+    """At IOR 1 every method shows the environment itself (test_stability); adaptive
+    shading interpolates some of it between lattice pixels where it is smooth, so the
+    image stays close to it: the interpolation's error, bounded by the spread test
+    (measured: FLIP 0.021 at 96x96, where the environment's detail is finest per pixel;
+    against the full render on the held-out validation scenes 0.014 at 128x128)."""
+    from torchrefract.geometry.camera import pixel_rays as rays  # noqa: PLC0415
+    from torchrefract.lighting.envmap import load_envmap, lookup  # noqa: PLC0415
+
+    s = _scene("sphere_a03", 96, n=1, method="rousiers")
+    s = s.replace(material=dataclasses.replace(s.material, ior=1.0))
+    out = tr.render(s, settings=ADAPTIVE)
+    bare = lookup(load_envmap(s.envmap.path), rays(s.camera), s.envmap.rotate_deg)
+    m = out.coverage[0] > 0.99
+    fl = flip_map(out.radiance[0].numpy(), bare.numpy())[m.numpy()]
+    assert m.sum() > 1000 and float(fl.mean()) < 0.03, float(fl.mean())
+    full = tr.render(s, settings=UNIFORM)  # the method's own: the environment itself
+    flf = flip_map(full.radiance[0].numpy(), bare.numpy())[m.numpy()]
+    assert float(flf.mean()) < 1e-3, float(flf.mean())

@@ -471,3 +471,31 @@ def test_batches_keep_the_samples_of_one_view_together():
     assert [[int(s.sample_id) for s in b] for b in batches] == [
         [0, 3, 6, 9], [1, 4, 7, 10], [2, 5, 8, 11]]
     assert all(len({s.scene.camera for s in b}) == 1 for b in batches)
+
+
+def test_a_folder_keeps_the_adaptive_sampling_it_was_started_with(cfg_path, tmp_path,
+                                                                  monkeypatch, capsys):
+    """sweep.json records whether the samples are rendered with adaptive sampling; a
+    resumed run renders the rest alike whatever the settings in force say (a record
+    from before the setting existed: without it), and says so."""
+    import torchrefract.dataset.run as run_mod
+    from torchrefract.settings import RenderSettings
+
+    seen = []
+    make = run_mod._make_executor
+
+    def spy(executor, workers, settings, *args):
+        seen.append(settings.adaptive)
+        return make(executor, workers, settings, *args)
+
+    monkeypatch.setattr(run_mod, "_make_executor", spy)
+    out = tmp_path / "o"
+    run_sweep(cfg_path, out, quiet=True, limit=2, settings=RenderSettings())
+    rec = json.loads((out / "sweep.json").read_text())
+    assert rec["adaptive"] is True and seen == [True]
+    run_sweep(cfg_path, out, quiet=False, limit=4, settings=RenderSettings(adaptive=False))
+    assert seen == [True, True] and "adaptive sampling on" in capsys.readouterr().err
+    del rec["adaptive"]  # a folder started before the setting existed
+    (out / "sweep.json").write_text(json.dumps(rec))
+    s = run_sweep(cfg_path, out, quiet=True, settings=RenderSettings())
+    assert seen == [True, True, False] and (s.skipped, s.ok) == (6, 2)

@@ -20,7 +20,10 @@ from torchrefract.kernels import native
 from torchrefract.settings import RenderSettings, using
 
 SUITE = sorted((Path(__file__).resolve().parent.parent / "configs" / "suite").glob("*.yaml"))
-FUSED, TENSOR = RenderSettings(fused=True), RenderSettings(fused=False)
+# every pixel shaded: the kernels against the tensor code pixel by pixel (adaptive
+# shading on top: test_fused_matches_the_tensor_code_with_adaptive_shading)
+FUSED = RenderSettings(fused=True, adaptive=False)
+TENSOR = RenderSettings(fused=False, adaptive=False)
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="the native kernels do not build here")
@@ -71,6 +74,20 @@ def test_fused_matches_the_tensor_code_on_the_suite(path, method):
                         "rousiers": (("lobe_sigma", 2e-3), ("footprint", 1e-4))
                         }.get(method, ()):
             assert torch.allclose(a.passes[k], b.passes[k], rtol=rtol, atol=1e-6), k
+
+
+@pytest.mark.parametrize("path", SUITE, ids=[p.stem for p in SUITE])
+def test_fused_matches_the_tensor_code_with_adaptive_shading(path):
+    """The default settings (adaptive shading): the lattice's decisions read the radiance,
+    which the two paths round differently, but a pixel near a threshold is blended
+    (adaptive.BLEND_FROM), so the images stay as close as without it."""
+    s = _small(path, 96, method="rousiers")
+    a = tr.render(s, settings=TENSOR.replace(adaptive=True))
+    b = tr.render(s, settings=FUSED.replace(adaptive=True))
+    for m in _compare(a, b):
+        assert m["beyond"] <= 1e-3 and m["max_rel"] < 1e-2, m
+        assert m["flip"] <= 0.002, m
+        assert m["background"] <= 1e-4, m
 
 
 BOUNCES = {"ib2": {"internal_bounces": 2}, "auto": {"internal_bounces": "auto"},

@@ -23,7 +23,8 @@ from torchrefract.shading import fused_lean
 from test_fused import BOUNCES, _compare, _small, check_bounces_match
 
 SUITE = sorted((Path(__file__).resolve().parent.parent / "configs" / "suite").glob("*.yaml"))
-FUSED, TENSOR = RenderSettings(fused=True), RenderSettings(fused=False)
+FUSED = RenderSettings(fused=True, adaptive=False)  # every pixel shaded: pixel by pixel
+TENSOR = RenderSettings(fused=False, adaptive=False)
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="the native kernels do not build here")

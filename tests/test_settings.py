@@ -137,7 +137,7 @@ def test_old_switches_are_deprecated_aliases(monkeypatch):
 
 @pytest.mark.parametrize("flag, env, field, default", [
     ("--no-fused", "TORCHREFRACT_FUSED=0", "fused", True),
-    ("--adaptive", "TORCHREFRACT_ADAPTIVE=1", "adaptive", False)])
+    ("--no-adaptive", "TORCHREFRACT_ADAPTIVE=0", "adaptive", True)])
 def test_flag_and_environment_are_settings_of_the_run(monkeypatch, flag, env, field, default):
     """A command's flag (render and sweep) and its environment variable set the run's
     settings, not the process's; the Python API's default is ``default``."""

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from sweep_fixtures import PARK, STUDIO, base_scene, write_config
 
+import torchrefract as tr
 from torchrefract.checks import ConfigError
 from torchrefract.dataset.run import run_sweep
 from torchrefract.dataset.sweep import load_sweep
@@ -44,10 +45,13 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("relight")
     direct = root / "direct"
     relit = root / "relit"
-    s = run_sweep(write_config(root / "direct.yaml", _config(False)), direct, quiet=True)
+    # the direct sweep shading every pixel, as the relit one's mattes do
+    s = run_sweep(write_config(root / "direct.yaml", _config(False)), direct, quiet=True,
+                  settings=tr.RenderSettings(adaptive=False))
     assert (s.ok, s.failed) == (4, 0)
     s = run_sweep(write_config(root / "relit.yaml", _config(True)), relit, quiet=True)
     assert (s.ok, s.failed) == (4, 0)
+    assert json.loads((relit / "sweep.json").read_text())["adaptive"] is False
     return root, direct, relit
 
 

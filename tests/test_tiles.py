@@ -73,19 +73,21 @@ def _assert_same(a: tr.RenderResult, b: tr.RenderResult) -> None:
     assert bool(torch.isfinite(b.radiance).all())
 
 
+FULL = {"adaptive": False}  # every sub-pixel shaded: one tiled pass
 CASES = [
-    ("sphere_a03", "specular", {}, 1, {}),
-    ("sphere_a03", "prefiltered", {}, 1, {}),
-    ("sphere_a03", "rousiers", {}, 1, {}),
-    ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {}),
-    ("sphere_a03", "specular", {"internal_bounces": 2}, 2, {}),
-    ("globe_2rough", "rousiers", {"internal_bounces": 2}, 1, {}),
-    ("globe_2rough", "rousiers", {}, 2, {}),
-    ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {"fused": False}),
-    ("globe_2rough", "specular", {}, 1, {"fused": False}),
+    ("sphere_a03", "specular", {}, 1, FULL),
+    ("sphere_a03", "prefiltered", {}, 1, FULL),
+    ("sphere_a03", "rousiers", {}, 1, FULL),
+    ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, FULL),
+    ("sphere_a03", "specular", {"internal_bounces": 2}, 2, FULL),
+    ("globe_2rough", "rousiers", {"internal_bounces": 2}, 1, FULL),
+    ("globe_2rough", "rousiers", {}, 2, FULL),
+    ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {"fused": False, **FULL}),
+    ("globe_2rough", "specular", {}, 1, {"fused": False, **FULL}),
     ("sphere_a03", "rousiers", {}, 2, {"adaptive": True}),
     ("sphere_a03", "rousiers", {"internal_bounces": 2}, 1, {"adaptive": True}),
-    ("slab_light", "rousiers", {}, 1, {}),
+    ("sphere_a03", "rousiers", {}, 1, {"adaptive": True}),
+    ("slab_light", "rousiers", {}, 1, FULL),
 ]
 
 
@@ -115,10 +117,11 @@ def test_a_batch_in_chunks_of_tiled_views(counted):
     batch equals its one-pass render."""
     base = _scene("sphere_a03", (96, 96), 1, "rousiers", {"internal_bounces": 1})
     turned = base.replace(envmap=dataclasses.replace(base.envmap, rotate_deg=150.0))
-    whole = tr.render([base, turned])
+    whole = tr.render([base, turned], settings=RenderSettings(**FULL))
     budget_mb = _tight_budget_mb(base)
     assert [len(c) for c in render_mod._chunks([base, turned], budget_mb << 20)] == [1, 1]
-    tiled = tr.render([base, turned], settings=RenderSettings(memory_budget_mb=budget_mb))
+    tiled = tr.render([base, turned], settings=RenderSettings(memory_budget_mb=budget_mb,
+                                                              **FULL))
     assert len(counted) == 2 and all(len(c) >= 3 for c in counted), counted
     _assert_same(whole, tiled)
 

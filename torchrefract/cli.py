@@ -40,11 +40,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-fused", action="store_true",
                    help="each method's tensor code instead of its fused shading kernel "
                         "(the same images within float32 rounding; slower)")
-    r.add_argument("--adaptive", action="store_true",
-                   help="shade only the (sub-)pixels the image needs: with "
+    r.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
+                   help="shade only the (sub-)pixels the image needs (the default): with "
                         "samples_per_pixel > 1 every sub-pixel only where the G-buffer "
                         "changes inside the pixel; with 1, a 2x2 lattice, the pixels between "
-                        "interpolated where smooth (RenderSettings.adaptive)")
+                        "interpolated where smooth; --no-adaptive shades every (sub-)pixel "
+                        "(RenderSettings.adaptive)")
     r.add_argument("--passes", default=None,
                    help="extra passes for every scene, comma-separated: matte (the lobes "
                         "the method read the environment with, relightable), flow "
@@ -91,9 +92,9 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--no-fused", action="store_true",
                    help="each method's tensor code instead of its fused shading kernel in "
                         "every rendering process")
-    w.add_argument("--adaptive", action="store_true",
-                   help="adaptive sampling in every rendering process "
-                        "(RenderSettings.adaptive)")
+    w.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
+                   help="adaptive sampling in every rendering process (the default; "
+                        "--no-adaptive: every (sub-)pixel shaded; RenderSettings.adaptive)")
     w.add_argument("--device", default=None,
                    help="cpu, cuda, cuda:N or auto: where every rendering process shades "
                         "(RenderSettings.device)")
@@ -253,8 +254,8 @@ def _settings(args: argparse.Namespace):
         changes["native"] = False
     if getattr(args, "no_fused", False):
         changes["fused"] = False
-    if getattr(args, "adaptive", False):
-        changes["adaptive"] = True
+    if getattr(args, "adaptive", None) is not None:
+        changes["adaptive"] = args.adaptive
     if getattr(args, "device", None):
         changes["device"] = args.device
     if getattr(args, "rasterizer", None):

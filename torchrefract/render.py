@@ -316,15 +316,15 @@ def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, 
             radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
         elif isinstance(plan, adaptive.Lattice):  # level by level, the waiting pixels:
             for level in plan.levels:  # interpolated, or shaded over the image so far
-                radiance, method_passes, rest = adaptive.fill(level, radiance,
-                                                              method_passes)
+                radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
+                                                                    method_passes)
                 if rest is None:
                     continue
                 again = tiles.shade(entry, dataclasses.replace(
                     g, shade=rest, canvas=radiance.view(-1, 3)), lighting, materials,
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
-                                                         rest)
+                                                         rest, soft)
         # never let NaN/Inf out, and never hide that it happened; a finite sum (one
         # reduction) proves every value finite, a non-finite one (or an overflow) is checked
         if not _all_finite(radiance):

@@ -1,5 +1,5 @@
 """How a render runs (not what it renders): threads, kernels, compilation, adaptive
-sampling (an approximation, off by default), the memory budget, the cache folder and
+sampling (on by default), the memory budget, the cache folder and
 the allocator, passed to :func:`torchrefract.render`, the CLI, sweeps and
 ``RenderStream`` as one :class:`RenderSettings`.
 
@@ -12,7 +12,7 @@ environment variables below are only the documented defaults of :meth:`RenderSet
 ``TORCHREFRACT_NATIVE=0``              ``native=False``: tensor code, not the C kernels
 ``TORCHREFRACT_NATIVE_SIMD=0``         ``native_simd=False``: the march's scalar search
 ``TORCHREFRACT_FUSED=0``               ``fused=False``: the tensor code, not the fused kernels
-``TORCHREFRACT_ADAPTIVE=1``            ``adaptive=True``: adaptive sampling
+``TORCHREFRACT_ADAPTIVE=0``            ``adaptive=False``: every (sub-)pixel shaded
 ``TORCHREFRACT_COMPILE=1``             ``compile=True``: torch.compile the march
 ``TORCHREFRACT_HEAP_REUSE=1`` (``0``)  ``heap_reuse=True`` (``0``: never, even if asked)
 ``TORCHREFRACT_THREADS=N``             ``threads=N``
@@ -89,13 +89,15 @@ class RenderSettings:
     """A method's per-pixel shading as one native kernel where it covers the scene
     (:mod:`torchrefract.shading.fused`; the tensor code otherwise, and wherever a gradient
     is wanted): the same images within float32 rounding."""
-    adaptive: bool = False
+    adaptive: bool = True
     """Shade no more pixels than the image needs (:mod:`torchrefract.geometry.adaptive`):
     with ``samples_per_pixel`` n > 1, all n x n sub-pixels only where the G-buffer changes
     inside the pixel, one center sample elsewhere; with one sample, the 2x2 lattice's
     pixels, and the pixels between them only where their G-buffer or the lattice's
     radiance is not smooth (the others interpolated). An approximation of the full
-    sampling, at a fraction of its shading."""
+    sampling at a fraction of its shading, as close to converged truth out of sample
+    (docs/decisions.md, "Adaptive shading on by default"); False shades every
+    (sub-)pixel. Off by itself where matte or flow passes are asked for."""
     compile: bool = False
     """torch.compile the march's tensor code (seconds of start-up per process)."""
     heap_reuse: bool = False
@@ -167,7 +169,7 @@ class RenderSettings:
             native=_env_flag("TORCHREFRACT_NATIVE", True),
             native_simd=_env_flag("TORCHREFRACT_NATIVE_SIMD", True),
             fused=_env_flag("TORCHREFRACT_FUSED", True),
-            adaptive=_env_flag("TORCHREFRACT_ADAPTIVE", False),
+            adaptive=_env_flag("TORCHREFRACT_ADAPTIVE", True),
             memory_budget_mb=_env_count("TORCHREFRACT_MEMORY_MB"),
             compile=_env_flag("TORCHREFRACT_COMPILE", False),
             heap_reuse=_env_flag("TORCHREFRACT_HEAP_REUSE", False),

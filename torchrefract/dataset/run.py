@@ -214,8 +214,11 @@ def _remove_temporaries(out: Path) -> int:
     return n
 
 
-def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str) -> None:
-    """Refuse a folder holding another sweep or format; record this sweep in a new one."""
+def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str, adaptive: bool) -> bool:
+    """Refuse a folder holding another sweep or format; record this sweep in a new one.
+    Returns whether its samples are rendered with adaptive sampling: as the record says
+    (a record without it is from before adaptive sampling was the default: False), so
+    that a resumed folder's images are all made alike; else ``adaptive``."""
     from torchrefract import __version__  # noqa: PLC0415
 
     path = out / SWEEP_RECORD
@@ -233,7 +236,7 @@ def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str) -> None:
             if rec.get("format") != fmt:
                 raise ConfigError(f"{out} was written with --format {rec.get('format')}; "
                                   f"resume it with the same format (or use a new --out)")
-            return
+            return bool(rec.get("adaptive", False))
     # Paths relative to the folder (a moved dataset keeps them valid); the config as written.
     source = cfg.source
     if source and os.path.isfile(source):
@@ -242,9 +245,10 @@ def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str) -> None:
     record = {"name": cfg.name, "config_hash": cfg.config_hash, "format": fmt,
               "num_samples": cfg.num_samples, "source": source,
               "sampling": asdict(cfg.sampling), "config": cfg.raw,
-              "base_scene": base, "torchrefract_version": __version__,
+              "base_scene": base, "adaptive": adaptive, "torchrefract_version": __version__,
               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     write_bytes(path, (json.dumps(record, indent=2, default=str) + "\n").encode(), fsync=True)
+    return adaptive
 
 def _completed(out: Path, fmt: str, latest: dict[str, dict], verify: bool
                ) -> tuple[set[str], int]:
@@ -339,15 +343,22 @@ def _check_args(fmt: str, executor: str, batch_size, shard_size, workers) -> Non
 
 
 def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None,
-          summary: RunSummary) -> tuple[list[Sample], list[dict], int]:
+          summary: RunSummary, settings, quiet: bool = True
+          ) -> tuple[list[Sample], list[dict], int, object]:
     """Resume what an earlier run left in ``out`` and list what remains.
 
     Returns the samples to render (at most ``limit``), the records of samples that fail
-    already when expanded (an invalid combination fails alone), and the last shard's
-    number (-1: none). Sets ``summary.skipped``.
+    already when expanded (an invalid combination fails alone), the last shard's number
+    (-1: none), and ``settings`` with the folder's adaptive sampling
+    (:func:`_check_sweep_record`). Sets ``summary.skipped``.
     """
     _remove_temporaries(out)
-    _check_sweep_record(out, cfg, fmt)
+    adaptive = _check_sweep_record(out, cfg, fmt, settings.adaptive)
+    if adaptive != settings.adaptive:
+        if not quiet:
+            print(f"{out}: resumed with adaptive sampling {'on' if adaptive else 'off'}, as "
+                  "its first samples were rendered", file=sys.stderr)
+        settings = settings.replace(adaptive=adaptive)
     latest = latest_entries(read_manifest(out / MANIFEST))
     done, last_shard = _completed(out, fmt, latest, verify)
     summary.skipped = len(done)
@@ -365,7 +376,7 @@ def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None
                                      "config_hash": cfg.config_hash})
     if limit is not None:
         todo = todo[:limit]
-    return todo, planned_failures, last_shard
+    return todo, planned_failures, last_shard, settings
 
 
 def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "folder",
@@ -408,6 +419,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     if threads:
         settings = settings.replace(threads=threads)
     cfg = config if isinstance(config, SweepConfig) else load_sweep(config)
+    if cfg.relight:  # relit from mattes, which shade every pixel: the rendered samples alike
+        settings = settings.replace(adaptive=False)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lock = _Lock(out)
@@ -417,7 +430,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     shards: _TarShards | None = None
     manifest: _Manifest | None = None
     try:
-        todo, planned_failures, last_shard = _plan(cfg, out, fmt, verify, limit, summary)
+        todo, planned_failures, last_shard, settings = _plan(cfg, out, fmt, verify, limit,
+                                                             summary, settings, quiet)
         sources = relight_sources(cfg, todo) if cfg.relight else None
         batches = _plan_batches(todo, batch_size, sources)
         manifest = _Manifest(out / MANIFEST)

@@ -1,5 +1,5 @@
-"""Adaptive sampling (issue #28, "model no more than a scene needs"), opt-in:
-``RenderSettings(adaptive=True)``. With n x n samples per pixel, all n x n sub-pixels of a
+"""Adaptive sampling (issue #28, "model no more than a scene needs"), on by default
+(``RenderSettings(adaptive=False)``: every sub-pixel shaded). With n x n samples per pixel, all n x n sub-pixels of a
 pixel are shaded only where they can differ; elsewhere one sample at the pixel's center
 stands for them. With one sample, a lattice of pixels is shaded and the pixels between are
 interpolated where the image is smooth (last paragraph).
@@ -25,7 +25,8 @@ the other way: the object pixels of the 2x2 lattice (even row and column) are sh
 first; a pixel between lattice pixels whose G-buffer agrees with theirs (the tests above,
 and roughness at least ``smooth_alpha``) waits, and is then the mean of their radiances
 where those agree within ``LATTICE_RTOL``, else it is shaded in a further pass over the
-image so far. Where the image is smooth over several pixels the even pixels are first a
+image so far; near the tolerances it is shaded and blended with the mean
+(``BLEND_FROM``), so the image changes continuously with the scene. Where the image is smooth over several pixels the even pixels are first a
 level of their own on the pixels of stride 4 (``COARSE_SHARE``); where little could wait
 there is no lattice (``FINE_SHARE``). The shaded pixels are the full render's; the others
 are interpolated where the image is smooth (measured: docs/decisions.md, "Adaptive shading
@@ -52,18 +53,25 @@ SMOOTH_ALPHA = 0.02
 environment's detail inside a pixel, which the G-buffer does not show (measured on the
 smooth sphere: docs/decisions.md, "Adaptive supersampling")."""
 LATTICE_RTOL = 0.2
-"""The largest spread (max - min per channel, over their mean luminance + 1e-3) of a
-waiting pixel's lattice neighbours' radiances at which it is their mean (fit on the
-validation set's fit half: docs/decisions.md, "Adaptive shading at one sample per pixel");
-halved at the coarser level."""
-FINE_SHARE = 0.4
-"""Below this share of the object pixels waiting, the lattice is not used (one full pass):
-too little is left to interpolate to pay for the fill and a second pass's set-up (the
-bunny at 256x256, 0.35 waiting: 1.05x the full time with the lattice)."""
+"""The spread (max - min per channel, over their mean luminance + 1e-3) of a waiting
+pixel's lattice neighbours' radiances from which it is shaded (fit on the validation set's
+fit half: docs/decisions.md, "Adaptive shading at one sample per pixel"); halved at the
+coarser level."""
+BLEND_FROM = 0.5
+"""The lattice's tolerances (NORMAL_TOL, DEPTH_TOL, SMOOTH_ALPHA, LATTICE_RTOL) are where
+a waiting pixel stops being its neighbours' mean alone: up to 1 / BLEND_FROM times them it
+is shaded too and blended with the mean (smoothstep), beyond it is shaded alone. So the
+image changes continuously with the scene instead of by a pixel's whole interpolation
+error where a measure crosses its tolerance, and the pixels shaded are those shaded before
+the blend existed (docs/decisions.md, "Adaptive shading on by default")."""
+FINE_SHARE = 0.0
+"""Below this share of a view's object pixels waiting, its lattice is not used (one full
+pass). 0: a view switches only where no pixel could wait, so that its image does not jump
+as the share crosses a threshold (a view's camera or object moving); 0.4 saved ~5% on a
+detailed view (the bunny at 256x256, 0.35 waiting)."""
 COARSE_SHARE = 0.5
-"""The share of the even object pixels that must be able to wait on the pixels of stride
-4 for that coarser level to be planned (each level costs a shading pass's set-up:
-docs/decisions.md, "Adaptive shading at one sample per pixel")."""
+"""The share of a view's even object pixels that must be able to wait on the pixels of
+stride 4 for that coarser level to be planned (0: wherever any can; see FINE_SHARE)."""
 
 
 @dataclass(frozen=True)
@@ -170,11 +178,14 @@ class Level:
     """One level of adaptive shading at one sample per pixel, on the pixels of stride
     ``stride`` (1: every pixel; 2: the even rows and columns): ``status`` (B, H/s, W/s)
     uint8 on them, 0 not the object, 1 shaded before the level is filled, 2 waiting for its
-    lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, or 4,
-    shaded in the level's own pass)."""
+    lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, 4,
+    shaded in the level's own pass, or 5, shaded there and blended with the
+    interpolation), and ``gap`` (B, H/s, W/s) float32: a waiting pixel's G-buffer gap to
+    its neighbours, its measures over their tolerances (<= 1; 0 elsewhere)."""
 
     stride: int
     status: torch.Tensor
+    gap: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -202,39 +213,56 @@ def _neighbours(idx: torch.Tensor, h: int, w: int
     return torch.stack([n0, n1, n2, n3], 1), diag, valid
 
 
+def _gap_ratio(measure: torch.Tensor | float, tol: torch.Tensor | float) -> torch.Tensor:
+    """A measure over its tolerance (tolerances below 1e-30 taken as 1e-30; csrc/lattice.c's
+    gap_ratio)."""
+    if isinstance(tol, torch.Tensor):
+        return measure / tol.clamp(min=1e-30)
+    return measure / max(tol, 1e-30)
+
+
 def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: float,
-                   depth_tol: float) -> torch.Tensor:
-    """The tensor code of csrc/lattice.c's plan: (B, H, W) uint8 status (:class:`Lattice`)."""
+                   depth_tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tensor code of csrc/lattice.c's plan: (B, H, W) uint8 status and float32 gap
+    (:class:`Level`)."""
     b, h, w = fm.shape
     n = b * h * w
     status = torch.zeros(n, dtype=torch.uint8, device=fm.device)
+    gap_out = torch.zeros(n, device=fm.device)
     obj = where_true(fm.reshape(-1))
     status[obj] = 1
     nb, _, valid = _neighbours(obj, h, w)
     nb = nb.clamp(0, n - 1)  # out of the frame only where not valid
-    al = alpha.expand(b, h, w).reshape(-1)
+    al = alpha.expand(b, h, w).reshape(-1).float()
     fmf, bmf, bdf = fm.reshape(-1), bm.reshape(-1), bd.reshape(-1)
     fnf, bnf = fn.reshape(-1, 3), bn.reshape(-1, 3)
     p_bm, p_bd = take(bmf, obj), take(bdf, obj)
     p_fn, p_bn = take(fnf, obj), take(bnf, obj)
     tol = depth_tol * p_bd.abs()
-    wait = valid & (take(al, obj) >= alpha_min)
+    wait = valid.clone()
+    gap = _gap_ratio(alpha_min, take(al, obj))
     for k in range(4):
         q = nb[:, k]
-        wait &= take(fmf, q) & (take(bmf, q) == p_bm) & (take(al, q) >= alpha_min)
-        wait &= 1.0 - dot(take(fnf, q), p_fn) <= normal_tol
-        wait &= ~p_bm | ((1.0 - dot(take(bnf, q), p_bn) <= normal_tol)
-                         & ((take(bdf, q) - p_bd).abs() <= tol))
-    status[take(obj, where_true(wait))] = 2
-    return status.view(b, h, w)
+        wait &= take(fmf, q) & (take(bmf, q) == p_bm)
+        gap = torch.maximum(gap, _gap_ratio(alpha_min, take(al, q)))
+        gap = torch.maximum(gap, _gap_ratio(1.0 - dot(take(fnf, q), p_fn), normal_tol))
+        back = torch.maximum(_gap_ratio(1.0 - dot(take(bnf, q), p_bn), normal_tol),
+                             _gap_ratio((take(bdf, q) - p_bd).abs(), tol))
+        gap = torch.where(p_bm, torch.maximum(gap, back), gap)
+    wait &= gap <= 1.0
+    sel = where_true(wait)
+    status[take(obj, sel)] = 2
+    gap_out[take(obj, sel)] = take(gap, sel)
+    return status.view(b, h, w), gap_out.view(b, h, w)
 
 
 def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
-          depth_tol: float) -> torch.Tensor:
-    """A level's status over (B, H, W) layers (csrc/lattice.c, else the tensor code)."""
+          depth_tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A level's status and gap over (B, H, W) layers (csrc/lattice.c, else the tensor
+    code)."""
     args = (fm, bm, fn, bn, bd, alpha, smooth_alpha, normal_tol, depth_tol)
-    status = native.lattice_plan(*args)
-    return _lattice_torch(*args) if status is None else status
+    out = native.lattice_plan(*args)
+    return _lattice_torch(*args) if out is None else out
 
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
@@ -257,27 +285,30 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     """
     share = COARSE_SHARE if coarse_share is None else coarse_share
     layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
-    tol = (smooth_alpha, normal_tol, depth_tol)
-    status = _plan(*layers, alpha, *tol)
+    # the plan's tolerances: where blending ends (BLEND_FROM)
+    tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
+    status, gap = _plan(*layers, alpha, *tol)
     objects = g.front.mask.flatten(1).sum(1)  # (B,) per view
-    fine_views = (status == 2).flatten(1).sum(1) >= FINE_SHARE * objects
+    waiting = (status == 2).flatten(1).sum(1)
+    fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
     if not bool(fine_views.any()):
         return g, None
     _no_wait(status, fine_views)
-    fine = Level(1, status)
+    fine = Level(1, status, gap)
     even = (slice(None), slice(None, None, 2), slice(None, None, 2))
     sub = [x[even].contiguous() for x in layers]
     a2 = alpha[even].contiguous() if alpha.shape[1:] == g.shape[1:] else alpha
-    coarse_status = _plan(*sub, a2, *tol)
-    even_objects = sub[0].flatten(1).sum(1)
-    coarse_views = fine_views & (even_objects > 0) & (
-        (coarse_status == 2).flatten(1).sum(1) >= share * even_objects)
+    coarse_status, coarse_gap = _plan(*sub, a2, *tol)
+    coarse_waiting = (coarse_status == 2).flatten(1).sum(1)
+    coarse_views = fine_views & (coarse_waiting > 0) & (
+        coarse_waiting >= share * sub[0].flatten(1).sum(1))
     first = fine.status == 1
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))
     _no_wait(coarse_status, coarse_views)
     first[even] &= coarse_status == 1
-    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status), fine))
+    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status, coarse_gap),
+                                                    fine))
 
 
 def _no_wait(status: torch.Tensor, views: torch.Tensor) -> None:
@@ -294,10 +325,12 @@ def _mean(v: torch.Tensor, four: torch.Tensor) -> torch.Tensor:
     return torch.where(four[:, None], ((s + v[:, 2]) + v[:, 3]) * 0.25, s * 0.5)
 
 
-def _fill_torch(status: torch.Tensor, flat: torch.Tensor, rtol: float,
+def _fill_torch(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,
+                flat: torch.Tensor, rtol: float, blend_from: float,
                 passes: list[torch.Tensor] = ()) -> None:
-    """The tensor code of csrc/lattice.c's fill, in place on ``status`` (B, H, W), ``flat``
-    (B*H*W, 3) and each of ``passes`` (B*H*W, C)."""
+    """The tensor code of csrc/lattice.c's fill, in place on ``status`` (B, H, W), ``weight``
+    (B, H, W; written at status 5), ``flat`` (B*H*W, 3) and each of ``passes`` (B*H*W, C),
+    with the plan's ``gap`` (B, H, W)."""
     _, h, w = status.shape
     st = status.view(-1)
     idx = where_true(st == 2)
@@ -306,25 +339,35 @@ def _fill_torch(status: torch.Tensor, flat: torch.Tensor, rtol: float,
     mean = _mean(v, four)
     lum = ((mean[:, 0] + mean[:, 1]) + mean[:, 2]) / 3.0 + 1e-3
     rel = (v.amax(1) - v.amin(1)) / lum[:, None]
-    ok = torch.isfinite(rel).all(-1) & (rel.nan_to_num(float("inf")).amax(-1) <= rtol)
+    finite = torch.isfinite(rel).all(-1)
+    t = torch.maximum(take(gap.view(-1), idx), rel.nan_to_num(float("inf")).amax(-1) / rtol)
+    ok = finite & (t < 1.0)
+    soft = ok & (t > blend_from)
     sel = where_true(ok)
     done, nb, four = take(idx, sel), take(nb, sel), take(four, sel)
     put_(flat, done, take(mean, sel))
     for x in passes:
         put_(x, done, _mean(take(x, nb.reshape(-1)).view(len(done), 4, -1), four))
-    st[idx] = torch.where(ok, 3, 4).to(st.dtype)
+    ss = where_true(soft)
+    u = (take(t, ss) - blend_from) / (torch.ones((), dtype=t.dtype) - blend_from)
+    put_(weight.view(-1), take(idx, ss), u * u * (3.0 - 2.0 * u))
+    st[idx] = torch.where(soft, 5, torch.where(ok, 3, 4)).to(st.dtype)
 
 
 def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
-         rtol: float | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor],
-                                             torch.Tensor | None]:
+         rtol: float | None = None, blend_from: float | None = None
+         ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None,
+                    tuple[torch.Tensor, torch.Tensor] | None]:
     """After the passes before ``level``: each of its waiting pixels its lattice
     neighbours' mean where their radiances agree, in ``radiance`` (B, H, W, 3) and the
     method's ``passes`` (B, H, W, C) (``level.status`` in place). Returns the radiance,
-    the passes and the (B, H, W) mask of the pixels the level's own pass shades (None:
-    none). ``rtol``: default LATTICE_RTOL over the stride (the error of a mean
-    over twice the spacing grows faster than the neighbours' spread)."""
-    rtol = LATTICE_RTOL / level.stride if rtol is None else rtol
+    the passes, the (B, H, W) mask of the pixels the level's own pass shades (None: none),
+    and of those the ones to blend with their mean (:func:`merge`): their flat (B*H*W)
+    indices and smoothstep weights (None: none). ``rtol``: where blending ends, default
+    LATTICE_RTOL over the stride (the error of a mean over twice the spacing grows faster
+    than the neighbours' spread) over ``blend_from`` (default BLEND_FROM)."""
+    blend_from = BLEND_FROM if blend_from is None else blend_from
+    rtol = LATTICE_RTOL / level.stride / blend_from if rtol is None else rtol
     b, h, w, _ = radiance.shape
     radiance = radiance.contiguous()
     passes = {k: v.contiguous() for k, v in passes.items()}
@@ -336,27 +379,38 @@ def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
     n = level.status.numel()
     flat = sub.view(-1, 3)
     pflat = [v.view(n, -1) for v in psub.values()]
+    weight = torch.zeros(level.status.shape, device=flat.device)
     grad = flat.requires_grad or any(v.requires_grad for v in pflat)
-    if grad or not native.lattice_fill(level.status, flat, rtol, pflat):
-        _fill_torch(level.status, flat, rtol, pflat)
+    if grad or not native.lattice_fill(level.status, level.gap, weight, flat, rtol,
+                                       blend_from, pflat):
+        _fill_torch(level.status, level.gap, weight, flat, rtol, blend_from, pflat)
     if s > 1:
         radiance[on] = sub
         for k, v in psub.items():
             passes[k][on] = v
-    rest = level.status == 4
+    rest = level.status >= 4
     if not bool(rest.any()):
-        return radiance, passes, None
+        return radiance, passes, None, None
+    five = where_true(level.status.view(-1) == 5)
+    soft = None
+    if five.numel():
+        hs, ws = level.status.shape[1:]  # the level's pixel (bi, y, x) at (bi, s y, s x)
+        full_idx = ((five // (hs * ws)) * h + (five // ws) % hs * s) * w + five % ws * s
+        soft = (full_idx, take(weight.view(-1), five))
     if s > 1:
         full = torch.zeros(b, h, w, dtype=torch.bool, device=rest.device)
         full[on] = rest
         rest = full
-    return radiance, passes, rest
+    return radiance, passes, rest, soft
 
 
 def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
-          rest: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+          rest: torch.Tensor, soft: tuple[torch.Tensor, torch.Tensor] | None = None
+          ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The second pass's radiance (it shaded ``rest`` (B, H, W) over the first's image)
-    and the first pass's passes with the second's values at ``rest``."""
+    and the first pass's passes with the second's values at ``rest``; at the pixels of
+    ``soft`` (:func:`fill`) the first's value (the mean) plus the weight times the
+    difference to the second's."""
     rest = where_true(rest.view(-1))
     out = {}
     for k, v in second.passes.items():
@@ -364,10 +418,26 @@ def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
             out[k] = v
             continue
         c = v.shape[-1]
-        out[k] = put_(passes[k].reshape(-1, c), rest, take(v.reshape(-1, c), rest)
-                      ).view(passes[k].shape)
-    return second.radiance, {**passes, **out}
+        first = passes[k].reshape(-1, c)
+        shaded = v.reshape(-1, c)
+        mean = take(first, soft[0]) if soft is not None else None
+        x = put_(first, rest, take(shaded, rest))
+        if soft is not None:
+            x = x.index_put((soft[0],), _blend(mean, take(shaded, soft[0]), soft[1]))
+        out[k] = x.view(passes[k].shape)
+    rad = second.radiance
+    if soft is not None:
+        i5, w5 = soft
+        flat = rad.reshape(-1, 3)
+        mean = take(radiance.reshape(-1, 3), i5)
+        rad = flat.index_put((i5,), _blend(mean, take(flat, i5), w5)).view(rad.shape)
+    return rad, {**passes, **out}
 
 
-__all__ = ["COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
+def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(N, C) the mean plus ``weight`` (N,) times the way to the shaded value."""
+    return mean + weight[:, None] * (shaded - mean)
+
+
+__all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
            "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread"]

@@ -234,7 +234,8 @@ class _LatticeJob(ctypes.Structure):
                 ("back_normal", _p), ("back_depth", _p), ("alpha", _p),
                 ("per_pixel", ctypes.c_int), ("alpha_min", ctypes.c_float),
                 ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
-                ("rtol", ctypes.c_float), ("radiance", _p), ("status", _p),
+                ("rtol", ctypes.c_float), ("radiance", _p), ("status", _p), ("gap", _p),
+                ("weight", _p), ("blend_from", ctypes.c_float),
                 ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p)]
 
 
@@ -650,9 +651,11 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
 def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                  front_normal: torch.Tensor, back_normal: torch.Tensor,
                  back_depth: torch.Tensor, alpha: torch.Tensor, alpha_min: float,
-                 normal_tol: float, depth_tol: float) -> torch.Tensor | None:
-    """``adaptive._lattice_torch``'s (B, H, W) uint8 status (csrc/lattice.c), or ``None``
-    where the kernel is unavailable or an input is not a float32 / bool CPU tensor.
+                 normal_tol: float, depth_tol: float
+                 ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``adaptive._lattice_torch``'s (B, H, W) uint8 status and float32 gap
+    (csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not a
+    float32 / bool CPU tensor.
 
     Args:
         front_mask, back_mask: (B, H, W). front_normal, back_normal: (B, H, W, 3).
@@ -666,21 +669,24 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
         return None
     b, h, w = front_mask.shape
     status = torch.empty(b, h, w, dtype=torch.uint8)
+    gap = torch.empty(b, h, w)
     job = _LatticeJob(b=b, h=h, w=w, front_mask=keep[4].data_ptr(),
                       back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
                       back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
                       alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * h * w),
                       alpha_min=alpha_min, normal_tol=normal_tol, depth_tol=depth_tol,
-                      rtol=0.0, radiance=None, status=status.data_ptr())
-    return status if _call("lattice_plan", job) else None
+                      rtol=0.0, radiance=None, status=status.data_ptr(), gap=gap.data_ptr())
+    return (status, gap) if _call("lattice_plan", job) else None
 
 
-def lattice_fill(status: torch.Tensor, radiance: torch.Tensor, rtol: float,
+def lattice_fill(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,
+                 radiance: torch.Tensor, rtol: float, blend_from: float,
                  passes: list[torch.Tensor] = ()) -> bool:
-    """``adaptive._fill_torch`` in place on ``status`` (B, H, W) uint8, ``radiance``
-    (B*H*W, 3) and each of ``passes`` (B*H*W, C) (float32, contiguous, on the CPU);
-    ``False`` where the kernel did not run (nothing changed)."""
-    arrays = (radiance, *passes)
+    """``adaptive._fill_torch`` in place on ``status`` (B, H, W) uint8, ``weight`` (B, H, W)
+    (written at status 5), ``radiance`` (B*H*W, 3) and each of ``passes`` (B*H*W, C)
+    (float32, contiguous, on the CPU), with the plan's ``gap`` (B, H, W); ``False`` where
+    the kernel did not run (nothing changed)."""
+    arrays = (radiance, gap, weight, *passes)
     if not (available() and status.is_contiguous() and all(
             x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
             for x in arrays)):
@@ -689,7 +695,8 @@ def lattice_fill(status: torch.Tensor, radiance: torch.Tensor, rtol: float,
     ptrs = (ctypes.c_void_p * max(1, len(passes)))(*[x.data_ptr() for x in passes])
     chans = torch.tensor([x.shape[-1] for x in passes] or [0], dtype=torch.int64)
     job = _LatticeJob(b=b, h=h, w=w, rtol=rtol, radiance=radiance.data_ptr(),
-                      status=status.data_ptr(), npass=len(passes),
+                      status=status.data_ptr(), gap=gap.data_ptr(), weight=weight.data_ptr(),
+                      blend_from=blend_from, npass=len(passes),
                       pass_ptr=ctypes.cast(ptrs, ctypes.c_void_p), pass_ch=chans.data_ptr())
     return _call("lattice_fill", job)
 

@@ -9,7 +9,14 @@
  * optics.dot's order, explicit sums, no contraction.
  *
  * Status per pixel (uint8): 0 not the object, 1 shaded in the first pass, 2 waiting;
- * after ``fill`` a waiting pixel is 3 (interpolated) or 4 (shaded in the second pass). */
+ * after ``fill`` a waiting pixel is 3 (interpolated), 4 (shaded in the second pass) or 5
+ * (shaded in the second pass, then blended with the interpolation: adaptive.merge).
+ *
+ * Continuity: a waiting pixel's ``gap`` (the plan's) is how far its G-buffer is from its
+ * neighbours' as a fraction of the tolerances (1: at one of them); the fill's t is the
+ * larger of it and the radiance spread over ``rtol``. Up to ``blend_from`` the pixel is
+ * the mean, from 1 on it is shaded, and between, the shaded value weighs smoothstep of
+ * where t lies: the image changes continuously as t crosses the thresholds. */
 
 #include "optics.h"
 
@@ -23,6 +30,9 @@ typedef struct {
     float alpha_min, normal_tol, depth_tol, rtol;
     float *radiance;                            /* (B*H*W, 3): fill's in and out */
     uint8_t *status;                            /* (B*H*W,) out (plan), in and out (fill) */
+    float *gap;                                 /* (B*H*W,) out (plan), in (fill) */
+    float *weight;                              /* (B*H*W,) fill: out at status 5 */
+    float blend_from;
     int npass;                                  /* fill: the method's passes, interpolated */
     float *const *pass;                         /* (npass,) each (B*H*W, pass_ch[k]) */
     const int64_t *pass_ch;
@@ -55,26 +65,41 @@ static inline float alpha_of(const LatticeJob *j, int64_t p) {
     return j->per_pixel ? j->alpha[p] : j->alpha[p / (j->h * j->w)];
 }
 
+/* A measure over its tolerance (tolerances below 1e-30 taken as 1e-30). */
+static inline float gap_ratio(float measure, float tol) {
+    return measure / (tol > 1e-30f ? tol : 1e-30f);
+}
+
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
     for (int64_t p = begin; p < end; p++) {
-        if (!j->front_mask[p]) { j->status[p] = 0; continue; }
+        if (!j->front_mask[p]) {
+            j->status[p] = 0;
+            j->gap[p] = 0.0f;
+            continue;
+        }
         int64_t nb[4];
         int k = lattice_neighbours(j, p, nb);
-        int wait = k > 0 && alpha_of(j, p) >= j->alpha_min;
         const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
         int back = j->back_mask[p];
         float bd = j->back_depth[p], tol = j->depth_tol * fabsf(bd);
+        /* the gap: each test's measure over its tolerance, the largest */
+        float gap = gap_ratio(j->alpha_min, alpha_of(j, p));
+        int wait = k > 0;
         for (int i = 0; i < k && wait; i++) {
             int64_t q = nb[i];
-            wait = j->front_mask[q] && j->back_mask[q] == back
-                   && alpha_of(j, q) >= j->alpha_min
-                   && 1.0f - dot3(j->front_normal + 3 * q, fn) <= j->normal_tol;
-            if (wait && back)
-                wait = 1.0f - dot3(j->back_normal + 3 * q, bn) <= j->normal_tol
-                       && fabsf(j->back_depth[q] - bd) <= tol;
+            wait = j->front_mask[q] && j->back_mask[q] == back;
+            gap = fmaxf(gap, gap_ratio(j->alpha_min, alpha_of(j, q)));
+            gap = fmaxf(gap, gap_ratio(1.0f - dot3(j->front_normal + 3 * q, fn), j->normal_tol));
+            if (back) {
+                gap = fmaxf(gap, gap_ratio(1.0f - dot3(j->back_normal + 3 * q, bn),
+                                           j->normal_tol));
+                gap = fmaxf(gap, gap_ratio(fabsf(j->back_depth[q] - bd), tol));
+            }
         }
+        wait = wait && gap <= 1.0f;
         j->status[p] = wait ? 2 : 1;
+        j->gap[p] = wait ? gap : 0.0f;
     }
 }
 
@@ -107,14 +132,21 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
             finite &= isfinite(r);
             rel = r > rel ? r : rel;
         }
-        if (finite && rel <= j->rtol) {
+        float t = fmaxf(j->gap[p], rel / j->rtol);
+        if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
             for (int c = 0; c < 3; c++) j->radiance[3 * p + c] = mean[c];
             for (int q = 0; q < j->npass; q++) {
                 float *x = j->pass[q];
                 int64_t ch = j->pass_ch[q];
                 for (int64_t c = 0; c < ch; c++) x[p * ch + c] = lattice_mean(x, ch, nb, k, c);
             }
-            j->status[p] = 3;
+            if (t <= j->blend_from) {
+                j->status[p] = 3;
+            } else {
+                float u = (t - j->blend_from) / (1.0f - j->blend_from);
+                j->weight[p] = u * u * (3.0f - 2.0f * u);
+                j->status[p] = 5;
+            }
         } else {
             j->status[p] = 4;
         }
