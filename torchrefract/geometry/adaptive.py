@@ -213,12 +213,11 @@ def _neighbours(idx: torch.Tensor, h: int, w: int
     return torch.stack([n0, n1, n2, n3], 1), diag, valid
 
 
-def _gap_ratio(measure: torch.Tensor | float, tol: torch.Tensor | float) -> torch.Tensor:
-    """A measure over its tolerance (tolerances below 1e-30 taken as 1e-30; csrc/lattice.c's
-    gap_ratio)."""
-    if isinstance(tol, torch.Tensor):
-        return measure / tol.clamp(min=1e-30)
-    return measure / max(tol, 1e-30)
+def _inv_tol(tol: torch.Tensor | float) -> torch.Tensor:
+    """The float32 reciprocal of a tolerance (below 1e-30 taken as 1e-30; csrc/lattice.c's
+    inv_tol): a measure times it is the measure over the tolerance."""
+    tol = torch.as_tensor(tol, dtype=torch.float32)
+    return 1.0 / tol.clamp(min=1e-30)
 
 
 def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: float,
@@ -240,14 +239,16 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
     p_fn, p_bn = take(fnf, obj), take(bnf, obj)
     tol = depth_tol * p_bd.abs()
     wait = valid.clone()
-    gap = _gap_ratio(alpha_min, take(al, obj))
+    inv_n, inv_d = _inv_tol(normal_tol), _inv_tol(tol)
+    alpha_min = torch.tensor(alpha_min, dtype=torch.float32)
+    gap = alpha_min * _inv_tol(take(al, obj))
     for k in range(4):
         q = nb[:, k]
         wait &= take(fmf, q) & (take(bmf, q) == p_bm)
-        gap = torch.maximum(gap, _gap_ratio(alpha_min, take(al, q)))
-        gap = torch.maximum(gap, _gap_ratio(1.0 - dot(take(fnf, q), p_fn), normal_tol))
-        back = torch.maximum(_gap_ratio(1.0 - dot(take(bnf, q), p_bn), normal_tol),
-                             _gap_ratio((take(bdf, q) - p_bd).abs(), tol))
+        gap = torch.maximum(gap, alpha_min * _inv_tol(take(al, q)))
+        gap = torch.maximum(gap, (1.0 - dot(take(fnf, q), p_fn)) * inv_n)
+        back = torch.maximum((1.0 - dot(take(bnf, q), p_bn)) * inv_n,
+                             (take(bdf, q) - p_bd).abs() * inv_d)
         gap = torch.where(p_bm, torch.maximum(gap, back), gap)
     wait &= gap <= 1.0
     sel = where_true(wait)

@@ -65,10 +65,9 @@ static inline float alpha_of(const LatticeJob *j, int64_t p) {
     return j->per_pixel ? j->alpha[p] : j->alpha[p / (j->h * j->w)];
 }
 
-/* A measure over its tolerance (tolerances below 1e-30 taken as 1e-30). */
-static inline float gap_ratio(float measure, float tol) {
-    return measure / (tol > 1e-30f ? tol : 1e-30f);
-}
+/* The reciprocal of a tolerance (tolerances below 1e-30 taken as 1e-30): measures are
+ * multiplied by it (one division per pixel, not one per test). */
+static inline float inv_tol(float tol) { return 1.0f / (tol > 1e-30f ? tol : 1e-30f); }
 
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
@@ -83,18 +82,19 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
         const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
         int back = j->back_mask[p];
         float bd = j->back_depth[p], tol = j->depth_tol * fabsf(bd);
-        /* the gap: each test's measure over its tolerance, the largest */
-        float gap = gap_ratio(j->alpha_min, alpha_of(j, p));
+        float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
+        /* the gap: each test's measure over its tolerance, the largest (a per-view
+         * roughness is the neighbours' too) */
+        float gap = j->alpha_min * inv_tol(alpha_of(j, p));
         int wait = k > 0;
         for (int i = 0; i < k && wait; i++) {
             int64_t q = nb[i];
             wait = j->front_mask[q] && j->back_mask[q] == back;
-            gap = fmaxf(gap, gap_ratio(j->alpha_min, alpha_of(j, q)));
-            gap = fmaxf(gap, gap_ratio(1.0f - dot3(j->front_normal + 3 * q, fn), j->normal_tol));
+            if (j->per_pixel) gap = fmaxf(gap, j->alpha_min * inv_tol(alpha_of(j, q)));
+            gap = fmaxf(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
             if (back) {
-                gap = fmaxf(gap, gap_ratio(1.0f - dot3(j->back_normal + 3 * q, bn),
-                                           j->normal_tol));
-                gap = fmaxf(gap, gap_ratio(fabsf(j->back_depth[q] - bd), tol));
+                gap = fmaxf(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
+                gap = fmaxf(gap, fabsf(j->back_depth[q] - bd) * inv_d);
             }
         }
         wait = wait && gap <= 1.0f;
