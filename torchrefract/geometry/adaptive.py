@@ -424,15 +424,23 @@ def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
         mean = take(first, soft[0]) if soft is not None else None
         x = put_(first, rest, take(shaded, rest))
         if soft is not None:
-            x = x.index_put((soft[0],), _blend(mean, take(shaded, soft[0]), soft[1]))
+            x = _put(x, soft[0], _blend(mean, take(shaded, soft[0]), soft[1]))
         out[k] = x.view(passes[k].shape)
     rad = second.radiance
     if soft is not None:
         i5, w5 = soft
         flat = rad.reshape(-1, 3)
         mean = take(radiance.reshape(-1, 3), i5)
-        rad = flat.index_put((i5,), _blend(mean, take(flat, i5), w5)).view(rad.shape)
+        rad = _put(flat, i5, _blend(mean, take(flat, i5), w5)).view(rad.shape)
     return rad, {**passes, **out}
+
+
+def _put(x: torch.Tensor, idx: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """x with rows ``idx`` set to ``v``: in place (the pass's own buffer), or a new tensor
+    where a gradient flows through either (autograd keeps x's old values)."""
+    if x.requires_grad or v.requires_grad:
+        return x.index_put((idx,), v)
+    return put_(x, idx, v)
 
 
 def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -270,8 +270,14 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     ptr = keep.ptr
     bi = idx // (h * w)
     # paths.trace_paths' switch: the rough energies for all where any entry point is rough
-    alpha1 = materials.roughness_at(bi, g.front.uv.reshape(-1, 2).index_select(0, idx))
+    # (without roughness maps a view's entry points have its roughness: no gather)
     maps = list(materials.roughness_maps) or [None] * b
+    if any(m is not None for m in maps):
+        rough = bool((materials.roughness_at(
+            bi, g.front.uv.reshape(-1, 2).index_select(0, idx)) > 0).any())
+    else:
+        shaded = (g.front.mask if g.shade is None else g.shade).reshape(b, -1).any(1)
+        rough = bool((shaded & (materials.roughness > 0)).any())
     dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
     # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
@@ -297,7 +303,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         sphere_r=ptr(g.meshes.sphere_radius), march=march, ior=ptr(materials.ior),
         alpha=ptr(materials.roughness), absorption=ptr(materials.absorption),
         dist=ptr(dist, torch.int64), tir_mode=TIR_RULES.index(options.tir),
-        rough=int(bool((alpha1 > 0).any())), rmap=keep.array(maps),
+        rough=int(rough), rmap=keep.array(maps),
         rmap_hw=ptr(torch.tensor([(1, 1) if m is None else m.shape for m in maps]),
                     torch.int64),
         rrange=ptr(materials.roughness_range if materials.roughness_range is not None
