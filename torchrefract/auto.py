@@ -1,6 +1,14 @@
-"""The ``auto`` policy: per scene, the cheapest method variant whose measured error on
-similar scenes is within ``auto_tolerance`` of the best one ("model no more than a scene
-needs"). It picks methods; it shades nothing itself.
+"""The ``auto`` policy: per scene, the cheapest method variant that does as well as the best
+one ("model no more than a scene needs"). It picks methods; it shades nothing itself.
+
+By default (``auto_pass``) the evidence is the scene's own: a cheap first pass
+(:mod:`torchrefract.auto_pass`) renders it small with two variants the table names, the
+most accurate on average (``accurate``) and the fastest within ``auto_tolerance`` of it on
+average (``cheap``). Where their pass images diverge by less than ``DIVERGENCE[0]`` the cheap
+variant renders the image, above ``DIVERGENCE[1]`` the accurate one, in between both,
+blended linearly in the divergence (continuous in roughness and IOR as the images are). The
+table's neighbours (2. below) still give the prediction recorded with the image.
+Without the pass (``auto_pass: false``) the table's neighbours choose, as follows.
 
 The measurements are a speed/accuracy chart's (``scripts/pareto.py``), condensed by
 ``scripts/build_auto_table.py`` into a table: per measured scene its features and, per
@@ -62,7 +70,8 @@ SMOOTH_ALPHA = 0.04
 scenes follow its measurements (on the fit half ``rousiers`` with bounces beat ``specular``
 on smooth scenes: docs/decisions.md)."""
 SPLIT_MIN_ALPHA = 0.06
-"""Roughness below which no variant splits a lobe into rays (docstring, 4.): four rays step
+"""Roughness below which the table's rule (``auto_pass: false``) lets no variant split a lobe
+into rays (docstring, 4.; the first pass needs no such rule: it compares both): four rays step
 sharply in alpha near 0 (the continuity suite's suzanne) and gained little there on the fit
 half; the blend's kernel ramps them in above it (docs/decisions.md)."""
 ALPHA_FLOOR = 0.005
@@ -79,6 +88,12 @@ BLEND_MIN = 0.15
 """Kernel shares below this are not rendered (the others: share - BLEND_MIN, renormalized)."""
 BLEND_POINTS = (32, 16)
 """Points of the kernel along u and IOR (shares are multiples of 1 / 512)."""
+DIVERGENCE = (0.0175, 0.0325)
+"""First pass (module docstring): below the first divergence the cheap variant alone, above
+the second the accurate one alone, linear in between. Fitted on the validation set's fit
+half (``scripts/fit_auto_pass.py``): the cheapest ramp with no fit scene more than 0.03 FLIP
+behind the accurate variant and mean FLIP and time no worse than its, ending at 0.03 or
+above (the continuity suite; docs/decisions.md, "`auto`'s first pass")."""
 
 
 @dataclass(frozen=True)
@@ -86,14 +101,19 @@ class AutoOptions:
     """Settings of ``auto`` (``method_options`` in a scene)."""
 
     auto_tolerance: float = option(0.02, minimum=0.0, maximum=1.0)
-    """FLIP (object pixels, against full truth) allowed above the most accurate variant, on
-    average over the neighbours and on each one (docstring, 3.)."""
+    """FLIP (object pixels, against full truth) allowed above the most accurate variant: on
+    the table's average for the first pass's cheap variant (docstring, top); without the
+    pass on average over the neighbours and on each one (3.)."""
     auto_table: str | None = option(None, path=True)
     """Path of a table built by ``scripts/build_auto_table.py`` (default: the shipped one;
     relative to the scene file)."""
     auto_blend: bool = option(True, boolean=True)
-    """Blend the picks around the scene's roughness and IOR (continuous in both; docstring,
-    6.); ``false``: one variant per scene, switching at thresholds."""
+    """Blend the picks around the scene's roughness and IOR, or over the first pass's
+    divergence ramp (continuous in both; docstring); ``false``: one variant per scene,
+    switching at thresholds."""
+    auto_pass: bool = option(True, boolean=True)
+    """Choose by a cheap first pass of the scene itself (docstring, top); ``false``: by the
+    table's neighbours alone (1.-5.)."""
 
 
 @dataclass(frozen=True)
@@ -112,24 +132,42 @@ class Choice:
     """The most accurate candidate's predicted FLIP at the scene (``predicted_flip`` is
     within ``auto_tolerance`` of it for a single pick)."""
     tolerance: float | None = None
+    divergence: float | None = None
+    """The first pass's divergence of the cheap variant's image from the accurate one's (None
+    without a pass)."""
+    pass_ms: float | None = None
+    """The first pass's time, per scene of the batch it ran for."""
 
     def record(self) -> dict | None:
         """What ``auto`` predicted, JSON-ready, for the sidecar and the manifest (None
         without a table)."""
         if self.predicted_flip is None:
             return None
-        return {"predicted_flip": self.predicted_flip, "predicted_ms": self.predicted_ms,
-                "best_predicted_flip": self.best_flip, "tolerance": self.tolerance,
-                "neighbours": list(self.neighbours)}
+        out = {"predicted_flip": self.predicted_flip, "predicted_ms": self.predicted_ms,
+               "best_predicted_flip": self.best_flip, "tolerance": self.tolerance,
+               "neighbours": list(self.neighbours)}
+        if self.divergence is not None:
+            out.update(divergence=self.divergence, divergence_ramp=list(DIVERGENCE),
+                       pass_ms=self.pass_ms)
+        return out
 
 
 def features(scene: Scene) -> dict[str, float]:
     """Roughness, IOR and thinness of a scene (see the module docstring)."""
-    from torchrefract.geometry.mesh import load_mesh  # noqa: PLC0415
-
     m = scene.material
     alpha = m.roughness if m.roughness_map is None else 0.5 * sum(m.roughness_range)
-    mesh = load_mesh(scene.mesh, scene.transform)
+    return {"log_alpha": math.log10(max(alpha, ALPHA_FLOOR)),
+            "thin": _thinness(scene.mesh, scene.transform), "ior": float(m.ior),
+            "alpha": float(alpha)}
+
+
+@functools.lru_cache(maxsize=64)
+def _thinness(path: str, transform) -> float:
+    """Smallest / largest principal extent of a mesh's area-weighted surface (kept per mesh
+    and transform: a sweep renders one mesh many times)."""
+    from torchrefract.geometry.mesh import load_mesh  # noqa: PLC0415
+
+    mesh = load_mesh(path, transform)
     # Principal axes of the surface, not of the vertex cloud (triangle centroids weighted by
     # area: a UV sphere's vertices crowd at its poles, which tilts the vertex statistics to
     # 0.69), and the mesh's full extent along each axis.
@@ -141,9 +179,7 @@ def features(scene: Scene) -> dict[str, float]:
     d = c - (w[:, None] * c).sum(0)
     _, axes = np.linalg.eigh((w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0))
     ext = np.ptp(v @ axes, axis=0)  # (3,) extents along the axes
-    thin = float(ext.min() / max(ext.max(), 1e-30))
-    return {"log_alpha": math.log10(max(alpha, ALPHA_FLOOR)), "thin": thin, "ior": float(m.ior),
-            "alpha": float(alpha)}
+    return float(ext.min() / max(ext.max(), 1e-30))
 
 
 @functools.lru_cache(maxsize=8)
@@ -294,6 +330,63 @@ def _kernel_points(f: dict[str, float]) -> np.ndarray:
                      nn.ravel()], 1)
 
 
+def pass_variants(t: _Arrays, tolerance: float) -> tuple[int, int]:
+    """Columns of the first pass's (cheap, accurate) variants: the lowest mean FLIP over the
+    table's scenes (variants measured on all of them), and the lowest mean time among those
+    within ``tolerance`` of it (the same column when none is faster)."""
+    full = np.isfinite(t.flip).all(0) & np.isfinite(t.ms).all(0)
+    if not full.any():
+        raise ConfigError("auto table: no variant is measured on every scene")
+    mf = np.where(full, t.flip.mean(0) if len(t.names) else np.inf, np.inf)
+    accurate = int(mf.argmin())
+    ok = mf <= mf[accurate] + tolerance
+    cheap = int(np.where(ok, t.ms.mean(0), np.inf).argmin())
+    return cheap, accurate
+
+
+def pass_weight(d: float, blend: bool = True) -> float:
+    """The cheap variant's weight at first-pass divergence ``d`` (module docstring)."""
+    lo, hi = DIVERGENCE
+    if not blend:
+        return 1.0 if d <= 0.5 * (lo + hi) else 0.0
+    if d <= lo or d >= hi:  # exactly one variant: none rendered at a rounding's weight
+        return 1.0 if d <= lo else 0.0
+    return float((hi - d) / (hi - lo))
+
+
+def choose_by_pass(scenes: list[Scene], options: AutoOptions = AutoOptions()) -> list[Choice]:
+    """The first pass's choices (module docstring, top), or :func:`choose`'s for each scene
+    without a table."""
+    table = load_table(options.auto_table or str(DEFAULT_TABLE))
+    if not table["scenes"]:
+        return [choose(s, options) for s in scenes]
+    t = _arrays(table)
+    cheap, accurate = pass_variants(t, options.auto_tolerance)
+    decode = [(t.keys[j][0], json.loads(t.keys[j][1])) for j in (cheap, accurate)]
+    if cheap == accurate:
+        div, secs = [0.0] * len(scenes), 0.0
+    else:
+        from torchrefract.auto_pass import divergences  # noqa: PLC0415
+
+        div, secs = divergences(scenes, decode[0], decode[1])
+    pts = np.array([_point(features(s)) for s in scenes])
+    _, pf, pm, near, _ = _crisp(t, pts, options.auto_tolerance)
+    out = []
+    for i, d in enumerate(div):
+        w = pass_weight(d, options.auto_blend) if cheap != accurate else 1.0
+        parts = sorted([(w, 0, cheap), (1.0 - w, 1, accurate)], key=lambda p: (-p[0], p[1]))
+        parts = [p for p in parts if p[0] > 0]
+        blend = tuple((decode[k][0], decode[k][1], float(wk)) for wk, k, _ in parts)
+        cols = [c for _, _, c in parts]
+        ws = np.array([wk for wk, _, _ in parts])
+        out.append(Choice(blend[0][0], blend[0][1], float((ws * pf[i, cols]).sum()),
+                          float(pm[i, cols].sum()), tuple(t.names[j] for j in near[i]), blend,
+                          float(min(pf[i, cheap], pf[i, accurate])),
+                          float(options.auto_tolerance), float(d),
+                          1000.0 * secs / max(len(scenes), 1)))
+    return out
+
+
 class Auto:
     """The ``auto`` policy: per scene, the variants to render and their weights."""
 
@@ -304,10 +397,14 @@ class Auto:
         return parse_options(AutoOptions, options, source, self.name)
 
     def resolve(self, scenes, options: AutoOptions) -> list[Choice]:
-        """One :class:`Choice` per scene (its ``blend``: (method, options, weight))."""
+        """One :class:`Choice` per scene (its ``blend``: (method, options, weight)): by the
+        first pass (``auto_pass``) or by the table's neighbours."""
+        if options.auto_pass:
+            return choose_by_pass(list(scenes), options)
         return [choose(s, options) for s in scenes]
 
 
 POLICY = Auto()
 
-__all__ = ["POLICY", "AutoOptions", "Choice", "choose", "features", "load_table"]
+__all__ = ["POLICY", "AutoOptions", "Choice", "choose", "choose_by_pass", "features",
+           "load_table", "pass_variants", "pass_weight"]
