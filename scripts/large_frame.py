@@ -9,13 +9,17 @@ rendered under a memory budget, each run in a fresh process.
 
 Default: the scene at ``--size`` x ``--size`` and ``--spp`` x ``--spp`` samples per pixel
 under ``--budget-mb`` (3.5 GiB, so that the process, about 0.5 GiB before its first render,
-stays within 4 GiB). Where that view does not fit even in tiles, the render fails up front
-(the run records the error and how long it took), and the script then renders the largest
-square view at the same ``--spp`` (a multiple of 64 pixels) that the memory model
-(:mod:`torchrefract.tiles`) accepts under the budget. ``--compare`` also renders that view
-in one untiled pass (the budget: 80% of the machine's available memory) and reports the
-largest pixel difference. Each run's peak is the kernel's (``VmHWM``, reset after a small
-warm-up render), also given above the process's resident memory before the render.
+stays within 4 GiB). A view whose G-buffer does not fit the budget is rendered in strips
+over its marched layers' ids (:mod:`torchrefract.large`; the run records how many strips
+of how many sub-pixel rows); where it does not fit even so (or the strips do not cover it:
+``--no-fused``), the render fails up front (the run records the error and how long it
+took), and the script then renders the largest square view at the same ``--spp`` (a
+multiple of 64 pixels) that the memory model accepts under the budget. ``--compare``
+also renders that view in one untiled pass (the budget: 80% of the machine's available
+memory) and reports the largest pixel difference (e.g. ``--size 1024 --budget-mb 1024
+--compare``: strips against one G-buffer). Each run's peak is the kernel's (``VmHWM``,
+reset after a small warm-up render), also given above the process's resident memory
+before the render.
 
 ``--calibrate``: the memory model's two figures per method, for one view of
 ``--calib-size`` pixels square at ``--calib-spp`` (``--calib-only rousiers:ib2 ...``: some
@@ -63,10 +67,20 @@ def child(spec: dict) -> dict:
     import torchrefract as tr  # noqa: PLC0415
 
     tiles = importlib.import_module("torchrefract.tiles")
+    large = importlib.import_module("torchrefract.large")
     if spec.get("threads"):
         torch.set_num_threads(spec["threads"])
-    count = {"tiles": 1}
+    count = {"tiles": 1, "strips": 0, "strip_rows": 0}
     split = tiles.split
+    cut = large._strip_layers
+
+    def strip(mesh, cam, n, batch, eye, fwd, r0, r1, front, back):
+        if front and back:  # the shading's strips (not the ids' pass)
+            count["strips"] += 1
+            count["strip_rows"] = max(count["strip_rows"], r1 - r0)
+        return cut(mesh, cam, n, batch, eye, fwd, r0, r1, front, back)
+
+    large._strip_layers = strip
 
     def counted(idx, size):
         parts = split(idx, size)
@@ -83,6 +97,7 @@ def child(spec: dict) -> dict:
     small = tr.Camera(eye=cam.eye, target=cam.target, up=cam.up, yfov_deg=cam.yfov_deg,
                       width=32, height=32)
     tr.render(scene.replace(camera=small), settings=settings)  # context, tables, pyramids
+    count["strips"] = 0
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")  # the peak (VmHWM) restarts from here
@@ -108,6 +123,7 @@ def child(spec: dict) -> dict:
                above_baseline_mb=round(peak - base),
                bytes_per_subpixel=round((peak - base) * 2**20 / n),
                subpixels=n, object_subpixels=shaded, tiles=count["tiles"],
+               strips=count["strips"], strip_rows=count["strip_rows"],
                timings={k: round(v, 2) for k, v in out.timings.items()})
     if spec.get("save"):
         rgb = out.radiance[0].clamp(min=0).numpy()
@@ -135,13 +151,20 @@ def run(spec: dict) -> dict:
 
 def largest_fitting(spp: int, budget_mb: int, start: int) -> int:
     """The largest multiple of 64 pixels square, at most ``start``, whose view at ``spp``
-    the memory model accepts under ``budget_mb``."""
+    the memory model accepts under ``budget_mb`` as one G-buffer (its shading in tiles;
+    what the tensor code can render)."""
     from torchrefract import tiles  # noqa: PLC0415
 
     for size in range(start - start % 64, 63, -64):
-        if tiles.pass_bytes(size * size * spp * spp, tiles.MIN_TILE) <= budget_mb << 20:
+        if tiles.fits_whole(_camera(size, spp), budget_mb << 20):
             return size
     return 0
+
+
+def _camera(size: int, spp: int):
+    import torchrefract as tr  # noqa: PLC0415
+
+    return tr.Camera(width=size, height=size, samples_per_pixel=spp)
 
 
 def _print(row: dict) -> None:
@@ -150,7 +173,9 @@ def _print(row: dict) -> None:
               f"budget {row['budget_mb']} MB fused {row['fused']}: {row['seconds']} s, "
               f"peak {row['peak_rss_mb']} MB ({row['above_baseline_mb']} above the "
               f"{row['baseline_rss_mb']} MB before; {row['bytes_per_subpixel']} B/sub-pixel), "
-              f"{row['tiles']} tile(s), {row['object_subpixels']:,} object sub-pixels",
+              f"{row['tiles']} tile(s), {row['strips']} strip(s) of up to "
+              f"{row['strip_rows']} sub-pixel rows, {row['object_subpixels']:,} object "
+              f"sub-pixels",
               flush=True)
     else:
         print(f"{row['method']} {row['size']}^2 spp {row['spp']} budget {row['budget_mb']} "

@@ -161,12 +161,14 @@ def test_memory_budget_chunks_a_batch_and_refuses_a_view_up_front(tmp_path):
     a = tr.render(scenes, settings=RenderSettings(memory_budget_mb=budget_mb))
     assert torch.equal(a.radiance, tr.render(scenes, settings=RenderSettings()).radiance)
     # A view too large for one pass is shaded in tiles (tests/test_tiles.py); one whose
-    # frame alone is over the budget fails up front.
+    # G-buffer alone is over the budget renders in strips with the fused kernels
+    # (tests/test_large.py) and fails up front with the tensor code.
     big = s.replace(camera=tr.Camera(width=512, height=512, samples_per_pixel=2))
     need = tiles.size_text(tiles.pass_bytes(512 * 512 * 4, tiles.MIN_TILE), up=True)
     with pytest.raises(tr.ConfigError, match=rf"512x512 view at samples_per_pixel 2 .*{need} "
-                                             r"even in tiles .*over the memory budget of 100 MB"):
-        tr.render(big, settings=RenderSettings(memory_budget_mb=100))
+                                             r"as one G-buffer, over the memory budget of "
+                                             r"100 MB"):
+        tr.render(big, settings=RenderSettings(memory_budget_mb=100, fused=False))
     with pytest.raises(tr.ConfigError, match="memory_budget_mb"):
         RenderSettings(memory_budget_mb=0)
 

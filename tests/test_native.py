@@ -290,14 +290,23 @@ def test_build_is_cached_per_source(tmp_path):
 
 @needs_native
 def test_inputs_it_does_not_take_go_to_the_tensor_code():
-    """Only float32 rays with int64 indices go native (a float64 caller, say)."""
+    """Only float32 rays with int64 indices and int32 marched ids go native (a float64
+    caller, say; int64 ids)."""
+    from torchrefract.kernels.march import Marched  # noqa: PLC0415
+
     z = torch.zeros(1, 3)
-    assert native.march(z.double(), z, torch.ones(1), torch.zeros(1), torch.ones(1),
-                        torch.ones(1), torch.zeros(1, dtype=torch.long),
-                        torch.zeros(32 * 32, 4), 32, 32, 4, 3, z, z,
-                        torch.zeros(1024, dtype=torch.long), torch.zeros(1024, dtype=torch.long),
-                        torch.zeros(1024, dtype=torch.bool), torch.zeros(1024, dtype=torch.bool),
-                        torch.zeros(1, 3, 3), torch.zeros(1, 3, dtype=torch.long)) is None
+    ids = torch.zeros(1024, dtype=torch.int32)
+    ok = Marched(back=ids, front=None, table=torch.zeros(1, 4),
+                 base=torch.zeros(1, dtype=torch.long), h=32, w=32)
+
+    def run(c0, planes):
+        return native.march(c0, z, torch.ones(1), torch.zeros(1), torch.ones(1),
+                            torch.ones(1), torch.zeros(1, dtype=torch.long), planes, False, 4,
+                            3, z, z, torch.zeros(1, 3, 3), torch.zeros(1, 3, dtype=torch.long))
+
+    assert run(z.double(), ok) is None
+    assert run(z, dataclasses.replace(ok, back=ids.long())) is None
+    assert run(z, ok) is not None
 
 
 def test_native_is_on_by_default_and_switchable(monkeypatch):
@@ -321,3 +330,20 @@ def test_cli_no_native_flag_is_a_setting_of_its_renders(monkeypatch):
     assert s.native is False and s.threads == 1
     assert os.environ["TORCHREFRACT_NATIVE"] == "1" and native.native_enabled()
 
+
+
+@needs_native
+def test_triangle_plane_table_matches_the_tensor_code(monkeypatch):
+    """march.plane_table's rows by the native kernel equal the tensor code's (float64, then
+    rounded to float32: equal but where float64 rounding meets a float32 tie)."""
+    from torchrefract.kernels import march  # noqa: PLC0415
+
+    scene = tr.load_scene(str(ASSETS.parent / "configs" / "suite" / "bunny_a01.yaml"))
+    g = build_gbuffer([load_mesh(scene.mesh, scene.transform)], [scene.camera])
+    fast, base = march.plane_table(g.meshes, g.eye, g.proj)
+    monkeypatch.setattr(native, "tri_planes", lambda *a: None)
+    slow, base2 = march.plane_table(g.meshes, g.eye, g.proj)
+    assert torch.equal(base, base2) and fast.shape == slow.shape == (g.meshes.num_faces[0], 4)
+    assert (fast != slow).any(-1).float().mean() < 1e-3
+    assert torch.allclose(fast, slow, rtol=0, atol=1e-6)
+    assert torch.allclose(fast[:, :3].norm(dim=-1), torch.ones(1))

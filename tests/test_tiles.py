@@ -146,9 +146,11 @@ def test_tiles_keep_the_passes_rough_switch(counted, tmp_path):
 
 
 def test_a_view_that_cannot_fit_even_in_tiles_fails_up_front(monkeypatch):
-    """The issue's 4096x4096 view at 4x4 samples per pixel under a 3.5 GiB budget: the
-    frame's part alone (its G-buffer, read whole by every tile) is over it, so the render
-    fails before loading anything, naming the size and the budget."""
+    """The issue's 4096x4096 view at 4x4 samples per pixel under a 3.5 GiB budget, with
+    the tensor code (``fused=False``): its G-buffer alone (read whole by every tile) is over
+    the budget and the strips of torchrefract.large need the fused kernels, so the render
+    fails before loading anything, naming the size and the budget (tests/test_large.py:
+    the fused kernels render it in strips)."""
     scene = _scene("sphere_a03", (4096, 4096), 4)
 
     def no_work(*a, **k):
@@ -159,9 +161,9 @@ def test_a_view_that_cannot_fit_even_in_tiles_fails_up_front(monkeypatch):
     need = tiles.size_text(tiles.pass_bytes(4096 * 4096 * 16, tiles.MIN_TILE), up=True)
     with pytest.raises(tr.ConfigError, match=(
             rf"one 4096x4096 view at samples_per_pixel 4 \(268,435,456 sub-pixels\) needs "
-            rf"about {need} even in tiles .* over the memory budget of 3\.5 GiB "
+            rf"about {need} as one G-buffer, over the memory budget of 3\.5 GiB "
             rf"\(RenderSettings\.memory_budget_mb")):
-        tr.render(scene, settings=RenderSettings(memory_budget_mb=3584))
+        tr.render(scene, settings=RenderSettings(memory_budget_mb=3584, fused=False))
 
 
 def test_render_stream_batches_keep_to_the_budget(counted, tmp_path, monkeypatch):

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchrefract import tiles
+from torchrefract import large, tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import pixel_rays
@@ -186,7 +186,8 @@ def render(scenes: Scene | list[Scene], method: str | None = None,
     Raises:
         ConfigError: mixed resolutions, methods or options; unknown method or option; a
             broken mesh or environment map (file and problem named); a view that does not
-            fit the memory budget even in tiles (before any work; :mod:`torchrefract.tiles`).
+            fit the memory budget as one G-buffer (:mod:`torchrefract.tiles`) and that
+            strips do not cover or fit either (before any work; :mod:`torchrefract.large`).
         NotImplementedError: a method of the design that is not implemented yet.
     """
     with using(settings):
@@ -229,6 +230,8 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
 
 def _render_method(scenes: list[Scene], entry, options) -> RenderResult:
     budget = tiles.memory_budget()  # once: the passes' own memory must not shrink it
+    if not tiles.fits_whole(scenes[0].camera, budget):  # a view larger than a G-buffer
+        return large.render(scenes, entry, options, budget)
     parts = _chunks(scenes, budget)
     if len(parts) == 1:
         return _render_pass(scenes, entry, options, budget)

@@ -19,8 +19,9 @@ change the pixels near its edges. So a view's G-buffer is built once, whole, and
 is a :attr:`~torchrefract.geometry.gbuffer.GBuffer.shade` mask over it: every tile reads the
 same layers, and each sub-pixel gets the untiled render's value, bit for bit
 (tests/test_tiles.py). Tiles bound the shading (``SHADE_BYTES``); the frame's part is read
-whole by every tile, so a view whose frame alone exceeds the budget fails up front, with an
-error naming its size and the budget.
+whole by every tile, so a view whose frame alone exceeds the budget is rendered in strips
+of rows over its marched layers' triangle ids instead (:mod:`torchrefract.large`, the fused
+kernels), or fails up front with an error naming its size and the budget.
 
 Example:
     >>> from torchrefract import tiles
@@ -97,6 +98,13 @@ def size_text(n: int, up: bool = False) -> str:
     unit, digits = (2**30, 1) if n >= 2**30 else (2**20, 0 if n >= 100 << 20 else 1)
     v = math.floor(n / unit * 10**digits) if not up else math.ceil(n / unit * 10**digits)
     return f"{v / 10**digits:.{digits}f} {'GiB' if unit == 2**30 else 'MB'}"
+
+
+def fits_whole(camera: Camera, budget: int) -> bool:
+    """Whether one view of ``camera`` fits ``budget`` bytes as one G-buffer, its shading in
+    tiles where needed (else it renders in strips, :mod:`torchrefract.large`)."""
+    per_view = camera.width * camera.height * camera.samples_per_pixel ** 2
+    return pass_bytes(per_view, min(per_view, MIN_TILE)) <= budget
 
 
 def check_view(camera: Camera, budget: int) -> None:
@@ -184,4 +192,5 @@ def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -
 
 
 __all__ = ["FRAME_BYTES", "MIN_TILE", "PASS_BYTES_FIXED", "SHADE_BYTES", "check_view",
+           "fits_whole",
            "memory_budget", "pass_bytes", "shade", "split", "tile_size", "views_per_pass"]

@@ -69,6 +69,12 @@ def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
 def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
     """:func:`pixel_rays`, kept for the last cameras (a sweep renders one camera in batch
     after batch)."""
+    return pixel_rays_rows(cam, supersample, 0, cam.height * supersample)
+
+
+def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Tensor:
+    """The rows [r0, r1) of :func:`pixel_rays` (the same values), (r1 - r0, n W, 3): a
+    strip of a frame too large to hold whole (:mod:`torchrefract.large`). Not kept."""
     n = supersample
     h, w = cam.height * n, cam.width * n
     eye, r, u, f = camera_frame(cam)
@@ -79,9 +85,9 @@ def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
     grid = create_meshgrid(1, w, normalized_coordinates=False, dtype=torch.float64)[0]
     x = (2.0 * (grid[0, :, 0] + 0.5) / w - 1.0) * t * a  # (w,)
     rows = create_meshgrid(h, 1, normalized_coordinates=False, dtype=torch.float64)[0]
-    y = (1.0 - 2.0 * (rows[:, 0, 1] + 0.5) / h) * t  # (h,)
+    y = (1.0 - 2.0 * (rows[r0:r1, 0, 1] + 0.5) / h) * t  # (r1 - r0,)
     fx = torch.from_numpy(f) + x[:, None] * torch.from_numpy(r)  # (w, 3)
-    d = fx[None] + (y[:, None] * torch.from_numpy(u))[:, None]  # (h, w, 3)
+    d = fx[None] + (y[:, None] * torch.from_numpy(u))[:, None]  # (r1 - r0, w, 3)
     return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
 
 

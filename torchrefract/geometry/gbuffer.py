@@ -130,6 +130,10 @@ class GBuffer:
         canvas: (B*H*W, 3) radiance a method shades its pixels over in place of the
             background (None: the background; adaptive shading's second pass: the
             first pass's image, :func:`torchrefract.shading.background.background`).
+        marched: where this G-buffer is a strip of a larger frame (its rows only,
+            :mod:`torchrefract.large`), the whole frame's marched layers
+            (:class:`torchrefract.kernels.march.Marched`: the march reads them, and their
+            ``h``, ``w``, instead of this G-buffer's); None: its own.
         derived: values computed from the layers on first use (the march's camera planes,
             :func:`torchrefract.kernels.march.camera_planes`), keyed with the layers'
             versions; shared by the G-buffers ``dataclasses.replace`` makes of this one
@@ -145,6 +149,7 @@ class GBuffer:
     supersample: int
     shade: torch.Tensor | None = None
     canvas: torch.Tensor | None = None
+    marched: object | None = None
     derived: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property

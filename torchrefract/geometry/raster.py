@@ -414,10 +414,12 @@ def use_native() -> bool:
 
 
 def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
-                  id_offsets: list[int]) -> tuple[torch.Tensor, torch.Tensor] | None:
+                  id_offsets: list[int], rows: tuple[int, int] | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """:func:`visibility_layers` by the native rasterizer (``native.raster_ids``; the same
-    arguments and result), or ``None`` where it is unavailable. Each distinct mesh object
-    is passed once; the planes are those of the OpenGL passes (:func:`view_projection`)."""
+    arguments and result; ``rows``: only the rows [r0, r1) of the frame), or ``None``
+    where it is unavailable. Each distinct mesh object is passed once; the planes are
+    those of the OpenGL passes (:func:`view_projection`)."""
     for m in meshes:
         if m.num_faces > _MAX_ID:  # the kernel's 24-bit face index, as the id buffer's
             raise ValueError(f"mesh has {m.num_faces} triangles; the id buffer holds {_MAX_ID}")
@@ -439,7 +441,7 @@ def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: in
     c0 = cameras[0]
     return native.raster_ids(verts[0] if len(verts) == 1 else torch.cat(verts),
                              faces[0] if len(faces) == 1 else torch.cat(faces), views, mvp,
-                             c0.height * supersample, c0.width * supersample)
+                             c0.height * supersample, c0.width * supersample, rows)
 
 
 def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,

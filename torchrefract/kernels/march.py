@@ -51,48 +51,104 @@ class Exit:
     bary: torch.Tensor
 
 
-def _planes(layer, eye: torch.Tensor, away_from_eye: bool) -> torch.Tensor:
-    n = layer.geo_normal
-    away = dot(layer.position - eye[:, None, None, :], n)[..., None]
-    n = torch.where((away < 0) if away_from_eye else (away > 0), -n, n)
-    c = dot(n, layer.position)[..., None]
-    return torch.cat([n, c], -1)
+@dataclass(frozen=True)
+class Marched:
+    """What a march reads of the frame: the marched layers' triangle ids per (sub-)pixel
+    and each view's triangles' planes (issue #27: 4 bytes per sub-pixel and layer instead
+    of a plane per sub-pixel, so that a frame of any size can be marched in bounded memory).
 
+    A point with camera coordinates C (right, up, forward from the eye) is beyond the back
+    layer at its pixel when that pixel's triangle is missing (-1) or ``dot(n, C) - c > 0``
+    with (n, c) = ``table[base[b] + tri]``: the triangle's unit geometric normal turned
+    away from the eye, in view b's camera coordinates, and n . (v0 - eye) (the world plane
+    n . X = n . v0 without the world point). The front layer's plane faces the eye: the
+    same row negated, so there the test is ``c - dot(n, C) > 0``. This is the plane of
+    the exact layer the G-buffer holds at that pixel (its hit lies on the triangle's
+    plane), up to rounding.
 
-def back_planes(g: GBuffer) -> torch.Tensor:
-    """Per-pixel back-face planes (B, H, W, 4): unit normal facing away from the eye, offset.
-
-    A point X is beyond the back surface at that pixel when ``dot(n, X) - c > 0``.
+    Attributes:
+        back: (B*H*W,) int32 back-face triangle per (sub-)pixel (the exact layer's, after
+            the edge repair), -1 where empty.
+        front: (B*H*W,) int32 the front layer's, or None (a march of the back layer only).
+        table: (R, 4) float32 planes of each view's triangles (camera coordinates).
+        base: (B,) int64: view b's triangle t (a MeshBatch index) is row ``base[b] + t``.
+        h, w: the frame's (sub-)pixels.
     """
-    return _planes(g.back, g.eye, away_from_eye=True)
+
+    back: torch.Tensor
+    front: torch.Tensor | None
+    table: torch.Tensor
+    base: torch.Tensor
+    h: int
+    w: int
+
+    def numel(self) -> int:
+        """The frame's (sub-)pixels, B*H*W."""
+        return self.back.numel()
 
 
-def slab_planes(g: GBuffer) -> torch.Tensor:
-    """(B, H, W, 8): the back-face plane (as :func:`back_planes`) and the front-face plane
-    with its normal facing the eye; X has left the slab between them when either
-    ``dot(n, X) - c > 0``."""
-    return torch.cat([back_planes(g), _planes(g.front, g.eye, away_from_eye=False)], -1)
+def plane_table(meshes, eye: torch.Tensor, proj: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each view's triangles' planes in its camera coordinates (:class:`Marched`): the
+    (R, 4) float32 table and the (B,) int64 row bases. Computed in float64 from the
+    vertices (one row per triangle of the view's mesh; views of one mesh and camera share
+    their rows).
 
-
-def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
-    """The marched planes in each view's camera coordinates, flat: (B*H*W, 4) (back layer)
-    or (B*H*W, 8) (``both``: back, then front), detached.
-
-    A point with camera coordinates C (right, up, forward from the eye) is beyond a plane
-    when ``dot(n_c, C) - c_c > 0``, with n_c = basis n and c_c = c - dot(n, eye): the world
-    test without the world point, which the march then never forms. Where the marched
-    layer(s) are empty the back plane is (0, 0, 0, -1): every point is beyond it, so the
-    test needs no separate validity lookup. A caller that marches one G-buffer several
-    times (the central and the bounding rays, the bounces) builds them once and passes them
-    as ``planes``. The native kernel (csrc/march.c) computes the same operations in one
-    pass over the layers.
+    Args:
+        meshes: the batch's ``MeshBatch``; eye: (B, 3); proj: (B, 16) packed cameras.
     """
-    # the inputs by their memory and version: a replaced G-buffer with other layers or
-    # cameras, or one changed in place, computes its own
+    b = eye.shape[0]
+    rows, bases, seen = [], [], {}
+    at = 0
+    for i in range(b):
+        fo, nf = int(meshes.face_offset[i]), int(meshes.num_faces[i])
+        key = (fo, nf, tuple(eye[i].tolist()), tuple(proj[i, 3:12].tolist()))
+        if key in seen:
+            bases.append(seen[key])
+            continue
+        rows.append(_view_planes(meshes.tri_vertices[fo:fo + nf], eye[i], proj[i, 3:12]))
+        seen[key] = at - fo
+        bases.append(at - fo)
+        at += nf
+    table = torch.cat(rows) if rows else torch.zeros(0, 4)
+    return table.contiguous(), torch.tensor(bases, dtype=torch.int64)
+
+
+def _view_planes(tv: torch.Tensor, eye: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    """:func:`plane_table`'s rows (F, 4) of one view's triangles ``tv`` (F, 3, 3), from its
+    eye (3,) and camera basis (9,); the native kernel where it runs (the same operations
+    in double: ~0.1 ms for 20k triangles against ~2 ms here)."""
+    fast = native.tri_planes(tv, eye, basis)
+    if fast is not None:
+        return fast
+    tv = tv.detach().double()  # (F, 3, 3)
+    n = torch.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
+    rel = tv[:, 0] - eye.detach().double()
+    away = dot(rel, n)
+    n = torch.where((away < 0)[:, None], -n, n)  # away from the eye
+    b = basis.detach().double().view(3, 3)  # rows: right, up, forward
+    return torch.stack([dot(n, b[0]), dot(n, b[1]), dot(n, b[2]), dot(n, rel)], -1).float()
+
+
+def camera_planes(g: GBuffer, both: bool = False) -> Marched:
+    """The :class:`Marched` layers of ``g``: its back layer (``both``: and its front
+    layer) as int32 triangle ids and the views' triangle planes, detached. A strip of a
+    larger frame (``g.marched``, :mod:`torchrefract.large`) marches the whole frame's.
+
+    A caller that marches one G-buffer several times (the central and the bounding rays,
+    the bounces) builds them once and passes them as ``planes``; they are also kept in
+    ``g.derived``, keyed by the inputs' memory and versions (a replaced G-buffer with other
+    layers or cameras, or one changed in place, computes its own).
+    """
+    if g.marched is not None:
+        if both and g.marched.front is None:
+            raise ValueError("march: this strip's frame holds no front layer (a march "
+                             "between the layers needs it)")
+        return g.marched
     key = ("camera_planes", both) + tuple(
-        (t.data_ptr(), t._version) for t in (g.back.position, g.back.geo_normal, g.back.mask,
-                                            g.front.position, g.front.geo_normal,
-                                            g.front.mask, g.eye, g.proj))
+        (t.data_ptr(), t._version) for t in (g.back.tri, g.front.tri, g.eye, g.proj,
+                                            g.meshes.tri_vertices))
     kept = g.derived.get(key)
     if kept is not None:  # computed for this G-buffer already (another tile or pass)
         return kept
@@ -101,30 +157,13 @@ def camera_planes(g: GBuffer, both: bool = False) -> torch.Tensor:
     return out
 
 
-def _camera_planes(g: GBuffer, both: bool) -> torch.Tensor:
+def _camera_planes(g: GBuffer, both: bool) -> Marched:
     """:func:`camera_planes`, computed."""
-    b = g.eye.shape[0]
-    basis = g.proj[:, 3:12]  # rows: right, up, forward
-    front = (g.front.position, g.front.geo_normal, g.front.mask) if both else (None,) * 3
-    with torch.no_grad():
-        out = native.planes(g.back.position, g.back.geo_normal, g.back.mask, g.eye, basis,
-                            *front)
-    if out is not None:
-        return out
-    world = slab_planes(g) if both else back_planes(g)  # (B, H, W, 4|8)
-    valid = (g.back.mask & g.front.mask) if both else g.back.mask
-    rows = basis.reshape(b, 1, 1, 3, 3)
-    eye = g.eye[:, None, None, :]
-    cam = []
-    for k in range(0, world.shape[-1], 4):  # [n, c] -> [basis n, c - n . eye]
-        n, c = world[..., k:k + 3], world[..., k + 3]
-        cam += [dot(n, rows[..., 0, :]), dot(n, rows[..., 1, :]), dot(n, rows[..., 2, :]),
-                c - dot(n, eye)]
-    cam = torch.stack(cam, -1)
-    empty = torch.tensor([0.0, 0.0, 0.0, -1.0] + [0.0] * (world.shape[-1] - 4),
-                         dtype=cam.dtype, device=cam.device)
-    cam = torch.where(valid[..., None], cam, empty)
-    return cam.reshape(-1, world.shape[-1]).detach()
+    _, h, w = g.shape
+    table, base = plane_table(g.meshes, g.eye, g.proj)
+    back = g.back.tri.detach().reshape(-1).to(torch.int32)
+    front = g.front.tri.detach().reshape(-1).to(torch.int32) if both else None
+    return Marched(back=back, front=front, table=table, base=base, h=h, w=w)
 
 
 def camera_coordinates(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor
@@ -147,14 +186,15 @@ class _Projector:
     """Pixel lookups of points p1 + s t along rays, linear in s (precomputed per ray)."""
 
     def __init__(self, g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
-                 camera: tuple[torch.Tensor, torch.Tensor] | None = None):
-        _, self.h, self.w = g.shape
+                 marched: Marched, camera: tuple[torch.Tensor, torch.Tensor] | None = None):
+        self.h, self.w = marched.h, marched.w
         # (N, 3) camera coords of p1 and per unit s
         self.c0, self.ct = camera if camera is not None else camera_coordinates(g, batch, p1, t)
         # pixel x = (cx / (cz ta) + 1) w / 2, y = (1 - cy / (cz t)) h / 2
         self.sx = take(0.5 * self.w / g.proj[:, 12], batch)
         self.sy = take(0.5 * self.h / g.proj[:, 13], batch)
         self.base = batch * (self.h * self.w)
+        self.pbase = take(marched.base, batch)  # (N,) each ray's view's plane rows
 
     def pixels(self, idx: torch.Tensor | None, s: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,21 +229,31 @@ def _pixel_of(c0: torch.Tensor, ct: torch.Tensor, s: torch.Tensor, sx: torch.Ten
     return _pixel_of_camera(c0 + s[:, None] * ct, sx, sy, base, h, w)
 
 
-def _crossed_at(c0, ct, s, sx, sy, base, planes, h: int, w: int) -> torch.Tensor:
+def _plane_at(tri: torch.Tensor, flat: torch.Tensor, pbase: torch.Tensor,
+              table: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The triangle (M,) int64 seen at pixels ``flat`` of a marched layer (int32, -1 where
+    empty) and its plane row (M, 4) of ``table`` (any row where empty)."""
+    t = take(tri, flat).long()
+    return t, take(table, torch.where(t >= 0, pbase + t, torch.zeros_like(t)))
+
+
+def _crossed_at(c0, ct, s, sx, sy, base, pbase, back, front, table, h: int, w: int
+                ) -> torch.Tensor:
     """(M,) bool: the points c0 + s ct (camera coordinates, M rays) have left the marched
-    layer(s): outside the frame, or beyond a plane of :func:`camera_planes` at their
-    pixel (which includes the pixels where the layer is empty)."""
+    layer(s) (:class:`Marched`: ``back``, and ``front`` where not None): outside the frame,
+    on a pixel where a layer is empty, or beyond its triangle's plane there."""
     c = c0 + s[:, None] * ct  # (M, 3)
     flat, inside = _pixel_of_camera(c, sx, sy, base, h, w)
-    pl = take(planes, flat)  # (M, 4) or (M, 8)
-    beyond = dot(pl[:, :3], c) - pl[:, 3] > 0
-    if pl.shape[1] == 8:  # two layers: also in front of the front face
-        beyond = beyond | (dot(pl[:, 4:7], c) - pl[:, 7] > 0)
+    tb, pl = _plane_at(back, flat, pbase, table)
+    beyond = (tb < 0) | (dot(pl[:, :3], c) - pl[:, 3] > 0)
+    if front is not None:  # two layers: also in front of the front face (the row negated)
+        tf, pf = _plane_at(front, flat, pbase, table)
+        beyond = beyond | (tf < 0) | (pf[:, 3] - dot(pf[:, :3], c) > 0)
     return ~inside | beyond
 
 
-def _search_eager(c0, ct, s_max, sx, sy, base, planes, h: int, w: int, steps: int,
-                  refine: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _search_eager(c0, ct, s_max, sx, sy, base, pbase, back, front, table, h: int, w: int,
+                  steps: int, refine: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The whole search on every ray, without compaction: ``steps`` uniform samples over
     [0, s_max] (the first sample k where a ray has crossed gives lo = s_{k-1}, hi = s_k; a
     ray that never crosses gets lo = hi = s_max), then ``refine`` bisections. The compiled
@@ -214,21 +264,23 @@ def _search_eager(c0, ct, s_max, sx, sy, base, planes, h: int, w: int, steps: in
     done = torch.zeros_like(s_max, dtype=torch.bool)
     for k in range(1, steps + 1):
         s = s_max * (k / steps)
-        crossed = _crossed_at(c0, ct, s, sx, sy, base, planes, h, w) & ~done
+        crossed = _crossed_at(c0, ct, s, sx, sy, base, pbase, back, front, table, h,
+                              w) & ~done
         lo = torch.where(crossed, s_max * ((k - 1) / steps), lo)
         hi = torch.where(crossed, s, hi)
         done = done | crossed
     lo = torch.where(done, lo, s_max)
     for _ in range(refine):
-        lo, hi = _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, planes, h, w)
+        lo, hi = _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, pbase, back, front,
+                                    table, h, w)
     return lo, hi
 
 
-def _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, planes, h: int, w: int
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
+def _bisect_step_eager(lo, hi, c0, ct, sx, sy, base, pbase, back, front, table, h: int,
+                       w: int) -> tuple[torch.Tensor, torch.Tensor]:
     """One bisection of the bracketing intervals [lo, hi] (N,) of all rays."""
     mid = 0.5 * (lo + hi)
-    crossed = _crossed_at(c0, ct, mid, sx, sy, base, planes, h, w)
+    crossed = _crossed_at(c0, ct, mid, sx, sy, base, pbase, back, front, table, h, w)
     return torch.where(crossed, lo, mid), torch.where(crossed, mid, hi)
 
 
@@ -294,7 +346,7 @@ def _walk_to_containing(p1, t, tv, across, found, tri, s_exit, bary, s_min, s_ma
 @timed("march")
 def march_back(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor,
                steps: int = 64, refine: int = 10, depth_min: torch.Tensor | None = None,
-               tile: int = 8, fine_steps: int = 8, planes: torch.Tensor | None = None,
+               tile: int = 8, fine_steps: int = 8, planes: Marched | None = None,
                camera: tuple[torch.Tensor, torch.Tensor] | None = None) -> Exit:
     """March rays from entry points to their exit through the back-face layer.
 
@@ -351,7 +403,7 @@ kernel, which takes all rays in one pass."""
 
 @timed("march")
 def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tensor,
-                 steps: int = 32, refine: int = 10, planes: torch.Tensor | None = None
+                 steps: int = 32, refine: int = 10, planes: Marched | None = None
                  ) -> Exit:
     """March rays that travel inside the object from a point on its surface (an internal
     reflection at the back or the front surface) to where they meet either layer.
@@ -373,16 +425,18 @@ def march_inside(g: GBuffer, batch: torch.Tensor, p: torch.Tensor, t: torch.Tens
 
 def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, steps: int,
            refine: int, depth_min: torch.Tensor | None, tile: int, fine_steps: int,
-           both: bool, planes: torch.Tensor | None = None,
+           both: bool, planes: Marched | None = None,
            camera: tuple[torch.Tensor, torch.Tensor] | None = None) -> Exit:
     """The march: the backend chosen here (the native kernel where it runs and no tile
     acceleration is asked for, else the tensor code: a bracketing search, then the exact
     hit with the triangle seen at the crossing)."""
     if planes is None:
-        planes = camera_planes(g, both)  # (B*H*W, 4|8)
-    elif planes.shape != (g.ray_dir[..., 0].numel(), 8 if both else 4):
-        raise ValueError(f"march: planes of shape {tuple(planes.shape)} do not belong to this "
+        planes = camera_planes(g, both)
+    elif not isinstance(planes, Marched) or (both and planes.front is None) or (
+            g.marched is None and planes.numel() != g.ray_dir[..., 0].numel()):
+        raise ValueError(f"march: planes {type(planes).__name__} do not belong to this "
                          f"G-buffer (camera_planes(g, both={both}))")
+    front = planes.front if both else None
     # Where each ray crosses is a discrete choice (no gradient); the gradient flows through
     # the exact intersection with the triangle found there (p1 and t below, not detached).
     p1d, td = p1.detach(), t.detach()
@@ -390,45 +444,43 @@ def _march(g: GBuffer, batch: torch.Tensor, p1: torch.Tensor, t: torch.Tensor, s
     s_min = 1e-4 * s_max if both else torch.zeros_like(s_max)
     if depth_min is None and native.available():
         ex = _march_native(g, batch, p1, t, p1d, td, s_max, s_min, steps, refine, planes,
-                           camera)
+                           both, camera)
         if ex is not None:
             return ex
-    proj = _Projector(g, batch, p1d, td, camera)
+    proj = _Projector(g, batch, p1d, td, planes, camera)
+    h, w = planes.h, planes.w
     if depth_min is None and compile_enabled():
         # Compiled: every ray at every sample, search and bisection in one fused pass
         # (cheaper than the compaction below, which pays for gathers the fused pass does
         # not need); the same intervals, so the same exits.
-        _, h, w = g.shape
-        lo, hi = _search(proj.c0, proj.ct, s_max, proj.sx, proj.sy, proj.base, planes, h, w,
-                         steps, refine)
+        lo, hi = _search(proj.c0, proj.ct, s_max, proj.sx, proj.sy, proj.base, proj.pbase,
+                         planes.back, front, planes.table, h, w, steps, refine)
     else:
         if depth_min is None:
-            lo, hi = _search_compacted(g, proj, planes, s_max, steps)
+            lo, hi = _search_compacted(proj, planes, front, s_max, steps)
         else:
-            lo, hi = _search_tiles(g, batch, proj, planes, s_max, steps, depth_min, tile,
+            lo, hi = _search_tiles(batch, proj, planes, front, s_max, steps, depth_min, tile,
                                    fine_steps)
-        _, h, w = g.shape
         for _ in range(refine):
             lo, hi = _bisect_step_eager(lo, hi, proj.c0, proj.ct, proj.sx, proj.sy,
-                                        proj.base, planes, h, w)
+                                        proj.base, proj.pbase, planes.back, front,
+                                        planes.table, h, w)
     return _exact_exit(g, p1, t, proj, planes, lo, hi, s_min, s_max, both)
 
 
 def _march_native(g: GBuffer, batch, p1, t, p1d, td, s_max, s_min, steps: int, refine: int,
-                  planes, camera) -> Exit | None:
+                  planes: Marched, both: bool, camera) -> Exit | None:
     """The native kernel (native.py): the same search, candidates and walk as the tensor
     code, one ray at a time; the same triangles, then the same differentiable hit. Where no
     gradient is wanted the kernel also returns the exits' values (the same as _exit's);
     else the hit is taken again here, in torch. None where the kernel did not run."""
-    _, h, w = g.shape
+    h, w = planes.h, planes.w
     tv = g.meshes.tri_vertices
     c0, ct = camera if camera is not None else camera_coordinates(g, batch, p1d, td)
     grad = not native.no_grad_through(p1, t)
     res = native.march(c0, ct, s_max, s_min, 0.5 * w / g.proj[:, 12],
-                       0.5 * h / g.proj[:, 13], batch, planes, h, w, steps, refine, p1d,
-                       td, g.front.tri.reshape(-1), g.back.tri.reshape(-1),
-                       g.front.mask.reshape(-1), g.back.mask.reshape(-1), tv,
-                       g.meshes.tri_across,
+                       0.5 * h / g.proj[:, 13], batch, planes, both, steps, refine, p1d,
+                       td, tv, g.meshes.tri_across,
                        tri_normals=None if grad else g.meshes.tri_normals)
     if res is None:
         return None
@@ -443,18 +495,18 @@ def _march_native(g: GBuffer, batch, p1, t, p1d, td, s_max, s_min, steps: int, r
     return _exit(g, p1, t, found, tri, s_exit, bary, layer)
 
 
-def _search_compacted(g: GBuffer, proj: "_Projector", planes: torch.Tensor,
+def _search_compacted(proj: "_Projector", planes: Marched, front: torch.Tensor | None,
                       s_max: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Uniform coarse search over the chord, (lo, hi) brackets of the first crossing; the
     rays that crossed are dropped after each sample. The per-ray quantities the step needs
     are packed so that dropping rays is one gather (instead of one per array)."""
-    _, h, w = g.shape
+    h, w = planes.h, planes.w
     n = s_max.shape[0]
     lo = torch.zeros(n, dtype=s_max.dtype)
     hi = s_max.clone()
     state = torch.cat([proj.c0, proj.ct, s_max[:, None], proj.sx[:, None],
                        proj.sy[:, None]], 1)  # (N, 9)
-    base = proj.base
+    base, pbase = proj.base, proj.pbase
     ids = torch.arange(n)
     last = torch.zeros(n, dtype=s_max.dtype)  # the last s still inside, per active ray
     for k in range(1, steps + 1):
@@ -462,7 +514,8 @@ def _search_compacted(g: GBuffer, proj: "_Projector", planes: torch.Tensor,
             break
         s = state[:, 6] * (k / steps)
         crossed = _crossed_at(state[:, 0:3], state[:, 3:6], s, state[:, 7],
-                              state[:, 8], base, planes, h, w)
+                              state[:, 8], base, pbase, planes.back, front, planes.table,
+                              h, w)
         if bool(crossed.any()):
             done = where_true(crossed)
             gone = take(ids, done)
@@ -470,6 +523,7 @@ def _search_compacted(g: GBuffer, proj: "_Projector", planes: torch.Tensor,
             put_(lo, gone, take(last, done))
             keep = where_true(~crossed)
             state, base, ids = take(state, keep), take(base, keep), take(ids, keep)
+            pbase = take(pbase, keep)
             last = take(s, keep)
         else:
             last = s
@@ -478,13 +532,14 @@ def _search_compacted(g: GBuffer, proj: "_Projector", planes: torch.Tensor,
     return lo, hi
 
 
-def _search_tiles(g: GBuffer, batch: torch.Tensor, proj: "_Projector", planes: torch.Tensor,
-                  s_max: torch.Tensor, steps: int, depth_min: torch.Tensor, tile: int,
-                  fine_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _search_tiles(batch: torch.Tensor, proj: "_Projector", planes: Marched,
+                  front: torch.Tensor | None, s_max: torch.Tensor, steps: int,
+                  depth_min: torch.Tensor, tile: int, fine_steps: int
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The coarse search with empty space skipped (min back depth per tile: Oliveira and
     Brauwers 2007's min/max acceleration): only intervals that may hold the crossing are
     searched with ``fine_steps`` exact plane tests."""
-    _, h, w = g.shape
+    h, w = planes.h, planes.w
     n = s_max.shape[0]
     lo = torch.zeros(n, dtype=s_max.dtype)
     hi = s_max.clone()
@@ -510,7 +565,9 @@ def _search_tiles(g: GBuffer, batch: torch.Tensor, proj: "_Projector", planes: t
         for j in range(1, fine_steps + 1):
             sj = a + (b - a) * (j / fine_steps)
             cj = _crossed_at(take(proj.c0, idx), take(proj.ct, idx), sj, take(proj.sx, idx),
-                             take(proj.sy, idx), take(proj.base, idx), planes, h, w) & ~found
+                             take(proj.sy, idx), take(proj.base, idx),
+                             take(proj.pbase, idx), planes.back, front, planes.table, h,
+                             w) & ~found
             hi[idx[cj]] = sj[cj]
             found = found | cj
             lo[idx[~found]] = sj[~found]
@@ -522,7 +579,7 @@ def _search_tiles(g: GBuffer, batch: torch.Tensor, proj: "_Projector", planes: t
 
 
 def _exact_exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, proj: "_Projector",
-                planes: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s_min: torch.Tensor,
+                planes: Marched, lo: torch.Tensor, hi: torch.Tensor, s_min: torch.Tensor,
                 s_max: torch.Tensor, both: bool) -> Exit:
     """Exact exit: the ray intersected with the crossed layer's triangle at the crossing
     (first choice: the pixel just beyond the crossing; second: the last pixel still
@@ -533,15 +590,19 @@ def _exact_exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, proj: "_Projector
     tv = g.meshes.tri_vertices
     if both:
         flat, _ = proj.pixels(None, hi)
-        pl, x = take(planes, flat), proj.c0 + hi[:, None] * proj.ct  # camera coordinates
-        primary_front = (dot(pl[:, 4:7], x) - pl[:, 7]) > (dot(pl[:, :3], x) - pl[:, 3])
+        x = proj.c0 + hi[:, None] * proj.ct  # camera coordinates
+        tb, pb = _plane_at(planes.back, flat, proj.pbase, planes.table)
+        tf, pf = _plane_at(planes.front, flat, proj.pbase, planes.table)
+        # (the front plane faces the eye: its row negated; none where a layer is empty)
+        primary_front = (tb >= 0) & (tf >= 0) & (
+            (pf[:, 3] - dot(pf[:, :3], x)) > (dot(pb[:, :3], x) - pb[:, 3]))
         tries = [(hi, primary_front), (lo, primary_front), (hi, ~primary_front),
                  (lo, ~primary_front)]
     else:
         back = torch.zeros(n, dtype=torch.bool)
         tries = [(hi, back), (lo, back)]
-    tri, s_exit, bary, found, uf = _candidates(g, p1, t, proj, None, *tries[0], s_min, s_max,
-                                               both)
+    tri, s_exit, bary, found, uf = _candidates(g, p1, t, proj, planes, None, *tries[0], s_min,
+                                               s_max, both)
     s_exit = torch.where(found, s_exit, torch.zeros_like(s_exit))
     tri = torch.where(found, tri, torch.full_like(tri, -1))
     bary = torch.where(found[:, None], bary, torch.zeros_like(bary))
@@ -552,8 +613,8 @@ def _exact_exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, proj: "_Projector
         todo = where_true(~found)  # only the rays still without an exit
         if todo.numel() == 0:
             break
-        cand, st, bt, ok, uf = _candidates(g, p1, t, proj, todo, s_try, use_front, s_min,
-                                           s_max, both)
+        cand, st, bt, ok, uf = _candidates(g, p1, t, proj, planes, todo, s_try, use_front,
+                                           s_min, s_max, both)
         oi = where_true(ok)
         hit = take(todo, oi)
         put_(s_exit, hit, take(st, oi))
@@ -566,8 +627,9 @@ def _exact_exit(g: GBuffer, p1: torch.Tensor, t: torch.Tensor, proj: "_Projector
     return _exit(g, p1, t, found, tri, s_exit, bary, layer)
 
 
-def _candidates(g: GBuffer, p1, t, proj: "_Projector", todo: torch.Tensor | None,
-                s_try: torch.Tensor, use_front: torch.Tensor, s_min, s_max, both: bool):
+def _candidates(g: GBuffer, p1, t, proj: "_Projector", planes: Marched,
+                todo: torch.Tensor | None, s_try: torch.Tensor, use_front: torch.Tensor,
+                s_min, s_max, both: bool):
     """The exit candidates of rays ``todo`` (None: all) at their parameters ``s_try``: the
     triangle seen at that pixel in the chosen layer, and the hit with it."""
     def sel(x):
@@ -576,13 +638,10 @@ def _candidates(g: GBuffer, p1, t, proj: "_Projector", todo: torch.Tensor | None
     flat, inside = proj.pixels(todo, sel(s_try))
     uf = sel(use_front)
     if both:
-        seen = torch.where(uf, take(g.front.mask.reshape(-1), flat),
-                           take(g.back.mask.reshape(-1), flat))
-        seen_tri = torch.where(uf, take(g.front.tri.reshape(-1), flat),
-                               take(g.back.tri.reshape(-1), flat))
+        seen_tri = torch.where(uf, take(planes.front, flat), take(planes.back, flat)).long()
     else:  # the back layer only (use_front is all False)
-        seen, seen_tri = take(g.back.mask.reshape(-1), flat), take(g.back.tri.reshape(-1), flat)
-    cand = torch.where(inside & seen, seen_tri, torch.full_like(flat, -1))
+        seen_tri = take(planes.back, flat).long()
+    cand = torch.where(inside & (seen_tri >= 0), seen_tri, torch.full_like(flat, -1))
     st, bt = intersect_triangles(sel(p1), sel(t), take(g.meshes.tri_vertices, cand.clamp(min=0)))
     ok = (cand >= 0) & torch.isfinite(st) & (st > sel(s_min)) & (st <= sel(s_max) * 1.5)
     return cand, st, bt, ok, uf

@@ -85,12 +85,11 @@ class _Job(ctypes.Structure):
         ("s_max", ctypes.c_void_p), ("s_min", ctypes.c_void_p),
         ("sx_v", ctypes.c_void_p), ("sy_v", ctypes.c_void_p),
         ("batch", ctypes.c_void_p),
-        ("planes", ctypes.c_void_p), ("pw", ctypes.c_int),
+        ("planes", ctypes.c_void_p), ("plane_base", ctypes.c_void_p), ("pw", ctypes.c_int),
         ("h", ctypes.c_int64), ("w", ctypes.c_int64),
         ("steps", ctypes.c_int), ("refine", ctypes.c_int),
         ("p1", ctypes.c_void_p), ("t", ctypes.c_void_p),
         ("tri_front", ctypes.c_void_p), ("tri_back", ctypes.c_void_p),
-        ("mask_front", ctypes.c_void_p), ("mask_back", ctypes.c_void_p),
         ("tv", ctypes.c_void_p), ("across", ctypes.c_void_p),
         ("walk_steps", ctypes.c_int),
         ("simd", ctypes.c_int),
@@ -184,7 +183,7 @@ class _Bounces(ctypes.Structure):
     """ctypes mirror of ``Bounces`` in csrc/bounces.h."""
 
     _fields_ = [("limit", ctypes.c_int), ("rays", ctypes.c_int), ("steps", ctypes.c_int),
-                ("tol", ctypes.c_float), ("planes_in", _p), ("bounces", _p), ("residual", _p)]
+                ("tol", ctypes.c_float), ("bounces", _p), ("residual", _p)]
 
 
 class _SpecJob(ctypes.Structure):
@@ -210,20 +209,19 @@ class _BackgroundJob(ctypes.Structure):
                 ("front_mask", _p), ("front_dist", _p), ("lights", _Lights), ("out", _p)]
 
 
-class _PlanesJob(ctypes.Structure):
-    """ctypes mirror of ``PlanesJob`` in csrc/march.c."""
-
-    _fields_ = [("n", ctypes.c_int64), ("hw", ctypes.c_int64), ("pw", ctypes.c_int),
-                ("pos_b", _p), ("gn_b", _p), ("pos_f", _p), ("gn_f", _p), ("mask_b", _p),
-                ("mask_f", _p), ("eye", _p), ("basis", _p), ("out", _p)]
-
-
 class _RasterJob(ctypes.Structure):
     """ctypes mirror of ``RasterJob`` in csrc/raster.c."""
 
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
                 ("vertices", _p), ("faces", _p), ("views", _p), ("mvp", _p),
-                ("front", _p), ("back", _p)]
+                ("front", _p), ("back", _p), ("row0", ctypes.c_int64),
+                ("rows", ctypes.c_int64)]
+
+
+class _TriPlanesJob(ctypes.Structure):
+    """ctypes mirror of ``TriPlanesJob`` in csrc/march.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("tv", _p), ("eye", _p), ("basis", _p), ("out", _p)]
 
 
 class _LatticeJob(ctypes.Structure):
@@ -250,7 +248,7 @@ class _RelightJob(ctypes.Structure):
                 ("vals", _p), ("status", _p)]
 
 
-_KERNELS = {"march": _Job, "planes": _PlanesJob, "layer": _LayerJob,
+_KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
@@ -402,27 +400,70 @@ def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],
     return [x.detach().contiguous() for x in f32 + i64 + b8] if ok else None
 
 
+def march_fields(planes, both: bool) -> dict | None:
+    """The march job's fields of a ``march.Marched`` (its tables and the marched layers'
+    triangle ids; ``both``: the front layer's too), the tensors kept under ``"keep"``;
+    ``None`` where a tensor is not on the CPU or of its dtype."""
+    front = planes.front if both else None
+    ok = (planes.table.dtype == torch.float32 and planes.base.dtype == torch.int64
+          and planes.back.dtype == torch.int32
+          and (front is None or front.dtype == torch.int32)
+          and all(x.device.type == "cpu" for x in (planes.table, planes.base, planes.back)))
+    if not ok:
+        return None
+    table, base, back = (x.detach().contiguous() for x in (planes.table, planes.base,
+                                                          planes.back))
+    front = back if front is None else front.detach().contiguous()  # (not read: pw 4)
+    # the AVX2 search gathers with 32-bit indices: the pixels' and the plane rows'
+    simd = int(settings.current().native_simd and back.numel() < 2**31
+               and table.numel() < 2**31)
+    return dict(planes=table.data_ptr(), plane_base=base.data_ptr(), pw=8 if both else 4,
+                h=planes.h, w=planes.w, tri_front=front.data_ptr(),
+                tri_back=back.data_ptr(), simd=simd, keep=(table, base, back, front))
+
+
+def tri_planes(tv: torch.Tensor, eye: torch.Tensor, basis: torch.Tensor
+               ) -> torch.Tensor | None:
+    """``march.plane_table``'s rows of one view, (F, 4) float32, computed in double as the
+    tensor code does (the same table within float64 rounding); ``None`` where the kernel
+    is unavailable or an input is not a float32 CPU tensor.
+
+    Args:
+        tv: (F, 3, 3) the view's triangles; eye: (3,); basis: (9,) rows right, up, forward.
+    """
+    if not available():
+        return None
+    keep = _inputs((tv, eye, basis), ())
+    if keep is None:
+        return None
+    tv, eye, basis = keep
+    out = torch.empty(tv.shape[0], 4)
+    if tv.shape[0] == 0:
+        return out
+    job = _TriPlanesJob(n=tv.shape[0], tv=tv.data_ptr(), eye=eye.data_ptr(),
+                        basis=basis.data_ptr(), out=out.data_ptr())
+    return out if _call("tri_planes", job) else None
+
+
 def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.Tensor,
-          sx_v: torch.Tensor, sy_v: torch.Tensor, batch: torch.Tensor, planes: torch.Tensor,
-          h: int, w: int, steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor,
-          tri_front: torch.Tensor, tri_back: torch.Tensor, mask_front: torch.Tensor,
-          mask_back: torch.Tensor, tv: torch.Tensor, across: torch.Tensor,
-          walk_steps: int = 16, tri_normals: torch.Tensor | None = None
+          sx_v: torch.Tensor, sy_v: torch.Tensor, batch: torch.Tensor, planes, both: bool,
+          steps: int, refine: int, p1: torch.Tensor, t: torch.Tensor, tv: torch.Tensor,
+          across: torch.Tensor, walk_steps: int = 16, tri_normals: torch.Tensor | None = None
           ) -> tuple[torch.Tensor, ...] | None:
     """The search, bisections, exit candidates and walk of ``march._march`` (its
     ``depth_min=None`` form) for N rays; ``None`` where the kernel is unavailable or an
-    input is not a float32 / int64 / bool CPU tensor (the caller then marches in torch).
+    input is not a float32 / int64 CPU tensor (the caller then marches in torch).
 
     Args:
         c0, ct: (N, 3) camera coordinates of the start and per unit s.
         s_max, s_min: (N,) the bounding chord and the smallest accepted exit distance.
         sx_v, sy_v: (B,) per-view pixel scales (``0.5 w / tan``, ``0.5 h / tan``).
-        batch: (N,) int64 view per ray. planes: (B*H*W, 4|8) ``march.camera_planes``.
-        h, w: the frame. steps, refine: the uniform samples and bisections.
+        batch: (N,) int64 view per ray. planes: the ``march.Marched`` layers (the frame,
+            its triangle ids and plane tables); both: march between the two layers
+            (``march_inside``), else through the back layer.
+        steps, refine: the uniform samples and bisections.
         p1, t: (N, 3) world start points and directions.
-        tri_front, tri_back: (B*H*W,) int64 triangle per pixel; mask_front, mask_back:
-            (B*H*W,) bool coverage. tv: (T, 3, 3) vertices; across: (T, 3) int64
-            (``MeshData.across``).
+        tv: (T, 3, 3) vertices; across: (T, 3) int64 (``MeshData.across``).
         walk_steps: the most edges a walk crosses.
         tri_normals: (T, 3, 3) corner shading normals: also return the exits' values
             (for callers that need no gradient through them).
@@ -437,12 +478,12 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
         return None
     values = tri_normals is not None
     tn = tri_normals if values else tv  # (not read without values)
-    keep = _inputs((c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn),
-                   (batch, tri_front, tri_back, across), (mask_front, mask_back))
-    if keep is None or planes.shape[-1] not in (4, 8):
+    keep = _inputs((c0, ct, s_max, s_min, sx_v, sy_v, p1, t, tv, tn), (batch, across))
+    fields = march_fields(planes, both)
+    if keep is None or fields is None:
         return None
-    (c0, ct, s_max, s_min, sx_v, sy_v, planes, p1, t, tv, tn,
-     batch, tri_front, tri_back, across, mask_front, mask_back) = keep
+    c0, ct, s_max, s_min, sx_v, sy_v, p1, t, tv, tn, batch, across = keep
+    held = fields.pop("keep")  # noqa: F841 (alive until the call returns)
     n = c0.shape[0]
     found = torch.empty(n, dtype=torch.bool)
     tri = torch.empty(n, dtype=torch.int64)
@@ -454,50 +495,14 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
     ptrs = [x.data_ptr() for x in extra] if values else [None] * 4
     job = _Job(n=n, c0=c0.data_ptr(), ct=ct.data_ptr(), s_max=s_max.data_ptr(),
                s_min=s_min.data_ptr(), sx_v=sx_v.data_ptr(), sy_v=sy_v.data_ptr(),
-               batch=batch.data_ptr(), planes=planes.data_ptr(), pw=planes.shape[-1],
-               h=h, w=w, steps=steps, refine=refine, p1=p1.data_ptr(), t=t.data_ptr(),
-               tri_front=tri_front.data_ptr(), tri_back=tri_back.data_ptr(),
-               mask_front=mask_front.data_ptr(), mask_back=mask_back.data_ptr(),
-               tv=tv.data_ptr(), across=across.data_ptr(), walk_steps=walk_steps,
-               # the AVX2 search gathers with 32-bit indices
-               simd=int(settings.current().native_simd and planes.numel() < 2**31), tn=tn.data_ptr(),
+               batch=batch.data_ptr(), steps=steps, refine=refine, p1=p1.data_ptr(),
+               t=t.data_ptr(), tv=tv.data_ptr(), across=across.data_ptr(),
+               walk_steps=walk_steps, tn=tn.data_ptr(),
                s_out=ptrs[0], bary_out=ptrs[1], normal_out=ptrs[2], pos_out=ptrs[3],
-               found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr())
+               found=found.data_ptr(), tri=tri.data_ptr(), layer=layer.data_ptr(), **fields)
     if not _call("march", job):
         return None  # a thread could not be started: march in torch
     return (found, tri, layer) + extra
-
-
-def planes(back_pos: torch.Tensor, back_gn: torch.Tensor, back_mask: torch.Tensor,
-           eye: torch.Tensor, basis: torch.Tensor, front_pos: torch.Tensor | None = None,
-           front_gn: torch.Tensor | None = None, front_mask: torch.Tensor | None = None
-           ) -> torch.Tensor | None:
-    """``march.camera_planes``' (B*H*W, 4) back planes, or (B*H*W, 8) back then front with
-    the front layer given, in its operations (the same bits); ``None`` where the kernel is
-    unavailable or an input is not a float32 / bool CPU tensor.
-
-    Args:
-        back_pos, back_gn: (B, H, W, 3) the back layer's positions and geometric normals;
-            back_mask: (B, H, W). eye: (B, 3); basis: (B, 9) rows right, up, forward.
-        front_pos, front_gn, front_mask: the front layer's, for 8 channels.
-    """
-    if not available():
-        return None
-    both = front_pos is not None
-    f32 = (back_pos, back_gn, eye, basis) + ((front_pos, front_gn) if both else ())
-    keep = _inputs(f32, (), (back_mask,) + ((front_mask,) if both else ()))
-    if keep is None:
-        return None
-    b, h, w = back_mask.shape
-    pw = 8 if both else 4
-    out = torch.empty(b * h * w, pw)
-    job = _PlanesJob(n=b * h * w, hw=h * w, pw=pw, pos_b=keep[0].data_ptr(),
-                     gn_b=keep[1].data_ptr(), eye=keep[2].data_ptr(), basis=keep[3].data_ptr(),
-                     pos_f=keep[4].data_ptr() if both else None,
-                     gn_f=keep[5].data_ptr() if both else None,
-                     mask_b=keep[6 if both else 4].data_ptr(),
-                     mask_f=keep[7].data_ptr() if both else None, out=out.data_ptr())
-    return out if _call("planes", job) else None
 
 
 def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
@@ -543,7 +548,8 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
 
 
 def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
-               mvp: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+               mvp: torch.Tensor, h: int, w: int, rows: tuple[int, int] | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Both visibility layers of B views (csrc/raster.c): per pixel center, the nearest
     front-facing and the nearest back-facing triangle, as ``raster.visibility_pass`` draws
     them with OpenGL; ``None`` where the kernel is unavailable or an input is of another
@@ -556,9 +562,12 @@ def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
             count, and the offset added to the face index written (the batch's global id).
         mvp: (B, 4, 4) float64 ``P V`` per view (``raster.view_projection``).
         h, w: the frame (supersampled).
+        rows: (r0, r1): only these rows of the frame (a strip of it: the same ids as the
+            frame's rows there); None: all.
 
     Returns:
-        front, back: (B, h, w) int64 id offset + face index, -1 where no face is seen.
+        front, back: (B, h, w) int64 id offset + face index, -1 where no face is seen
+        ((B, r1 - r0, w) with ``rows``).
     """
     if not available():
         return None
@@ -569,11 +578,14 @@ def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
     vertices, faces, views = keep
     mvp = mvp.detach().contiguous()
     b = views.shape[0]
-    front = torch.empty(b, h, w, dtype=torch.int64)
-    back = torch.empty(b, h, w, dtype=torch.int64)
+    r0, r1 = (0, h) if rows is None else rows
+    if not 0 <= r0 < r1 <= h:
+        raise ValueError(f"raster_ids: rows {rows} are not a range of the frame's {h}")
+    front = torch.empty(b, r1 - r0, w, dtype=torch.int64)
+    back = torch.empty(b, r1 - r0, w, dtype=torch.int64)
     job = _RasterJob(b=b, h=h, w=w, vertices=vertices.data_ptr(), faces=faces.data_ptr(),
                      views=views.data_ptr(), mvp=mvp.data_ptr(), front=front.data_ptr(),
-                     back=back.data_ptr())
+                     back=back.data_ptr(), row0=r0, rows=r1 - r0)
     if b and not _call("raster", job):
         return None
     return front, back

@@ -225,7 +225,6 @@ def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:
     passes.update(bounces=counts.view(b, h, w, 1), bounce_residual=resid.view(b, h, w, 1))
     return native._Bounces(
         limit=bs.limit, rays=bs.bounce_rays, steps=bs.bounce_march_steps, tol=bs.tolerance,
-        planes_in=keep.ptr(camera_planes(g, both=True)) if frame.n else None,
         bounces=counts.data_ptr(), residual=resid.data_ptr())
 
 
@@ -282,18 +281,20 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
         if options.tir == "conserve" or options.bounces.enabled else torch.ones(b, 2)
-    planes = camera_planes(g)
+    # the marched layers (the front's too where bounces march between them), the frame's
+    # where g is a strip of it; the bounces' march sets pw 8 itself
+    mf = native.march_fields(camera_planes(g, both=options.bounces.enabled),
+                             options.bounces.enabled)
+    if mf is None:
+        return None
+    keep.extend(mf.pop("keep"))
+    mf["pw"] = 4
+    mh, mw = mf["h"], mf["w"]
     march = native._Job(
-        planes=ptr(planes), pw=4, h=h, w=w, steps=options.march_steps,
-        refine=options.refine_steps, sx_v=ptr(0.5 * w / g.proj[:, 12]),
-        sy_v=ptr(0.5 * h / g.proj[:, 13]),
-        tri_front=ptr(g.front.tri.reshape(-1), torch.int64),
-        tri_back=ptr(g.back.tri.reshape(-1), torch.int64),
-        mask_front=ptr(g.front.mask.reshape(-1), torch.bool),
-        mask_back=ptr(g.back.mask.reshape(-1), torch.bool),
+        steps=options.march_steps, refine=options.refine_steps,
+        sx_v=ptr(0.5 * mw / g.proj[:, 12]), sy_v=ptr(0.5 * mh / g.proj[:, 13]),
         tv=ptr(g.meshes.tri_vertices), across=ptr(g.meshes.tri_across, torch.int64),
-        walk_steps=16, simd=int(settings.current().native_simd and planes.numel() < 2**31),
-        tn=ptr(g.meshes.tri_normals))
+        walk_steps=16, tn=ptr(g.meshes.tri_normals), **mf)
     frame = native._Frame(
         n=idx.numel(), nb=b, idx=ptr(idx, torch.int64), batch=ptr(bi, torch.int64),
         ray_dir=ptr(g.ray_dir), front_pos=ptr(g.front.position),

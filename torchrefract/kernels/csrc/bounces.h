@@ -14,7 +14,6 @@ typedef struct {
     int rays;                   /* rays of the first internal reflection (1 or 4) */
     int steps;                  /* coarse steps of each inside march */
     float tol;                  /* a ray stops at this throughput (max over RGB; 0 for K) */
-    const float *planes_in;     /* (B*H*W, 8) camera_planes(g, both=True) */
     float *bounces, *residual;  /* out (B*H*W,) bounces.bounce_passes */
 } Bounces;
 
@@ -83,7 +82,6 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
                          tr_inside_fn shade, const SgAxes *axes, int naxes, Paths *ps,
                          int64_t r0) {
     Job inside = j->march;
-    inside.planes = bo->planes_in;
     inside.pw = 8;
     Rays rays;
     for (int k = 1; ps->n > 0; k++) {

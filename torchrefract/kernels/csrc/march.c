@@ -31,52 +31,48 @@ int torchrefract_march(Job *job, int threads) {
 /* The layout of Job, for native.py's check that its ctypes mirror matches. */
 int64_t torchrefract_march_job_size(void) { return (int64_t)sizeof(Job); }
 
-/* march.camera_planes: per pixel the back layer's plane (and with ``pw`` 8 the front
- * layer's) in its view's camera coordinates, in the tensor code's operations and order
- * (march._planes, march._to_camera): n the geometric normal turned away from the eye (the
- * front's towards it), c = n . x, then (basis n, c - n . eye); (0, 0, 0, -1) (and zeros)
- * where the layer(s) are empty. */
+/* march.plane_table for one view: per triangle of ``tv`` its unit geometric normal turned
+ * away from the eye, in the view's camera coordinates, and n . (v0 - eye), computed in
+ * double as the tensor code does (cross, norm, the dot in optics.dot's order), then
+ * rounded to float (march.Marched.table). */
 typedef struct {
-    int64_t n, hw;              /* B*H*W, H*W */
-    int pw;                     /* 4 or 8 */
-    const float *pos_b, *gn_b;  /* (B*H*W, 3) the back layer */
-    const float *pos_f, *gn_f;  /* (B*H*W, 3) the front layer (pw 8) */
-    const uint8_t *mask_b, *mask_f;  /* (B*H*W,) */
-    const float *eye, *basis;   /* (B, 3), (B, 9) rows: right, up, forward */
-    float *out;                 /* (B*H*W, pw) */
-} PlanesJob;
+    int64_t n;                  /* triangles */
+    const float *tv;            /* (n, 3, 3) */
+    const float *eye, *basis;   /* (3,), (9,) rows: right, up, forward */
+    float *out;                 /* (n, 4) */
+} TriPlanesJob;
 
-static void plane_of(const float *x, const float *gn, const float *eye, const float *bs,
-                     int away_from_eye, float *out) {
-    float rel[3] = {x[0] - eye[0], x[1] - eye[1], x[2] - eye[2]}, n[3];
-    float away = dot3(rel, gn);
-    int flip = away_from_eye ? away < 0.0f : away > 0.0f;
-    for (int k = 0; k < 3; k++) n[k] = flip ? -gn[k] : gn[k];
-    float c = dot3(n, x);
-    for (int k = 0; k < 3; k++) out[k] = dot3(n, bs + 3 * k);
-    out[3] = c - dot3(n, eye);
-}
-
-static void planes_range(const void *job, int64_t begin, int64_t end) {
-    const PlanesJob *j = (const PlanesJob *)job;
-    for (int64_t p = begin; p < end; p++) {
-        int64_t b = p / j->hw;
-        float *o = j->out + p * j->pw;
-        int valid = j->mask_b[p] && (j->pw == 4 || j->mask_f[p]);
-        if (!valid) {
-            for (int k = 0; k < j->pw; k++) o[k] = 0.0f;
-            o[3] = -1.0f;
-            continue;
+static void tri_planes_range(const void *job, int64_t begin, int64_t end) {
+    const TriPlanesJob *j = (const TriPlanesJob *)job;
+    double eye[3], bs[9];
+    for (int k = 0; k < 3; k++) eye[k] = (double)j->eye[k];
+    for (int k = 0; k < 9; k++) bs[k] = (double)j->basis[k];
+    for (int64_t f = begin; f < end; f++) {
+        const float *v = j->tv + 9 * f;
+        double e1[3], e2[3], n[3], rel[3];
+        for (int k = 0; k < 3; k++) {
+            e1[k] = (double)v[3 + k] - (double)v[k];
+            e2[k] = (double)v[6 + k] - (double)v[k];
+            rel[k] = (double)v[k] - eye[k];
         }
-        plane_of(j->pos_b + 3 * p, j->gn_b + 3 * p, j->eye + 3 * b, j->basis + 9 * b, 1, o);
-        if (j->pw == 8)
-            plane_of(j->pos_f + 3 * p, j->gn_f + 3 * p, j->eye + 3 * b, j->basis + 9 * b, 0,
-                     o + 4);
+        n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+        n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+        n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+        double len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+        if (len < 1e-300) len = 1e-300;
+        for (int k = 0; k < 3; k++) n[k] = n[k] / len;
+        double away = (rel[0] * n[0] + rel[1] * n[1]) + rel[2] * n[2];
+        if (away < 0.0)
+            for (int k = 0; k < 3; k++) n[k] = -n[k];
+        float *o = j->out + 4 * f;
+        for (int k = 0; k < 3; k++)
+            o[k] = (float)((n[0] * bs[3 * k] + n[1] * bs[3 * k + 1]) + n[2] * bs[3 * k + 2]);
+        o[3] = (float)((n[0] * rel[0] + n[1] * rel[1]) + n[2] * rel[2]);
     }
 }
 
-int torchrefract_planes(PlanesJob *job, int threads) {
-    return tr_parallel_for(planes_range, job, job->n, 16384, threads);
+int torchrefract_tri_planes(TriPlanesJob *job, int threads) {
+    return tr_parallel_for(tri_planes_range, job, job->n, 16384, threads);
 }
 
-int64_t torchrefract_planes_job_size(void) { return (int64_t)sizeof(PlanesJob); }
+int64_t torchrefract_tri_planes_job_size(void) { return (int64_t)sizeof(TriPlanesJob); }

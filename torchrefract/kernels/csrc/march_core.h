@@ -37,18 +37,21 @@ typedef struct {
     const float *s_min;     /* (N,) smallest accepted exit distance */
     const float *sx_v, *sy_v; /* (B,) per-view pixel scales */
     const int64_t *batch;   /* (N,) view of each ray */
-    const float *planes;    /* (B*H*W, pw) camera-space planes (march.camera_planes) */
-    int pw;                 /* 4: back layer only, 8: back then front (march_inside) */
+    const float *planes;    /* (R, 4) each view's triangles' camera-space planes, normal
+                             * away from the eye (march.Marched.table) */
+    const int64_t *plane_base; /* (B,) view b's triangle t has row plane_base[b] + t */
+    int pw;                 /* 4: back layer only, 8: back and front (march_inside) */
     int64_t h, w;
     int steps, refine;
     const float *p1, *t;    /* (N, 3) world start and direction */
-    const int64_t *tri_front, *tri_back;    /* (B*H*W,) triangle seen per pixel */
-    const uint8_t *mask_front, *mask_back;  /* (B*H*W,) layer covered */
+    const int32_t *tri_front, *tri_back;    /* (B*H*W,) triangle seen per pixel, -1 where
+                                             * the layer is empty (march.Marched) */
     const float *tv;        /* (T, 3, 3) triangle vertices */
     const int64_t *across;  /* (T, 3) face across the edge opposite each vertex, -1 */
     int walk_steps;
     int simd;               /* 1: the AVX2 search where the CPU has it (0: scalar only; the
-                             * caller sets 0 where the plane indices exceed 32 bits) */
+                             * caller sets 0 where the pixel or plane indices exceed 32
+                             * bits) */
     const float *tn;        /* (T, 3, 3) corner shading normals (for the exits below) */
     /* out, optional (NULL: not wanted; march.py then computes them in torch, with
      * gradients): the exit distance (N,), barycentrics (N, 3), unit shading normal (N, 3)
@@ -94,16 +97,30 @@ static inline void point_at(const Job *j, int64_t r, float s, float *c) {
     }
 }
 
-/* march._crossed_at for one ray at parameter s. */
+/* The plane row of triangle t (>= 0) in the view of ray r (march.Marched). */
+static inline const float *plane_row(const Job *j, int64_t r, int32_t t) {
+    return j->planes + 4 * (j->plane_base[j->batch[r]] + (int64_t)t);
+}
+
+/* march._crossed_at for one ray at parameter s: outside the frame, a marched layer empty
+ * at the pixel, beyond the back triangle's plane, or (pw 8) in front of the front
+ * triangle's (its row negated: c - n . x > 0). */
 static int crossed_at(const Job *j, int64_t r, float s) {
     float c[3];
     point_at(j, r, s, c);
     int inside;
     int64_t flat = pixel_of(j, r, c, &inside);
     if (!inside) return 1;
-    const float *pl = j->planes + flat * j->pw;
+    int32_t tb = j->tri_back[flat];
+    if (tb < 0) return 1;
+    const float *pl = plane_row(j, r, tb);
     if (dot3(pl, c) - pl[3] > 0.0f) return 1;
-    if (j->pw == 8 && dot3(pl + 4, c) - pl[7] > 0.0f) return 1;
+    if (j->pw == 8) {
+        int32_t tf = j->tri_front[flat];
+        if (tf < 0) return 1;
+        const float *pf = plane_row(j, r, tf);
+        if (pf[3] - dot3(pf, c) > 0.0f) return 1;
+    }
     return 0;
 }
 
@@ -116,10 +133,7 @@ static int candidate(const Job *j, int64_t r, float s, int use_front, int64_t *c
     int inside;
     int64_t flat = pixel_of(j, r, c, &inside);
     int64_t cand = -1;
-    if (inside) {
-        int seen = use_front ? j->mask_front[flat] : j->mask_back[flat];
-        if (seen) cand = use_front ? j->tri_front[flat] : j->tri_back[flat];
-    }
+    if (inside) cand = use_front ? j->tri_front[flat] : j->tri_back[flat];
     if (cand < 0) return 0;
     float st = intersect(j->p1 + 3 * r, j->t + 3 * r, j->tv + 9 * cand, bt_out);
     float hi = j->s_max[r] * 1.5f;
@@ -210,7 +224,43 @@ static void exit_values(const Job *j, int64_t r, int64_t tri, float hit_s,
  * a full block only): the same operations lane by lane (IEEE add, multiply, divide,
  * floor, compare: the same values as the scalar code, which stays the path for partial
  * blocks and CPUs without AVX2). Plane indices are 32-bit (the caller checks the size). */
-typedef struct { __m256 c0x, c0y, c0z, ctx, cty, ctz, sx, sy; __m256i base; } Lanes;
+typedef struct { __m256 c0x, c0y, c0z, ctx, cty, ctz, sx, sy; __m256i base, pbase; } Lanes;
+
+/* The planes of the triangles ``t`` (8 lanes; rows pbase + t, row pbase where t < 0) at
+ * the camera points (cx, cy, cz): n . c - d per lane. */
+__attribute__((target("avx2"))) static inline __m256 plane_value8(const Job *j, __m256i pbase,
+                                                                  __m256i t, __m256 cx,
+                                                                  __m256 cy, __m256 cz) {
+    __m256i row = _mm256_add_epi32(pbase, _mm256_max_epi32(t, _mm256_setzero_si256()));
+    /* each lane's row (n, d) by one 16-byte load, then a 4x8 transpose: the values of
+     * four gathers, with a quarter of the loads */
+    int rw[8];
+    _mm256_storeu_si256((__m256i *)rw, row);
+    const float *pl = j->planes;
+    __m256 a0 = _mm256_set_m128(_mm_loadu_ps(pl + 4 * (int64_t)rw[4]),
+                                _mm_loadu_ps(pl + 4 * (int64_t)rw[0]));
+    __m256 a1 = _mm256_set_m128(_mm_loadu_ps(pl + 4 * (int64_t)rw[5]),
+                                _mm_loadu_ps(pl + 4 * (int64_t)rw[1]));
+    __m256 a2 = _mm256_set_m128(_mm_loadu_ps(pl + 4 * (int64_t)rw[6]),
+                                _mm_loadu_ps(pl + 4 * (int64_t)rw[2]));
+    __m256 a3 = _mm256_set_m128(_mm_loadu_ps(pl + 4 * (int64_t)rw[7]),
+                                _mm_loadu_ps(pl + 4 * (int64_t)rw[3]));
+    __m256 t0 = _mm256_unpacklo_ps(a0, a1), t1 = _mm256_unpackhi_ps(a0, a1);
+    __m256 t2 = _mm256_unpacklo_ps(a2, a3), t3 = _mm256_unpackhi_ps(a2, a3);
+    __m256 n0 = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(1, 0, 1, 0));
+    __m256 n1 = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(3, 2, 3, 2));
+    __m256 n2 = _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(1, 0, 1, 0));
+    __m256 d = _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(3, 2, 3, 2));
+    __m256 dt = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(n0, cx), _mm256_mul_ps(n1, cy)),
+                              _mm256_mul_ps(n2, cz));
+    return _mm256_sub_ps(dt, d);
+}
+
+/* The triangles at 8 pixels (scalar loads: cheaper than a gather here). */
+__attribute__((target("avx2"))) static inline __m256i tri8(const int32_t *tri, const int *fl) {
+    return _mm256_setr_epi32(tri[fl[0]], tri[fl[1]], tri[fl[2]], tri[fl[3]], tri[fl[4]],
+                             tri[fl[5]], tri[fl[6]], tri[fl[7]]);
+}
 
 __attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, const Lanes *L,
                                                               __m256 s) {
@@ -237,23 +287,19 @@ __attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, cons
     __m256i flat = _mm256_add_epi32(L->base, _mm256_add_epi32(
         _mm256_mullo_epi32(_mm256_cvttps_epi32(pyc), _mm256_set1_epi32((int)j->w)),
         _mm256_cvttps_epi32(pxc)));
-    __m256i idx = _mm256_mullo_epi32(flat, _mm256_set1_epi32(j->pw));
-    const float *pl = j->planes;
-    __m256 n0 = _mm256_i32gather_ps(pl, idx, 4);
-    __m256 n1 = _mm256_i32gather_ps(pl + 1, idx, 4);
-    __m256 n2 = _mm256_i32gather_ps(pl + 2, idx, 4);
-    __m256 d = _mm256_i32gather_ps(pl + 3, idx, 4);
-    __m256 dt = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(n0, cx), _mm256_mul_ps(n1, cy)),
-                              _mm256_mul_ps(n2, cz));
-    __m256 beyond = _mm256_cmp_ps(_mm256_sub_ps(dt, d), zero, _CMP_GT_OQ);
-    if (j->pw == 8) {
-        __m256 f0 = _mm256_i32gather_ps(pl + 4, idx, 4);
-        __m256 f1 = _mm256_i32gather_ps(pl + 5, idx, 4);
-        __m256 f2 = _mm256_i32gather_ps(pl + 6, idx, 4);
-        __m256 fd = _mm256_i32gather_ps(pl + 7, idx, 4);
-        __m256 ft = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(f0, cx), _mm256_mul_ps(f1, cy)),
-                                  _mm256_mul_ps(f2, cz));
-        beyond = _mm256_or_ps(beyond, _mm256_cmp_ps(_mm256_sub_ps(ft, fd), zero, _CMP_GT_OQ));
+    /* the back triangle at the pixel (-1: empty, crossed) and its plane */
+    int fl[8];
+    _mm256_storeu_si256((__m256i *)fl, flat);
+    __m256i tb = tri8(j->tri_back, fl);
+    __m256 beyond = _mm256_or_ps(
+        _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), tb)),
+        _mm256_cmp_ps(plane_value8(j, L->pbase, tb, cx, cy, cz), zero, _CMP_GT_OQ));
+    if (j->pw == 8) {  /* the front's plane faces the eye: d - n . c > 0 */
+        __m256i tf = tri8(j->tri_front, fl);
+        __m256 fv = plane_value8(j, L->pbase, tf, cx, cy, cz);
+        beyond = _mm256_or_ps(beyond, _mm256_or_ps(
+            _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), tf)),
+            _mm256_cmp_ps(fv, zero, _CMP_LT_OQ)));
     }
     /* crossed = ~inside | beyond (all-ones lanes) */
     return _mm256_or_ps(_mm256_andnot_ps(inside, _mm256_castsi256_ps(_mm256_set1_epi32(-1))),
@@ -264,7 +310,7 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
                                                               float *lo_out, float *hi_out) {
     Lanes L[2];
     float tmp[9][16];
-    int bi[16];
+    int bi[16], pb[16];
     for (int i = 0; i < 16; i++) {
         int64_t r = r0 + i, b = j->batch[r];
         for (int k = 0; k < 3; k++) {
@@ -275,6 +321,7 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
         tmp[7][i] = j->sy_v[b];
         tmp[8][i] = j->s_max[r];
         bi[i] = (int)(b * j->h * j->w);
+        pb[i] = (int)j->plane_base[b];
     }
     __m256 smax[2], lo[2], hi[2], last[2], done[2];
     for (int v = 0; v < 2; v++) {
@@ -287,6 +334,7 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
         L[v].sx = _mm256_loadu_ps(tmp[6] + 8 * v);
         L[v].sy = _mm256_loadu_ps(tmp[7] + 8 * v);
         L[v].base = _mm256_loadu_si256((const __m256i *)(bi + 8 * v));
+        L[v].pbase = _mm256_loadu_si256((const __m256i *)(pb + 8 * v));
         smax[v] = _mm256_loadu_ps(tmp[8] + 8 * v);
         lo[v] = _mm256_setzero_ps();
         hi[v] = smax[v];
@@ -335,8 +383,13 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
         point_at(j, r, hi, c);
         int inside;
         int64_t flat = pixel_of(j, r, c, &inside);
-        const float *pl = j->planes + flat * j->pw;
-        int primary_front = (dot3(pl + 4, c) - pl[7]) > (dot3(pl, c) - pl[3]);
+        /* the layer whose plane is crossed farther (none where a layer is empty) */
+        int32_t tb = j->tri_back[flat], tf = j->tri_front[flat];
+        int primary_front = 0;
+        if (tb >= 0 && tf >= 0) {
+            const float *pb = plane_row(j, r, tb), *pf = plane_row(j, r, tf);
+            primary_front = (pf[3] - dot3(pf, c)) > (dot3(pb, c) - pb[3]);
+        }
         ss[0] = hi; fronts[0] = primary_front;
         ss[1] = lo; fronts[1] = primary_front;
         ss[2] = hi; fronts[2] = !primary_front;

@@ -48,7 +48,10 @@ typedef struct {
     const int64_t *views;   /* (B, 5): vertex offset, vertex count, face offset, face
                              * count, id offset (added to the face index written) */
     const double *mvp;      /* (B, 16) row-major P V */
-    int64_t *front, *back;  /* out (B, H, W) face id + id offset, -1 where none */
+    int64_t *front, *back;  /* out (B, rows, W) face id + id offset, -1 where none */
+    int64_t row0, rows;     /* the frame's rows drawn: [row0, row0 + rows) of the H (rows 0:
+                             * all H); a pixel's ids do not depend on the rows drawn with
+                             * it, so a frame drawn in strips is the frame drawn whole */
 } RasterJob;
 
 #define SUB_BITS 8                     /* window positions in 1/256 pixel */
@@ -311,12 +314,14 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     const RasterJob *j = run->job;
     int64_t view = item / run->bands, band = item % run->bands;
     int64_t h = j->h, w = j->w;
+    int64_t row0 = j->rows > 0 ? j->row0 : 0, rows = j->rows > 0 ? j->rows : h;
     Band bd;
-    bd.r0 = band * h / run->bands;
-    bd.r1 = (band + 1) * h / run->bands;
+    bd.r0 = row0 + band * rows / run->bands;
+    bd.r1 = row0 + (band + 1) * rows / run->bands;
     bd.w = w;
     int64_t npix = (bd.r1 - bd.r0) * w;
-    int64_t *out[2] = {j->front + (view * h + bd.r0) * w, j->back + (view * h + bd.r0) * w};
+    int64_t *out[2] = {j->front + (view * rows + bd.r0 - row0) * w,
+                       j->back + (view * rows + bd.r0 - row0) * w};
     const int64_t *vw = j->views + 5 * view;
     int64_t voff = vw[0], vn = vw[1], foff = vw[2], fn = vw[3], id_off = vw[4];
     if ((uint64_t)fn > ID_MASK || !reserve((void **)&sc->key, &sc->key_n, 2 * npix, 8) ||
@@ -375,9 +380,12 @@ static void raster_range(const void *job, int64_t begin, int64_t end) {
 int torchrefract_raster(const RasterJob *job, int threads) {
     if (job->b <= 0 || job->h <= 0 || job->w <= 0) return 0;
     if (job->h > MAX_SIZE || job->w > MAX_SIZE) return -1;
+    if (job->rows < 0 || job->row0 < 0 || (job->rows > 0 && job->row0 + job->rows > job->h))
+        return -1;
+    int64_t rows = job->rows > 0 ? job->rows : job->h;
     int64_t bands = 1;
     if (threads > job->b) bands = (threads + job->b - 1) / job->b;
-    int64_t most = job->h / 16 > 1 ? job->h / 16 : 1;  /* bands of >= 16 rows */
+    int64_t most = rows / 16 > 1 ? rows / 16 : 1;  /* bands of >= 16 rows */
     if (bands > most) bands = most;
     RasterRun run = {job, bands, 0};
     int rc = tr_parallel_for_grain(raster_range, &run, job->b * bands, 2, threads, 1);
