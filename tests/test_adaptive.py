@@ -101,7 +101,7 @@ def test_reference_is_sampled_uniformly():
 def _lattice_inputs(s: tr.Scene):
     g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
     from torchrefract.optics.materials import MaterialBatch  # noqa: PLC0415
-    from torchrefract.render import _front_roughness  # noqa: PLC0415
+    from torchrefract.result import front_roughness as _front_roughness  # noqa: PLC0415
     alpha = _front_roughness(g, MaterialBatch.from_scenes([s]))
     return g, (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, alpha)
 

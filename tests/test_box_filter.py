@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from torchrefract.render import _box, _masked_box
+from torchrefract.result import box as _box, masked_box as _masked_box
 
 
 def _avg_pool(x: torch.Tensor, n: int) -> torch.Tensor:

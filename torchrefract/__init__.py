@@ -17,7 +17,8 @@ from torchrefract.kernels.compiled import set_compile
 from torchrefract.kernels.native import set_native
 from torchrefract.matte.relight import relight
 from torchrefract.methods import register_method
-from torchrefract.render import RenderResult, render
+from torchrefract.render import render
+from torchrefract.result import RenderResult
 from torchrefract.scene import (
                                 Camera,
                                 EnvMap,

@@ -12,7 +12,7 @@ A view whose G-buffer does not fit the memory budget even with its shading in ti
    (:class:`torchrefract.kernels.march.Marched`);
 2. per strip of whole pixel rows: the strip's rays and exact layers again, a G-buffer of
    the strip whose ``marched`` is the whole frame's, shaded and box-filtered as a whole
-   G-buffer is (``render._finish_pass``), its pixels copied into the output.
+   G-buffer is (``result.finish_pass``), its pixels copied into the output.
 
 Every sub-pixel gets the values of the untiled render, bit for bit: rays, ids and layers
 are per sub-pixel (the repair's 3x3 neighbourhood included), the march reads the frame's
@@ -47,6 +47,7 @@ from torchrefract.kernels import native
 from torchrefract.kernels.march import Marched, plane_table
 from torchrefract.lighting.lights import Lighting
 from torchrefract.optics.materials import MaterialBatch
+from torchrefract.result import RenderResult, finish_pass, merge
 from torchrefract.scene import Camera, Scene
 from torchrefract.settings import current
 
@@ -200,8 +201,6 @@ def render(scenes: list[Scene], entry, options, budget: int, rows: int | None = 
         ConfigError: the views cannot be rendered in strips or do not fit ``budget`` even
             in strips of one pixel row (before any work; :func:`check`).
     """
-    from torchrefract.render import _merge  # noqa: PLC0415 (render imports this module)
-
     fit = check(scenes, entry, options, budget)
     n = scenes[0].camera.samples_per_pixel
     if rows is None:
@@ -211,12 +210,10 @@ def render(scenes: list[Scene], entry, options, budget: int, rows: int | None = 
                           f"multiple of samples_per_pixel {n}")
     parts = [([i], _render_view(s, entry, options, budget, rows), None)
              for i, s in enumerate(scenes)]
-    return parts[0][1] if len(parts) == 1 else _merge(len(scenes), parts)
+    return parts[0][1] if len(parts) == 1 else merge(len(scenes), parts)
 
 
 def _render_view(scene: Scene, entry, options, budget: int, rows: int):
-    from torchrefract.render import RenderResult, _finish_pass  # noqa: PLC0415
-
     t0 = time.perf_counter()
     cam, n = scene.camera, scene.camera.samples_per_pixel
     both = options.bounces.enabled
@@ -244,7 +241,7 @@ def _render_view(scene: Scene, entry, options, budget: int, rows: int):
         timings["gbuffer"] = timings.get("gbuffer", 0.0) + time.perf_counter() - t_g
         g = GBuffer(front=front, back=back, ray_dir=dirs, eye=eye, proj=proj, meshes=batch,
                     supersample=n, marched=marched)
-        part = _finish_pass([scene], entry, g, lighting, materials, options, state,
+        part = finish_pass([scene], entry, g, lighting, materials, options, state,
                             strip_budget, None, time.perf_counter())
         del g, front, back, dirs
         if out is None:  # the output, whole: each strip's pixel rows copied in

@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-import warnings
-from dataclasses import dataclass, field
 
 import torch
 
@@ -22,129 +20,17 @@ from torchrefract import large, tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import pixel_rays
-from torchrefract.geometry.gbuffer import GBuffer, build_gbuffer
+from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
 from torchrefract.matte import render_hook
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.placement import on_device, to_device
+from torchrefract.result import RenderResult, finish_pass, front_roughness
+from torchrefract.result import merge as merge_parts
 from torchrefract.scene import Scene, validate
 from torchrefract.settings import RenderSettings, current, using
-from torchrefract.stages import collect
-
-
-@dataclass(frozen=True)
-class RenderResult:
-    """Output of :func:`render` for B scenes at (H, W) pixels.
-
-    Attributes:
-        radiance: (B, H, W, 3) float32 linear RGB, background included, always finite.
-        coverage: (B, H, W) float32 object coverage in [0, 1] (the EXR's A channel).
-        passes: name -> (B, H, W, C) float32: ``depth_front``, ``depth_back`` (camera-space
-            depth), ``normal_front``, ``normal_back`` (world, unit before filtering),
-            ``thickness`` (distance between the layers along the view ray), ``roughness`` and
-            ``ior`` (the material on object pixels), and the method's own buffers. Passes
-            are averaged over the covered sub-pixels; 0 where uncovered.
-        scenes: the B scenes, as rendered.
-        timings: seconds per stage for the whole batch: ``load`` (meshes, maps), ``gbuffer``,
-            ``shading`` (the method, which includes ``march``, the ray marches, and ``mips``,
-            the back layer's mip pyramids; :mod:`torchrefract.stages`), ``total``.
-        blends: ``auto`` only: per scene the (method, options, weight) of every variant
-            whose image went into it (weights add up to 1; passes are blended alike).
-        predictions: ``auto`` only: per scene what its table predicted (``Choice.record``:
-            the image's FLIP against converged truth and ms per frame, the most accurate
-            candidate's FLIP, the tolerance, the table scenes it was read from), or None
-            without a table.
-    """
-
-    radiance: torch.Tensor
-    coverage: torch.Tensor
-    passes: dict[str, torch.Tensor]
-    scenes: tuple[Scene, ...]
-    timings: dict[str, float] = field(default_factory=dict)
-    blends: tuple[tuple[tuple[str, dict, float], ...], ...] | None = None
-    predictions: tuple[dict | None, ...] | None = None
-
-
-def _box(x: torch.Tensor, n: int) -> torch.Tensor:
-    """Average n x n blocks of a (B, H, W, C) tensor -> (B, H/n, W/n, C).
-
-    The sub-pixels are summed in row-major order and divided by n * n: the operations of
-    ``F.avg_pool2d`` (the same bits, tests/test_box_filter.py), without its cost on this layout
-    (8 x 512 x 512 x 1 floats, 2 threads: 1.0 ms against 6.0)."""
-    if n == 1:
-        return x
-    b, h, w, c = x.shape
-    y = x.reshape(b, h // n, n, w // n, n, c)  # (B, H/n, n, W/n, n, C)
-    s = y[:, :, 0, :, 0]
-    for i in range(n):
-        for j in range(n):
-            if i or j:
-                s = s + y[:, :, i, :, j]
-    return s / (n * n)
-
-
-BoxCache = dict
-"""Per render pass: each mask as a float tensor and its box average (the covered fraction),
-keyed by (id(mask), dtype), shared by the passes averaged over the same mask."""
-
-
-def _mask_box(mask: torch.Tensor, n: int, dtype: torch.dtype, cache: BoxCache | None
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, H, W, 1) ``mask`` as ``dtype``, and its box average."""
-    key = (id(mask), dtype)
-    if cache is not None and key in cache:
-        return cache[key]
-    m = mask[..., None].to(dtype)
-    out = (m, _box(m, n))
-    if cache is not None:
-        cache[key] = out
-    return out
-
-
-def _masked_box(x: torch.Tensor, mask: torch.Tensor, n: int, cache: BoxCache | None = None
-                ) -> torch.Tensor:
-    """Average of x over the covered sub-pixels of each pixel (0 where none is covered)."""
-    if n == 1:  # one sub-pixel per pixel: x where covered (x * 1 / 1 is x), else 0
-        return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype))
-    m, den = _mask_box(mask, n, x.dtype, cache)
-    num = _box(x * m, n)
-    return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
-
-
-def _all_finite(x: torch.Tensor) -> bool:
-    """Whether every value of ``x`` is finite: the sum of finite values is finite unless it
-    overflows, where the elementwise test decides (NaN and Inf make the sum non-finite)."""
-    with torch.no_grad():
-        return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
-
-
-def _geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, torch.Tensor]:
-    n = g.supersample
-    thick = (g.back.dist - g.front.dist).clamp(min=0.0)
-    both = g.front.mask & g.back.mask
-    if n == 1:  # a layer is zero where it is empty (gbuffer._layer): nothing to mask
-        return {"depth_front": g.front.depth[..., None], "depth_back": g.back.depth[..., None],
-                "normal_front": g.front.normal, "normal_back": g.back.normal,
-                "thickness": _masked_box(thick[..., None], both, n, cache)}
-    return {
-        "depth_front": _masked_box(g.front.depth[..., None], g.front.mask, n, cache),
-        "depth_back": _masked_box(g.back.depth[..., None], g.back.mask, n, cache),
-        "normal_front": _masked_box(g.front.normal, g.front.mask, n, cache),
-        "normal_back": _masked_box(g.back.normal, g.back.mask, n, cache),
-        "thickness": _masked_box(thick[..., None], both, n, cache),
-    }
-
-
-def _front_roughness(g: GBuffer, materials: MaterialBatch) -> torch.Tensor:
-    """The roughness at each front (sub-)pixel, (B, H, W), or (B, 1, 1) where no scene of
-    the batch has a map (then it is each view's own)."""
-    if not materials.has_maps:
-        return materials.roughness[:, None, None]
-    b, h, w = g.shape
-    return materials.roughness_at(torch.arange(b).repeat_interleave(h * w),
-                                  g.front.uv.reshape(-1, 2)).view(b, h, w)
 
 
 def _check_batch(scenes: list[Scene]) -> None:
@@ -241,7 +127,7 @@ def _render_method(scenes: list[Scene], entry, options) -> RenderResult:
         placed.append((list(range(start, start + len(p))),
                        _render_pass(p, entry, options, budget), None))
         start += len(p)
-    return _merge(len(scenes), placed)
+    return merge_parts(len(scenes), placed)
 
 
 MAX_PASS_SUBPIXELS = 1 << 19
@@ -287,9 +173,9 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     if current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
             g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
-                                    _front_roughness(g, materials))
+                                    front_roughness(g, materials))
         else:
-            g, plan = adaptive.lattice(g, _front_roughness(g, materials))
+            g, plan = adaptive.lattice(g, front_roughness(g, materials))
     want = current().torch_device()
     # a CPU-only method shades on the CPU; its result is moved at the end
     device = want if want.type in entry.devices else torch.device("cpu")
@@ -297,76 +183,11 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
         g, lighting, materials, plan = to_device((g, lighting, materials, plan), device)
     t2 = time.perf_counter()
     with on_device(device):
-        result = _finish_pass(scenes, entry, g, lighting, materials, options, state, budget,
+        result = finish_pass(scenes, entry, g, lighting, materials, options, state, budget,
                               plan, t2)
     result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1,
                            "total": time.perf_counter() - t0})
     return result if want == device else to_device(result, want)
-
-
-def _finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan,
-                 t_start: float) -> RenderResult:
-    """The method's shading of a built G-buffer and the passes, on the tensors' device
-    (``timings["shading"]``: from ``t_start``)."""
-    method = entry.name
-    n = g.supersample
-    extra = render_hook.requested(scenes)
-    extra_passes: dict[str, torch.Tensor] = {}
-    with collect() as stage_times, render_hook.scope(extra) as rec:
-        shaded = tiles.shade(entry, g, lighting, materials, options, state, budget)
-        radiance, method_passes = shaded.radiance, shaded.passes
-        if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
-            radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
-        elif isinstance(plan, adaptive.Lattice):  # level by level, the waiting pixels:
-            for level in plan.levels:  # interpolated, or shaded over the image so far
-                radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
-                                                                    method_passes)
-                if rest is None:
-                    continue
-                again = tiles.shade(entry, dataclasses.replace(
-                    g, shade=rest, canvas=radiance.view(-1, 3)), lighting, materials,
-                    options, state, budget)
-                radiance, method_passes = adaptive.merge(radiance, method_passes, again,
-                                                         rest, soft)
-        # never let NaN/Inf out, and never hide that it happened; a finite sum (one
-        # reduction) proves every value finite, a non-finite one (or an overflow) is checked
-        if not _all_finite(radiance):
-            bad = ~torch.isfinite(radiance)
-            count = int(bad.any(-1).sum())
-            warnings.warn(f"render ({method}): {count} sub-pixels had non-finite radiance and "
-                          "were set to 0; please report the scene", RuntimeWarning,
-                          stacklevel=2)
-            radiance = torch.where(bad, torch.zeros_like(radiance), radiance)
-        if rec is not None:  # every lookup's weight and sub-pixel, then the passes
-            t_m = time.perf_counter()
-            extra_passes = render_hook.make_passes(rec, radiance, _box, g, scenes, extra)
-            radiance = radiance.detach()
-            method_passes = {k: v.detach() for k, v in method_passes.items()}
-            stage_times["matte"] = time.perf_counter() - t_m
-    if radiance.is_cuda:  # the shading's time, not its launches'
-        torch.cuda.synchronize(radiance.device)
-    t3 = time.perf_counter()
-
-    cache: BoxCache = {}  # the masks' box averages, computed once for all passes
-    passes = _geometry_passes(g, cache)
-    # Material passes (per object pixel): what a model trained on the data may regress.
-    fm = _mask_box(g.front.mask, n, torch.float32, cache)[0]  # (B, H, W, 1)
-    rough = _front_roughness(g, materials)[..., None]
-    for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
-        passes[name] = v if n == 1 else _masked_box(v, g.front.mask, n, cache)  # 0 outside
-    for k, v in method_passes.items():
-        passes[k] = _masked_box(v, g.front.mask, n, cache)
-    passes.update(extra_passes)  # already per pixel
-    return RenderResult(
-        radiance=_box(radiance, n).float(),
-        coverage=_mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
-        passes=passes,
-        scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
-        timings={"shading": t3 - t_start,
-                 "march": stage_times.get("march", 0.0), "mips": stage_times.get("mips", 0.0),
-                 "fused": stage_times.get("fused", 0.0),
-                 **({"matte": stage_times["matte"]} if "matte" in stage_times else {})},
-    )
 
 
 def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
@@ -386,7 +207,7 @@ def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
         idx = [i for i, _ in members]
         sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
         parts.append((idx, _render(sub, None), [w for _, w in members]))
-    out = _merge(len(scenes), parts)
+    out = merge_parts(len(scenes), parts)
     out.timings["total"] = time.perf_counter() - t0
     # A single pick is recorded as the scene (re-rendering it gives the same image); a blend
     # keeps the policy's scene (re-rendering it with the same table gives the same image).
@@ -396,36 +217,3 @@ def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
         blends=tuple(c.blend for c in picked), predictions=tuple(c.record() for c in picked))
 
 
-def _merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]]
-           ) -> RenderResult:
-    """One RenderResult of B scenes from parts rendered apart: ``(idx, result, weights)``,
-    the batch positions of the part's scenes, each image added to its position's with its
-    weight (``auto``'s variants), or copied there with ``weights`` None (a large batch's
-    chunks). A pass that only some parts have (another method's, or a part without object
-    pixels) is zero elsewhere (it adds 0); the scenes are the last part's at each position;
-    timings are summed."""
-    first = parts[0][1]
-    dev = first.radiance.device
-    radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype,
-                           device=dev)
-    coverage = torch.zeros((b, *first.coverage.shape[1:]), dtype=first.coverage.dtype,
-                           device=dev)
-    passes: dict[str, torch.Tensor] = {}
-    out_scenes: list[Scene | None] = [None] * b
-    timings: dict[str, float] = {}
-    for idx, res, weights in parts:
-        sel = torch.tensor(idx, device=dev)
-        # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
-        w = torch.tensor(weights or [1.0] * len(idx), device=dev)[:, None, None, None]
-        radiance.index_add_(0, sel, w * res.radiance)
-        coverage[sel] = res.coverage  # the geometry's: the same for every variant
-        for k, v in res.passes.items():
-            if k not in passes:
-                passes[k] = torch.zeros((b, *v.shape[1:]), dtype=v.dtype, device=dev)
-            passes[k].index_add_(0, sel, w.to(v.dtype) * v)
-        for j, i in enumerate(idx):
-            out_scenes[i] = res.scenes[j]
-        for k, v in res.timings.items():
-            timings[k] = timings.get(k, 0.0) + v
-    return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
-                        scenes=tuple(out_scenes), timings=timings)

@@ -98,7 +98,7 @@ def render_relit(items: list[tuple], settings=None) -> list[tuple[list[int], Any
     from torchrefract.dataset.attempt import failure_reason, render_batch  # noqa: PLC0415
     from torchrefract.matte.matte import from_passes  # noqa: PLC0415
     from torchrefract.matte.relight import prepare, relight  # noqa: PLC0415
-    from torchrefract.render import RenderResult  # noqa: PLC0415
+    from torchrefract.result import RenderResult  # noqa: PLC0415
 
     order: dict[str, int] = {}
     src_scenes: list[Scene] = []

@@ -17,7 +17,7 @@ import torch
 
 from torchrefract.output.atomic import write_text
 from torchrefract.output.images import write_exr, write_png
-from torchrefract.render import RenderResult
+from torchrefract.result import RenderResult
 
 _AXES = ("X", "Y", "Z", "W")
 
