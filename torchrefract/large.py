@@ -34,13 +34,12 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import torch
 
 from torchrefract import tiles
 from torchrefract.checks import ConfigError
-from torchrefract.geometry.camera import pixel_rays_rows, projection_params
-from torchrefract.geometry.gbuffer import GBuffer, Layer, MeshBatch, _layer
+from torchrefract.geometry.camera import pixel_rays_rows
+from torchrefract.geometry.gbuffer import GBuffer, Layer, MeshBatch, _layer, view_frame
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import native_layers
 from torchrefract.kernels import native
@@ -140,17 +139,6 @@ def check(scenes: list[Scene], entry, options, budget: int) -> int:
     return rows
 
 
-def _view(cam: Camera, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Eye (1, 3), forward (1, 3) and packed camera (1, 16) as ``build_gbuffer`` makes them
-    (the same values)."""
-    eye = torch.tensor(cam.eye, dtype=torch.float32)[None]
-    f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
-    fwd = torch.from_numpy(f / np.linalg.norm(f)).float()[None]
-    p = projection_params(cam)
-    p[14:16] *= n
-    return eye, fwd, p[None]
-
-
 def _strip_layers(mesh, cam: Camera, n: int, batch: MeshBatch, eye, fwd, r0: int, r1: int,
                   front: bool, back: bool):
     """The exact layers (front, back; None where not asked for) and rays of the frame's
@@ -223,7 +211,7 @@ def _render_view(scene: Scene, entry, options, budget: int, rows: int):
     materials = MaterialBatch.from_scenes([scene])
     t1 = time.perf_counter()
     batch = MeshBatch.from_meshes([mesh])
-    eye, fwd, proj = _view(cam, n)
+    eye, fwd, proj = (x[None] for x in view_frame(cam, n))  # one view, as build_gbuffer's
     marched = marched_layers(mesh, cam, batch, eye, fwd, proj, both, rows)
     t2 = time.perf_counter()
     # the strip's shading is the fused kernels', which need next to nothing per shaded

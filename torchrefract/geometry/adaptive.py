@@ -421,6 +421,7 @@ def merge(radiance: torch.Tensor, passes: dict[str, torch.Tensor], second,
         c = v.shape[-1]
         first = passes[k].reshape(-1, c)
         shaded = v.reshape(-1, c)
+        # the blended pixels' means, read before the rest's values overwrite them in place
         mean = take(first, soft[0]) if soft is not None else None
         x = put_(first, rest, take(shaded, rest))
         if soft is not None:

@@ -319,6 +319,18 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
     )
 
 
+def view_frame(cam: Camera, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A view's eye (3,) and unit forward (3,), float32, and its packed camera (16,)
+    (:func:`~torchrefract.geometry.camera.projection_params`) for its n x n sub-pixel grid:
+    what the layers and the marches take of a camera."""
+    eye = torch.tensor(cam.eye, dtype=torch.float32)
+    f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
+    fwd = torch.from_numpy(f / np.linalg.norm(f)).float()
+    p = projection_params(cam)
+    p[14:16] *= n
+    return eye, fwd, p
+
+
 def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     """Rasterize both layers' ids of each view (``RenderSettings.rasterizer``: the native
     rasterizer, or the OpenGL passes) and build the exact G-buffer.
@@ -353,15 +365,8 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     # both layers' ids of every distinct view, global (the MeshBatch's face indices)
     front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
                                             n, [int(batch.face_offset[b]) for b, _, _ in views])
-    dirs, eyes, fwd, proj = [], [], [], []
-    for _, _, cam in views:
-        dirs.append(pixel_rays(cam, n))
-        eyes.append(torch.tensor(cam.eye, dtype=torch.float32))
-        f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
-        fwd.append(torch.from_numpy(f / np.linalg.norm(f)).float())
-        p = projection_params(cam)
-        p[14:16] *= n
-        proj.append(p)
+    dirs = [pixel_rays(cam, n) for _, _, cam in views]
+    eyes, fwd, proj = zip(*(view_frame(cam, n) for _, _, cam in views))
     dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
     front = _layer(front_ids, eye_t, dirs_t, fwd_t, batch, back=False)
     back_layer = _layer(back_ids, eye_t, dirs_t, fwd_t, batch, back=True)

@@ -271,7 +271,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     # paths.trace_paths' switch: the rough energies for all where any entry point is rough
     # (without roughness maps a view's entry points have its roughness: no gather)
     maps = list(materials.roughness_maps) or [None] * b
-    if any(m is not None for m in maps):
+    if materials.has_maps:
         rough = bool((materials.roughness_at(
             bi, g.front.uv.reshape(-1, 2).index_select(0, idx)) > 0).any())
     else:

@@ -102,12 +102,13 @@
  * intersect##S(o, d, tv, bary) and interpolate##S(bary, corners, c, out). */
 #define TR_DEFINE_VEC3(T, S, FMA, FABS, SQRT, DET_EPS)                                     \
     TR_DEFINE_LANES(T, int, S, FMA, FABS, SQRT, DET_EPS, TR_SEL_SCALAR, TR_K_SCALAR)       \
-    static T intersect##S(const T *o, const T *d, const float *tv, T *bary) {               \
+    static inline T intersect##S(const T *o, const T *d, const float *tv, T *bary) {        \
         T v[9];                                                                             \
         for (int i = 0; i < 9; i++) v[i] = (T)tv[i];                                        \
         return hit##S(o, d, v, bary);                                                       \
     }                                                                                       \
-    static void interpolate##S(const T *bary, const float *corners, int c, T *out) {        \
+    static inline void interpolate##S(const T *bary, const float *corners, int c,           \
+                                      T *out) {                                         \
         T w[3], cv[9];                                                                      \
         weights##S(bary, w);                                                                \
         for (int i = 0; i < 3 * c; i++) cv[i] = (T)corners[i];                              \

@@ -16,6 +16,32 @@
 
 #include "common.h"
 
+/* A hit's attributes for lane type T (the scalar and the AVX2 code alike): from the
+ * triangle's corners v, corner normals tn and UVs tuv (as T) and the barycentrics, the unit
+ * geometric normal gn, the unit interpolated shading normal n and the UV, as
+ * gbuffer._layer_tensor computes them (lengths below 1e-300 taken as 1e-300). */
+#define TR_DEFINE_LAYER_ATTRS(T, S, SEL, K)                                                 \
+    static inline void attrs##S(const T *v, const T *tn, const T *tuv, const T *bary,      \
+                                T *gn, T *n, T *uv) {                                       \
+        T e1[3], e2[3], w[3];                                                               \
+        for (int m = 0; m < 3; m++) {                                                       \
+            e1[m] = v[3 + m] - v[m];                                                        \
+            e2[m] = v[6 + m] - v[m];                                                        \
+        }                                                                                   \
+        cross3##S(e1, e2, gn);                                                              \
+        T gl = norm3##S(gn);                                                                \
+        gl = SEL(gl < K(T, 1e-300), K(T, 1e-300), gl);                                      \
+        weights##S(bary, w);                                                                \
+        blend##S(w, tn, 3, n);                                                              \
+        T nl = norm3##S(n);                                                                 \
+        nl = SEL(nl < K(T, 1e-300), K(T, 1e-300), nl);                                      \
+        for (int i = 0; i < 3; i++) {                                                       \
+            gn[i] = gn[i] / gl;                                                             \
+            n[i] = n[i] / nl;                                                               \
+        }                                                                                   \
+        blend##S(w, tuv, 2, uv);                                                            \
+    }
+
 #if defined(__AVX2__) && defined(__FMA__)
 /* Four pixels at a time in AVX2 lanes, by the same TR_DEFINE_LANES bodies as the scalar
  * code (IEEE operations, each correctly rounded: the same bits lane by lane). */
@@ -32,6 +58,7 @@ static inline v4d abs4(v4d a) { return (v4d)((v4m)a & (v4m){~(1LL << 63), ~(1LL 
 #define SEL4(m, a, b) ((v4d)_mm256_blendv_pd((__m256d)(b), (__m256d)(a), (__m256d)(m)))
 #define K4(T, x) ((T){(x), (x), (x), (x)})
 TR_DEFINE_LANES(v4d, v4m, 4, fma4, abs4, sqrt4, 1e-30, SEL4, K4)
+TR_DEFINE_LAYER_ATTRS(v4d, 4, SEL4, K4)
 #endif
 
 typedef struct {
@@ -53,6 +80,7 @@ typedef struct {
 } LayerJob;
 
 TR_DEFINE_VEC3(double, d, fma, fabs, sqrt, 1e-30)
+TR_DEFINE_LAYER_ATTRS(double, d, TR_SEL_SCALAR, TR_K_SCALAR)
 
 /* gbuffer._repair_edge_ids for the pixel (bi, py, px) with rasterized id ``id``. */
 static int64_t repair(const LayerJob *j, int64_t bi, int64_t py, int64_t px, int64_t id,
@@ -116,23 +144,13 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
             t = intersectd(o, d, j->tv + 9 * id, bary);
         }
     }
-    double v[9], e1[3], e2[3], gn[3], n[3], uv[2];
-    for (int m = 0; m < 9; m++) v[m] = (double)j->tv[9 * id + m];
-    for (int m = 0; m < 3; m++) {
-        e1[m] = v[3 + m] - v[m];
-        e2[m] = v[6 + m] - v[m];
+    double v[9], tn[9], tuv[6], gn[3], n[3], uv[2];
+    for (int m = 0; m < 9; m++) {
+        v[m] = (double)j->tv[9 * id + m];
+        tn[m] = (double)j->tn[9 * id + m];
     }
-    cross3d(e1, e2, gn);
-    double gl = norm3d(gn);
-    if (gl < 1e-300) gl = 1e-300;
-    double w[3], cv[9];
-    weightsd(bary, w);
-    for (int m = 0; m < 9; m++) cv[m] = (double)j->tn[9 * id + m];
-    blendd(w, cv, 3, n);
-    double nl = norm3d(n);
-    if (nl < 1e-300) nl = 1e-300;
-    for (int m = 0; m < 6; m++) cv[m] = (double)j->tuv[6 * id + m];
-    blendd(w, cv, 2, uv);
+    for (int m = 0; m < 6; m++) tuv[m] = (double)j->tuv[6 * id + m];
+    attrsd(v, tn, tuv, bary, gn, n, uv);
     double f[3] = {(double)j->forward[3 * bi], (double)j->forward[3 * bi + 1],
                    (double)j->forward[3 * bi + 2]};
     j->mask[p] = 1;
@@ -141,8 +159,8 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
         double td = t * d[i];
         j->position[3 * p + i] = (float)(o[i] + td);
         j->bary[3 * p + i] = (float)bary[i];
-        j->geo_normal[3 * p + i] = (float)(gn[i] / gl);
-        j->normal[3 * p + i] = (float)(n[i] / nl);
+        j->geo_normal[3 * p + i] = (float)gn[i];
+        j->normal[3 * p + i] = (float)n[i];
     }
     j->dist[p] = (float)t;
     j->depth[p] = (float)(t * dot3d(d, f));
@@ -184,26 +202,15 @@ static void layer_lanes(const LayerJob *j, const int64_t *px) {
     for (int m = 0; m < 6; m++) memcpy(&cuv[m], uva[m], 32);
     v4d t = hit4(o, d, v, bary);
     v4m redo = min34(bary) < K4(v4d, -j->tol);
-    v4d e1[3], e2[3], gn[3], n[3], uv[2], w[3];
-    for (int m = 0; m < 3; m++) {
-        e1[m] = v[3 + m] - v[m];
-        e2[m] = v[6 + m] - v[m];
-    }
-    cross34(e1, e2, gn);
-    v4d gl = norm34(gn);
-    gl = SEL4(gl < K4(v4d, 1e-300), K4(v4d, 1e-300), gl);
-    weights4(bary, w);
-    blend4(w, cn, 3, n);
-    v4d nl = norm34(n);
-    nl = SEL4(nl < K4(v4d, 1e-300), K4(v4d, 1e-300), nl);
-    blend4(w, cuv, 2, uv);
+    v4d gn[3], n[3], uv[2];
+    attrs4(v, cn, cuv, bary, gn, n, uv);
     v4d depth = t * dot34(d, f);
     float pos_f[3][4], bary_f[3][4], gn_f[3][4], n_f[3][4], uv_f[2][4], dist_f[4], depth_f[4];
     for (int i = 0; i < 3; i++) {
         _mm_storeu_ps(pos_f[i], _mm256_cvtpd_ps((__m256d)(o[i] + t * d[i])));
         _mm_storeu_ps(bary_f[i], _mm256_cvtpd_ps((__m256d)bary[i]));
-        _mm_storeu_ps(gn_f[i], _mm256_cvtpd_ps((__m256d)(gn[i] / gl)));
-        _mm_storeu_ps(n_f[i], _mm256_cvtpd_ps((__m256d)(n[i] / nl)));
+        _mm_storeu_ps(gn_f[i], _mm256_cvtpd_ps((__m256d)gn[i]));
+        _mm_storeu_ps(n_f[i], _mm256_cvtpd_ps((__m256d)n[i]));
     }
     for (int i = 0; i < 2; i++) _mm_storeu_ps(uv_f[i], _mm256_cvtpd_ps((__m256d)uv[i]));
     _mm_storeu_ps(dist_f, _mm256_cvtpd_ps((__m256d)t));
