@@ -229,6 +229,39 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere(monkeypatch):
     assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact
 
 
+def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch):
+    """csrc/lattice.c's driver (the fused methods fill and shade every level after their
+    first pass in one call) gives the images and passes of adaptive.fill and
+    adaptive.merge bit for bit: two levels (the sphere), a light in front, a roughness map
+    with bounces, the cone methods; and it is the path taken."""
+    from torchrefract.shading import fused
+
+    cases = (("sphere_a03", "specular", {}), ("sphere_a03", "prefiltered", {}),
+             ("sphere_a03", "rousiers", {}), ("slab_light", "rousiers", {}),
+             ("globe_gradient", "rousiers", {"internal_bounces": 2}),
+             ("globe_jump", "lean", {}), ("vgroove_a01", "gsr", {}))
+    run, run_lattice, calls = fused._run, fused._run_lattice, []
+
+    def counted(name, *rest):
+        calls.append(name)
+        return run_lattice(name, *rest)
+
+    for name, method, opts in cases:
+        s = _scene(name, 96, n=1, method=method, method_options=opts)
+        monkeypatch.setattr(fused, "_run_lattice", counted)
+        a = tr.render(s, settings=ADAPTIVE)
+        kernel = {"prefiltered": "specular", "gsr": "lean"}.get(method, method)
+        assert calls and calls[-1] == kernel, (name, method, calls)
+        # the same kernels, each level's fill and pass run from Python
+        monkeypatch.setattr(fused, "_run", lambda n, job, *rest: run(n, job))
+        b = tr.render(s, settings=ADAPTIVE)
+        monkeypatch.undo()
+        assert torch.equal(a.radiance, b.radiance), (name, method)
+        assert set(a.passes) == set(b.passes)
+        for k in a.passes:
+            assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
+
+
 def test_no_lattice_where_too_little_could_wait():
     """Under FINE_SHARE of the object pixels waiting, no lattice: the full render."""
     s = _scene("sphere_a03", 48, n=1, method="specular")

@@ -144,12 +144,16 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     extra = render_hook.requested(scenes)
     extra_passes: dict[str, torch.Tensor] = {}
     with collect() as stage_times, render_hook.scope(extra) as rec:
-        shaded = tiles.shade(entry, g, lighting, materials, options, state, budget)
+        lattice = plan if isinstance(plan, adaptive.Lattice) else None
+        shaded = tiles.shade(entry, dataclasses.replace(g, lattice=lattice), lighting,
+                             materials, options, state, budget)
         radiance, method_passes = shaded.radiance, shaded.passes
         if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
             radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
-        elif isinstance(plan, adaptive.Lattice):  # level by level, the waiting pixels:
-            for level in plan.levels:  # interpolated, or shaded over the image so far
+        elif lattice is not None:  # level by level, the waiting pixels: interpolated, or
+            for level in plan.levels:  # shaded over the image so far
+                if not adaptive.waiting(level):  # done by the fused kernel (g.lattice)
+                    continue
                 radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
                                                                     method_passes)
                 if rest is None:

@@ -172,8 +172,9 @@ def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -
         mask = torch.zeros(b * h * w, dtype=torch.bool).index_fill_(0, piece, True)
         if witness is not None:
             mask.index_fill_(0, witness, True)
-        out = entry.shade(dataclasses.replace(g, shade=mask.view(b, h, w)), lighting,
-                          materials, options, state)
+        # a tile is not the whole first pass: the levels after it wait for the caller
+        out = entry.shade(dataclasses.replace(g, shade=mask.view(b, h, w), lattice=None),
+                          lighting, materials, options, state)
         if radiance is None:  # the first tile: the frame every other one is copied into
             # (copies: a method may hand out views of buffers it reads, the G-buffer's)
             radiance = out.radiance.clone(memory_format=torch.contiguous_format)

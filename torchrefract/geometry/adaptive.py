@@ -312,6 +312,12 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
                                                     fine))
 
 
+def waiting(level: Level) -> bool:
+    """Whether any pixel of ``level`` still waits (:func:`fill` not run on it yet; a level
+    of :func:`lattice` starts with at least one)."""
+    return bool((level.status == 2).any())
+
+
 def _no_wait(status: torch.Tensor, views: torch.Tensor) -> None:
     """In place: the (B, H, W) status of every view not in ``views`` (B,) bool without
     waiting pixels (its object pixels shaded in the first pass)."""
@@ -450,4 +456,4 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
 
 
 __all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
-           "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread"]
+           "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread", "waiting"]

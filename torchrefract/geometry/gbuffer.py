@@ -130,6 +130,10 @@ class GBuffer:
         canvas: (B*H*W, 3) radiance a method shades its pixels over in place of the
             background (None: the background; adaptive shading's second pass: the
             first pass's image, :func:`torchrefract.shading.background.background`).
+        lattice: adaptive shading's levels after this first pass (a
+            :class:`torchrefract.geometry.adaptive.Lattice`) that a fused kernel may fill
+            and shade itself after shading ``shade`` (:func:`torchrefract.shading.fused._run`;
+            a level left with no waiting pixel is done); None: the caller fills them.
         marched: where this G-buffer is a strip of a larger frame (its rows only,
             :mod:`torchrefract.large`), the whole frame's marched layers
             (:class:`torchrefract.kernels.march.Marched`: the march reads them, and their
@@ -149,6 +153,7 @@ class GBuffer:
     supersample: int
     shade: torch.Tensor | None = None
     canvas: torch.Tensor | None = None
+    lattice: object | None = None
     marched: object | None = None
     derived: dict = field(default_factory=dict, compare=False, repr=False)
 

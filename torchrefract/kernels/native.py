@@ -234,7 +234,24 @@ class _LatticeJob(ctypes.Structure):
                 ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
                 ("rtol", ctypes.c_float), ("radiance", _p), ("status", _p), ("gap", _p),
                 ("weight", _p), ("blend_from", ctypes.c_float),
-                ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p)]
+                ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p),
+                ("stride", ctypes.c_int64), ("fh", ctypes.c_int64), ("fw", ctypes.c_int64)]
+
+
+class _ShadeLevel(ctypes.Structure):
+    """ctypes mirror of ``ShadeLevel`` in csrc/lattice.c."""
+
+    _fields_ = [("stride", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("status", _p), ("gap", _p), ("rtol", ctypes.c_float)]
+
+
+class _LatticeShadeJob(ctypes.Structure):
+    """ctypes mirror of ``LatticeShadeJob`` in csrc/lattice.c."""
+
+    _fields_ = [("run", _p), ("job", _p), ("b", ctypes.c_int64), ("h", ctypes.c_int64),
+                ("w", ctypes.c_int64), ("nlevels", ctypes.c_int), ("levels", _p),
+                ("blend_from", ctypes.c_float), ("radiance", _p), ("npass", ctypes.c_int),
+                ("pass_ptr", _p), ("pass_ch", _p)]
 
 
 class _RelightJob(ctypes.Structure):
@@ -253,7 +270,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
-            "relight_reads": _RelightJob}
+            "lattice_shade": _LatticeShadeJob, "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -388,6 +405,12 @@ def _call(name: str, job: ctypes.Structure) -> bool:
     where a thread could not be started (the caller then runs its tensor code)."""
     return getattr(_LIB, f"torchrefract_{name}")(ctypes.byref(job),
                                                  torch.get_num_threads()) == 0
+
+
+def entry(name: str) -> int:
+    """The address of kernel ``torchrefract_<name>`` (loaded: :func:`available`), for a job
+    that calls it (csrc/lattice.c's driver)."""
+    return ctypes.cast(getattr(_LIB, f"torchrefract_{name}"), ctypes.c_void_p).value
 
 
 def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],

@@ -20,6 +20,7 @@ import math
 import torch
 
 from torchrefract import settings
+from torchrefract.geometry import adaptive
 from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes
@@ -196,7 +197,7 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
         job.level_alpha = keep.ptr(levels.clamp(min=mf.ALPHA_MIN))
         job.cover = keep.array(mips)
         job.cover_hw = keep.ptr(torch.tensor([m.shape[1:3] for m in mips]), torch.int64)
-    if frame.n and not _run("rousiers", job):
+    if frame.n and not _run("rousiers", job, g, radiance, passes):
         return None
     return radiance.view(b, h, w, 3), passes
 
@@ -241,15 +242,53 @@ def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
         passes["blur_sigma"] = sigma.view(b, h, w, 1)
     job = native._SpecJob(f=frame, blur=int(blur), blur_sigma=sigma.data_ptr(),
                           bo=_bounces(g, options.bounces, frame, keep, passes))
-    if frame.n and not _run("specular", job):
+    if frame.n and not _run("specular", job, g, radiance, passes):
         return None
     return radiance.view(b, h, w, 3), passes
 
 
-def _run(name: str, job) -> bool:
-    """Run fused kernel ``name`` on ``job``, timed as the stage ``fused``."""
+def _run(name: str, job, g=None, radiance: torch.Tensor | None = None,
+         passes: dict | None = None) -> bool:
+    """Run fused kernel ``name`` on ``job``, timed as the stage ``fused``. Where ``g``
+    carries the later levels of adaptive shading (``g.lattice``), the kernel's pixels are
+    the first pass and csrc/lattice.c then fills and shades every level in place on
+    ``radiance`` (B*H*W, 3) and ``passes`` (adaptive.fill and adaptive.merge, the same
+    values), so the level statuses are left with no waiting pixel."""
     with stage("fused"):
-        return native._call(name, job)
+        if g is None or g.lattice is None:
+            return native._call(name, job)
+        return _run_lattice(name, job, g, radiance, passes)
+
+
+def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> bool:
+    """csrc/lattice.c's ``lattice_shade`` around kernel ``name`` (:func:`_run`)."""
+    frame = job
+    while not isinstance(frame, native._Frame):  # the job's Frame: its first field, nested
+        frame = getattr(frame, frame._fields_[0][0])
+    assert ctypes.addressof(frame) == ctypes.addressof(job)
+    b, h, w = g.shape
+    levels = g.lattice.levels
+    rows = (native._ShadeLevel * len(levels))(*[native._ShadeLevel(
+        stride=lv.stride, h=lv.status.shape[1], w=lv.status.shape[2],
+        status=lv.status.data_ptr(), gap=lv.gap.data_ptr(),
+        rtol=adaptive.LATTICE_RTOL / lv.stride / adaptive.BLEND_FROM) for lv in levels])
+    if not all(lv.status.is_contiguous() and lv.gap.is_contiguous() for lv in levels):
+        return False
+    bufs = [v.reshape(b * h * w, -1) for v in passes.values()]
+    if not all(x.is_contiguous() and x.dtype == torch.float32 for x in bufs):
+        return False
+    ptrs = (ctypes.c_void_p * max(1, len(bufs)))(*[x.data_ptr() for x in bufs])
+    chans = torch.tensor([x.shape[1] for x in bufs] or [0], dtype=torch.int64)
+    drv = native._LatticeShadeJob(
+        run=native.entry(name), job=ctypes.addressof(job), b=b, h=h, w=w,
+        nlevels=len(levels), levels=ctypes.cast(rows, ctypes.c_void_p),
+        blend_from=adaptive.BLEND_FROM, radiance=radiance.data_ptr(), npass=len(bufs),
+        pass_ptr=ctypes.cast(ptrs, ctypes.c_void_p), pass_ch=chans.data_ptr())
+    if native._call("lattice_shade", drv):
+        return True
+    if any(not bool((lv.status == 2).any()) for lv in levels):  # failed after a level
+        raise MemoryError(f"adaptive shading ({name}): no memory for a level's pass")
+    return False  # the first pass failed: nothing written, the tensor code runs
 
 
 def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool):

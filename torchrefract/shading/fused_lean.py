@@ -99,7 +99,7 @@ def lean(g, lighting, materials, options, radiance: torch.Tensor, subdivisions: 
         r=rous, k=subdivisions, lobes=lobes, taps=options.ewa_taps, mips=len(mips), texel=texel,
         lean=keep.array(mips),
         lean_hw=keep.ptr(torch.tensor([m.shape[1:3] for m in mips]), torch.int64))
-    if not fused._run("lean", job):
+    if not fused._run("lean", job, g, radiance, passes):
         return None
     return radiance.view(b, h, w, 3), passes
 

@@ -18,7 +18,9 @@
  * the mean, from 1 on it is shaded, and between, the shaded value weighs smoothstep of
  * where t lies: the image changes continuously as t crosses the thresholds. */
 
-#include "optics.h"
+#include <string.h>
+
+#include "frame.h"
 
 typedef struct {
     int64_t b, h, w;
@@ -36,7 +38,18 @@ typedef struct {
     int npass;                                  /* fill: the method's passes, interpolated */
     float *const *pass;                         /* (npass,) each (B*H*W, pass_ch[k]) */
     const int64_t *pass_ch;
+    /* fill: the level's pixels (B, h, w) are the frame's (B, fh, fw) of stride ``stride``
+     * (radiance and passes are the frame's; status, gap, weight the level's); 0: the
+     * level is the frame */
+    int64_t stride, fh, fw;
 } LatticeJob;
+
+/* The frame's flat index of the level's pixel p. */
+static inline int64_t frame_index(const LatticeJob *j, int64_t p) {
+    if (j->stride <= 1) return p;
+    int64_t hw = j->h * j->w, bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
+    return (bi * j->fh + y * j->stride) * j->fw + x * j->stride;
+}
 
 /* The mean of the neighbours' values (k = 2 or 4) of channel c of a (B*H*W, ch) array. */
 static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, int k,
@@ -116,6 +129,8 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
         if (j->status[p] != 2) continue;
         int64_t nb[4];
         int k = lattice_neighbours(j, p, nb);
+        for (int i = 0; i < k; i++) nb[i] = frame_index(j, nb[i]);  /* into the frame */
+        int64_t fp = frame_index(j, p);
         const float *v[4];
         for (int i = 0; i < k; i++) v[i] = j->radiance + 3 * nb[i];
         float mean[3], rel = 0.0f;
@@ -134,11 +149,11 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
         }
         float t = fmaxf(j->gap[p], rel / j->rtol);
         if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
-            for (int c = 0; c < 3; c++) j->radiance[3 * p + c] = mean[c];
+            for (int c = 0; c < 3; c++) j->radiance[3 * fp + c] = mean[c];
             for (int q = 0; q < j->npass; q++) {
                 float *x = j->pass[q];
                 int64_t ch = j->pass_ch[q];
-                for (int64_t c = 0; c < ch; c++) x[p * ch + c] = lattice_mean(x, ch, nb, k, c);
+                for (int64_t c = 0; c < ch; c++) x[fp * ch + c] = lattice_mean(x, ch, nb, k, c);
             }
             if (t <= j->blend_from) {
                 j->status[p] = 3;
@@ -157,5 +172,144 @@ int torchrefract_lattice_fill(LatticeJob *job, int threads) {
     return tr_parallel_for(fill_range, job, job->b * job->h * job->w, 4096, threads);
 }
 
+/* One level of a plan for the driver below: its pixels (B, h, w) at ``stride`` in the
+ * frame, the plan's status (filled in place) and gap. */
+typedef struct {
+    int64_t stride, h, w;
+    uint8_t *status;
+    float *gap;
+    float rtol;                     /* the fill's (adaptive.fill: LATTICE_RTOL over the
+                                     * stride over blend_from) */
+} ShadeLevel;
+
+typedef int (*tr_kernel_fn)(void *job, int threads);
+
+/* adaptive.fill and adaptive.merge for a fused method, after its first pass: per level,
+ * the fill, then the method's kernel over the pixels left (status 4 and 5, in frame
+ * order) shading over the image so far, and the blend of the status-5 ones with their
+ * means (mean + weight (shaded - mean), as adaptive._blend). ``job`` is the method's job
+ * (its ``Frame`` first), ``run`` its entry (torchrefract_specular, ...); the frame's own
+ * pixels are the first pass's. */
+typedef struct {
+    tr_kernel_fn run;
+    void *job;
+    int64_t b, h, w;                /* the frame */
+    int nlevels;
+    const ShadeLevel *levels;       /* coarsest first */
+    float blend_from;               /* BLEND_FROM */
+    float *radiance;                /* (B*H*W, 3) */
+    int npass;
+    float *const *pass;             /* the method's passes, (B*H*W, pass_ch[k]) each */
+    const int64_t *pass_ch;
+} LatticeShadeJob;
+
+/* One level's pass after its fill. Returns 0, or -1 (memory, or the kernel failed). */
+static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f, int threads) {
+    int64_t n = lj->b * lj->h * lj->w, hw = J->h * J->w, rest = 0, soft = 0, chans = 3;
+    for (int q = 0; q < J->npass; q++) chans += J->pass_ch[q];
+    for (int64_t p = 0; p < n; p++) {
+        rest += lj->status[p] >= 4;
+        soft += lj->status[p] == 5;
+    }
+    if (rest == 0) return 0;
+    int64_t *idx = (int64_t *)malloc(sizeof(int64_t) * (size_t)rest * 2);
+    int64_t *sidx = (int64_t *)malloc(sizeof(int64_t) * (size_t)(soft ? soft : 1));
+    float *sw = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1));
+    float *mean = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1) * (size_t)chans);
+    if (!idx || !sidx || !sw || !mean) {
+        free(idx); free(sidx); free(sw); free(mean);
+        return -1;
+    }
+    int64_t *batch = idx + rest, r = 0, s = 0;
+    for (int64_t p = 0; p < n; p++) {
+        if (lj->status[p] < 4) continue;
+        int64_t fp = frame_index(lj, p);
+        idx[r] = fp;
+        batch[r++] = fp / hw;
+        if (lj->status[p] == 5) {  /* its means, read before the pass overwrites them */
+            float *m = mean + s * chans;
+            for (int c = 0; c < 3; c++) m[c] = J->radiance[3 * fp + c];
+            m += 3;
+            for (int q = 0; q < J->npass; q++) {
+                int64_t ch = J->pass_ch[q];
+                for (int64_t c = 0; c < ch; c++) m[c] = J->pass[q][fp * ch + c];
+                m += ch;
+            }
+            sidx[s] = fp;
+            sw[s++] = lj->weight[p];
+        }
+        /* the passes as a fresh pass has them (adaptive.merge takes the second pass's
+         * values at every pixel it shades) */
+        for (int q = 0; q < J->npass; q++) {
+            int64_t ch = J->pass_ch[q];
+            for (int64_t c = 0; c < ch; c++) J->pass[q][fp * ch + c] = 0.0f;
+        }
+    }
+    int64_t n0 = f->n;
+    const int64_t *idx0 = f->idx, *batch0 = f->batch;
+    f->n = rest;
+    f->idx = idx;
+    f->batch = batch;
+    int rc = J->run(J->job, threads);
+    f->n = n0;
+    f->idx = idx0;
+    f->batch = batch0;
+    for (int64_t i = 0; rc == 0 && i < soft; i++) {
+        int64_t fp = sidx[i];
+        float w = sw[i], *m = mean + i * chans;
+        for (int c = 0; c < 3; c++) {
+            float *x = J->radiance + 3 * fp + c;
+            *x = m[c] + w * (*x - m[c]);
+        }
+        m += 3;
+        for (int q = 0; q < J->npass; q++) {
+            int64_t ch = J->pass_ch[q];
+            for (int64_t c = 0; c < ch; c++) {
+                float *x = J->pass[q] + fp * ch + c;
+                *x = m[c] + w * (*x - m[c]);
+            }
+            m += ch;
+        }
+    }
+    free(idx); free(sidx); free(sw); free(mean);
+    return rc;
+}
+
+/* Entry point (ctypes, shading/fused.py): the first pass (the frame's pixels), then every
+ * level. Returns 0, or -1 (the caller then runs the levels by adaptive.fill and merge). */
+int torchrefract_lattice_shade(LatticeShadeJob *J, int threads) {
+    Frame *f = (Frame *)J->job;
+    if (f->n > 0 && J->run(J->job, threads) != 0) return -1;
+    for (int i = 0; i < J->nlevels; i++) {
+        const ShadeLevel *L = J->levels + i;
+        int64_t n = J->b * L->h * L->w;
+        float *weight = (float *)calloc((size_t)(n ? n : 1), sizeof(float));
+        if (!weight) return -1;
+        LatticeJob lj;
+        memset(&lj, 0, sizeof(lj));
+        lj.b = J->b;
+        lj.h = L->h;
+        lj.w = L->w;
+        lj.rtol = L->rtol;
+        lj.blend_from = J->blend_from;
+        lj.radiance = J->radiance;
+        lj.status = L->status;
+        lj.gap = L->gap;
+        lj.weight = weight;
+        lj.npass = J->npass;
+        lj.pass = J->pass;
+        lj.pass_ch = J->pass_ch;
+        lj.stride = L->stride;
+        lj.fh = J->h;
+        lj.fw = J->w;
+        int rc = tr_parallel_for(fill_range, &lj, n, 4096, threads);
+        if (rc == 0) rc = shade_level(J, &lj, f, threads);
+        free(weight);
+        if (rc != 0) return -1;
+    }
+    return 0;
+}
+
+int64_t torchrefract_lattice_shade_job_size(void) { return (int64_t)sizeof(LatticeShadeJob); }
 int64_t torchrefract_lattice_plan_job_size(void) { return (int64_t)sizeof(LatticeJob); }
 int64_t torchrefract_lattice_fill_job_size(void) { return (int64_t)sizeof(LatticeJob); }
