@@ -112,6 +112,7 @@ def test_lattice_plan_kernel_equals_tensor_code():
     second neighbour)."""
     assert native.available()
     blends = []  # whether some waiting pixels of a scene are near a tolerance (blended)
+    coarse_waits = []  # whether some even pixels of a scene wait on those of stride 4
     for name, size in (("sphere_a03", 48), ("bunny_a01", 49), ("globe_gradient", 47),
                        ("wingnut_a01", 40)):
         _, args = _lattice_inputs(_scene(name, size, n=1))
@@ -128,7 +129,16 @@ def test_lattice_plan_kernel_equals_tensor_code():
         lat[:, ::2, ::2] = True
         assert not ((a == 2) & lat).any()  # the lattice never waits
         assert torch.equal(a > 0, args[0])  # every object pixel has a status
+        # the coarse level: the even pixels read in place equal the tensor code on copies
+        even = (slice(None), slice(None, None, 2), slice(None, None, 2))
+        sub = [x[even].contiguous() if x.dim() > 3 or x.shape[1:] == args[0].shape[1:]
+               else x for x in args]
+        tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
+        a2, b2 = native.lattice_plan(*args, *tols, stride=2), adaptive._lattice_torch(*sub, *tols)
+        assert torch.equal(a2[0], b2[0]) and torch.equal(a2[1], b2[1]), name
+        coarse_waits.append(bool((a2[0] == 2).any()))
     assert any(blends), blends
+    assert any(coarse_waits), coarse_waits
 
 
 def test_lattice_fill_kernel_equals_tensor_code():

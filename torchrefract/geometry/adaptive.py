@@ -258,12 +258,19 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
 
 
 def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
-          depth_tol: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """A level's status and gap over (B, H, W) layers (csrc/lattice.c, else the tensor
-    code)."""
-    args = (fm, bm, fn, bn, bd, alpha, smooth_alpha, normal_tol, depth_tol)
-    out = native.lattice_plan(*args)
-    return _lattice_torch(*args) if out is None else out
+          depth_tol: float, stride: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """A level's status and gap over the (B, H, W) layers' pixels of stride ``stride``
+    (csrc/lattice.c, reading them in place; else the tensor code on copies)."""
+    tols = (smooth_alpha, normal_tol, depth_tol)
+    out = native.lattice_plan(fm, bm, fn, bn, bd, alpha, *tols, stride=stride)
+    if out is not None:
+        return out
+    if stride > 1:
+        on = (slice(None), slice(None, None, stride), slice(None, None, stride))
+        if alpha.shape[1:] == fm.shape[1:]:  # per pixel (else per view)
+            alpha = alpha[on].contiguous()
+        fm, bm, fn, bn, bd = (x[on].contiguous() for x in (fm, bm, fn, bn, bd))
+    return _lattice_torch(fm, bm, fn, bn, bd, alpha, *tols)
 
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
@@ -297,12 +304,10 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     _no_wait(status, fine_views)
     fine = Level(1, status, gap)
     even = (slice(None), slice(None, None, 2), slice(None, None, 2))
-    sub = [x[even].contiguous() for x in layers]
-    a2 = alpha[even].contiguous() if alpha.shape[1:] == g.shape[1:] else alpha
-    coarse_status, coarse_gap = _plan(*sub, a2, *tol)
+    coarse_status, coarse_gap = _plan(*layers, alpha, *tol, stride=2)
     coarse_waiting = (coarse_status == 2).flatten(1).sum(1)
     coarse_views = fine_views & (coarse_waiting > 0) & (
-        coarse_waiting >= share * sub[0].flatten(1).sum(1))
+        coarse_waiting >= share * (coarse_status > 0).flatten(1).sum(1))
     first = fine.status == 1
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))

@@ -686,11 +686,11 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
 def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                  front_normal: torch.Tensor, back_normal: torch.Tensor,
                  back_depth: torch.Tensor, alpha: torch.Tensor, alpha_min: float,
-                 normal_tol: float, depth_tol: float
+                 normal_tol: float, depth_tol: float, stride: int = 1
                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``adaptive._lattice_torch``'s (B, H, W) uint8 status and float32 gap
-    (csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not a
-    float32 / bool CPU tensor.
+    """``adaptive._lattice_torch``'s (B, H/s, W/s) uint8 status and float32 gap of the
+    layers' pixels of stride ``s`` (csrc/lattice.c; read in place, rounding up), or
+    ``None`` where the kernel is unavailable or an input is not a float32 / bool CPU tensor.
 
     Args:
         front_mask, back_mask: (B, H, W). front_normal, back_normal: (B, H, W, 3).
@@ -702,15 +702,17 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                    (front_mask, back_mask))
     if keep is None:
         return None
-    b, h, w = front_mask.shape
+    b, fh, fw = front_mask.shape
+    h, w = -(-fh // stride), -(-fw // stride)
     status = torch.empty(b, h, w, dtype=torch.uint8)
     gap = torch.empty(b, h, w)
     job = _LatticeJob(b=b, h=h, w=w, front_mask=keep[4].data_ptr(),
                       back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
                       back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
-                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * h * w),
+                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * fh * fw),
                       alpha_min=alpha_min, normal_tol=normal_tol, depth_tol=depth_tol,
-                      rtol=0.0, radiance=None, status=status.data_ptr(), gap=gap.data_ptr())
+                      rtol=0.0, radiance=None, status=status.data_ptr(), gap=gap.data_ptr(),
+                      stride=stride, fh=fh, fw=fw)
     return (status, gap) if _call("lattice_plan", job) else None
 
 

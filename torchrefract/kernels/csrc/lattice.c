@@ -38,9 +38,9 @@ typedef struct {
     int npass;                                  /* fill: the method's passes, interpolated */
     float *const *pass;                         /* (npass,) each (B*H*W, pass_ch[k]) */
     const int64_t *pass_ch;
-    /* fill: the level's pixels (B, h, w) are the frame's (B, fh, fw) of stride ``stride``
-     * (radiance and passes are the frame's; status, gap, weight the level's); 0: the
-     * level is the frame */
+    /* the level's pixels (B, h, w) are the frame's (B, fh, fw) of stride ``stride``
+     * (the layers, alpha, radiance and passes are the frame's; status, gap, weight the
+     * level's); 0: the level is the frame */
     int64_t stride, fh, fw;
 } LatticeJob;
 
@@ -74,8 +74,9 @@ static int lattice_neighbours(const LatticeJob *j, int64_t p, int64_t *nb) {
     return 2;
 }
 
-static inline float alpha_of(const LatticeJob *j, int64_t p) {
-    return j->per_pixel ? j->alpha[p] : j->alpha[p / (j->h * j->w)];
+/* The roughness at the frame's pixel fp of the level's pixel p (per view: p's view). */
+static inline float alpha_of(const LatticeJob *j, int64_t p, int64_t fp) {
+    return j->per_pixel ? j->alpha[fp] : j->alpha[p / (j->h * j->w)];
 }
 
 /* The reciprocal of a tolerance (tolerances below 1e-30 taken as 1e-30): measures are
@@ -85,25 +86,26 @@ static inline float inv_tol(float tol) { return 1.0f / (tol > 1e-30f ? tol : 1e-
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
     for (int64_t p = begin; p < end; p++) {
-        if (!j->front_mask[p]) {
+        int64_t fp = frame_index(j, p);  /* the layers are the frame's */
+        if (!j->front_mask[fp]) {
             j->status[p] = 0;
             j->gap[p] = 0.0f;
             continue;
         }
         int64_t nb[4];
         int k = lattice_neighbours(j, p, nb);
-        const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
-        int back = j->back_mask[p];
-        float bd = j->back_depth[p], tol = j->depth_tol * fabsf(bd);
+        const float *fn = j->front_normal + 3 * fp, *bn = j->back_normal + 3 * fp;
+        int back = j->back_mask[fp];
+        float bd = j->back_depth[fp], tol = j->depth_tol * fabsf(bd);
         float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
         /* the gap: each test's measure over its tolerance, the largest (a per-view
          * roughness is the neighbours' too) */
-        float gap = j->alpha_min * inv_tol(alpha_of(j, p));
+        float gap = j->alpha_min * inv_tol(alpha_of(j, p, fp));
         int wait = k > 0;
         for (int i = 0; i < k && wait; i++) {
-            int64_t q = nb[i];
+            int64_t q = frame_index(j, nb[i]);
             wait = j->front_mask[q] && j->back_mask[q] == back;
-            if (j->per_pixel) gap = fmaxf(gap, j->alpha_min * inv_tol(alpha_of(j, q)));
+            if (j->per_pixel) gap = fmaxf(gap, j->alpha_min * inv_tol(alpha_of(j, nb[i], q)));
             gap = fmaxf(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
             if (back) {
                 gap = fmaxf(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
