@@ -15,29 +15,79 @@ typedef struct {
     float *out;                 /* (B*H*W, 3) */
 } BackgroundJob;
 
+/* A sphere light the camera ray of pixel p hits before the object replaces its
+ * environment value o. */
+static inline void background_light(const BackgroundJob *j, int64_t b, int64_t p, float *o) {
+    if (j->lights.nl == 0) return;
+    int64_t l;
+    float t = hit_light(&j->lights, b, j->eye + 3 * b, j->ray_dir + 3 * p, &l);
+    if (isfinite(t) && (!j->front_mask[p] || t < j->front_dist[p]))
+        for (int c = 0; c < 3; c++) o[c] = j->lights.light_le[(b * j->lights.nl + l) * 3 + c];
+}
+
+/* One pixel of background_range: view b, pixel p. */
+static inline void background_pixel(const BackgroundJob *j, int64_t b, int64_t p) {
+    const float *d = j->ray_dir + 3 * p;
+    float *o = j->out + 3 * p;
+    int obj = j->front_mask[p];
+    if (j->lights.nl == 0 && obj) {
+        o[0] = o[1] = o[2] = 0.0f;
+        return;
+    }
+    env_lookup(&j->lights, b, d, o);
+    background_light(j, b, p, o);
+}
+
 static void background_range(const void *job, int64_t begin, int64_t end) {
     const BackgroundJob *j = (const BackgroundJob *)job;
     int64_t b = begin / j->hw, next = (b + 1) * j->hw;  /* the view, without a division
                                                           * per pixel */
-    for (int64_t p = begin; p < end; p++) {
+    int64_t p = begin;
+#ifdef TR_HAVE_ENV8
+    /* 8 pixels of one view at a time (env_lookup8; a view's last few pixels, and a map
+     * too large for 32-bit offsets, one at a time) */
+    while (p < end) {
         if (p == next) {
             b++;
             next += j->hw;
         }
-        const float *d = j->ray_dir + 3 * p;
-        float *o = j->out + 3 * p;
-        int obj = j->front_mask[p];
-        if (j->lights.nl == 0 && obj) {
-            o[0] = o[1] = o[2] = 0.0f;
-            continue;
+        int64_t stop = next < end ? next : end;
+        if (env_view8_fits(&j->lights, b)) {
+            EnvView8 e = env_view8(&j->lights, b);
+            for (; p + 8 <= stop; p += 8) {
+                /* the lanes the object covers (left at zero without lights) */
+                __m256i cover = _mm256_cmpgt_epi32(
+                    _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->front_mask + p))),
+                    _mm256_setzero_si256());
+                int all = _mm256_movemask_ps(_mm256_castsi256_ps(cover)) == 0xff;
+                float *o = j->out + 3 * p;
+                if (j->lights.nl == 0 && all) {
+                    __m256 zero = _mm256_setzero_ps();
+                    _mm256_storeu_ps(o, zero);
+                    _mm256_storeu_ps(o + 8, zero);
+                    _mm256_storeu_ps(o + 16, zero);
+                    continue;
+                }
+                __m256 dx, dy, dz, c[3];
+                tr_load_xyz8(j->ray_dir + 3 * p, &dx, &dy, &dz);
+                env_lookup8(&e, dx, dy, dz, c);
+                if (j->lights.nl == 0)
+                    for (int k = 0; k < 3; k++)
+                        c[k] = _mm256_andnot_ps(_mm256_castsi256_ps(cover), c[k]);
+                tr_store_xyz8(o, c[0], c[1], c[2]);
+                if (j->lights.nl > 0)
+                    for (int k = 0; k < 8; k++) background_light(j, b, p + k, o + 3 * k);
+            }
         }
-        env_lookup(&j->lights, b, d, o);
-        if (j->lights.nl > 0) {
-            int64_t l;
-            float t = hit_light(&j->lights, b, j->eye + 3 * b, d, &l);
-            if (isfinite(t) && (!obj || t < j->front_dist[p]))
-                for (int c = 0; c < 3; c++) o[c] = j->lights.light_le[(b * j->lights.nl + l) * 3 + c];
+        for (; p < stop; p++) background_pixel(j, b, p);
+    }
+#endif
+    for (; p < end; p++) {
+        if (p == next) {
+            b++;
+            next += j->hw;
         }
+        background_pixel(j, b, p);
     }
 }
 

@@ -83,6 +83,221 @@ static void env_lookup(const Lights *j, int64_t b, const float *dir, float *out)
     env_read(j, &p, out);
 }
 
+#if defined(__AVX2__) && defined(__FMA__)
+/* env_lookup for 8 directions of one view in AVX2 lanes (background.c). Everything but
+ * atan2f and acosf is map_uv's, env_tap's and env_read's float arithmetic op for op, so
+ * it rounds as they do; those two are polynomials in double lanes, rounded once to float
+ * (below). */
+#include <immintrin.h>
+#define TR_HAVE_ENV8 1
+
+/* atan2 of float values, in double lanes: t = min / max of |x|, |y| (or (t - 1) / (t + 1)
+ * above tan(pi/8), plus pi/4), atan(t) = t + t^3 P(t^2) by a minimax polynomial on
+ * [0, tan^2(pi/8)] (relative error 1e-13), then pi/2 - r where |y| > |x|, pi - r where
+ * x < 0 (its sign bit: atan2f's +-pi at x = -0), and y's sign. */
+static inline __m256d tr_atan2_4d(__m256d y, __m256d x) {
+    const __m256d sign = _mm256_set1_pd(-0.0);
+    __m256d ay = _mm256_andnot_pd(sign, y), ax = _mm256_andnot_pd(sign, x);
+    __m256d lo = _mm256_min_pd(ay, ax), hi = _mm256_max_pd(ay, ax);
+    __m256d big = _mm256_cmp_pd(lo, _mm256_mul_pd(_mm256_set1_pd(0.41421356237309503), hi),
+                                _CMP_GT_OQ);
+    /* exact: where taken, lo and hi are floats within a factor 3 of each other */
+    __m256d num = _mm256_blendv_pd(lo, _mm256_sub_pd(lo, hi), big);
+    __m256d den = _mm256_blendv_pd(hi, _mm256_add_pd(lo, hi), big);
+    /* both zero: t = 0 (atan2f(+-0, +-0)) */
+    den = _mm256_blendv_pd(den, _mm256_set1_pd(1.0),
+                           _mm256_cmp_pd(den, _mm256_setzero_pd(), _CMP_EQ_OQ));
+    __m256d t = _mm256_div_pd(num, den), z = _mm256_mul_pd(t, t);
+    __m256d p = _mm256_set1_pd(0.032956795418701366);
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.060273074609466753));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.076048000460782915));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.090841018953464295));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.11110819716745676));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.142857081103604));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.19999999949854793));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.33333333333266199));
+    __m256d r = _mm256_fmadd_pd(_mm256_mul_pd(t, z), p, t);
+    r = _mm256_add_pd(r, _mm256_and_pd(big, _mm256_set1_pd(TR_PI / 4)));
+    r = _mm256_blendv_pd(r, _mm256_sub_pd(_mm256_set1_pd(TR_PI / 2), r),
+                         _mm256_cmp_pd(ay, ax, _CMP_GT_OQ));
+    r = _mm256_blendv_pd(r, _mm256_sub_pd(_mm256_set1_pd(TR_PI), r), x);
+    return _mm256_or_pd(r, _mm256_and_pd(sign, y));
+}
+
+/* acos of float values in [-1, 1], in double lanes: asin(s) = s + s^3 Q(s^2) by a minimax
+ * polynomial on s in [0, 1/2] (relative error 2e-13); acos(y) = pi/2 - asin(y) for
+ * |y| <= 1/2, above it 2 asin(s) with s = sqrt((1 - |y|) / 2), taken from pi where
+ * y < 0. */
+static inline __m256d tr_acos_4d(__m256d y) {
+    const __m256d sign = _mm256_set1_pd(-0.0), half = _mm256_set1_pd(0.5);
+    __m256d a = _mm256_andnot_pd(sign, y);
+    __m256d big = _mm256_cmp_pd(a, half, _CMP_GT_OQ);
+    __m256d zb = _mm256_mul_pd(half, _mm256_sub_pd(_mm256_set1_pd(1.0), a));
+    __m256d s = _mm256_blendv_pd(a, _mm256_sqrt_pd(zb), big);
+    __m256d z = _mm256_blendv_pd(_mm256_mul_pd(a, a), zb, big);
+    __m256d p = _mm256_set1_pd(0.028346745231833329);
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.0010675063150363118));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.01686409027396012));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.016902683886393575));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.022412417726695433));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.030379945210024933));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.044642906474584963));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.074999999534297119));
+    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.16666666666738632));
+    __m256d r = _mm256_fmadd_pd(_mm256_mul_pd(s, z), p, s);
+    __m256d small = _mm256_sub_pd(_mm256_set1_pd(TR_PI / 2),
+                                  _mm256_or_pd(r, _mm256_and_pd(sign, y)));
+    __m256d r2 = _mm256_add_pd(r, r);
+    __m256d large = _mm256_blendv_pd(r2, _mm256_sub_pd(_mm256_set1_pd(TR_PI), r2), y);
+    return _mm256_blendv_pd(small, large, big);
+}
+
+/* atan2f(y, x) and acosf(y) of 8 floats: the double results (above) rounded once to float,
+ * the correctly rounded values but for a few in a million. The C library's (map_uv's, and
+ * the tensor code's on strided tensors) may be an ulp off: u or v then moves a lookup by
+ * 1e-4 texel, which across a hard edge of an HDR map is a visible relative difference. */
+static inline __m256 tr_atan2f8(__m256 y, __m256 x) {
+    __m256d lo = tr_atan2_4d(_mm256_cvtps_pd(_mm256_castps256_ps128(y)),
+                             _mm256_cvtps_pd(_mm256_castps256_ps128(x)));
+    __m256d hi = tr_atan2_4d(_mm256_cvtps_pd(_mm256_extractf128_ps(y, 1)),
+                             _mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)));
+    return _mm256_set_m128(_mm256_cvtpd_ps(hi), _mm256_cvtpd_ps(lo));
+}
+
+static inline __m256 tr_acosf8(__m256 y) {
+    __m256d lo = tr_acos_4d(_mm256_cvtps_pd(_mm256_castps256_ps128(y)));
+    __m256d hi = tr_acos_4d(_mm256_cvtps_pd(_mm256_extractf128_ps(y, 1)));
+    return _mm256_set_m128(_mm256_cvtpd_ps(hi), _mm256_cvtpd_ps(lo));
+}
+
+/* One view's constants for env_lookup8, broadcast. */
+typedef struct {
+    __m256 ca, sa, wf, wp1, hm1, wp1_half, hm1_half, scale;
+    __m256i w, w3, wp1_i, hm1_i;
+    const float *tex;
+} EnvView8;
+
+/* Whether view b's texel offsets fit the 32-bit gathers. */
+static inline int env_view8_fits(const Lights *L, int64_t b) {
+    return L->tex_h[b] * L->tex_w[b] * 3 <= INT32_MAX;
+}
+
+static inline EnvView8 env_view8(const Lights *L, int64_t b) {
+    int64_t h = L->tex_h[b], w = L->tex_w[b];
+    EnvView8 e;
+    e.ca = _mm256_set1_ps(L->rot_cos[b]);
+    e.sa = _mm256_set1_ps(L->rot_sin[b]);
+    e.wf = _mm256_set1_ps((float)w);
+    e.wp1 = _mm256_set1_ps((float)(w + 1));
+    e.hm1 = _mm256_set1_ps((float)(h - 1));
+    e.wp1_half = _mm256_set1_ps((float)(w + 1) / 2.0f);
+    e.hm1_half = _mm256_set1_ps((float)(h - 1) / 2.0f);
+    e.scale = _mm256_set1_ps(L->scale[b]);
+    e.w = _mm256_set1_epi32((int)w);
+    e.w3 = _mm256_set1_epi32((int)(3 * w));
+    e.wp1_i = _mm256_set1_epi32((int)(w + 1));
+    e.hm1_i = _mm256_set1_epi32((int)(h - 1));
+    e.tex = L->tex[b];
+    return e;
+}
+
+/* clampf(x, lo, hi) (a NaN gives lo, so that a lane's indices stay in the map) */
+static inline __m256 tr_clamp8(__m256 x, __m256 lo, __m256 hi) {
+    return _mm256_min_ps(_mm256_max_ps(x, lo), hi);
+}
+
+/* (x - 1) mod w for x in [0, w + 1] (env_tap's wrap). */
+static inline __m256i tr_wrap8(__m256i x, __m256i w) {
+    __m256i c = _mm256_sub_epi32(x, _mm256_set1_epi32(1));
+    c = _mm256_add_epi32(c, _mm256_and_si256(_mm256_cmpgt_epi32(_mm256_setzero_si256(), c), w));
+    __m256i over = _mm256_cmpgt_epi32(c, _mm256_sub_epi32(w, _mm256_set1_epi32(1)));
+    return _mm256_sub_epi32(c, _mm256_and_si256(over, w));
+}
+
+/* map_uv of the directions (dx, dy, dz) in view e's frame. */
+static inline void map_uv8(const EnvView8 *e, __m256 dx, __m256 dy, __m256 dz, __m256 *u,
+                           __m256 *v) {
+    const __m256 sign = _mm256_set1_ps(-0.0f);
+    __m256 len = _mm256_mul_ps(dx, dx);
+    len = _mm256_fmadd_ps(dy, dy, len);
+    len = _mm256_sqrt_ps(_mm256_fmadd_ps(dz, dz, len));
+    len = _mm256_max_ps(len, _mm256_set1_ps(1e-30f));
+    dx = _mm256_div_ps(dx, len);
+    dy = _mm256_div_ps(dy, len);
+    dz = _mm256_div_ps(dz, len);
+    __m256 x = _mm256_add_ps(_mm256_mul_ps(e->ca, dx), _mm256_mul_ps(e->sa, dz));
+    __m256 z = _mm256_add_ps(_mm256_mul_ps(_mm256_xor_ps(e->sa, sign), dx),
+                             _mm256_mul_ps(e->ca, dz));
+    __m256 uu = _mm256_mul_ps(tr_atan2f8(x, _mm256_xor_ps(z, sign)),
+                              _mm256_set1_ps((float)(0.5 / TR_PI)));
+    *u = _mm256_sub_ps(uu, _mm256_floor_ps(uu));
+    __m256 yc = tr_clamp8(dy, _mm256_set1_ps(-1.0f), _mm256_set1_ps(1.0f));
+    *v = _mm256_mul_ps(tr_acosf8(yc), _mm256_set1_ps((float)(1.0 / TR_PI)));
+}
+
+/* env_lookup of the directions (dx, dy, dz): out[c] the 8 lanes' channel c. */
+static inline void env_lookup8(const EnvView8 *e, __m256 dx, __m256 dy, __m256 dz,
+                               __m256 *out) {
+    __m256 u, v;
+    map_uv8(e, dx, dy, dz, &u, &v);
+    /* env_tap */
+    const __m256 one = _mm256_set1_ps(1.0f), two = _mm256_set1_ps(2.0f);
+    __m256 gx = _mm256_add_ps(_mm256_sub_ps(_mm256_mul_ps(u, e->wf), _mm256_set1_ps(0.5f)),
+                              one);
+    gx = _mm256_sub_ps(_mm256_div_ps(_mm256_mul_ps(two, gx), e->wp1), one);
+    __m256 gy = _mm256_sub_ps(
+        _mm256_div_ps(_mm256_mul_ps(two, _mm256_mul_ps(v, e->hm1)), e->hm1), one);
+    __m256 px = tr_clamp8(_mm256_mul_ps(_mm256_add_ps(gx, one), e->wp1_half),
+                          _mm256_setzero_ps(), e->wp1);
+    __m256 py = tr_clamp8(_mm256_mul_ps(_mm256_add_ps(gy, one), e->hm1_half),
+                          _mm256_setzero_ps(), e->hm1);
+    __m256 x0f = _mm256_floor_ps(px), y0f = _mm256_floor_ps(py);
+    __m256i x0 = _mm256_cvttps_epi32(x0f), y0 = _mm256_cvttps_epi32(y0f);
+    __m256i one_i = _mm256_set1_epi32(1);
+    __m256i x1 = _mm256_min_epi32(_mm256_add_epi32(x0, one_i), e->wp1_i);
+    __m256i y1 = _mm256_min_epi32(_mm256_add_epi32(y0, one_i), e->hm1_i);
+    __m256i c0 = tr_wrap8(x0, e->w), c1 = tr_wrap8(x1, e->w);
+    c0 = _mm256_add_epi32(c0, _mm256_add_epi32(c0, c0));  /* 3 c */
+    c1 = _mm256_add_epi32(c1, _mm256_add_epi32(c1, c1));
+    __m256i r0 = _mm256_mullo_epi32(y0, e->w3), r1 = _mm256_mullo_epi32(y1, e->w3);
+    __m256i i00 = _mm256_add_epi32(r0, c0), i01 = _mm256_add_epi32(r0, c1);
+    __m256i i10 = _mm256_add_epi32(r1, c0), i11 = _mm256_add_epi32(r1, c1);
+    __m256 fx = _mm256_sub_ps(px, x0f), fy = _mm256_sub_ps(py, y0f);
+    __m256 gx_ = _mm256_sub_ps(one, fx), gy_ = _mm256_sub_ps(one, fy);
+    /* env_read */
+    for (int c = 0; c < 3; c++) {
+        const float *t = e->tex + c;
+        __m256 top = _mm256_add_ps(_mm256_mul_ps(_mm256_i32gather_ps(t, i00, 4), gx_),
+                                   _mm256_mul_ps(_mm256_i32gather_ps(t, i01, 4), fx));
+        __m256 bot = _mm256_add_ps(_mm256_mul_ps(_mm256_i32gather_ps(t, i10, 4), gx_),
+                                   _mm256_mul_ps(_mm256_i32gather_ps(t, i11, 4), fx));
+        out[c] = _mm256_mul_ps(_mm256_add_ps(_mm256_mul_ps(top, gy_), _mm256_mul_ps(bot, fy)),
+                               e->scale);
+    }
+}
+
+/* The lanes of 24 interleaved floats (8 xyz triples) as x, y, z vectors, and back:
+ * three blends and a lane permutation each. */
+static inline void tr_load_xyz8(const float *p, __m256 *x, __m256 *y, __m256 *z) {
+    __m256 m0 = _mm256_loadu_ps(p), m1 = _mm256_loadu_ps(p + 8), m2 = _mm256_loadu_ps(p + 16);
+    __m256 tx = _mm256_blend_ps(_mm256_blend_ps(m0, m1, 0x92), m2, 0x24);
+    __m256 ty = _mm256_blend_ps(_mm256_blend_ps(m0, m1, 0x24), m2, 0x49);
+    __m256 tz = _mm256_blend_ps(_mm256_blend_ps(m0, m1, 0x49), m2, 0x92);
+    *x = _mm256_permutevar8x32_ps(tx, _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5));
+    *y = _mm256_permutevar8x32_ps(ty, _mm256_setr_epi32(1, 4, 7, 2, 5, 0, 3, 6));
+    *z = _mm256_permutevar8x32_ps(tz, _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
+}
+
+static inline void tr_store_xyz8(float *p, __m256 x, __m256 y, __m256 z) {
+    __m256 tx = _mm256_permutevar8x32_ps(x, _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5));
+    __m256 ty = _mm256_permutevar8x32_ps(y, _mm256_setr_epi32(5, 0, 3, 6, 1, 4, 7, 2));
+    __m256 tz = _mm256_permutevar8x32_ps(z, _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
+    _mm256_storeu_ps(p, _mm256_blend_ps(_mm256_blend_ps(tx, ty, 0x92), tz, 0x24));
+    _mm256_storeu_ps(p + 8, _mm256_blend_ps(_mm256_blend_ps(tz, tx, 0x92), ty, 0x24));
+    _mm256_storeu_ps(p + 16, _mm256_blend_ps(_mm256_blend_ps(ty, tz, 0x92), tx, 0x24));
+}
+#endif
+
 /* The tap along dir, its texel rows asked into the cache: a pixel's lookups then overlap
  * their memory reads with the work done before them (the refracted directions scatter
  * over the map); env_read reads them later. */
