@@ -13,14 +13,18 @@
  */
 
 #include <string.h>
+#ifdef __SSE2__
+#include <emmintrin.h>
+#endif
 
 #include "common.h"
 
 /* A hit's attributes for lane type T (the scalar and the AVX2 code alike): from the
  * triangle's corners v, corner normals tn and UVs tuv (as T) and the barycentrics, the unit
  * geometric normal gn, the unit interpolated shading normal n and the UV, as
- * gbuffer._layer_tensor computes them (lengths below 1e-300 taken as 1e-300). */
-#define TR_DEFINE_LAYER_ATTRS(T, S, SEL, K)                                                 \
+ * gbuffer._layer_tensor computes them (lengths below 1e-300 taken as 1e-300). W: the
+ * interpolation weights' function (weights##S or the same values by a shortcut). */
+#define TR_DEFINE_LAYER_ATTRS(T, S, SEL, K, W)                                              \
     static inline void attrs##S(const T *v, const T *tn, const T *tuv, const T *bary,      \
                                 T *gn, T *n, T *uv) {                                       \
         T e1[3], e2[3], w[3];                                                               \
@@ -31,7 +35,7 @@
         cross3##S(e1, e2, gn);                                                              \
         T gl = norm3##S(gn);                                                                \
         gl = SEL(gl < K(T, 1e-300), K(T, 1e-300), gl);                                      \
-        weights##S(bary, w);                                                                \
+        W(bary, w);                                                                         \
         blend##S(w, tn, 3, n);                                                              \
         T nl = norm3##S(n);                                                                 \
         nl = SEL(nl < K(T, 1e-300), K(T, 1e-300), nl);                                      \
@@ -58,7 +62,18 @@ static inline v4d abs4(v4d a) { return (v4d)((v4m)a & (v4m){~(1LL << 63), ~(1LL 
 #define SEL4(m, a, b) ((v4d)_mm256_blendv_pd((__m256d)(b), (__m256d)(a), (__m256d)(m)))
 #define K4(T, x) ((T){(x), (x), (x), (x)})
 TR_DEFINE_LANES(v4d, v4m, 4, fma4, abs4, sqrt4, 1e-30, SEL4, K4)
-TR_DEFINE_LAYER_ATTRS(v4d, 4, SEL4, K4)
+/* weights4, without its divisions where every lane's sum is exactly 1 (most hits inside
+ * the triangle): w / 1 is w, the same bits; a NaN sum is not 1. */
+static inline void weights_fast4(const v4d *bary, v4d *w) {
+    for (int i = 0; i < 3; i++)
+        w[i] = SEL4(bary[i] != bary[i], bary[i],
+                    SEL4(bary[i] < K4(v4d, 0), K4(v4d, 0), bary[i]));
+    v4d sum = (w[0] + w[1]) + w[2];
+    sum = SEL4(sum < K4(v4d, 1e-12), K4(v4d, 1e-12), sum);
+    if (_mm256_movemask_pd((__m256d)(sum == K4(v4d, 1))) == 0xf) return;
+    for (int i = 0; i < 3; i++) w[i] = w[i] / sum;
+}
+TR_DEFINE_LAYER_ATTRS(v4d, 4, SEL4, K4, weights_fast4)
 #endif
 
 typedef struct {
@@ -80,7 +95,7 @@ typedef struct {
 } LayerJob;
 
 TR_DEFINE_VEC3(double, d, fma, fabs, sqrt, 1e-30)
-TR_DEFINE_LAYER_ATTRS(double, d, TR_SEL_SCALAR, TR_K_SCALAR)
+TR_DEFINE_LAYER_ATTRS(double, d, TR_SEL_SCALAR, TR_K_SCALAR, weightsd)
 
 /* gbuffer._repair_edge_ids for the pixel (bi, py, px) with rasterized id ``id``. */
 static int64_t repair(const LayerJob *j, int64_t bi, int64_t py, int64_t px, int64_t id,
@@ -168,103 +183,189 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
     j->uv[2 * p + 1] = (float)uv[1];
 }
 
+/* The empty values of pixels [a, b) (mask 0, tri -1: all bits set, the rest 0.0f: all
+ * bits clear), in bulk. */
+static void layer_empty(const LayerJob *j, int64_t a, int64_t b) {
+    size_t n = (size_t)(b - a);
+    memset(j->mask + a, 0, n);
+    memset(j->tri + a, 0xff, n * sizeof(int64_t));
+    memset(j->dist + a, 0, n * sizeof(float));
+    memset(j->depth + a, 0, n * sizeof(float));
+    memset(j->position + 3 * a, 0, 3 * n * sizeof(float));
+    memset(j->bary + 3 * a, 0, 3 * n * sizeof(float));
+    memset(j->geo_normal + 3 * a, 0, 3 * n * sizeof(float));
+    memset(j->normal + 3 * a, 0, 3 * n * sizeof(float));
+    memset(j->uv + 2 * a, 0, 2 * n * sizeof(float));
+}
+
+/* One pixel on its own (outside whole blocks of four): its empty values, then its hit
+ * where covered. */
+static void layer_one(const LayerJob *j, int64_t p) {
+    layer_empty(j, p, p + 1);
+    if (j->ids[p] >= 0) layer_pixel(j, p);
+}
+
 #ifdef LAYER_LANES
-/* layer_pixel for four covered pixels in AVX2 lanes; a pixel whose hit falls outside its
- * rasterized triangle (rare: edges) is redone by layer_pixel, repair included. */
-static void layer_lanes(const LayerJob *j, const int64_t *px) {
-    int64_t hw = j->h * j->w, id[4], bi[4];
-    double oa[3][4], da[3][4], va[9][4], na[9][4], uva[6][4], fa[3][4];
+/* Four rows of 3 floats, contiguous (12 floats: x0 y0 z0 x1 ...), as x, y, z of 4 lanes. */
+static inline void soa3(const float *src, __m128 *x, __m128 *y, __m128 *z) {
+    __m128 r0 = _mm_loadu_ps(src), r1 = _mm_loadu_ps(src + 4), r2 = _mm_loadu_ps(src + 8);
+    __m128 u = _mm_shuffle_ps(r1, r2, _MM_SHUFFLE(1, 1, 2, 2));  /* x2 x2 x3 x3 */
+    *x = _mm_shuffle_ps(r0, u, _MM_SHUFFLE(2, 0, 3, 0));
+    __m128 v1 = _mm_shuffle_ps(r0, r1, _MM_SHUFFLE(0, 0, 1, 1)); /* y0 y0 y1 y1 */
+    __m128 v2 = _mm_shuffle_ps(r1, r2, _MM_SHUFFLE(2, 2, 3, 3)); /* y2 y2 y3 y3 */
+    *y = _mm_shuffle_ps(v1, v2, _MM_SHUFFLE(2, 0, 2, 0));
+    __m128 w1 = _mm_shuffle_ps(r0, r1, _MM_SHUFFLE(1, 1, 2, 2)); /* z0 z0 z1 z1 */
+    __m128 w2 = _mm_shuffle_ps(r2, r2, _MM_SHUFFLE(3, 3, 0, 0)); /* z2 z2 z3 z3 */
+    *z = _mm_shuffle_ps(w1, w2, _MM_SHUFFLE(2, 0, 2, 0));
+}
+
+/* The inverse: x, y, z of 4 lanes stored as 4 contiguous rows of 3 floats. */
+static inline void aos3(float *dst, __m128 x, __m128 y, __m128 z) {
+    __m128 a = _mm_unpacklo_ps(x, y);                            /* x0 y0 x1 y1 */
+    __m128 b = _mm_unpackhi_ps(x, y);                            /* x2 y2 x3 y3 */
+    __m128 m = _mm_shuffle_ps(z, x, _MM_SHUFFLE(1, 1, 0, 0));   /* z0 z0 x1 x1 */
+    __m128 n = _mm_shuffle_ps(y, z, _MM_SHUFFLE(1, 1, 1, 1));   /* y1 y1 z1 z1 */
+    __m128 k = _mm_shuffle_ps(z, x, _MM_SHUFFLE(3, 3, 2, 2));   /* z2 z2 x3 x3 */
+    __m128 l = _mm_shuffle_ps(y, z, _MM_SHUFFLE(3, 3, 3, 3));   /* y3 y3 z3 z3 */
+    _mm_storeu_ps(dst, _mm_shuffle_ps(a, m, _MM_SHUFFLE(2, 0, 1, 0)));
+    _mm_storeu_ps(dst + 4, _mm_shuffle_ps(n, b, _MM_SHUFFLE(1, 0, 2, 0)));
+    _mm_storeu_ps(dst + 8, _mm_shuffle_ps(k, l, _MM_SHUFFLE(2, 0, 2, 0)));
+}
+
+static inline v4d widen(__m128 x) { return (v4d)_mm256_cvtps_pd(x); }
+
+/* The first 8 floats of the rows table + stride * id[l] (4 lanes) as doubles: out[m],
+ * m < 8, lane l (a 4 x 8 transpose in float32; the widening to double is exact). */
+static inline void corners8(const float *table, int stride, const int64_t *id, v4d *out) {
+    __m256 r0 = _mm256_loadu_ps(table + stride * id[0]);
+    __m256 r1 = _mm256_loadu_ps(table + stride * id[1]);
+    __m256 r2 = _mm256_loadu_ps(table + stride * id[2]);
+    __m256 r3 = _mm256_loadu_ps(table + stride * id[3]);
+    __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1);
+    __m256 t2 = _mm256_unpacklo_ps(r2, r3), t3 = _mm256_unpackhi_ps(r2, r3);
+    __m256 c[4] = {_mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(1, 0, 1, 0)),
+                   _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(3, 2, 3, 2)),
+                   _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(1, 0, 1, 0)),
+                   _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(3, 2, 3, 2))};
+    for (int m = 0; m < 4; m++) {  /* c[m]: element m of the 4 rows | element m + 4 */
+        out[m] = widen(_mm256_castps256_ps128(c[m]));
+        out[m + 4] = widen(_mm256_extractf128_ps(c[m], 1));
+    }
+}
+
+/* The 9 corner values (3 x 3) of 4 lanes' triangles. */
+static inline void corners9(const float *table, const int64_t *id, v4d *out) {
+    corners8(table, 9, id, out);
+    out[8] = widen(_mm_setr_ps(table[9 * id[0] + 8], table[9 * id[1] + 8],
+                               table[9 * id[2] + 8], table[9 * id[3] + 8]));
+}
+
+/* The 6 UV values (3 x 2): a 4 x 4 transpose and the last pair of each row (no load past
+ * a row: the last row ends the table). */
+static inline void corners6(const float *table, const int64_t *id, v4d *out) {
+    __m128 r[4], q[4];
     for (int l = 0; l < 4; l++) {
-        int64_t p = px[l];
-        id[l] = j->ids[p];
-        bi[l] = p / hw;
-        for (int i = 0; i < 3; i++) {
-            oa[i][l] = (double)j->eye[3 * bi[l] + i];
-            da[i][l] = (double)j->dirs[3 * p + i];
-            fa[i][l] = (double)j->forward[3 * bi[l] + i];
-        }
-        for (int m = 0; m < 9; m++) {
-            va[m][l] = (double)j->tv[9 * id[l] + m];
-            na[m][l] = (double)j->tn[9 * id[l] + m];
-        }
-        for (int m = 0; m < 6; m++) uva[m][l] = (double)j->tuv[6 * id[l] + m];
+        r[l] = _mm_loadu_ps(table + 6 * id[l]);
+        q[l] = _mm_castsi128_ps(_mm_loadl_epi64((const __m128i *)(table + 6 * id[l] + 4)));
     }
+    _MM_TRANSPOSE4_PS(r[0], r[1], r[2], r[3]);
+    for (int m = 0; m < 4; m++) out[m] = widen(r[m]);
+    __m128 a = _mm_unpacklo_ps(q[0], q[1]), b = _mm_unpacklo_ps(q[2], q[3]);
+    out[4] = widen(_mm_movelh_ps(a, b));
+    out[5] = widen(_mm_movehl_ps(b, a));
+}
+
+/* The float32 of 4 lanes, 0.0f where keep is clear. */
+static inline __m128 narrow(v4d x, __m128 keep) {
+    return _mm_and_ps(_mm256_cvtpd_ps((__m256d)x), keep);
+}
+
+/* The pixels p0 .. p0 + 3 (one block, at least one covered; ids: theirs), all their
+ * outputs: the covered ones by layer_pixel's arithmetic in AVX2 lanes (the empty ones
+ * computed on triangle 0 and discarded), the empty ones and those whose hit falls
+ * outside the rasterized triangle (rare: edges) written empty; the latter then redone by
+ * layer_pixel, repair included. Every output of the block is stored once, whole. */
+static void layer_lanes(const LayerJob *j, int64_t p0, __m256i ids) {
+    int64_t hw = j->h * j->w, id[4];
+    __m256i covered = _mm256_cmpgt_epi64(ids, _mm256_set1_epi64x(-1));
+    _mm256_storeu_si256((__m256i *)id, _mm256_and_si256(ids, covered));
     v4d o[3], d[3], f[3], v[9], cn[9], cuv[6], bary[3];
-    for (int i = 0; i < 3; i++) {
-        memcpy(&o[i], oa[i], 32);
-        memcpy(&d[i], da[i], 32);
-        memcpy(&f[i], fa[i], 32);
+    int64_t b0 = p0 / hw, b3 = (p0 + 3) / hw;
+    if (b0 == b3) {
+        for (int i = 0; i < 3; i++) {
+            o[i] = K4(v4d, (double)j->eye[3 * b0 + i]);
+            f[i] = K4(v4d, (double)j->forward[3 * b0 + i]);
+        }
+    } else {  /* the block spans two views (H * W not a multiple of 4) */
+        for (int i = 0; i < 3; i++)
+            for (int l = 0; l < 4; l++) {
+                int64_t bi = (p0 + l) / hw;
+                o[i][l] = (double)j->eye[3 * bi + i];
+                f[i][l] = (double)j->forward[3 * bi + i];
+            }
     }
-    for (int m = 0; m < 9; m++) {
-        memcpy(&v[m], va[m], 32);
-        memcpy(&cn[m], na[m], 32);
-    }
-    for (int m = 0; m < 6; m++) memcpy(&cuv[m], uva[m], 32);
+    __m128 dx, dy, dz;
+    soa3(j->dirs + 3 * p0, &dx, &dy, &dz);
+    d[0] = widen(dx);
+    d[1] = widen(dy);
+    d[2] = widen(dz);
+    corners9(j->tv, id, v);
+    corners9(j->tn, id, cn);
+    corners6(j->tuv, id, cuv);
     v4d t = hit4(o, d, v, bary);
-    v4m redo = min34(bary) < K4(v4d, -j->tol);
+    v4m redo = (v4m)covered & (min34(bary) < K4(v4d, -j->tol));
+    v4m good = (v4m)covered & ~redo;
     v4d gn[3], n[3], uv[2];
     attrs4(v, cn, cuv, bary, gn, n, uv);
     v4d depth = t * dot34(d, f);
-    float pos_f[3][4], bary_f[3][4], gn_f[3][4], n_f[3][4], uv_f[2][4], dist_f[4], depth_f[4];
-    for (int i = 0; i < 3; i++) {
-        _mm_storeu_ps(pos_f[i], _mm256_cvtpd_ps((__m256d)(o[i] + t * d[i])));
-        _mm_storeu_ps(bary_f[i], _mm256_cvtpd_ps((__m256d)bary[i]));
-        _mm_storeu_ps(gn_f[i], _mm256_cvtpd_ps((__m256d)gn[i]));
-        _mm_storeu_ps(n_f[i], _mm256_cvtpd_ps((__m256d)n[i]));
-    }
-    for (int i = 0; i < 2; i++) _mm_storeu_ps(uv_f[i], _mm256_cvtpd_ps((__m256d)uv[i]));
-    _mm_storeu_ps(dist_f, _mm256_cvtpd_ps((__m256d)t));
-    _mm_storeu_ps(depth_f, _mm256_cvtpd_ps((__m256d)depth));
-    for (int l = 0; l < 4; l++) {
-        int64_t p = px[l];
-        if (redo[l]) {
-            layer_pixel(j, p);
-            continue;
-        }
-        j->mask[p] = 1;
-        j->tri[p] = id[l];
-        for (int i = 0; i < 3; i++) {
-            j->position[3 * p + i] = pos_f[i][l];
-            j->bary[3 * p + i] = bary_f[i][l];
-            j->geo_normal[3 * p + i] = gn_f[i][l];
-            j->normal[3 * p + i] = n_f[i][l];
-        }
-        j->dist[p] = dist_f[l];
-        j->depth[p] = depth_f[l];
-        j->uv[2 * p] = uv_f[0][l];
-        j->uv[2 * p + 1] = uv_f[1][l];
-    }
+    /* the kept lanes' 64-bit masks as 32-bit ones */
+    __m256 g8 = _mm256_castsi256_ps((__m256i)good);
+    __m128 keep = _mm_shuffle_ps(_mm256_castps256_ps128(g8), _mm256_extractf128_ps(g8, 1),
+                                 _MM_SHUFFLE(2, 0, 2, 0));
+    aos3(j->position + 3 * p0, narrow(o[0] + t * d[0], keep), narrow(o[1] + t * d[1], keep),
+         narrow(o[2] + t * d[2], keep));
+    aos3(j->bary + 3 * p0, narrow(bary[0], keep), narrow(bary[1], keep),
+         narrow(bary[2], keep));
+    aos3(j->geo_normal + 3 * p0, narrow(gn[0], keep), narrow(gn[1], keep),
+         narrow(gn[2], keep));
+    aos3(j->normal + 3 * p0, narrow(n[0], keep), narrow(n[1], keep), narrow(n[2], keep));
+    __m128 u = narrow(uv[0], keep), w = narrow(uv[1], keep);
+    _mm_storeu_ps(j->uv + 2 * p0, _mm_unpacklo_ps(u, w));
+    _mm_storeu_ps(j->uv + 2 * p0 + 4, _mm_unpackhi_ps(u, w));
+    _mm_storeu_ps(j->dist + p0, narrow(t, keep));
+    _mm_storeu_ps(j->depth + p0, narrow(depth, keep));
+    /* tri: the id where kept, else all bits set (-1); mask: one byte per pixel */
+    _mm256_storeu_si256((__m256i *)(j->tri + p0), _mm256_or_si256(ids, ~(__m256i)good));
+    int bits = _mm256_movemask_pd((__m256d)good);
+    uint32_t m4 = (uint32_t)((bits & 1) | (bits & 2) << 7 | (bits & 4) << 14 |
+                             (bits & 8) << 21);
+    memcpy(j->mask + p0, &m4, 4);
+    int again = _mm256_movemask_pd((__m256d)redo);
+    for (int l = 0; l < 4; l++)
+        if (again >> l & 1) layer_pixel(j, p0 + l);
 }
 #endif
 
-/* The range's empty values written in bulk (mask 0, tri -1: all bits set, the rest 0.0f:
- * all bits clear), then the covered pixels: three in four pixels of a frame are empty
- * and per-pixel stores to nine arrays cost a third of the layer. */
+/* Every output of pixels [begin, end): with AVX2, in blocks of four pixels (a run of
+ * empty blocks written in bulk: most pixels of a frame may be empty); else the empty
+ * values in bulk, then the covered pixels one by one. */
 static void layer_range(const void *job, int64_t begin, int64_t end) {
     const LayerJob *j = (const LayerJob *)job;
-    size_t n = (size_t)(end - begin);
-    memset(j->mask + begin, 0, n);
-    memset(j->tri + begin, 0xff, n * sizeof(int64_t));
-    memset(j->dist + begin, 0, n * sizeof(float));
-    memset(j->depth + begin, 0, n * sizeof(float));
-    memset(j->position + 3 * begin, 0, 3 * n * sizeof(float));
-    memset(j->bary + 3 * begin, 0, 3 * n * sizeof(float));
-    memset(j->geo_normal + 3 * begin, 0, 3 * n * sizeof(float));
-    memset(j->normal + 3 * begin, 0, 3 * n * sizeof(float));
-    memset(j->uv + 2 * begin, 0, 2 * n * sizeof(float));
 #ifdef LAYER_LANES
-    int64_t lane[LAYER_LANES];
-    int k = 0;
-    for (int64_t p = begin; p < end; p++)
-        if (j->ids[p] >= 0) {
-            lane[k++] = p;
-            if (k == LAYER_LANES) {
-                layer_lanes(j, lane);
-                k = 0;
-            }
-        }
-    for (int i = 0; i < k; i++) layer_pixel(j, lane[i]);
+    int64_t p = begin;
+    for (; p < end && (p & 3); p++) layer_one(j, p);
+    int64_t run = p;  /* the start of the current run of empty blocks */
+    for (; p + 4 <= end; p += 4) {
+        __m256i ids = _mm256_loadu_si256((const __m256i *)(j->ids + p));
+        if (_mm256_movemask_pd(_mm256_castsi256_pd(ids)) == 0xf) continue;  /* all < 0 */
+        if (run < p) layer_empty(j, run, p);
+        layer_lanes(j, p, ids);
+        run = p + 4;
+    }
+    if (run < p) layer_empty(j, run, p);
+    for (; p < end; p++) layer_one(j, p);
 #else
+    layer_empty(j, begin, end);
     for (int64_t p = begin; p < end; p++)
         if (j->ids[p] >= 0) layer_pixel(j, p);
 #endif
