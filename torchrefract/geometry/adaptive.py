@@ -138,11 +138,26 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
     bi = sel // (h * w)
     eye = take(g.eye, bi)
     m = tris.shape[1]
-    ts, bs = intersect_triangles(eye[:, None].expand(-1, m, -1), d[:, None].expand(-1, m, -1),
-                                 g.meshes.tri_vertices[tris])  # (N, m), (N, m, 3)
-    best = bs.amin(-1).argmax(-1)  # the first of equal ones
-    pick = torch.arange(len(sel))
-    tri, t, bary = tris[pick, best], ts[pick, best], bs[pick, best]
+    # where every sub-pixel saw one triangle (most pixels), it is the pick (the first of
+    # equal ones) and one hit is computed; elsewhere each candidate's
+    one = (tris == tris[:, :1]).all(1)
+    tri, t, bary = tris[:, 0].clone(), torch.empty(len(sel)), torch.empty(len(sel), 3)
+    i1, im = where_true(one), where_true(~one)
+    t1, b1 = intersect_triangles(take(eye, i1), take(d, i1),
+                                 g.meshes.tri_vertices[take(tri, i1)])
+    put_(t, i1, t1.to(t.dtype))
+    put_(bary, i1, b1.to(bary.dtype))
+    if im.numel():
+        cand = take(tris, im)
+        ts, bs = intersect_triangles(take(eye, im).repeat_interleave(m, 0),
+                                     take(d, im).repeat_interleave(m, 0),
+                                     g.meshes.tri_vertices[cand.reshape(-1)])
+        ts, bs = ts.view(-1, m), bs.view(-1, m, 3)  # (N, m), (N, m, 3)
+        best = bs.amin(-1).argmax(-1)  # the first of equal ones
+        pick = torch.arange(len(im))
+        put_(tri, im, cand[pick, best])
+        put_(t, im, ts[pick, best].to(t.dtype))
+        put_(bary, im, bs[pick, best].to(bary.dtype))
     fwd = take(g.proj[:, 9:12], bi)
     values = {
         "tri": tri,
@@ -165,11 +180,22 @@ def spread(p: Plan, radiance: torch.Tensor, passes: dict[str, torch.Tensor]
            ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Each uniform pixel's first sub-pixel copied to its others: radiance (B, H, W, 3) and
     the method's passes (B, H, W, C), in place."""
+    n = p.n
+    b, hp, wp = p.uniform.shape
+    pb, py, px = p.uniform.nonzero(as_tuple=True)
+    first = (pb * (hp * n) + py * n) * (wp * n) + px * n  # flat sub-pixel 0 of each
+    others = [first + i * (wp * n) + j for i in range(n) for j in range(n) if i or j]
     for x in (radiance, *passes.values()):
-        subs = _subs(x, p.n)
-        v0 = subs[0][p.uniform]
-        for v in subs[1:]:
-            v[p.uniform] = v0
+        if not x.is_contiguous() or x.requires_grad:  # (autograd: the masked writes)
+            subs = _subs(x, n)
+            v0 = subs[0][p.uniform]
+            for v in subs[1:]:
+                v[p.uniform] = v0
+            continue
+        flat = x.view(b * hp * n * wp * n, -1)
+        v0 = take(flat, first)
+        for k in others:
+            put_(flat, k, v0)
     return radiance, passes
 
 
