@@ -409,6 +409,25 @@ def test_pyramid_cache_memory_and_disk(tmp_path, monkeypatch):
     clear_sg_cache()
 
 
+def test_disk_cache_maps_the_texels(tmp_path):
+    """The cached pyramid's texels are mapped from its file (pages read only where looked
+    up), equal to the ones saved; a compressed file is read instead."""
+    pyr = build_sg_pyramid(spotty_map(16, 32), [6.0, 2.0])
+    path = tmp_path / "p.npz"
+    sgenv._save_npz(path, pyr)
+    got = sgenv._load_npz(path)
+    assert torch.equal(got.base, pyr.base) and torch.equal(got.atlas, pyr.atlas)
+    assert got.rects == pyr.rects and got.sharpness == pyr.sharpness
+    assert isinstance(sgenv._npz_member(path, "atlas"), np.memmap)
+    got.atlas[0, 0, 0] += 1.0  # copy-on-write: the file keeps its texels
+    assert torch.equal(sgenv._load_npz(path).atlas, pyr.atlas)
+    packed = tmp_path / "z.npz"
+    with np.load(path) as z:
+        np.savez_compressed(packed, **{k: z[k] for k in z.files})
+    assert not isinstance(sgenv._npz_member(packed, "atlas"), np.memmap)
+    assert torch.equal(sgenv._load_npz(packed).atlas, pyr.atlas)
+
+
 # --------------------------------------------------------------------------------------
 # Errors, dtype, device moves
 # --------------------------------------------------------------------------------------

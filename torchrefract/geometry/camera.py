@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 import torch
-from kornia.geometry import create_meshgrid
 
 from torchrefract.optics.smooth import dot
 from torchrefract.scene.model import Camera
@@ -65,6 +64,12 @@ def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
     return _pixel_rays_cached(cam, supersample).clone()  # callers may write to theirs
 
 
+def kept_pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
+    """:func:`pixel_rays` without the copy: the kept tensor itself, for a caller that only
+    reads it (or copies it anyway, as ``torch.stack`` does)."""
+    return _pixel_rays_cached(cam, supersample)
+
+
 @functools.lru_cache(maxsize=16)
 def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
     """:func:`pixel_rays`, kept for the last cameras (a sweep renders one camera in batch
@@ -82,10 +87,10 @@ def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Te
     a = cam.width / cam.height
     # x depends on the column only, y on the row only: (f + x r) per column and y u per row,
     # added once over the image (each element's operations and order unchanged)
-    grid = create_meshgrid(1, w, normalized_coordinates=False, dtype=torch.float64)[0]
-    x = (2.0 * (grid[0, :, 0] + 0.5) / w - 1.0) * t * a  # (w,)
-    rows = create_meshgrid(h, 1, normalized_coordinates=False, dtype=torch.float64)[0]
-    y = (1.0 - 2.0 * (rows[r0:r1, 0, 1] + 0.5) / h) * t  # (r1 - r0,)
+    # pixel indices as float64 (exact integers; kornia's create_meshgrid gave the same, and
+    # its import cost every process ~30 MB)
+    x = (2.0 * (torch.arange(w, dtype=torch.float64) + 0.5) / w - 1.0) * t * a  # (w,)
+    y = (1.0 - 2.0 * (torch.arange(r0, r1, dtype=torch.float64) + 0.5) / h) * t  # (r1 - r0,)
     fx = torch.from_numpy(f) + x[:, None] * torch.from_numpy(r)  # (w, 3)
     d = fx[None] + (y[:, None] * torch.from_numpy(u))[:, None]  # (r1 - r0, w, 3)
     return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)

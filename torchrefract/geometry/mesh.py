@@ -2,7 +2,8 @@
 
 Shading normals follow SCENE_SPEC.md: the file's own vertex normals when it has them
 (rotated with the object), otherwise trimesh's ``vertex_normals`` computed after the
-transform. Degenerate triangles are dropped; a mesh that is not watertight loads with a
+transform (:mod:`~torchrefract.geometry.vertex_normals`, the same numbers without importing
+trimesh). Degenerate triangles are dropped; a mesh that is not watertight loads with a
 warning (the two-layer methods assume closed objects). What does not depend on the pose
 (the faces kept, watertightness, the edge-neighbour tables) is computed once per file, in
 object space, and kept in the cache folder (``mesh/``, keyed by the file's path, time and
@@ -24,6 +25,7 @@ import torch
 
 from torchrefract import settings
 from torchrefract.checks import ConfigError, file_version
+from torchrefract.geometry.vertex_normals import vertex_normals
 from torchrefract.output.atomic import atomic_path
 from torchrefract.scene.model import Transform
 
@@ -248,10 +250,7 @@ def _load_mesh_cached(path: str, _mtime: int, _size: int, transform: Transform) 
     if top.file_normals is not None:
         normals = top.file_normals @ rotation_matrix(transform.rotate_deg).T
     else:
-        import trimesh  # noqa: PLC0415
-
-        normals = np.asarray(trimesh.Trimesh(verts, faces, process=False).vertex_normals,
-                             dtype=np.float64)
+        normals = vertex_normals(verts, faces)  # trimesh's, without importing trimesh
     n = np.linalg.norm(normals, axis=1, keepdims=True)
     # Vertices used by no kept face (or with a zero normal in the file) get any unit vector;
     # they are never interpolated.

@@ -51,6 +51,8 @@ import functools
 import hashlib
 import inspect
 import math
+import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -623,16 +625,46 @@ def _save_npz(path: Path, pyr: SGPyramid) -> None:
                  sharpness=np.asarray(pyr.sharpness[1:], dtype=np.float64))
 
 
+def _npz_member(path: Path, name: str) -> np.ndarray:
+    """Member ``name`` of an uncompressed ``.npz`` (what :func:`_save_npz` writes) mapped
+    from the file copy-on-write, not read: a render reads a few of the pyramid's levels (a
+    lobe's sharpness picks two), so only their pages come into memory, where reading the
+    file held the whole atlas (~88 MB for a 512 x 1024 map) in every render process. The
+    pages stay the file's (the cache's writes replace the file, never change it in place),
+    and processes that map one file share them. Falls back to reading the member."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            info = z.getinfo(name + ".npy")
+        if info.compress_type != zipfile.ZIP_STORED:
+            raise ValueError("compressed member")
+        with open(path, "rb") as fh:
+            fh.seek(info.header_offset)
+            local = fh.read(30)  # the member's local header: name and extra lengths at 26
+            n_name, n_extra = struct.unpack("<HH", local[26:30])
+            fh.seek(info.header_offset + 30 + n_name + n_extra)
+            version = np.lib.format.read_magic(fh)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read_header(fh)
+            offset = fh.tell()
+        if fortran or dtype.hasobject:
+            raise ValueError("not a plain C-ordered array")
+        return np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        with np.load(path) as z:
+            return z[name]
+
+
 def _load_npz(path: Path) -> SGPyramid | None:
-    """The pyramid in the disk cache (None where unreadable). numpy reads each member into
-    a fresh writable array, which torch takes as it is: a copy doubled the load's time
-    (0.05 against 0.4-0.7 s for the demo map's 90 MB) and its peak memory."""
+    """The pyramid in the disk cache (None where unreadable). The texels are mapped from
+    the file (:func:`_npz_member`), which torch takes as they are (no copy)."""
     try:
         with np.load(path) as z:
-            return SGPyramid(torch.from_numpy(z["base"]),
-                             torch.from_numpy(z["atlas"]),
-                             tuple(tuple(int(v) for v in r) for r in z["rects"]),
-                             (math.inf,) + tuple(float(k) for k in z["sharpness"]))
+            rects, sharpness = z["rects"], z["sharpness"]
+        return SGPyramid(torch.from_numpy(_npz_member(path, "base")),
+                         torch.from_numpy(_npz_member(path, "atlas")),
+                         tuple(tuple(int(v) for v in r) for r in rects),
+                         (math.inf,) + tuple(float(k) for k in sharpness))
     except Exception:  # unreadable or stale: rebuild (and overwrite)
         return None
 
@@ -660,6 +692,8 @@ def _pyramid_cached(path: str, _mtime: int, _size: int, params: tuple,
             _save_npz(disk, pyr)
         except OSError:
             pass  # read-only home etc.: the in-memory cache still holds it
+        else:  # the same texels, mapped from the file: the built ones are freed
+            pyr = _load_npz(disk) or pyr
     return pyr
 
 

@@ -127,7 +127,8 @@ class SGTable:
         key = ("volume", dtype, str(device), sharpness)
         if key not in self._cache:
             ch = (0, 1 if sharpness == "moment" else 3, 2)
-            d = self.data.to(dtype=torch.float64)[..., list(ch)].clone()  # (2, 2, T, E, A, 3)
+            # the channels picked before widening (exact): no float64 copy of all four
+            d = self.data[..., list(ch)].to(dtype=torch.float64)  # (2, 2, T, E, A, 3)
             d[..., 2] = torch.sin(d[..., 2])
             self._cache[key] = d.flatten(0, 1).permute(0, 4, 1, 2, 3).to(
                 device=device, dtype=dtype).contiguous()
