@@ -177,7 +177,7 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
         mask = layer.mask[b].numpy().reshape(-1)
         assert np.array_equal(mask, tri_g >= 0), f"{label} {name}: mask != (tri >= 0)"
         assert (local < len(faces)).all(), f"{label} {name}: id outside this mesh's faces"
-        for field in ("position", "dist", "depth", "bary", "geo_normal", "normal", "uv"):
+        for field in ("position", "dist", "depth", "bary", "normal", "uv"):
             vals = getattr(layer, field)[b].numpy().reshape(mask.shape[0], -1)
             assert not vals[~mask].any(), f"{label} {name}.{field} nonzero outside the mask"
 
@@ -220,13 +220,10 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
         recon = eye + dist[mask, None] * dirs[mask]
         assert np.abs(recon - pos[mask]).max() < 1e-5 * radius + 1e-6
 
-        # Geometric normal: trimesh's face normal (outward by winding), unit length.
-        gn = layer.geo_normal[b].numpy().reshape(-1, 3).astype(np.float64)
-        fn = trimesh.triangles.normals(verts[faces[ref_ids[agree]]])[0]
-        cos = (gn[agree] * fn).sum(-1)
-        assert np.abs(np.abs(cos) - 1.0).max() < 1e-5, f"{label} {name}: geo normal off"
-        assert (cos > 0).all(), f"{label} {name}: geo normal not outward (by winding)"
-        facing = (gn[mask] * dirs[mask]).sum(-1)
+        # Orientation: each layer's triangle faces the camera (front) or away (back), by
+        # its face normal (trimesh's, outward by winding).
+        gn = trimesh.triangles.normals(verts[faces[local[mask]]])[0]
+        facing = (gn * dirs[mask]).sum(-1)
         assert (facing < 0).all() if name == "front" else (facing > 0).all(), \
             f"{label} {name}: layer holds faces of the wrong orientation"
 
@@ -462,7 +459,7 @@ def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, mon
             lb, ls = getattr(g, name), getattr(single, name)
             assert torch.equal(lb.mask[b], ls.mask[0])
             assert torch.equal(torch.where(lb.tri[b] >= 0, lb.tri[b] - off, -1), ls.tri[0])
-            for f in ("position", "normal", "depth", "uv", "bary", "geo_normal"):
+            for f in ("position", "normal", "depth", "uv", "bary"):
                 assert torch.equal(getattr(lb, f)[b], getattr(ls, f)[0]), (b, name, f)
         assert torch.equal(g.ray_dir[b], single.ray_dir[0])
         assert torch.equal(g.proj[b], single.proj[0])

@@ -168,8 +168,6 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
         "normal": normalize(interpolate(bary, take(g.meshes.tri_normals, tri))),
         "uv": interpolate(bary, take(g.meshes.tri_uvs, tri)),
     }
-    v0, v1, v2 = g.meshes.tri_vertices[tri].unbind(-2)
-    values["geo_normal"] = normalize(torch.cross(v1 - v0, v2 - v0, dim=-1))  # by winding
     for name, v in values.items():  # in place: the render's own layer
         x = getattr(g.front, name)
         x.view(-1, *x.shape[3:])[sel] = v.to(x.dtype)

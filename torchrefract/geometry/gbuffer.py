@@ -95,7 +95,6 @@ class Layer:
         dist: (B, H, W) distance from the eye along the pixel ray.
         depth: (B, H, W) camera-space depth (along the forward axis).
         bary: (B, H, W, 3) barycentrics of the hit (may leave [0, 1] by ~1e-6 at edges).
-        geo_normal: (B, H, W, 3) unit geometric normal, outward (by winding).
         normal: (B, H, W, 3) unit interpolated shading normal, outward.
         uv: (B, H, W, 2) interpolated UV.
     Values where ``mask`` is False are zeros.
@@ -107,7 +106,6 @@ class Layer:
     dist: torch.Tensor
     depth: torch.Tensor
     bary: torch.Tensor
-    geo_normal: torch.Tensor
     normal: torch.Tensor
     uv: torch.Tensor
 
@@ -299,8 +297,6 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
         tv = take(meshes.tri_vertices, tri).double()
         t, bary = intersect_triangles(o, d, tv)
     pos = o + t[:, None] * d
-    gn = torch.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0], dim=-1)
-    gn = gn / gn.norm(dim=-1, keepdim=True).clamp(min=1e-300)
     n = interpolate(bary, take(meshes.tri_normals, tri).double())
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
     uv = interpolate(bary, take(meshes.tri_uvs, tri).double())
@@ -318,7 +314,6 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
         dist=scatter(t, None),
         depth=scatter(depth, None),
         bary=scatter(bary, 3),
-        geo_normal=scatter(gn, 3),
         normal=scatter(n, 3),
         uv=scatter(uv, 2),
     )

@@ -111,7 +111,7 @@ class _LayerJob(ctypes.Structure):
         ("back", ctypes.c_int), ("tol", ctypes.c_double), ("keep_tol", ctypes.c_double),
         ("mask", ctypes.c_void_p), ("tri", ctypes.c_void_p),
         ("position", ctypes.c_void_p), ("dist", ctypes.c_void_p), ("depth", ctypes.c_void_p),
-        ("bary", ctypes.c_void_p), ("geo_normal", ctypes.c_void_p),
+        ("bary", ctypes.c_void_p),
         ("normal", ctypes.c_void_p), ("uv", ctypes.c_void_p),
     ]
 
@@ -543,7 +543,7 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
 
     Returns:
         The ``Layer`` fields: mask (B, H, W) bool, tri (B, H, W) int64, position, bary,
-        geo_normal, normal (B, H, W, 3), dist, depth (B, H, W), uv (B, H, W, 2), float32.
+        normal (B, H, W, 3), dist, depth (B, H, W), uv (B, H, W, 2), float32.
     """
     if not available():
         return None
@@ -557,7 +557,7 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
            "tri": torch.empty(b, h, w, dtype=torch.int64),
            "position": torch.empty(b, h, w, 3), "dist": torch.empty(b, h, w),
            "depth": torch.empty(b, h, w), "bary": torch.empty(b, h, w, 3),
-           "geo_normal": torch.empty(b, h, w, 3), "normal": torch.empty(b, h, w, 3),
+           "normal": torch.empty(b, h, w, 3),
            "uv": torch.empty(b, h, w, 2)}
     job = _LayerJob(b=b, h=h, w=w, ids=ids.data_ptr(), eye=eye.data_ptr(),
                     dirs=dirs.data_ptr(), forward=forward.data_ptr(),

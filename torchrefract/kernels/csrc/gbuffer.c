@@ -5,8 +5,8 @@
  * triangle; where the hit falls outside it (the rasterizer snaps vertices to a sub-pixel
  * grid), re-pick the nearest triangle really hit among the 3x3 neighbourhood's ids and the
  * triangle's edge neighbours and theirs (or keep the id for a tiny miss, or empty the
- * pixel); then the position, distance, camera depth, barycentrics, geometric and
- * interpolated shading normals and UVs, stored as float32. The same operations in the
+ * pixel); then the position, distance, camera depth, barycentrics, the
+ * interpolated shading normal and UVs, stored as float32. The same operations in the
  * same order as the tensor code (built with -ffp-contract=off and no fast-math; the fused
  * multiply-adds of torch.cross written out as fma), so the layers are identical
  * (tests/test_native.py). Plain C (threads: common.h); built and loaded by native.py.
@@ -20,29 +20,18 @@
 #include "common.h"
 
 /* A hit's attributes for lane type T (the scalar and the AVX2 code alike): from the
- * triangle's corners v, corner normals tn and UVs tuv (as T) and the barycentrics, the unit
- * geometric normal gn, the unit interpolated shading normal n and the UV, as
- * gbuffer._layer_tensor computes them (lengths below 1e-300 taken as 1e-300). W: the
- * interpolation weights' function (weights##S or the same values by a shortcut). */
+ * triangle's corner normals tn and UVs tuv (as T) and the barycentrics, the unit
+ * interpolated shading normal n and the UV, as gbuffer._layer_tensor computes them
+ * (lengths below 1e-300 taken as 1e-300). W: the interpolation weights' function
+ * (weights##S or the same values by a shortcut). */
 #define TR_DEFINE_LAYER_ATTRS(T, S, SEL, K, W)                                              \
-    static inline void attrs##S(const T *v, const T *tn, const T *tuv, const T *bary,      \
-                                T *gn, T *n, T *uv) {                                       \
-        T e1[3], e2[3], w[3];                                                               \
-        for (int m = 0; m < 3; m++) {                                                       \
-            e1[m] = v[3 + m] - v[m];                                                        \
-            e2[m] = v[6 + m] - v[m];                                                        \
-        }                                                                                   \
-        cross3##S(e1, e2, gn);                                                              \
-        T gl = norm3##S(gn);                                                                \
-        gl = SEL(gl < K(T, 1e-300), K(T, 1e-300), gl);                                      \
+    static inline void attrs##S(const T *tn, const T *tuv, const T *bary, T *n, T *uv) {   \
+        T w[3];                                                                             \
         W(bary, w);                                                                         \
         blend##S(w, tn, 3, n);                                                              \
         T nl = norm3##S(n);                                                                 \
         nl = SEL(nl < K(T, 1e-300), K(T, 1e-300), nl);                                      \
-        for (int i = 0; i < 3; i++) {                                                       \
-            gn[i] = gn[i] / gl;                                                             \
-            n[i] = n[i] / nl;                                                               \
-        }                                                                                   \
+        for (int i = 0; i < 3; i++) n[i] = n[i] / nl;                                       \
         blend##S(w, tuv, 2, uv);                                                            \
     }
 
@@ -91,7 +80,7 @@ typedef struct {
     /* out, (B*H*W, ...) */
     uint8_t *mask;
     int64_t *tri;
-    float *position, *dist, *depth, *bary, *geo_normal, *normal, *uv;
+    float *position, *dist, *depth, *bary, *normal, *uv;
 } LayerJob;
 
 TR_DEFINE_VEC3(double, d, fma, fabs, sqrt, 1e-30)
@@ -159,13 +148,10 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
             t = intersectd(o, d, j->tv + 9 * id, bary);
         }
     }
-    double v[9], tn[9], tuv[6], gn[3], n[3], uv[2];
-    for (int m = 0; m < 9; m++) {
-        v[m] = (double)j->tv[9 * id + m];
-        tn[m] = (double)j->tn[9 * id + m];
-    }
+    double tn[9], tuv[6], n[3], uv[2];
+    for (int m = 0; m < 9; m++) tn[m] = (double)j->tn[9 * id + m];
     for (int m = 0; m < 6; m++) tuv[m] = (double)j->tuv[6 * id + m];
-    attrsd(v, tn, tuv, bary, gn, n, uv);
+    attrsd(tn, tuv, bary, n, uv);
     double f[3] = {(double)j->forward[3 * bi], (double)j->forward[3 * bi + 1],
                    (double)j->forward[3 * bi + 2]};
     j->mask[p] = 1;
@@ -174,7 +160,6 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
         double td = t * d[i];
         j->position[3 * p + i] = (float)(o[i] + td);
         j->bary[3 * p + i] = (float)bary[i];
-        j->geo_normal[3 * p + i] = (float)gn[i];
         j->normal[3 * p + i] = (float)n[i];
     }
     j->dist[p] = (float)t;
@@ -193,7 +178,6 @@ static void layer_empty(const LayerJob *j, int64_t a, int64_t b) {
     memset(j->depth + a, 0, n * sizeof(float));
     memset(j->position + 3 * a, 0, 3 * n * sizeof(float));
     memset(j->bary + 3 * a, 0, 3 * n * sizeof(float));
-    memset(j->geo_normal + 3 * a, 0, 3 * n * sizeof(float));
     memset(j->normal + 3 * a, 0, 3 * n * sizeof(float));
     memset(j->uv + 2 * a, 0, 2 * n * sizeof(float));
 }
@@ -315,8 +299,8 @@ static void layer_lanes(const LayerJob *j, int64_t p0, __m256i ids) {
     v4d t = hit4(o, d, v, bary);
     v4m redo = (v4m)covered & (min34(bary) < K4(v4d, -j->tol));
     v4m good = (v4m)covered & ~redo;
-    v4d gn[3], n[3], uv[2];
-    attrs4(v, cn, cuv, bary, gn, n, uv);
+    v4d n[3], uv[2];
+    attrs4(cn, cuv, bary, n, uv);
     v4d depth = t * dot34(d, f);
     /* the kept lanes' 64-bit masks as 32-bit ones */
     __m256 g8 = _mm256_castsi256_ps((__m256i)good);
@@ -326,8 +310,6 @@ static void layer_lanes(const LayerJob *j, int64_t p0, __m256i ids) {
          narrow(o[2] + t * d[2], keep));
     aos3(j->bary + 3 * p0, narrow(bary[0], keep), narrow(bary[1], keep),
          narrow(bary[2], keep));
-    aos3(j->geo_normal + 3 * p0, narrow(gn[0], keep), narrow(gn[1], keep),
-         narrow(gn[2], keep));
     aos3(j->normal + 3 * p0, narrow(n[0], keep), narrow(n[1], keep), narrow(n[2], keep));
     __m128 u = narrow(uv[0], keep), w = narrow(uv[1], keep);
     _mm_storeu_ps(j->uv + 2 * p0, _mm_unpacklo_ps(u, w));
