@@ -112,7 +112,7 @@ static void march_rays_on(const Job *base, Rays *r, int m, int steps, int refine
 #else
     search_block(&jm, 0, m, lo, hi);
 #endif
-    for (int i = 0; i < m; i++) exit_ray(&jm, i, lo[i], hi[i]);
+    exit_block(&jm, 0, m, lo, hi);
 }
 
 /* March rays [0, m) of a block through the back layer (march.march_back). */

@@ -18,17 +18,46 @@ typedef struct {
     int64_t gl_n;
 } Lights;
 
+/* atan2 of float values in double, one lane of tr_atan2_4d (below; the same steps): t =
+ * min / max of |x|, |y| (or (t - 1) / (t + 1) above tan(pi/8), plus pi/4), atan(t) = t +
+ * t^3 P(t^2) (relative error 1e-13), then pi/2 - r where |y| > |x|, pi - r where x's sign
+ * bit is set, and y's sign. */
+static inline double tr_atan2_d(double y, double x) {
+    double ay = fabs(y), ax = fabs(x);
+    double lo = ay < ax ? ay : ax, hi = ay > ax ? ay : ax;
+    int big = lo > 0.41421356237309503 * hi;
+    double num = big ? lo - hi : lo, den = big ? lo + hi : hi;
+    if (den == 0.0) den = 1.0;  /* both zero: t = 0 (atan2f(+-0, +-0)) */
+    double t = num / den, z = t * t;
+    double p = 0.032956795418701366;
+    p = fma(p, z, -0.060273074609466753);
+    p = fma(p, z, 0.076048000460782915);
+    p = fma(p, z, -0.090841018953464295);
+    p = fma(p, z, 0.11110819716745676);
+    p = fma(p, z, -0.142857081103604);
+    p = fma(p, z, 0.19999999949854793);
+    p = fma(p, z, -0.33333333333266199);
+    double r = fma(t * z, p, t);
+    if (big) r = r + TR_PI / 4;
+    if (ay > ax) r = TR_PI / 2 - r;
+    if (signbit(x)) r = TR_PI - r;
+    return copysign(r, y);
+}
+
 /* envmap.direction_to_uv of a direction (normalized, turned by -rotate_deg about +Y as
- * envmap.rotate_y turns it): (u, v) in [0, 1) x [0, 1]. */
+ * envmap.rotate_y turns it): (u, v) in [0, 1) x [0, 1]. Its atan2 and acos in double,
+ * rounded once (tr_atan2_d, tr_acos_d): the correctly rounded values but for a few in a
+ * million, as map_uv8's (the background's), and without the C library's slower float
+ * paths. */
 static inline void map_uv(const Lights *L, int64_t b, const float *dir, float *u, float *v) {
     float len = norm3(dir);
     if (len < 1e-30f) len = 1e-30f;
     float d[3] = {dir[0] / len, dir[1] / len, dir[2] / len};
     float ca = L->rot_cos[b], sa = L->rot_sin[b];
     float x = ca * d[0] + sa * d[2], y = d[1], z = -sa * d[0] + ca * d[2];
-    float uu = atan2f(x, -z) * (float)(0.5 / TR_PI);
+    float uu = (float)tr_atan2_d(x, -z) * (float)(0.5 / TR_PI);
     *u = uu - floorf(uu);
-    *v = acosf(clampf(y, -1.0f, 1.0f)) * (float)(1.0 / TR_PI);
+    *v = (float)tr_acos_d(clampf(y, -1.0f, 1.0f)) * (float)(1.0 / TR_PI);
 }
 
 /* The four texels of one bilinear lookup in view b's map: rows y0, y1, (wrapped) columns

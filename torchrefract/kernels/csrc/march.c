@@ -13,7 +13,7 @@ static void march_range(const void *job, int64_t begin, int64_t end) {
 #else
         search_block(j, r, m, lo, hi);
 #endif
-        for (int i = 0; i < m; i++) exit_ray(j, r + i, lo[i], hi[i]);
+        exit_block(j, r, m, lo, hi);
     }
 }
 

@@ -262,8 +262,11 @@ __attribute__((target("avx2"))) static inline __m256i tri8(const int32_t *tri, c
                              tri[fl[5]], tri[fl[6]], tri[fl[7]]);
 }
 
-__attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, const Lanes *L,
-                                                              __m256 s) {
+/* pixel_of at point_at(s) of 8 lanes: the camera point (cx, cy, cz), whether it lies in the
+ * frame (all-ones lanes), and the flat pixel (clamped into the frame). */
+__attribute__((target("avx2"), always_inline)) static inline __m256i
+pixel8(const Job *j, const Lanes *L, __m256 s, __m256 *cx_out, __m256 *cy_out, __m256 *cz_out,
+       __m256 *inside_out) {
     __m256 cx = _mm256_add_ps(L->c0x, _mm256_mul_ps(s, L->ctx));
     __m256 cy = _mm256_add_ps(L->c0y, _mm256_mul_ps(s, L->cty));
     __m256 cz = _mm256_add_ps(L->c0z, _mm256_mul_ps(s, L->ctz));
@@ -287,6 +290,18 @@ __attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, cons
     __m256i flat = _mm256_add_epi32(L->base, _mm256_add_epi32(
         _mm256_mullo_epi32(_mm256_cvttps_epi32(pyc), _mm256_set1_epi32((int)j->w)),
         _mm256_cvttps_epi32(pxc)));
+    *cx_out = cx;
+    *cy_out = cy;
+    *cz_out = cz;
+    *inside_out = inside;
+    return flat;
+}
+
+__attribute__((target("avx2"), always_inline)) static inline __m256
+crossed8(const Job *j, const Lanes *L, __m256 s) {
+    __m256 cx, cy, cz, inside;
+    __m256i flat = pixel8(j, L, s, &cx, &cy, &cz, &inside);
+    const __m256 zero = _mm256_setzero_ps();
     /* the back triangle at the pixel (-1: empty, crossed) and its plane */
     int fl[8];
     _mm256_storeu_si256((__m256i *)fl, flat);
@@ -306,12 +321,12 @@ __attribute__((target("avx2"))) static inline __m256 crossed8(const Job *j, cons
                         beyond);
 }
 
-__attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int64_t r0,
-                                                              float *lo_out, float *hi_out) {
-    Lanes L[2];
-    float tmp[9][16];
-    int bi[16], pb[16];
-    for (int i = 0; i < 16; i++) {
+/* The lanes of rays [r0, r0 + 8); their s_max in ``smax``. */
+__attribute__((target("avx2"))) static void lanes8(const Job *j, int64_t r0, Lanes *L,
+                                                   __m256 *smax) {
+    float tmp[9][8];
+    int bi[8], pb[8];
+    for (int i = 0; i < 8; i++) {
         int64_t r = r0 + i, b = j->batch[r];
         for (int k = 0; k < 3; k++) {
             tmp[k][i] = j->c0[3 * r + k];
@@ -323,19 +338,25 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
         bi[i] = (int)(b * j->h * j->w);
         pb[i] = (int)j->plane_base[b];
     }
+    L->c0x = _mm256_loadu_ps(tmp[0]);
+    L->c0y = _mm256_loadu_ps(tmp[1]);
+    L->c0z = _mm256_loadu_ps(tmp[2]);
+    L->ctx = _mm256_loadu_ps(tmp[3]);
+    L->cty = _mm256_loadu_ps(tmp[4]);
+    L->ctz = _mm256_loadu_ps(tmp[5]);
+    L->sx = _mm256_loadu_ps(tmp[6]);
+    L->sy = _mm256_loadu_ps(tmp[7]);
+    L->base = _mm256_loadu_si256((const __m256i *)bi);
+    L->pbase = _mm256_loadu_si256((const __m256i *)pb);
+    *smax = _mm256_loadu_ps(tmp[8]);
+}
+
+__attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int64_t r0,
+                                                              float *lo_out, float *hi_out) {
+    Lanes L[2];
     __m256 smax[2], lo[2], hi[2], last[2], done[2];
     for (int v = 0; v < 2; v++) {
-        L[v].c0x = _mm256_loadu_ps(tmp[0] + 8 * v);
-        L[v].c0y = _mm256_loadu_ps(tmp[1] + 8 * v);
-        L[v].c0z = _mm256_loadu_ps(tmp[2] + 8 * v);
-        L[v].ctx = _mm256_loadu_ps(tmp[3] + 8 * v);
-        L[v].cty = _mm256_loadu_ps(tmp[4] + 8 * v);
-        L[v].ctz = _mm256_loadu_ps(tmp[5] + 8 * v);
-        L[v].sx = _mm256_loadu_ps(tmp[6] + 8 * v);
-        L[v].sy = _mm256_loadu_ps(tmp[7] + 8 * v);
-        L[v].base = _mm256_loadu_si256((const __m256i *)(bi + 8 * v));
-        L[v].pbase = _mm256_loadu_si256((const __m256i *)(pb + 8 * v));
-        smax[v] = _mm256_loadu_ps(tmp[8] + 8 * v);
+        lanes8(j, r0 + 8 * v, &L[v], &smax[v]);
         lo[v] = _mm256_setzero_ps();
         hi[v] = smax[v];
         last[v] = _mm256_setzero_ps();
@@ -345,6 +366,8 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
         __m256 frac = _mm256_set1_ps((float)((double)k / (double)j->steps));
         int all = 1;
         for (int v = 0; v < 2; v++) {
+            /* a vector whose rays have all crossed keeps its values: skip its sample */
+            if (_mm256_movemask_ps(done[v]) == 0xff) continue;
             __m256 s = _mm256_mul_ps(smax[v], frac);
             __m256 c = _mm256_andnot_ps(done[v], crossed8(j, &L[v], s));  /* newly crossed */
             hi[v] = _mm256_blendv_ps(hi[v], s, c);
@@ -372,12 +395,9 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
 }
 #endif
 
-/* The exit of ray r bracketed by [lo, hi]. */
-static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
-    float smax = j->s_max[r];
-    /* The exit candidates, in march._march's order of ``tries``. */
-    float ss[4];
-    int fronts[4], ntries;
+/* The exit candidates of ray r bracketed by [lo, hi], in march._march's order of
+ * ``tries``: their parameters ss and layers (1: front); returns how many. */
+static int exit_tries(const Job *j, int64_t r, float lo, float hi, float *ss, int *fronts) {
     if (j->pw == 8) {
         float c[3];
         point_at(j, r, hi, c);
@@ -394,21 +414,48 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
         ss[1] = lo; fronts[1] = primary_front;
         ss[2] = hi; fronts[2] = !primary_front;
         ss[3] = lo; fronts[3] = !primary_front;
-        ntries = 4;
-    } else {
-        ss[0] = hi; fronts[0] = 0;
-        ss[1] = lo; fronts[1] = 0;
-        ntries = 2;
+        return 4;
     }
+    ss[0] = hi; fronts[0] = 0;
+    ss[1] = lo; fronts[1] = 0;
+    return 2;
+}
+
+/* One ray's first exit candidate (its first try), taken ahead for a whole block. */
+typedef struct {
+    float ss[4], st, bt[3];
+    int fronts[4], ntries, ok;
+    int64_t cand;
+} FirstTry;
+
+static inline void first_try(const Job *j, int64_t r, float lo, float hi, FirstTry *f) {
+    f->ntries = exit_tries(j, r, lo, hi, f->ss, f->fronts);
+    f->ok = candidate(j, r, f->ss[0], f->fronts[0], &f->cand, &f->st, f->bt);
+}
+
+/* The exit of ray r (its first try ``f`` taken): the exit triangle, layer and hit (s and
+ * barycentrics) written to found, tri, layer and hit_s, hit_bt. */
+static void exit_pick(const Job *j, int64_t r, const FirstTry *f, float *hit_s_out,
+                      float *hit_bt_out) {
+    float smax = j->s_max[r];
     int64_t tri = -1;
     int layer = -1;
     float bary[3] = {0.0f, 0.0f, 0.0f}, hit_s = 0.0f, hit_bt[3] = {0.0f, 0.0f, 0.0f};
-    for (int i = 0; i < ntries; i++) {
+    for (int i = 0; i < f->ntries; i++) {
         int64_t cand;
         float st, bt[3];
-        if (candidate(j, r, ss[i], fronts[i], &cand, &st, bt)) {
+        int ok;
+        if (i == 0) {
+            ok = f->ok;
+            cand = f->cand;
+            st = f->st;
+            bt[0] = f->bt[0]; bt[1] = f->bt[1]; bt[2] = f->bt[2];
+        } else {
+            ok = candidate(j, r, f->ss[i], f->fronts[i], &cand, &st, bt);
+        }
+        if (ok) {
             tri = cand;
-            layer = fronts[i] ? 0 : 1;
+            layer = f->fronts[i] ? 0 : 1;
             bary[0] = bt[0]; bary[1] = bt[1]; bary[2] = bt[2];
             hit_s = st;
             hit_bt[0] = bt[0]; hit_bt[1] = bt[1]; hit_bt[2] = bt[2];
@@ -447,7 +494,192 @@ static void exit_ray(const Job *j, int64_t r, float lo, float hi) {
     j->found[r] = tri >= 0;
     j->tri[r] = tri;
     j->layer[r] = layer;
-    if (j->s_out) exit_values(j, r, tri, hit_s, hit_bt);
+    *hit_s_out = hit_s;
+    for (int m = 0; m < 3; m++) hit_bt_out[m] = hit_bt[m];
+}
+
+#ifdef HAVE_AVX2_PATH
+/* The lanes of 8 rows of ``n`` floats at ``src`` (rows ``stride`` apart) as n vectors. */
+__attribute__((target("avx2"))) static inline void columns8(const float *src, int64_t stride,
+                                                            int n, __m256 *out) {
+    float tmp[9][8];
+    for (int i = 0; i < 8; i++)
+        for (int k = 0; k < n; k++) tmp[k][i] = src[stride * i + k];
+    for (int k = 0; k < n; k++) out[k] = _mm256_loadu_ps(tmp[k]);
+}
+
+/* 3-vector operations of optics.h (common.h's bodies) on 8 lanes, op for op. */
+__attribute__((target("avx2,fma"))) static inline __m256 dot8(const __m256 *a, const __m256 *b) {
+    return _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
+                         _mm256_mul_ps(a[2], b[2]));
+}
+
+__attribute__((target("avx2,fma"))) static inline __m256 neg8(__m256 x) {
+    return _mm256_xor_ps(x, _mm256_set1_ps(-0.0f));
+}
+
+__attribute__((target("avx2,fma"))) static inline void cross8(const __m256 *a, const __m256 *b,
+                                                              __m256 *out) {
+    out[0] = _mm256_fmadd_ps(a[1], b[2], neg8(_mm256_mul_ps(a[2], b[1])));
+    out[1] = _mm256_fmadd_ps(a[2], b[0], neg8(_mm256_mul_ps(a[0], b[2])));
+    out[2] = _mm256_fmadd_ps(a[0], b[1], neg8(_mm256_mul_ps(a[1], b[0])));
+}
+
+/* first_try for rays [r0, r0 + 8) of the back layer's march (pw 4): the candidate at hi
+ * (pixel8, the back triangle there) and the ray's hit with it (common.h's hit) in lanes,
+ * the same operations as candidate's, lane by lane. */
+__attribute__((target("avx2,fma"))) static void first_try8(const Job *j, int64_t r0,
+                                                           const float *lo, const float *hi,
+                                                           FirstTry *f) {
+    Lanes L;
+    __m256 smax, cx, cy, cz, inside;
+    lanes8(j, r0, &L, &smax);
+    __m256i flat = pixel8(j, &L, _mm256_loadu_ps(hi), &cx, &cy, &cz, &inside);
+    int fl[8], in = _mm256_movemask_ps(inside);
+    int64_t cand[8];
+    _mm256_storeu_si256((__m256i *)fl, flat);
+    float vt[9][8];
+    for (int i = 0; i < 8; i++) {
+        cand[i] = (in >> i) & 1 ? j->tri_back[fl[i]] : -1;
+        const float *tv = j->tv + 9 * (cand[i] < 0 ? 0 : cand[i]);
+        for (int k = 0; k < 9; k++) vt[k][i] = tv[k];
+    }
+    __m256 v0[3], v1[3], v2[3], o[3], d[3], e1[3], e2[3], p[3], sv[3], q[3];
+    for (int k = 0; k < 3; k++) {
+        v0[k] = _mm256_loadu_ps(vt[k]);
+        v1[k] = _mm256_loadu_ps(vt[3 + k]);
+        v2[k] = _mm256_loadu_ps(vt[6 + k]);
+    }
+    columns8(j->p1 + 3 * r0, 3, 3, o);
+    columns8(j->t + 3 * r0, 3, 3, d);
+    for (int k = 0; k < 3; k++) {
+        e1[k] = _mm256_sub_ps(v1[k], v0[k]);
+        e2[k] = _mm256_sub_ps(v2[k], v0[k]);
+        sv[k] = _mm256_sub_ps(o[k], v0[k]);
+    }
+    cross8(d, e2, p);
+    __m256 det = dot8(e1, p), one = _mm256_set1_ps(1.0f);
+    __m256 ok = _mm256_cmp_ps(_mm256_andnot_ps(_mm256_set1_ps(-0.0f), det),
+                              _mm256_set1_ps(1e-30f), _CMP_GT_OQ);
+    __m256 inv = _mm256_and_ps(ok, _mm256_div_ps(one, _mm256_blendv_ps(one, det, ok)));
+    __m256 u = _mm256_mul_ps(dot8(sv, p), inv);
+    cross8(sv, e1, q);
+    __m256 vv = _mm256_mul_ps(dot8(d, q), inv);
+    __m256 t = _mm256_blendv_ps(_mm256_set1_ps(INFINITY), _mm256_mul_ps(dot8(e2, q), inv), ok);
+    __m256 b0 = _mm256_sub_ps(_mm256_sub_ps(one, u), vv);
+    /* accepted: finite, beyond s_min, within 1.5 s_max */
+    float smin[8];
+    for (int i = 0; i < 8; i++) smin[i] = j->s_min[r0 + i];
+    __m256 acc = _mm256_and_ps(
+        _mm256_cmp_ps(_mm256_andnot_ps(_mm256_set1_ps(-0.0f), t), _mm256_set1_ps(INFINITY),
+                      _CMP_LT_OQ),
+        _mm256_and_ps(_mm256_cmp_ps(t, _mm256_loadu_ps(smin), _CMP_GT_OQ),
+                      _mm256_cmp_ps(t, _mm256_mul_ps(smax, _mm256_set1_ps(1.5f)),
+                                    _CMP_LE_OQ)));
+    float st[8], bt[3][8];
+    _mm256_storeu_ps(st, t);
+    _mm256_storeu_ps(bt[0], b0);
+    _mm256_storeu_ps(bt[1], u);
+    _mm256_storeu_ps(bt[2], vv);
+    int a = _mm256_movemask_ps(acc);
+    for (int i = 0; i < 8; i++) {
+        FirstTry *fi = f + i;
+        fi->ntries = exit_tries(j, r0 + i, lo[i], hi[i], fi->ss, fi->fronts);
+        fi->ok = cand[i] >= 0 && ((a >> i) & 1);
+        if (cand[i] < 0) continue;  /* candidate leaves the rest unset */
+        fi->cand = cand[i];
+        fi->st = st[i];
+        for (int k = 0; k < 3; k++) fi->bt[k] = bt[k][i];
+    }
+}
+
+/* exit_values for rays [r0, r0 + 8) in lanes, op for op. */
+__attribute__((target("avx2,fma"))) static void exit_values8(const Job *j, int64_t r0,
+                                                             const float *hit_s,
+                                                             const float (*hit_bt)[3]) {
+    float c[9][8], okf[8];
+    for (int i = 0; i < 8; i++) {
+        int64_t tri = j->tri[r0 + i];
+        const float *tn = j->tn + 9 * (tri < 0 ? 0 : tri);
+        for (int k = 0; k < 9; k++) c[k][i] = tn[k];
+        okf[i] = tri >= 0 ? 1.0f : 0.0f;
+    }
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 ok = _mm256_cmp_ps(_mm256_loadu_ps(okf), zero, _CMP_GT_OQ);
+    __m256 s = _mm256_and_ps(ok, _mm256_loadu_ps(hit_s));
+    __m256 bt[3], w[3], n[3], p1[3], t[3];
+    columns8(hit_bt[0], 3, 3, bt);
+    columns8(j->p1 + 3 * r0, 3, 3, p1);
+    columns8(j->t + 3 * r0, 3, 3, t);
+    for (int k = 0; k < 3; k++) {
+        bt[k] = _mm256_and_ps(ok, bt[k]);
+        w[k] = _mm256_blendv_ps(bt[k], zero, _mm256_cmp_ps(bt[k], zero, _CMP_LT_OQ));
+    }
+    __m256 sum = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), w[2]);
+    const __m256 tiny = _mm256_set1_ps(1e-12f);
+    sum = _mm256_blendv_ps(sum, tiny, _mm256_cmp_ps(sum, tiny, _CMP_LT_OQ));
+    for (int k = 0; k < 3; k++) w[k] = _mm256_div_ps(w[k], sum);
+    for (int m = 0; m < 3; m++)
+        n[m] = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w[0], _mm256_loadu_ps(c[m])),
+                                           _mm256_mul_ps(w[1], _mm256_loadu_ps(c[3 + m]))),
+                             _mm256_mul_ps(w[2], _mm256_loadu_ps(c[6 + m])));
+    __m256 len = _mm256_mul_ps(n[0], n[0]);
+    len = _mm256_fmadd_ps(n[1], n[1], len);
+    len = _mm256_sqrt_ps(_mm256_fmadd_ps(n[2], n[2], len));
+    const __m256 tiny2 = _mm256_set1_ps(1e-20f);
+    len = _mm256_blendv_ps(len, tiny2, _mm256_cmp_ps(len, tiny2, _CMP_LT_OQ));
+    float out[9][8], so[8];
+    _mm256_storeu_ps(so, s);
+    for (int m = 0; m < 3; m++) {
+        _mm256_storeu_ps(out[m], bt[m]);
+        _mm256_storeu_ps(out[3 + m], _mm256_and_ps(ok, _mm256_div_ps(n[m], len)));
+        _mm256_storeu_ps(out[6 + m], _mm256_add_ps(p1[m], _mm256_mul_ps(s, t[m])));
+    }
+    for (int i = 0; i < 8; i++) {
+        int64_t r = r0 + i;
+        j->s_out[r] = so[i];
+        for (int m = 0; m < 3; m++) {
+            j->bary_out[3 * r + m] = out[m][i];
+            j->normal_out[3 * r + m] = out[3 + m][i];
+            j->pos_out[3 * r + m] = out[6 + m][i];
+        }
+    }
+}
+#endif
+
+/* The exits of rays [r0, r0 + m), m <= BLOCK, bracketed by [lo, hi], in three passes over
+ * the block (each ray's values as one ray at a time would find them): the first candidates,
+ * the rest of the tries and the walks, then the exit values. Each pass's rays are
+ * independent, so their divisions and memory reads overlap instead of waiting on one ray's
+ * chain at a time. */
+static void exit_block(const Job *j, int64_t r0, int m, const float *lo, const float *hi) {
+    FirstTry f[BLOCK];
+    float hit_s[BLOCK], hit_bt[BLOCK][3];
+#ifdef HAVE_AVX2_PATH
+    /* a full block in AVX2 lanes (the first tries of the back layer's march, the exit
+     * values), where the CPU has AVX2 and FMA (cross3's fused multiply-adds) */
+    int lanes = j->simd && m == BLOCK && __builtin_cpu_supports("fma");
+#else
+    int lanes = 0;
+#endif
+    if (lanes && j->pw == 4) {
+#ifdef HAVE_AVX2_PATH
+        first_try8(j, r0, lo, hi, f);
+        first_try8(j, r0 + 8, lo + 8, hi + 8, f + 8);
+#endif
+    } else {
+        for (int i = 0; i < m; i++) first_try(j, r0 + i, lo[i], hi[i], &f[i]);
+    }
+    for (int i = 0; i < m; i++) exit_pick(j, r0 + i, &f[i], &hit_s[i], hit_bt[i]);
+    if (!j->s_out) return;
+    if (lanes) {
+#ifdef HAVE_AVX2_PATH
+        exit_values8(j, r0, hit_s, (const float (*)[3])hit_bt);
+        exit_values8(j, r0 + 8, hit_s + 8, (const float (*)[3])(hit_bt + 8));
+#endif
+    } else {
+        for (int i = 0; i < m; i++) exit_values(j, r0 + i, j->tri[r0 + i], hit_s[i], hit_bt[i]);
+    }
 }
 
 #endif

@@ -6,7 +6,21 @@
 
 #include "common.h"
 
-TR_DEFINE_VEC3(float, , fmaf, fabsf, sqrtf, 1e-30f)
+TR_DEFINE_LANES(float, int, , fmaf, fabsf, sqrtf, 1e-30f, TR_SEL_SCALAR, TR_K_SCALAR)
+
+/* common.h's intersect and interpolate (TR_DEFINE_VEC3) for float: the corners read in
+ * place from the kernels' float32 tables (its copy into a local array, needed for its
+ * double instance, was stored in vector moves and read back in scalars here: a stalled
+ * store-to-load forward per corner). */
+static inline float intersect(const float *o, const float *d, const float *tv, float *bary) {
+    return hit(o, d, tv, bary);
+}
+
+static inline void interpolate(const float *bary, const float *corners, int c, float *out) {
+    float w[3];
+    weights(bary, w);
+    blend(w, corners, c, out);
+}
 
 #define TR_PI 3.14159265358979323846
 
@@ -67,9 +81,52 @@ static inline void tangent_frame(const float *p, float *u, float *v) {
     cross3(p, u, v);
 }
 
+/* asin(s) = s + s^3 Q(s^2) for s in [0, 1/2], given z = s^2: a minimax polynomial
+ * (relative error 2e-13; lighting.h's tr_acos_4d, one lane). */
+static inline double tr_asin_poly(double s, double z) {
+    double p = 0.028346745231833329;
+    p = fma(p, z, 0.0010675063150363118);
+    p = fma(p, z, 0.01686409027396012);
+    p = fma(p, z, 0.016902683886393575);
+    p = fma(p, z, 0.022412417726695433);
+    p = fma(p, z, 0.030379945210024933);
+    p = fma(p, z, 0.044642906474584963);
+    p = fma(p, z, 0.074999999534297119);
+    p = fma(p, z, 0.16666666666738632);
+    return fma(s * z, p, s);
+}
+
+/* asin of x in [-1, 1] in double: the polynomial up to |x| = 1/2, above it pi/2 - 2 asin(s)
+ * with s = sqrt((1 - |x|) / 2). Rounded to float it is asinf's value (the correctly rounded
+ * one but for a few in a million), without the C library's slow path. */
+static inline double tr_asin_d(double x) {
+    double a = fabs(x);
+    if (!(a > 0.5)) return copysign(tr_asin_poly(a, a * a), x);
+    double z = 0.5 * (1.0 - a);
+    return copysign(TR_PI / 2 - 2.0 * tr_asin_poly(sqrt(z), z), x);
+}
+
+/* acos of y in [-1, 1] in double, as tr_acos_4d: pi/2 - asin(y) up to |y| = 1/2, above it
+ * 2 asin(s), s = sqrt((1 - |y|) / 2), from pi where y < 0 (no cancellation near |y| = 1). */
+static inline double tr_acos_d(double y) {
+    double a = fabs(y);
+    if (!(a > 0.5)) return TR_PI / 2 - copysign(tr_asin_poly(a, a * a), y);
+    double z = 0.5 * (1.0 - a), r = 2.0 * tr_asin_poly(sqrt(z), z);
+    return y < 0.0 ? TR_PI - r : r;
+}
+
+/* cos(asin(s)) for s in (-1, 1): sqrt((1 - s)(1 + s)) in double, rounded once (the table
+ * gives its axis angles as sines: sgtable.h's sg_lookup). */
+static inline float cos_of_asin(float s) {
+    double d = (double)s;
+    return (float)sqrt((1.0 - d) * (1.0 + d));
+}
+
 /* sgfit.lobe_axis: the lobe's unit axis -sin(t) u + sign cos(t) n from the table's signed
- * polar angle t (u: the view's unit tangential part; sign -1 transmit, +1 reflect). */
-static inline void lobe_axis(const float *view, const float *n, float t, float sign,
+ * polar angle t, given as its sine ``st`` (sg_lookup: the angle is asin of the table's
+ * value, so sin(t) is that value and cos(t) = cos_of_asin; u: the view's unit tangential
+ * part; sign -1 transmit, +1 reflect). */
+static inline void lobe_axis(const float *view, const float *n, float st, float sign,
                              float *out) {
     float dv = dot3(view, n);
     float vt[3] = {view[0] - dv * n[0], view[1] - dv * n[1], view[2] - dv * n[2]};
@@ -85,7 +142,7 @@ static inline void lobe_axis(const float *view, const float *n, float t, float s
         float r = norm3(alt);
         for (int i = 0; i < 3; i++) u[i] = alt[i] / r;
     }
-    float st = sinf(t), ct = cosf(t);
+    float ct = cos_of_asin(st);
     for (int i = 0; i < 3; i++) out[i] = -st * u[i] + sign * ct * n[i];
 }
 

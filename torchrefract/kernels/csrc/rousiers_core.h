@@ -67,10 +67,14 @@ static const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b, floa
 }
 
 
-/* cone.bounding_angle: theta_b = 2 asin(sqrt(-expm1(-ln 4 / (k + 1)) / 2)) (eq. 12). */
-static inline float bounding_angle(float k) {
+/* cone.bounding_angle: theta_b = 2 asin(x), x = sqrt(-expm1(-ln 4 / (k + 1)) / 2) (eq. 12),
+ * wanted as its cosine and sine: 1 - 2 x^2 and 2 x sqrt(1 - x^2), in double from the float
+ * x (no asin, sin, cos round trip). */
+static inline void bounding_angle(float k, float *cb, float *sb) {
     float one_minus = -expm1f(-(float)log(4.0) / (k + 1.0f));
-    return 2.0f * asinf(sqrtf(0.5f * one_minus));
+    double x = (double)sqrtf(0.5f * one_minus);
+    *cb = (float)(1.0 - 2.0 * x * x);
+    *sb = (float)(2.0 * x * sqrt((1.0 - x) * (1.0 + x)));
 }
 
 /* The exit lobe (exit.exit_lobe, ``spread: rays``): direction, sharpness, weight. */
@@ -100,9 +104,9 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
         lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
         spread_table_energies(&j->table, out, out0, dist, cos2, var1, &weight, &er);
     } else if (mode == REFLECT) {  /* the internal reflection lobe under TIR */
-        float k_ti, t_ti, e_ti;
-        sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
-        sg_lobe(&j->table, out, out0, dist, 1, cos2, &k_ti, &t_ti, &e_ti);
+        float k_ti, t_ti, e_ti, z2 = sg_theta(cos2);
+        sg_lobe_at(&j->table, out, out0, dist, 0, z2, &k_t2, &t_t2, &e_t2);
+        sg_lobe_at(&j->table, out, out0, dist, 1, z2, &k_ti, &t_ti, &e_ti);
         if (tir) {
             lobe_axis(view2, n_in, t_ti, 1.0f, p_out);
             k_t2 = k_ti;
@@ -180,17 +184,18 @@ static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, in
     }
     face_forward(j->front_normal + 3 * px, d, n1);
     float cos1 = clampf(dot3(vi, n1), 0.0f, 1.0f);
-    float t_r, t_t1, p_t1[3];
-    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 1, cos1, &k->k_r[i], &t_r, &k->e_r[i]);
+    float t_r, t_t1, p_t1[3], z1 = sg_theta(cos1);  /* both lobes' table coordinate */
+    sg_lobe_at(&j->table, ax + IN, ax + IN0, dist, 1, z1, &k->k_r[i], &t_r, &k->e_r[i]);
     lobe_axis(vi, n1, t_r, 1.0f, k->axis_r + 3 * i);
-    sg_lobe(&j->table, ax + IN, ax + IN0, dist, 0, cos1, &k->k_t1[i], &t_t1, &k->e_t1[i]);
+    sg_lobe_at(&j->table, ax + IN, ax + IN0, dist, 0, z1, &k->k_t1[i], &t_t1, &k->e_t1[i]);
     lobe_axis(vi, n1, t_t1, -1.0f, p_t1);
     normalize3(p_t1);
     float c_p1[3], c_t1[3], u[3], v[3], c_u[3], c_v[3];
     camera_coords(j, b, p1, 1, c_p1);
     camera_coords(j, b, p_t1, 0, c_t1);
     set_ray(j, &k->axis, i, b, p1, p_t1, c_p1, c_t1);
-    float th = bounding_angle(k->k_t1[i]), cb = cosf(th), sb = sinf(th);
+    float cb, sb;
+    bounding_angle(k->k_t1[i], &cb, &sb);
     tangent_frame(p_t1, u, v);
     camera_coords(j, b, u, 0, c_u);
     camera_coords(j, b, v, 0, c_v);

@@ -57,7 +57,8 @@ static inline float sg_theta(float c) {
     float s2 = 1.0f - c * c;
     if (s2 < eps2) s2 = eps2;
     float s = sqrtf(s2);
-    float theta = c > 0.5f ? asinf(s < 0.9f ? s : 0.9f) : acosf(c < 0.5f ? c : 0.5f);
+    float theta = c > 0.5f ? (float)tr_asin_d(s < 0.9f ? s : 0.9f)
+                           : (float)tr_acos_d(c < 0.5f ? c : 0.5f);
     return clampf(theta, 0.0f, (float)(0.5 * TR_PI)) * (float)(4.0 / TR_PI) - 1.0f;
 }
 
@@ -95,20 +96,30 @@ static void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, flo
 }
 
 /* sgfit.sg_lookup (eqs. 8-9) of lobe ``lobe`` (0 transmit, 1 reflect), with the moment
- * (or, ``l2``, the L2-optimal) sharpness: sharpness k, the axis's signed angle, energy. */
-static void sg_lookup(const SgTable *t, const SgAxes *a, int64_t d, int lobe, int l2, float c,
-                      float *k, float *angle, float *energy) {
+ * (or, ``l2``, the L2-optimal) sharpness: sharpness k, the sine of the axis's signed angle
+ * (the angle is asin of the clamped table value: its sine is that value, and lobe_axis
+ * takes the sine, so no asin and sin/cos round trip), energy. */
+static void sg_lookup_at(const SgTable *t, const SgAxes *a, int64_t d, int lobe, int l2,
+                         float z, float *k, float *angle, float *energy) {
     float o[3];
     int64_t per = 3 * t->nt * t->ne * t->na;
-    trilinear((l2 ? t->vol_l2 : t->vol) + (d * 2 + lobe) * per, 3, t, a, sg_theta(c), o);
-    *angle = asinf(clampf(o[2], -1.0f + 1e-7f, 1.0f - 1e-7f));
+    trilinear((l2 ? t->vol_l2 : t->vol) + (d * 2 + lobe) * per, 3, t, a, z, o);
+    *angle = clampf(o[2], -1.0f + 1e-7f, 1.0f - 1e-7f);
     float extra = t->la0 - a->log_a;
     float log_k = o[1] + 2.0f * (extra > 0.0f ? extra : 0.0f);
     *k = expf(clampf(log_k, t->log_k_min, t->log_k_max));
     *energy = o[0] > 0.0f ? o[0] : 0.0f;
 }
 
-/* The transmitted lobe's sharpness and axis angle (sg_lookup, moment sharpness). */
+/* sg_lookup_at at incident cosine c (its table coordinate sg_theta(c); sg_lookup_at takes
+ * it computed once where one cosine is looked up more than once). */
+static inline void sg_lookup(const SgTable *t, const SgAxes *a, int64_t d, int lobe, int l2,
+                             float c, float *k, float *angle, float *energy) {
+    sg_lookup_at(t, a, d, lobe, l2, sg_theta(c), k, angle, energy);
+}
+
+/* The transmitted lobe's sharpness and the sine of its axis angle (sg_lookup, moment
+ * sharpness). */
 static void transmit_lobe(const SgTable *t, const SgAxes *a, int64_t d, float c, float *k,
                           float *angle) {
     float e;
@@ -158,14 +169,20 @@ static void spread_interface_energies(const SgTable *t, const SgAxes *a, int64_t
 
 /* rousiers.lobes.sg_lobe: sg_lookup with GGX's L2 sharpness, its energy faded towards the
  * smallest roughness's near IOR 1 (``a0``: the same interface at alpha_min). */
-static void sg_lobe(const SgTable *t, const SgAxes *a, const SgAxes *a0, int64_t d, int lobe,
-                    float c, float *k, float *angle, float *energy) {
-    sg_lookup(t, a, d, lobe, d == 1, c, k, angle, energy);
+static void sg_lobe_at(const SgTable *t, const SgAxes *a, const SgAxes *a0, int64_t d,
+                       int lobe, float z, float *k, float *angle, float *energy) {
+    sg_lookup_at(t, a, d, lobe, d == 1, z, k, angle, energy);
     if (a->fade < 1.0f) {
         float k0, t0, e0;
-        sg_lookup(t, a0, d, lobe, 0, c, &k0, &t0, &e0);
+        sg_lookup_at(t, a0, d, lobe, 0, z, &k0, &t0, &e0);
         *energy = e0 + a->fade * (*energy - e0);
     }
+}
+
+/* sg_lobe_at at incident cosine c. */
+static inline void sg_lobe(const SgTable *t, const SgAxes *a, const SgAxes *a0, int64_t d,
+                           int lobe, float c, float *k, float *angle, float *energy) {
+    sg_lobe_at(t, a, a0, d, lobe, sg_theta(c), k, angle, energy);
 }
 
 /* rousiers.lobes.spread_energies: the table's transmitted and reflected energies (faded as

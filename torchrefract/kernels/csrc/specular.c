@@ -48,14 +48,14 @@ static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, i
         *e_r2 = f2;
     } else if (spread) {  /* ``tir: conserve``, or internal bounces follow */
         int rough = alpha1 > j->table.alpha_min;
-        float k1, tilt;
-        transmit_lobe(&j->table, in, dist, cos1, &k1, &tilt);
+        float k1, sin_tilt;
+        transmit_lobe(&j->table, in, dist, cos1, &k1, &sin_tilt);
         /* cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities */
         float sc1 = 1.0f - cos1 * cos1;
         float sin_t = sqrtf(sc1 > 1e-12f ? sc1 : 1e-12f) / eta;
         float st2 = 1.0f - sin_t * sin_t;
         float cos_t = sqrtf(st2 > 1e-12f ? st2 : 1e-12f);
-        float ca = cosf(tilt), sa = sinf(tilt);
+        float ca = cos_of_asin(sin_tilt), sa = sin_tilt;
         float cos_d = ca * cos_t + sa * sin_t, sin_d = sa * cos_t - ca * sin_t;
         float sc2 = 1.0f - cos2 * cos2;
         float sin2 = sqrtf(sc2 > 1e-12f ? sc2 : 1e-12f);
