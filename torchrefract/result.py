@@ -150,10 +150,9 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
         radiance, method_passes = shaded.radiance, shaded.passes
         if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
             radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
-        elif lattice is not None:  # level by level, the waiting pixels: interpolated, or
-            for level in plan.levels:  # shaded over the image so far
-                if not adaptive.waiting(level):  # done by the fused kernel (g.lattice)
-                    continue
+        elif lattice is not None and adaptive.waiting(plan.levels[0]):  # (else the fused
+            # kernel ran every level: g.lattice) level by level, the waiting pixels:
+            for level in plan.levels:  # interpolated, or shaded over the image so far
                 radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
                                                                     method_passes)
                 if rest is None:

@@ -343,7 +343,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
 
 def waiting(level: Level) -> bool:
     """Whether any pixel of ``level`` still waits (:func:`fill` not run on it yet; a level
-    of :func:`lattice` starts with at least one)."""
+    of :func:`lattice` starts with at least one, and a fused kernel that fills the levels
+    itself, ``GBuffer.lattice``, fills them all: the first, the smallest, tells)."""
     return bool((level.status == 2).any())
 
 
