@@ -106,6 +106,25 @@ def _lattice_inputs(s: tr.Scene):
     return g, (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, alpha)
 
 
+def test_uniform_kernel_equals_tensor_code():
+    """csrc/lattice.c's uniform pixels of a supersampled G-buffer are adaptive's tensor
+    code's, pixel for pixel: folds, a roughness map (per-sub-pixel alpha), per-view alpha,
+    n = 2 and 3, odd sizes."""
+    assert native.available()
+    tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
+    seen = set()
+    for name, size, n in (("sphere_a03", 41, 2), ("bunny_a01", 37, 2),
+                          ("globe_gradient", 30, 3), ("wingnut_a01", 40, 2)):
+        s = _scene(name, size, n=n)
+        g, args = _lattice_inputs(s)
+        for alpha in (args[-1], torch.full((1, 1, 1), s.material.roughness)):
+            a = native.uniform(*args[:5], alpha, n, *tols)
+            b = adaptive._uniform_torch(g, alpha, n, *tols)
+            assert a is not None and torch.equal(a, b), (name, n, alpha.shape)
+            seen.update(a.unique().tolist())
+    assert seen == {False, True}
+
+
 def test_lattice_plan_kernel_equals_tensor_code():
     """csrc/lattice.c's plan is adaptive._lattice_torch's, status for status, on meshes
     with folds, a roughness map and odd frame sizes (a last row and column without their

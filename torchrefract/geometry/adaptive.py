@@ -89,6 +89,22 @@ def _subs(x: torch.Tensor, n: int) -> list[torch.Tensor]:
     return [x[:, i::n, j::n] for i in range(n) for j in range(n)]
 
 
+def _uniform_torch(g: GBuffer, alpha: torch.Tensor, n: int, smooth_alpha: float,
+                   normal_tol: float, depth_tol: float) -> torch.Tensor:
+    """The tensor code of csrc/lattice.c's uniform pixels (:func:`plan`): (B, H/n, W/n)."""
+    fm, bm = _subs(g.front.mask, n), _subs(g.back.mask, n)
+    fn, bn, bd = _subs(g.front.normal, n), _subs(g.back.normal, n), _subs(g.back.depth, n)
+    uniform = fm[0].clone()  # covered (empty pixels cost nothing) and smooth inside
+    tol = depth_tol * bd[0].abs()
+    for k in range(1, n * n):
+        uniform &= (fm[k] == fm[0]) & (bm[k] == bm[0])
+        uniform &= (1.0 - dot(fn[k], fn[0]) <= normal_tol) & (1.0 - dot(bn[k], bn[0]) <= normal_tol)
+        uniform &= (bd[k] - bd[0]).abs() <= tol
+    for a in _subs(alpha.expand(g.shape), n):
+        uniform &= a >= smooth_alpha
+    return uniform
+
+
 def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
          normal_tol: float = NORMAL_TOL, depth_tol: float = DEPTH_TOL,
          smooth_alpha: float = SMOOTH_ALPHA) -> tuple[GBuffer, Plan]:
@@ -106,16 +122,10 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         The G-buffer with ``shade`` set (the sub-pixels to shade), and the plan.
     """
     n = g.supersample
-    fm, bm = _subs(g.front.mask, n), _subs(g.back.mask, n)
-    fn, bn, bd = _subs(g.front.normal, n), _subs(g.back.normal, n), _subs(g.back.depth, n)
-    uniform = fm[0].clone()  # covered (empty pixels cost nothing) and smooth inside
-    tol = depth_tol * bd[0].abs()
-    for k in range(1, n * n):
-        uniform &= (fm[k] == fm[0]) & (bm[k] == bm[0])
-        uniform &= (1.0 - dot(fn[k], fn[0]) <= normal_tol) & (1.0 - dot(bn[k], bn[0]) <= normal_tol)
-        uniform &= (bd[k] - bd[0]).abs() <= tol
-    for a in _subs(alpha.expand(g.shape), n):
-        uniform &= a >= smooth_alpha
+    uniform = native.uniform(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
+                             g.back.depth, alpha, n, smooth_alpha, normal_tol, depth_tol)
+    if uniform is None:
+        uniform = _uniform_torch(g, alpha, n, smooth_alpha, normal_tol, depth_tol)
     _, h, w = g.shape
     pb, py, px = uniform.nonzero(as_tuple=True)  # the uniform pixels
     sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat

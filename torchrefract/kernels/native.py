@@ -238,6 +238,17 @@ class _LatticeJob(ctypes.Structure):
                 ("stride", ctypes.c_int64), ("fh", ctypes.c_int64), ("fw", ctypes.c_int64)]
 
 
+class _UniformJob(ctypes.Structure):
+    """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64), ("front_mask", _p), ("back_mask", _p),
+                ("front_normal", _p), ("back_normal", _p), ("back_depth", _p), ("alpha", _p),
+                ("per_pixel", ctypes.c_int), ("smooth_alpha", ctypes.c_float),
+                ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
+                ("uniform", _p)]
+
+
 class _ShadeLevel(ctypes.Structure):
     """ctypes mirror of ``ShadeLevel`` in csrc/lattice.c."""
 
@@ -270,7 +281,8 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
-            "lattice_shade": _LatticeShadeJob, "relight_reads": _RelightJob}
+            "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob,
+            "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
 
@@ -714,6 +726,32 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                       rtol=0.0, radiance=None, status=status.data_ptr(), gap=gap.data_ptr(),
                       stride=stride, fh=fh, fw=fw)
     return (status, gap) if _call("lattice_plan", job) else None
+
+
+def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
+            back_normal: torch.Tensor, back_depth: torch.Tensor, alpha: torch.Tensor, n: int,
+            smooth_alpha: float, normal_tol: float, depth_tol: float
+            ) -> torch.Tensor | None:
+    """``adaptive.plan``'s (B, H/n, W/n) bool uniform pixels of the (B, H, W) sub-pixel
+    layers (csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not
+    a float32 / bool CPU tensor. ``alpha``: (B, H, W) or (B, 1, 1)."""
+    if not available():
+        return None
+    keep = _inputs((front_normal, back_normal, back_depth, alpha), (),
+                   (front_mask, back_mask))
+    if keep is None:
+        return None
+    b, fh, fw = front_mask.shape
+    if alpha.numel() not in (b, b * fh * fw) or fh % n or fw % n:
+        return None
+    out = torch.empty(b, fh // n, fw // n, dtype=torch.bool)
+    job = _UniformJob(b=b, h=fh // n, w=fw // n, n=n, front_mask=keep[4].data_ptr(),
+                      back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
+                      back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
+                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * fh * fw),
+                      smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
+                      uniform=out.data_ptr())
+    return out if _call("uniform", job) else None
 
 
 def lattice_fill(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,

@@ -174,6 +174,52 @@ int torchrefract_lattice_fill(LatticeJob *job, int threads) {
     return tr_parallel_for(fill_range, job, job->b * job->h * job->w, 4096, threads);
 }
 
+/* adaptive.plan's uniform pixels of a supersampled G-buffer (n x n sub-pixels a pixel):
+ * those whose sub-pixels all agree with the first on both masks, both normals (within
+ * normal_tol of 1 - cos) and the back depth (within depth_tol of it), all at least
+ * smooth_alpha rough. The tensor code's float32 operations and order (optics.dot's sums,
+ * tolerances rounded to float as torch compares a float32 tensor with a Python number). */
+typedef struct {
+    int64_t b, h, w, n;                         /* pixels (B, h, w); layers (B, nh, nw) */
+    const uint8_t *front_mask, *back_mask;
+    const float *front_normal, *back_normal, *back_depth;
+    const float *alpha;                         /* (B, nh, nw), or (B,): per_pixel 0 */
+    int per_pixel;
+    float smooth_alpha, normal_tol, depth_tol;
+    uint8_t *uniform;                           /* out (B, h, w) */
+} UniformJob;
+
+static void uniform_range(const void *job, int64_t begin, int64_t end) {
+    const UniformJob *j = (const UniformJob *)job;
+    int64_t n = j->n, nw = j->w * n, hw = j->h * j->w;
+    for (int64_t p = begin; p < end; p++) {
+        int64_t bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
+        int64_t s0 = (bi * j->h * n + y * n) * nw + x * n;
+        int u = j->front_mask[s0];
+        float tol = j->depth_tol * fabsf(j->back_depth[s0]);
+        const float *fn0 = j->front_normal + 3 * s0, *bn0 = j->back_normal + 3 * s0;
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t k = 0; k < n; k++) {
+                int64_t s = s0 + i * nw + k;
+                if (i || k) {
+                    u &= j->front_mask[s] == j->front_mask[s0];
+                    u &= j->back_mask[s] == j->back_mask[s0];
+                    u &= 1.0f - dot3(j->front_normal + 3 * s, fn0) <= j->normal_tol;
+                    u &= 1.0f - dot3(j->back_normal + 3 * s, bn0) <= j->normal_tol;
+                    u &= fabsf(j->back_depth[s] - j->back_depth[s0]) <= tol;
+                }
+                u &= (j->per_pixel ? j->alpha[s] : j->alpha[bi]) >= j->smooth_alpha;
+            }
+        j->uniform[p] = (uint8_t)u;
+    }
+}
+
+int torchrefract_uniform(const UniformJob *job, int threads) {
+    return tr_parallel_for(uniform_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+int64_t torchrefract_uniform_job_size(void) { return (int64_t)sizeof(UniformJob); }
+
 /* One level of a plan for the driver below: its pixels (B, h, w) at ``stride`` in the
  * frame, the plan's status (filled in place) and gap. */
 typedef struct {
