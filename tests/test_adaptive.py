@@ -125,6 +125,32 @@ def test_uniform_kernel_equals_tensor_code():
     assert seen == {False, True}
 
 
+def test_center_samples_kernel_equals_tensor_code():
+    """csrc/gbuffer.c's center samples write the tensor code's values into the front layer
+    and rays, bit for bit: pixels whose sub-pixels see one triangle and several (folds,
+    edges), n = 2 and 3."""
+    import copy
+
+    for name, size, n in (("bunny_a01", 40, 2), ("sphere_a03", 33, 3), ("wingnut_a01", 36, 2)):
+        s = _scene(name, size, n=n)
+        g, args = _lattice_inputs(s)
+        uniform = adaptive._uniform_torch(g, args[-1], n, adaptive.SMOOTH_ALPHA,
+                                          adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
+        center = pixel_rays(s.camera)[None].contiguous()
+        a, b = copy.deepcopy(g), copy.deepcopy(g)
+        assert native.center_samples(a, uniform, center)
+        _, h, w = g.shape
+        pb, py, px = uniform.nonzero(as_tuple=True)
+        sel = (pb * h + py * n) * w + px * n
+        tris = torch.stack([t[uniform] for t in adaptive._subs(b.front.tri, n)], 1)
+        assert (tris != tris[:, :1]).any(), name  # some pixels with several triangles
+        adaptive._center_samples(b, sel, tris, center[uniform])
+        for f in ("tri", "position", "dist", "depth", "bary", "normal", "uv"):
+            assert torch.equal(getattr(a.front, f), getattr(b.front, f)), (name, f)
+        assert torch.equal(a.ray_dir, b.ray_dir)
+        assert not torch.equal(a.front.position, g.front.position)  # it wrote
+
+
 def test_lattice_plan_kernel_equals_tensor_code():
     """csrc/lattice.c's plan is adaptive._lattice_torch's, status for status, on meshes
     with folds, a roughness map and odd frame sizes (a last row and column without their

@@ -127,10 +127,11 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
     if uniform is None:
         uniform = _uniform_torch(g, alpha, n, smooth_alpha, normal_tol, depth_tol)
     _, h, w = g.shape
-    pb, py, px = uniform.nonzero(as_tuple=True)  # the uniform pixels
-    sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
-    tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
-    _center_samples(g, sel, tris, center_dirs[uniform])
+    if not native.center_samples(g, uniform, center_dirs.contiguous()):
+        pb, py, px = uniform.nonzero(as_tuple=True)  # the uniform pixels
+        sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
+        tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
+        _center_samples(g, sel, tris, center_dirs[uniform])
     shade = g.front.mask.clone()
     for k, v in enumerate(_subs(shade, n)):
         if k:

@@ -249,6 +249,15 @@ class _UniformJob(ctypes.Structure):
                 ("uniform", _p)]
 
 
+class _CenterJob(ctypes.Structure):
+    """ctypes mirror of ``CenterJob`` in csrc/gbuffer.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64)] + [(f, _p) for f in (
+                    "uniform", "center_dirs", "eye", "proj", "tv", "tn", "tuv", "tri",
+                    "position", "dist", "depth", "bary", "normal", "uv", "ray_dir")]
+
+
 class _ShadeLevel(ctypes.Structure):
     """ctypes mirror of ``ShadeLevel`` in csrc/lattice.c."""
 
@@ -282,6 +291,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob,
+            "center_samples": _CenterJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -752,6 +762,34 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
                       smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
                       uniform=out.data_ptr())
     return out if _call("uniform", job) else None
+
+
+def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:
+    """``adaptive._center_samples`` for every uniform pixel (B, H/n, W/n) of the
+    supersampled G-buffer ``g``, in place on its front layer and rays (csrc/gbuffer.c);
+    ``False`` (nothing written) where the kernel does not run: unavailable, a gradient
+    wanted, or a tensor not a contiguous CPU one of its dtype."""
+    f = g.front
+    outs = (f.position, f.dist, f.depth, f.bary, f.normal, f.uv, g.ray_dir)
+    ins = (center_dirs, g.eye, g.proj, g.meshes.tri_vertices, g.meshes.tri_normals,
+           g.meshes.tri_uvs)
+    ok = (available() and no_grad_through(*outs, *ins)
+          and all(x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
+                  for x in outs + ins)
+          and f.tri.dtype == torch.int64 and f.tri.is_contiguous()
+          and uniform.dtype == torch.bool and uniform.is_contiguous())
+    if not ok:
+        return False
+    b, h, w = uniform.shape
+    job = _CenterJob(b=b, h=h, w=w, n=g.supersample, uniform=uniform.data_ptr(),
+                     center_dirs=center_dirs.data_ptr(), eye=g.eye.data_ptr(),
+                     proj=g.proj.data_ptr(), tv=g.meshes.tri_vertices.data_ptr(),
+                     tn=g.meshes.tri_normals.data_ptr(), tuv=g.meshes.tri_uvs.data_ptr(),
+                     tri=f.tri.data_ptr(), position=f.position.data_ptr(),
+                     dist=f.dist.data_ptr(), depth=f.depth.data_ptr(), bary=f.bary.data_ptr(),
+                     normal=f.normal.data_ptr(), uv=f.uv.data_ptr(),
+                     ray_dir=g.ray_dir.data_ptr())
+    return _call("center_samples", job)
 
 
 def lattice_fill(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,

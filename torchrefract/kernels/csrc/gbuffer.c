@@ -18,6 +18,7 @@
 #endif
 
 #include "common.h"
+#include "optics.h"
 
 /* A hit's attributes for lane type T (the scalar and the AVX2 code alike): from the
  * triangle's corner normals tn and UVs tuv (as T) and the barycentrics, the unit
@@ -360,3 +361,76 @@ int torchrefract_layer(const LayerJob *job, int threads) {
 }
 
 int64_t torchrefract_layer_job_size(void) { return (int64_t)sizeof(LayerJob); }
+
+
+/* adaptive._center_samples: each uniform pixel's first sub-pixel of the front layer, and
+ * its ray, replaced in place by the sample along the pixel's center ray, on the one of the
+ * pixel's sub-pixel triangles that the ray hits most inside (the largest smallest
+ * barycentric; the first of equal ones, a NaN first as torch.argmax takes it). The tensor
+ * code's float32 operations (gbuffer.intersect_triangles, interpolate, smooth.normalize:
+ * optics.h's hit, weights, blend, norm3), so the same values. */
+typedef struct {
+    int64_t b, h, w, n;                 /* pixels (B, h, w); the layer (B, nh, nw) */
+    const uint8_t *uniform;             /* (B, h, w) */
+    const float *center_dirs;           /* (B, h, w, 3) unit center rays */
+    const float *eye, *proj;            /* (B, 3), (B, 16): forward at 9..11 */
+    const float *tv, *tn, *tuv;         /* (F, 3, 3), (F, 3, 3), (F, 3, 2) */
+    int64_t *tri;                       /* the front layer (B*nh*nw, ...) and rays */
+    float *position, *dist, *depth, *bary, *normal, *uv, *ray_dir;
+} CenterJob;
+
+static void center_range(const void *job, int64_t begin, int64_t end) {
+    const CenterJob *j = (const CenterJob *)job;
+    int64_t n = j->n, nw = j->w * n, hw = j->h * j->w;
+    for (int64_t p = begin; p < end; p++) {
+        if (!j->uniform[p]) continue;
+        int64_t bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
+        int64_t s0 = (bi * j->h * n + y * n) * nw + x * n;
+        const float *d = j->center_dirs + 3 * p, *o = j->eye + 3 * bi;
+        int64_t cand[64], best = -1;
+        int m = 0;
+        float best_score = 0.0f, best_t = 0.0f, best_bary[3] = {0.0f, 0.0f, 0.0f};
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t k = 0; k < n; k++) {
+                int64_t c = j->tri[s0 + i * nw + k];
+                int seen = 0;
+                for (int q = 0; q < m; q++) seen |= cand[q] == c;
+                if (seen || m >= 64) continue;  /* a repeat gives the same values */
+                cand[m++] = c;
+                float bb[3];
+                float t = hit(o, d, j->tv + 9 * c, bb);
+                float score = min3(bb);
+                int take = best < 0 || (best_score == best_score &&
+                                        (score != score || score > best_score));
+                if (take) {
+                    best = c;
+                    best_score = score;
+                    best_t = t;
+                    for (int e = 0; e < 3; e++) best_bary[e] = bb[e];
+                }
+            }
+        float nrm[3], uv[2];
+        interpolate(best_bary, j->tn + 9 * best, 3, nrm);
+        normalize3(nrm);
+        interpolate(best_bary, j->tuv + 6 * best, 2, uv);
+        j->tri[s0] = best;
+        for (int e = 0; e < 3; e++) {
+            float td = best_t * d[e];
+            j->position[3 * s0 + e] = o[e] + td;
+            j->bary[3 * s0 + e] = best_bary[e];
+            j->normal[3 * s0 + e] = nrm[e];
+            j->ray_dir[3 * s0 + e] = d[e];
+        }
+        j->dist[s0] = best_t;
+        j->depth[s0] = best_t * dot3(d, j->proj + 16 * bi + 9);
+        j->uv[2 * s0] = uv[0];
+        j->uv[2 * s0 + 1] = uv[1];
+    }
+}
+
+/* Entry point (ctypes, native.py). Returns 0, or -1 where a thread could not be started. */
+int torchrefract_center_samples(const CenterJob *job, int threads) {
+    return tr_parallel_for(center_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+int64_t torchrefract_center_samples_job_size(void) { return (int64_t)sizeof(CenterJob); }
