@@ -718,24 +718,36 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
         front_mask, back_mask: (B, H, W). front_normal, back_normal: (B, H, W, 3).
         back_depth: (B, H, W). alpha: (B, H, W) or (B, 1, 1) front roughness.
     """
+    made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
+    if made is None:
+        return None
+    _, fields = made
+    b, fh, fw = front_mask.shape
+    h, w = -(-fh // stride), -(-fw // stride)
+    status = torch.empty(b, h, w, dtype=torch.uint8)
+    gap = torch.empty(b, h, w)
+    job = _LatticeJob(b=b, h=h, w=w, alpha_min=alpha_min, normal_tol=normal_tol,
+                      depth_tol=depth_tol, rtol=0.0, radiance=None, status=status.data_ptr(),
+                      gap=gap.data_ptr(), stride=stride, fh=fh, fw=fw, **fields)
+    return (status, gap) if _call("lattice_plan", job) else None
+
+
+def _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha
+                 ) -> tuple[list, dict] | None:
+    """The layers a plan reads (:func:`lattice_plan`, :func:`uniform`) as job fields, with
+    the contiguous tensors they point into; ``None`` where the kernels are unavailable or
+    one is not a float32 / bool CPU tensor. ``alpha``: per sub-pixel or per view."""
     if not available():
         return None
     keep = _inputs((front_normal, back_normal, back_depth, alpha), (),
                    (front_mask, back_mask))
     if keep is None:
         return None
-    b, fh, fw = front_mask.shape
-    h, w = -(-fh // stride), -(-fw // stride)
-    status = torch.empty(b, h, w, dtype=torch.uint8)
-    gap = torch.empty(b, h, w)
-    job = _LatticeJob(b=b, h=h, w=w, front_mask=keep[4].data_ptr(),
-                      back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
-                      back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
-                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * fh * fw),
-                      alpha_min=alpha_min, normal_tol=normal_tol, depth_tol=depth_tol,
-                      rtol=0.0, radiance=None, status=status.data_ptr(), gap=gap.data_ptr(),
-                      stride=stride, fh=fh, fw=fw)
-    return (status, gap) if _call("lattice_plan", job) else None
+    per_pixel = int(alpha.numel() == front_mask.numel())
+    return keep, dict(front_mask=keep[4].data_ptr(), back_mask=keep[5].data_ptr(),
+                      front_normal=keep[0].data_ptr(), back_normal=keep[1].data_ptr(),
+                      back_depth=keep[2].data_ptr(), alpha=keep[3].data_ptr(),
+                      per_pixel=per_pixel)
 
 
 def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
@@ -745,22 +757,16 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
     """``adaptive.plan``'s (B, H/n, W/n) bool uniform pixels of the (B, H, W) sub-pixel
     layers (csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not
     a float32 / bool CPU tensor. ``alpha``: (B, H, W) or (B, 1, 1)."""
-    if not available():
-        return None
-    keep = _inputs((front_normal, back_normal, back_depth, alpha), (),
-                   (front_mask, back_mask))
-    if keep is None:
-        return None
     b, fh, fw = front_mask.shape
     if alpha.numel() not in (b, b * fh * fw) or fh % n or fw % n:
         return None
+    made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
+    if made is None:
+        return None
     out = torch.empty(b, fh // n, fw // n, dtype=torch.bool)
-    job = _UniformJob(b=b, h=fh // n, w=fw // n, n=n, front_mask=keep[4].data_ptr(),
-                      back_mask=keep[5].data_ptr(), front_normal=keep[0].data_ptr(),
-                      back_normal=keep[1].data_ptr(), back_depth=keep[2].data_ptr(),
-                      alpha=keep[3].data_ptr(), per_pixel=int(alpha.numel() == b * fh * fw),
-                      smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
-                      uniform=out.data_ptr())
+    job = _UniformJob(b=b, h=fh // n, w=fw // n, n=n, smooth_alpha=smooth_alpha,
+                      normal_tol=normal_tol, depth_tol=depth_tol, uniform=out.data_ptr(),
+                      **made[1])
     return out if _call("uniform", job) else None
 
 

@@ -333,23 +333,11 @@ int torchrefract_lattice_shade(LatticeShadeJob *J, int threads) {
         int64_t n = J->b * L->h * L->w;
         float *weight = (float *)calloc((size_t)(n ? n : 1), sizeof(float));
         if (!weight) return -1;
-        LatticeJob lj;
-        memset(&lj, 0, sizeof(lj));
-        lj.b = J->b;
-        lj.h = L->h;
-        lj.w = L->w;
-        lj.rtol = L->rtol;
-        lj.blend_from = J->blend_from;
-        lj.radiance = J->radiance;
-        lj.status = L->status;
-        lj.gap = L->gap;
-        lj.weight = weight;
-        lj.npass = J->npass;
-        lj.pass = J->pass;
-        lj.pass_ch = J->pass_ch;
-        lj.stride = L->stride;
-        lj.fh = J->h;
-        lj.fw = J->w;
+        LatticeJob lj = {.b = J->b, .h = L->h, .w = L->w, .rtol = L->rtol,
+                         .radiance = J->radiance, .status = L->status, .gap = L->gap,
+                         .weight = weight, .blend_from = J->blend_from, .npass = J->npass,
+                         .pass = J->pass, .pass_ch = J->pass_ch, .stride = L->stride,
+                         .fh = J->h, .fw = J->w};
         int rc = tr_parallel_for(fill_range, &lj, n, 4096, threads);
         if (rc == 0) rc = shade_level(J, &lj, f, threads);
         free(weight);
