@@ -149,26 +149,11 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
     bi = sel // (h * w)
     eye = take(g.eye, bi)
     m = tris.shape[1]
-    # where every sub-pixel saw one triangle (most pixels), it is the pick (the first of
-    # equal ones) and one hit is computed; elsewhere each candidate's
-    one = (tris == tris[:, :1]).all(1)
-    tri, t, bary = tris[:, 0].clone(), torch.empty(len(sel)), torch.empty(len(sel), 3)
-    i1, im = where_true(one), where_true(~one)
-    t1, b1 = intersect_triangles(take(eye, i1), take(d, i1),
-                                 g.meshes.tri_vertices[take(tri, i1)])
-    put_(t, i1, t1.to(t.dtype))
-    put_(bary, i1, b1.to(bary.dtype))
-    if im.numel():
-        cand = take(tris, im)
-        ts, bs = intersect_triangles(take(eye, im).repeat_interleave(m, 0),
-                                     take(d, im).repeat_interleave(m, 0),
-                                     g.meshes.tri_vertices[cand.reshape(-1)])
-        ts, bs = ts.view(-1, m), bs.view(-1, m, 3)  # (N, m), (N, m, 3)
-        best = bs.amin(-1).argmax(-1)  # the first of equal ones
-        pick = torch.arange(len(im))
-        put_(tri, im, cand[pick, best])
-        put_(t, im, ts[pick, best].to(t.dtype))
-        put_(bary, im, bs[pick, best].to(bary.dtype))
+    ts, bs = intersect_triangles(eye[:, None].expand(-1, m, -1), d[:, None].expand(-1, m, -1),
+                                 g.meshes.tri_vertices[tris])  # (N, m), (N, m, 3)
+    best = bs.amin(-1).argmax(-1)  # the first of equal ones
+    pick = torch.arange(len(sel))
+    tri, t, bary = tris[pick, best], ts[pick, best], bs[pick, best]
     fwd = take(g.proj[:, 9:12], bi)
     values = {
         "tri": tri,
@@ -402,6 +387,14 @@ def _fill_torch(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,
     st[idx] = torch.where(soft, 5, torch.where(ok, 3, 4)).to(st.dtype)
 
 
+def fill_rtol(level: Level, blend_from: float = BLEND_FROM) -> float:
+    """The spread of a waiting pixel's neighbours' radiances over their luminance from which
+    it is shaded alone (where blending ends): LATTICE_RTOL over the level's stride (the
+    error of a mean over twice the spacing grows faster than the neighbours' spread), over
+    ``blend_from``. :func:`fill`'s default, and csrc/lattice.c's (shading.fused)."""
+    return LATTICE_RTOL / level.stride / blend_from
+
+
 def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
          rtol: float | None = None, blend_from: float | None = None
          ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None,
@@ -412,10 +405,9 @@ def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
     the passes, the (B, H, W) mask of the pixels the level's own pass shades (None: none),
     and of those the ones to blend with their mean (:func:`merge`): their flat (B*H*W)
     indices and smoothstep weights (None: none). ``rtol``: where blending ends, default
-    LATTICE_RTOL over the stride (the error of a mean over twice the spacing grows faster
-    than the neighbours' spread) over ``blend_from`` (default BLEND_FROM)."""
+    :func:`fill_rtol` (``blend_from``: default BLEND_FROM)."""
     blend_from = BLEND_FROM if blend_from is None else blend_from
-    rtol = LATTICE_RTOL / level.stride / blend_from if rtol is None else rtol
+    rtol = fill_rtol(level, blend_from) if rtol is None else rtol
     b, h, w, _ = radiance.shape
     radiance = radiance.contiguous()
     passes = {k: v.contiguous() for k, v in passes.items()}
@@ -497,4 +489,5 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
 
 
 __all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
-           "Lattice", "Level", "Plan", "fill", "lattice", "merge", "plan", "spread", "waiting"]
+           "Lattice", "Level", "Plan", "fill", "fill_rtol", "lattice", "merge", "plan", "spread",
+           "waiting"]

@@ -268,15 +268,16 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
     assert ctypes.addressof(frame) == ctypes.addressof(job)
     b, h, w = g.shape
     levels = g.lattice.levels
+    # the kernel writes the level statuses and the passes in place: no copies
+    if not all(x.is_contiguous() for lv in levels for x in (lv.status, lv.gap)):
+        return False
+    if not all(v.is_contiguous() and v.dtype == torch.float32 for v in passes.values()):
+        return False
     rows = (native._ShadeLevel * len(levels))(*[native._ShadeLevel(
         stride=lv.stride, h=lv.status.shape[1], w=lv.status.shape[2],
         status=lv.status.data_ptr(), gap=lv.gap.data_ptr(),
-        rtol=adaptive.LATTICE_RTOL / lv.stride / adaptive.BLEND_FROM) for lv in levels])
-    if not all(lv.status.is_contiguous() and lv.gap.is_contiguous() for lv in levels):
-        return False
-    bufs = [v.reshape(b * h * w, -1) for v in passes.values()]
-    if not all(x.is_contiguous() and x.dtype == torch.float32 for x in bufs):
-        return False
+        rtol=adaptive.fill_rtol(lv)) for lv in levels])
+    bufs = [v.view(b * h * w, -1) for v in passes.values()]
     ptrs = (ctypes.c_void_p * max(1, len(bufs)))(*[x.data_ptr() for x in bufs])
     chans = torch.tensor([x.shape[1] for x in bufs] or [0], dtype=torch.int64)
     drv = native._LatticeShadeJob(
@@ -286,7 +287,7 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
         pass_ptr=ctypes.cast(ptrs, ctypes.c_void_p), pass_ch=chans.data_ptr())
     if native._call("lattice_shade", drv):
         return True
-    if any(not bool((lv.status == 2).any()) for lv in levels):  # failed after a level
+    if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
         raise MemoryError(f"adaptive shading ({name}): no memory for a level's pass")
     return False  # the first pass failed: nothing written, the tensor code runs
 

@@ -387,7 +387,7 @@ static void center_range(const void *job, int64_t begin, int64_t end) {
         int64_t bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
         int64_t s0 = (bi * j->h * n + y * n) * nw + x * n;
         const float *d = j->center_dirs + 3 * p, *o = j->eye + 3 * bi;
-        int64_t cand[64], best = -1;
+        int64_t cand[256], best = -1;  /* n <= 16 (torchrefract_center_samples) */
         int m = 0;
         float best_score = 0.0f, best_t = 0.0f, best_bary[3] = {0.0f, 0.0f, 0.0f};
         for (int64_t i = 0; i < n; i++)
@@ -395,7 +395,7 @@ static void center_range(const void *job, int64_t begin, int64_t end) {
                 int64_t c = j->tri[s0 + i * nw + k];
                 int seen = 0;
                 for (int q = 0; q < m; q++) seen |= cand[q] == c;
-                if (seen || m >= 64) continue;  /* a repeat gives the same values */
+                if (seen) continue;  /* a repeat gives the same values */
                 cand[m++] = c;
                 float bb[3];
                 float t = hit(o, d, j->tv + 9 * c, bb);
@@ -430,6 +430,7 @@ static void center_range(const void *job, int64_t begin, int64_t end) {
 
 /* Entry point (ctypes, native.py). Returns 0, or -1 where a thread could not be started. */
 int torchrefract_center_samples(const CenterJob *job, int threads) {
+    if (job->n > 16) return -1;  /* the scenes' limit; cand's size */
     return tr_parallel_for(center_range, job, job->b * job->h * job->w, 4096, threads);
 }
 

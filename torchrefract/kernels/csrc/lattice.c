@@ -253,8 +253,18 @@ typedef struct {
 
 /* One level's pass after its fill. Returns 0, or -1 (memory, or the kernel failed). */
 static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f, int threads) {
-    int64_t n = lj->b * lj->h * lj->w, hw = J->h * J->w, rest = 0, soft = 0, chans = 3;
-    for (int q = 0; q < J->npass; q++) chans += J->pass_ch[q];
+    /* the buffers a status-5 pixel blends: the radiance, then the method's passes */
+    int nbuf = J->npass + 1;
+    float *buf[nbuf];
+    int64_t ch[nbuf], n = lj->b * lj->h * lj->w, hw = J->h * J->w, rest = 0, soft = 0;
+    int64_t chans = 0;
+    buf[0] = J->radiance;
+    ch[0] = 3;
+    for (int q = 1; q < nbuf; q++) {
+        buf[q] = J->pass[q - 1];
+        ch[q] = J->pass_ch[q - 1];
+    }
+    for (int q = 0; q < nbuf; q++) chans += ch[q];
     for (int64_t p = 0; p < n; p++) {
         rest += lj->status[p] >= 4;
         soft += lj->status[p] == 5;
@@ -276,22 +286,15 @@ static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f,
         batch[r++] = fp / hw;
         if (lj->status[p] == 5) {  /* its means, read before the pass overwrites them */
             float *m = mean + s * chans;
-            for (int c = 0; c < 3; c++) m[c] = J->radiance[3 * fp + c];
-            m += 3;
-            for (int q = 0; q < J->npass; q++) {
-                int64_t ch = J->pass_ch[q];
-                for (int64_t c = 0; c < ch; c++) m[c] = J->pass[q][fp * ch + c];
-                m += ch;
-            }
+            for (int q = 0; q < nbuf; m += ch[q], q++)
+                for (int64_t c = 0; c < ch[q]; c++) m[c] = buf[q][fp * ch[q] + c];
             sidx[s] = fp;
             sw[s++] = lj->weight[p];
         }
         /* the passes as a fresh pass has them (adaptive.merge takes the second pass's
-         * values at every pixel it shades) */
-        for (int q = 0; q < J->npass; q++) {
-            int64_t ch = J->pass_ch[q];
-            for (int64_t c = 0; c < ch; c++) J->pass[q][fp * ch + c] = 0.0f;
-        }
+         * values at every pixel it shades); the radiance is the image so far */
+        for (int q = 1; q < nbuf; q++)
+            for (int64_t c = 0; c < ch[q]; c++) buf[q][fp * ch[q] + c] = 0.0f;
     }
     int64_t n0 = f->n;
     const int64_t *idx0 = f->idx, *batch0 = f->batch;
@@ -303,21 +306,12 @@ static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f,
     f->idx = idx0;
     f->batch = batch0;
     for (int64_t i = 0; rc == 0 && i < soft; i++) {
-        int64_t fp = sidx[i];
         float w = sw[i], *m = mean + i * chans;
-        for (int c = 0; c < 3; c++) {
-            float *x = J->radiance + 3 * fp + c;
-            *x = m[c] + w * (*x - m[c]);
-        }
-        m += 3;
-        for (int q = 0; q < J->npass; q++) {
-            int64_t ch = J->pass_ch[q];
-            for (int64_t c = 0; c < ch; c++) {
-                float *x = J->pass[q] + fp * ch + c;
+        for (int q = 0; q < nbuf; m += ch[q], q++)
+            for (int64_t c = 0; c < ch[q]; c++) {
+                float *x = buf[q] + sidx[i] * ch[q] + c;
                 *x = m[c] + w * (*x - m[c]);
             }
-            m += ch;
-        }
     }
     free(idx); free(sidx); free(sw); free(mean);
     return rc;
