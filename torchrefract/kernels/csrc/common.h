@@ -19,31 +19,36 @@
 #include <omp.h>
 #endif
 
+/* Attributes of the functions TR_DEFINE_LANES writes (empty; an instance for a lane type
+ * of an instruction set the build does not assume defines it around its instantiation,
+ * e.g. __attribute__((target("avx2,fma")))). */
+#define TR_LANES_ATTR
+
 /* The operations written once for any lane type T: a scalar (M, its comparisons' type, is
  * int; SEL a ternary) or a GCC vector of 4 doubles (gbuffer.c's AVX2 path: M the integer
  * vector of a comparison, SEL a blend), so that both compute the same bits. K(T, x) is
  * the constant x as a T. The triangle's corners come as T values (9: v0, v1, v2). */
 #define TR_DEFINE_LANES(T, M, S, FMA, FABS, SQRT, DET_EPS, SEL, K)                        \
-    static inline T dot3##S(const T *a, const T *b) {                                      \
+    static inline TR_LANES_ATTR T dot3##S(const T *a, const T *b) {                                      \
         T x = a[0] * b[0];                                                                  \
         T y = a[1] * b[1];                                                                  \
         T z = a[2] * b[2];                                                                  \
         return (x + y) + z;                                                                 \
     }                                                                                       \
     /* torch.cross: a1 b2 - (a2 b1), the second product rounded first */                  \
-    static inline void cross3##S(const T *a, const T *b, T *out) {                         \
+    static inline TR_LANES_ATTR void cross3##S(const T *a, const T *b, T *out) {                         \
         out[0] = FMA(a[1], b[2], -(a[2] * b[1]));                                           \
         out[1] = FMA(a[2], b[0], -(a[0] * b[2]));                                           \
         out[2] = FMA(a[0], b[1], -(a[1] * b[0]));                                           \
     }                                                                                       \
     /* Tensor.norm: the squares accumulated by fused multiply-adds, then the root */       \
-    static inline T norm3##S(const T *a) {                                                  \
+    static inline TR_LANES_ATTR T norm3##S(const T *a) {                                                  \
         T acc = a[0] * a[0];                                                                \
         acc = FMA(a[1], a[1], acc);                                                         \
         acc = FMA(a[2], a[2], acc);                                                         \
         return SQRT(acc);                                                                   \
     }                                                                                       \
-    static inline T min3##S(const T *b) {                                                   \
+    static inline TR_LANES_ATTR T min3##S(const T *b) {                                                   \
         T m = b[0];                                                                         \
         m = SEL(b[1] < m, b[1], m);                                                         \
         m = SEL(b[2] < m, b[2], m);                                                         \
@@ -53,7 +58,7 @@
     /* gbuffer.intersect_triangles for one ray and the triangle v (9 values): returns t   \
      * (inf where the ray is parallel to the plane), writes the barycentrics               \
      * (1 - u - v, u, v). */                                                                \
-    static inline T hit##S(const T *o, const T *d, const T *v, T *bary) {                  \
+    static inline TR_LANES_ATTR T hit##S(const T *o, const T *d, const T *v, T *bary) {                  \
         T e1[3], e2[3], p[3], s[3], q[3];                                                   \
         for (int i = 0; i < 3; i++) {                                                       \
             e1[i] = v[3 + i] - v[i];                                                        \
@@ -77,7 +82,7 @@
     }                                                                                       \
     /* gbuffer.interpolate's weights: barycentrics clamped to the triangle (NaN kept),     \
      * renormalized */                                                                      \
-    static inline void weights##S(const T *bary, T *w) {                                    \
+    static inline TR_LANES_ATTR void weights##S(const T *bary, T *w) {                                    \
         for (int i = 0; i < 3; i++)                                                         \
             w[i] = SEL(bary[i] != bary[i], bary[i],                                         \
                        SEL(bary[i] < K(T, 0), K(T, 0), bary[i]));                           \
@@ -86,7 +91,7 @@
         for (int i = 0; i < 3; i++) w[i] = w[i] / sum;                                      \
     }                                                                                       \
     /* ... and the c-channel corner values (3 x c, as T) blended with them */               \
-    static inline void blend##S(const T *w, const T *corners, int c, T *out) {              \
+    static inline TR_LANES_ATTR void blend##S(const T *w, const T *corners, int c, T *out) {              \
         for (int m = 0; m < c; m++) {                                                       \
             T a = w[0] * corners[m];                                                        \
             T b = w[1] * corners[c + m];                                                    \

@@ -508,22 +508,27 @@ __attribute__((target("avx2"))) static inline void columns8(const float *src, in
     for (int k = 0; k < n; k++) out[k] = _mm256_loadu_ps(tmp[k]);
 }
 
-/* 3-vector operations of optics.h (common.h's bodies) on 8 lanes, op for op. */
-__attribute__((target("avx2,fma"))) static inline __m256 dot8(const __m256 *a, const __m256 *b) {
-    return _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
-                         _mm256_mul_ps(a[2], b[2]));
+/* common.h's 3-vector bodies (hit, weights, blend, norm3) on 8 float lanes: the scalar
+ * code's operations lane by lane. */
+typedef float v8f __attribute__((vector_size(32)));
+typedef int v8i __attribute__((vector_size(32)));
+__attribute__((target("avx2,fma"))) static inline v8f fma8(v8f a, v8f b, v8f c) {
+    return (v8f)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
 }
-
-__attribute__((target("avx2,fma"))) static inline __m256 neg8(__m256 x) {
-    return _mm256_xor_ps(x, _mm256_set1_ps(-0.0f));
+__attribute__((target("avx2,fma"))) static inline v8f abs8(v8f a) {
+    return (v8f)((v8i)a & (v8i){0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff,
+                                0x7fffffff, 0x7fffffff, 0x7fffffff});
 }
-
-__attribute__((target("avx2,fma"))) static inline void cross8(const __m256 *a, const __m256 *b,
-                                                              __m256 *out) {
-    out[0] = _mm256_fmadd_ps(a[1], b[2], neg8(_mm256_mul_ps(a[2], b[1])));
-    out[1] = _mm256_fmadd_ps(a[2], b[0], neg8(_mm256_mul_ps(a[0], b[2])));
-    out[2] = _mm256_fmadd_ps(a[0], b[1], neg8(_mm256_mul_ps(a[1], b[0])));
+__attribute__((target("avx2,fma"))) static inline v8f sqrt8(v8f a) {
+    return (v8f)_mm256_sqrt_ps((__m256)a);
 }
+#define SEL8(m, a, b) ((v8f)_mm256_blendv_ps((__m256)(b), (__m256)(a), (__m256)(m)))
+#define K8(T, x) ((T){(x), (x), (x), (x), (x), (x), (x), (x)})
+#undef TR_LANES_ATTR
+#define TR_LANES_ATTR __attribute__((target("avx2,fma")))
+TR_DEFINE_LANES(v8f, v8i, 8, fma8, abs8, sqrt8, 1e-30f, SEL8, K8)
+#undef TR_LANES_ATTR
+#define TR_LANES_ATTR
 
 /* first_try for rays [r0, r0 + 8) of the back layer's march (pw 4): the candidate at hi
  * (pixel8, the back triangle there) and the ray's hit with it (common.h's hit) in lanes,
@@ -544,29 +549,14 @@ __attribute__((target("avx2,fma"))) static void first_try8(const Job *j, int64_t
         const float *tv = j->tv + 9 * (cand[i] < 0 ? 0 : cand[i]);
         for (int k = 0; k < 9; k++) vt[k][i] = tv[k];
     }
-    __m256 v0[3], v1[3], v2[3], o[3], d[3], e1[3], e2[3], p[3], sv[3], q[3];
-    for (int k = 0; k < 3; k++) {
-        v0[k] = _mm256_loadu_ps(vt[k]);
-        v1[k] = _mm256_loadu_ps(vt[3 + k]);
-        v2[k] = _mm256_loadu_ps(vt[6 + k]);
-    }
+    __m256 o[3], d[3];
+    v8f v[9], bary[3];
+    for (int k = 0; k < 9; k++) v[k] = (v8f)_mm256_loadu_ps(vt[k]);
     columns8(j->p1 + 3 * r0, 3, 3, o);
     columns8(j->t + 3 * r0, 3, 3, d);
-    for (int k = 0; k < 3; k++) {
-        e1[k] = _mm256_sub_ps(v1[k], v0[k]);
-        e2[k] = _mm256_sub_ps(v2[k], v0[k]);
-        sv[k] = _mm256_sub_ps(o[k], v0[k]);
-    }
-    cross8(d, e2, p);
-    __m256 det = dot8(e1, p), one = _mm256_set1_ps(1.0f);
-    __m256 ok = _mm256_cmp_ps(_mm256_andnot_ps(_mm256_set1_ps(-0.0f), det),
-                              _mm256_set1_ps(1e-30f), _CMP_GT_OQ);
-    __m256 inv = _mm256_and_ps(ok, _mm256_div_ps(one, _mm256_blendv_ps(one, det, ok)));
-    __m256 u = _mm256_mul_ps(dot8(sv, p), inv);
-    cross8(sv, e1, q);
-    __m256 vv = _mm256_mul_ps(dot8(d, q), inv);
-    __m256 t = _mm256_blendv_ps(_mm256_set1_ps(INFINITY), _mm256_mul_ps(dot8(e2, q), inv), ok);
-    __m256 b0 = _mm256_sub_ps(_mm256_sub_ps(one, u), vv);
+    v8f o8[3] = {(v8f)o[0], (v8f)o[1], (v8f)o[2]}, d8[3] = {(v8f)d[0], (v8f)d[1], (v8f)d[2]};
+    __m256 t = (__m256)hit8(o8, d8, v, bary);
+    __m256 b0 = (__m256)bary[0], u = (__m256)bary[1], vv = (__m256)bary[2];
     /* accepted: finite, beyond s_min, within 1.5 s_max */
     float smin[8];
     for (int i = 0; i < 8; i++) smin[i] = j->s_min[r0 + i];
@@ -607,25 +597,17 @@ __attribute__((target("avx2,fma"))) static void exit_values8(const Job *j, int64
     const __m256 zero = _mm256_setzero_ps();
     __m256 ok = _mm256_cmp_ps(_mm256_loadu_ps(okf), zero, _CMP_GT_OQ);
     __m256 s = _mm256_and_ps(ok, _mm256_loadu_ps(hit_s));
-    __m256 bt[3], w[3], n[3], p1[3], t[3];
+    __m256 bt[3], p1[3], t[3];
     columns8(hit_bt[0], 3, 3, bt);
     columns8(j->p1 + 3 * r0, 3, 3, p1);
     columns8(j->t + 3 * r0, 3, 3, t);
-    for (int k = 0; k < 3; k++) {
-        bt[k] = _mm256_and_ps(ok, bt[k]);
-        w[k] = _mm256_blendv_ps(bt[k], zero, _mm256_cmp_ps(bt[k], zero, _CMP_LT_OQ));
-    }
-    __m256 sum = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), w[2]);
-    const __m256 tiny = _mm256_set1_ps(1e-12f);
-    sum = _mm256_blendv_ps(sum, tiny, _mm256_cmp_ps(sum, tiny, _CMP_LT_OQ));
-    for (int k = 0; k < 3; k++) w[k] = _mm256_div_ps(w[k], sum);
-    for (int m = 0; m < 3; m++)
-        n[m] = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w[0], _mm256_loadu_ps(c[m])),
-                                           _mm256_mul_ps(w[1], _mm256_loadu_ps(c[3 + m]))),
-                             _mm256_mul_ps(w[2], _mm256_loadu_ps(c[6 + m])));
-    __m256 len = _mm256_mul_ps(n[0], n[0]);
-    len = _mm256_fmadd_ps(n[1], n[1], len);
-    len = _mm256_sqrt_ps(_mm256_fmadd_ps(n[2], n[2], len));
+    v8f bt8[3], w[3], c8[9], n8[3];
+    for (int k = 0; k < 3; k++) bt8[k] = (v8f)(bt[k] = _mm256_and_ps(ok, bt[k]));
+    for (int k = 0; k < 9; k++) c8[k] = (v8f)_mm256_loadu_ps(c[k]);
+    weights8(bt8, w);  /* interpolate's clamped, renormalized weights */
+    blend8(w, c8, 3, n8);
+    __m256 n[3] = {(__m256)n8[0], (__m256)n8[1], (__m256)n8[2]};
+    __m256 len = (__m256)norm38(n8);
     const __m256 tiny2 = _mm256_set1_ps(1e-20f);
     len = _mm256_blendv_ps(len, tiny2, _mm256_cmp_ps(len, tiny2, _CMP_LT_OQ));
     float out[9][8], so[8];
