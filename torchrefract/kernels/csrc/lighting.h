@@ -18,6 +18,13 @@ typedef struct {
     int64_t gl_n;
 } Lights;
 
+/* atan(t) = t + t^3 P(t^2) for t in [0, tan(pi/8)]: P's minimax coefficients, highest
+ * power first (relative error 1e-13), for tr_atan2_d and tr_atan2_4d. */
+static const double TR_ATAN_P[8] = {
+    0.032956795418701366, -0.060273074609466753, 0.076048000460782915,
+    -0.090841018953464295, 0.11110819716745676, -0.142857081103604,
+    0.19999999949854793, -0.33333333333266199};
+
 /* atan2 of float values in double, one lane of tr_atan2_4d (below; the same steps): t =
  * min / max of |x|, |y| (or (t - 1) / (t + 1) above tan(pi/8), plus pi/4), atan(t) = t +
  * t^3 P(t^2) (relative error 1e-13), then pi/2 - r where |y| > |x|, pi - r where x's sign
@@ -29,14 +36,8 @@ static inline double tr_atan2_d(double y, double x) {
     double num = big ? lo - hi : lo, den = big ? lo + hi : hi;
     if (den == 0.0) den = 1.0;  /* both zero: t = 0 (atan2f(+-0, +-0)) */
     double t = num / den, z = t * t;
-    double p = 0.032956795418701366;
-    p = fma(p, z, -0.060273074609466753);
-    p = fma(p, z, 0.076048000460782915);
-    p = fma(p, z, -0.090841018953464295);
-    p = fma(p, z, 0.11110819716745676);
-    p = fma(p, z, -0.142857081103604);
-    p = fma(p, z, 0.19999999949854793);
-    p = fma(p, z, -0.33333333333266199);
+    double p = TR_ATAN_P[0];
+    for (int i = 1; i < 8; i++) p = fma(p, z, TR_ATAN_P[i]);
     double r = fma(t * z, p, t);
     if (big) r = r + TR_PI / 4;
     if (ay > ax) r = TR_PI / 2 - r;
@@ -137,14 +138,8 @@ static inline __m256d tr_atan2_4d(__m256d y, __m256d x) {
     den = _mm256_blendv_pd(den, _mm256_set1_pd(1.0),
                            _mm256_cmp_pd(den, _mm256_setzero_pd(), _CMP_EQ_OQ));
     __m256d t = _mm256_div_pd(num, den), z = _mm256_mul_pd(t, t);
-    __m256d p = _mm256_set1_pd(0.032956795418701366);
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.060273074609466753));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.076048000460782915));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.090841018953464295));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.11110819716745676));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.142857081103604));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.19999999949854793));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(-0.33333333333266199));
+    __m256d p = _mm256_set1_pd(TR_ATAN_P[0]);
+    for (int i = 1; i < 8; i++) p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(TR_ATAN_P[i]));
     __m256d r = _mm256_fmadd_pd(_mm256_mul_pd(t, z), p, t);
     r = _mm256_add_pd(r, _mm256_and_pd(big, _mm256_set1_pd(TR_PI / 4)));
     r = _mm256_blendv_pd(r, _mm256_sub_pd(_mm256_set1_pd(TR_PI / 2), r),
@@ -164,15 +159,8 @@ static inline __m256d tr_acos_4d(__m256d y) {
     __m256d zb = _mm256_mul_pd(half, _mm256_sub_pd(_mm256_set1_pd(1.0), a));
     __m256d s = _mm256_blendv_pd(a, _mm256_sqrt_pd(zb), big);
     __m256d z = _mm256_blendv_pd(_mm256_mul_pd(a, a), zb, big);
-    __m256d p = _mm256_set1_pd(0.028346745231833329);
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.0010675063150363118));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.01686409027396012));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.016902683886393575));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.022412417726695433));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.030379945210024933));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.044642906474584963));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.074999999534297119));
-    p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(0.16666666666738632));
+    __m256d p = _mm256_set1_pd(TR_ASIN_Q[0]);
+    for (int i = 1; i < 9; i++) p = _mm256_fmadd_pd(p, z, _mm256_set1_pd(TR_ASIN_Q[i]));
     __m256d r = _mm256_fmadd_pd(_mm256_mul_pd(s, z), p, s);
     __m256d small = _mm256_sub_pd(_mm256_set1_pd(TR_PI / 2),
                                   _mm256_or_pd(r, _mm256_and_pd(sign, y)));

@@ -81,18 +81,17 @@ static inline void tangent_frame(const float *p, float *u, float *v) {
     cross3(p, u, v);
 }
 
-/* asin(s) = s + s^3 Q(s^2) for s in [0, 1/2], given z = s^2: a minimax polynomial
- * (relative error 2e-13; lighting.h's tr_acos_4d, one lane). */
+/* asin(s) = s + s^3 Q(s^2) for s in [0, 1/2]: Q's minimax coefficients, highest power
+ * first (relative error 2e-13), for tr_asin_poly and lighting.h's tr_acos_4d. */
+static const double TR_ASIN_Q[9] = {
+    0.028346745231833329, 0.0010675063150363118, 0.01686409027396012,
+    0.016902683886393575, 0.022412417726695433, 0.030379945210024933,
+    0.044642906474584963, 0.074999999534297119, 0.16666666666738632};
+
+/* asin(s) for s in [0, 1/2], given z = s^2 (TR_ASIN_Q by Horner's rule in fma). */
 static inline double tr_asin_poly(double s, double z) {
-    double p = 0.028346745231833329;
-    p = fma(p, z, 0.0010675063150363118);
-    p = fma(p, z, 0.01686409027396012);
-    p = fma(p, z, 0.016902683886393575);
-    p = fma(p, z, 0.022412417726695433);
-    p = fma(p, z, 0.030379945210024933);
-    p = fma(p, z, 0.044642906474584963);
-    p = fma(p, z, 0.074999999534297119);
-    p = fma(p, z, 0.16666666666738632);
+    double p = TR_ASIN_Q[0];
+    for (int i = 1; i < 9; i++) p = fma(p, z, TR_ASIN_Q[i]);
     return fma(s * z, p, s);
 }
 
