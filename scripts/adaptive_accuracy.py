@@ -3,7 +3,8 @@ full render, on the validation set's scenes (out of sample: the threshold was fi
 ``fit`` half) or the chart's suite, scored against the cached Mitsuba truth.
 
     .venv/bin/python scripts/adaptive_accuracy.py [--split heldout|fit|suite]
-        [--size 128] [--variants rousiers "rousiers ib2"] [--rtol R] [--out outputs/adaptive]
+        [--size 128] [--spp 1] [--variants rousiers "rousiers ib2"] [--rtol R]
+        [--out outputs/adaptive]
 
 Per scene and variant: FLIP on object pixels of the full and the adaptive render against
 the truth (their difference: what adaptive shading costs in accuracy), FLIP of the
@@ -19,6 +20,7 @@ import argparse
 import json
 import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -44,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", default="heldout", choices=("heldout", "fit", "suite"))
     ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=1,
+                    help="samples per pixel side (2: the supersampled plan against uniform 2x2)")
     ap.add_argument("--variants", nargs="+", default=["rousiers", "rousiers ib2"])
     ap.add_argument("--truth", type=Path, default=ROOT / "outputs" / "truth")
     ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "adaptive")
@@ -69,21 +73,26 @@ def main(argv: list[str] | None = None) -> int:
         cov = truth["alpha"]
         for name in args.variants:
             _, method, opts = table[name][:3]
-            s = sized(base, args.size, 1).replace(method=method, method_options=opts)
+            s = sized(base, args.size, args.spp).replace(method=method, method_options=opts)
+            t0 = time.perf_counter()
             full = tr.render(s, settings=full_s).radiance[0]
+            t1 = time.perf_counter()
             ad = tr.render(s, settings=ad_s).radiance[0]
+            t2 = time.perf_counter()
             obj = torch.from_numpy(cov > 0.5)
             row = {"scene": path.stem, "variant": name,
                    "flip_full": compare(full.numpy(), truth["full"], cov)["flip_object"],
                    "flip_adaptive": compare(ad.numpy(), truth["full"], cov)["flip_object"],
                    "flip_vs_full": float(flip_map(ad.numpy(), full.numpy())[obj.numpy()].mean()),
-                   "shaded": float((ad == full).all(-1)[obj].float().mean())}
+                   "shaded": float((ad == full).all(-1)[obj].float().mean()),
+                   "ms_full": 1000 * (t1 - t0), "ms_adaptive": 1000 * (t2 - t1)}
             rows.append(row)
             print(f"[{k}/{len(todo)}] {path.stem} {name}: truth {row['flip_full']:.4f} -> "
                   f"{row['flip_adaptive']:.4f}, vs full {row['flip_vs_full']:.4f}, shaded "
                   f"{row['shaded']:.2f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    tag = "" if args.rtol is None else f"_rtol{args.rtol:g}"
+    tag = ("" if args.rtol is None else f"_rtol{args.rtol:g}") + (
+        "" if args.spp == 1 else f"_spp{args.spp}")
     (args.out / f"adaptive_{args.split}{tag}.json").write_text(json.dumps(rows, indent=1))
     for name in args.variants:
         rs = [r for r in rows if r["variant"] == name]
@@ -96,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{statistics.mean(d):+.4f}, worst {max(d):+.4f} {worst['scene']}), vs full "
               f"{statistics.mean(r['flip_vs_full'] for r in rs):.4f} (max "
               f"{max(r['flip_vs_full'] for r in rs):.4f}), shaded "
-              f"{statistics.mean(r['shaded'] for r in rs):.2f} of the object pixels")
+              f"{statistics.mean(r['shaded'] for r in rs):.2f} of the object pixels, time "
+              f"{statistics.median(r['ms_adaptive'] / r['ms_full'] for r in rs):.2f} of the full "
+              "render's (median)")
     print(f"saved {args.out / f'adaptive_{args.split}{tag}.json'}")
     return 0
 

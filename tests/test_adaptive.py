@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import pytest
 import torch
 
 import torchrefract as tr
@@ -158,6 +159,7 @@ def test_lattice_plan_kernel_equals_tensor_code():
     assert native.available()
     blends = []  # whether some waiting pixels of a scene are near a tolerance (blended)
     coarse_waits = []  # whether some even pixels of a scene wait on those of stride 4
+    fewer = []  # whether some pixels still wait among the uniform ones, fewer than among all
     for name, size in (("sphere_a03", 48), ("bunny_a01", 49), ("globe_gradient", 47),
                        ("wingnut_a01", 40)):
         _, args = _lattice_inputs(_scene(name, size, n=1))
@@ -182,8 +184,18 @@ def test_lattice_plan_kernel_equals_tensor_code():
         a2, b2 = native.lattice_plan(*args, *tols, stride=2), adaptive._lattice_torch(*sub, *tols)
         assert torch.equal(a2[0], b2[0]) and torch.equal(a2[1], b2[1]), name
         coarse_waits.append(bool((a2[0] == 2).any()))
+        # over a supersampled plan only its uniform pixels wait or are waited on
+        uni = torch.rand(a.shape, generator=torch.Generator().manual_seed(size)) > 0.05
+        for st, u, ins in ((1, uni, args), (2, uni[:, ::2, ::2], sub)):
+            a3 = native.lattice_plan(*args, *tols, stride=st, uniform=u)
+            b3 = adaptive._lattice_torch(*ins, *tols, uniform=u)
+            assert torch.equal(a3[0], b3[0]) and torch.equal(a3[1], b3[1]), (name, st)
+            assert not ((a3[0] == 2) & ~u).any(), (name, st)
+            if st == 1:  # fewer wait (some still do: below)
+                fewer.append(0 < int((a3[0] == 2).sum()) < int((a == 2).sum()))
     assert any(blends), blends
     assert any(coarse_waits), coarse_waits
+    assert any(fewer), fewer
 
 
 def test_lattice_fill_kernel_equals_tensor_code():
@@ -284,11 +296,13 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere(monkeypatch):
     assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact
 
 
-def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch):
+@pytest.mark.parametrize("n", [1, 2])
+def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch, n):
     """csrc/lattice.c's driver (the fused methods fill and shade every level after their
     first pass in one call) gives the images and passes of adaptive.fill and
     adaptive.merge bit for bit: two levels (the sphere), a light in front, a roughness map
-    with bounces, the cone methods; and it is the path taken."""
+    with bounces, the cone methods, at one sample per pixel and over a 2x2 plan's center
+    samples; and it is the path taken."""
     from torchrefract.shading import fused
 
     cases = (("sphere_a03", "specular", {}), ("sphere_a03", "prefiltered", {}),
@@ -302,7 +316,7 @@ def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch):
         return run_lattice(name, *rest)
 
     for name, method, opts in cases:
-        s = _scene(name, 96, n=1, method=method, method_options=opts)
+        s = _scene(name, 96 // n, n=n, method=method, method_options=opts)
         monkeypatch.setattr(fused, "_run_lattice", counted)
         a = tr.render(s, settings=ADAPTIVE)
         kernel = {"prefiltered": "specular", "gsr": "lean"}.get(method, method)
@@ -315,6 +329,39 @@ def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch):
         assert set(a.passes) == set(b.passes)
         for k in a.passes:
             assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
+
+
+def test_supersampled_plan_interpolates_only_uniform_center_samples():
+    """Over a 2x2 plan the levels wait on the uniform pixels' center samples (their first
+    sub-pixels): never a non-uniform pixel (shaded at every sub-pixel) nor on one; the
+    first pass is the plan's sub-pixels less the waiting ones; the image stays within a
+    small FLIP of the uniform 2x2 one."""
+    s = _scene("slab_a02", 64, method="rousiers")
+    _, g, p = _plan(s)
+    alpha = torch.full(g.shape, s.material.roughness)
+    with pytest.raises(ValueError, match="uniform"):
+        adaptive.lattice(g, alpha)
+    g2, lat = adaptive.lattice(g, alpha, uniform=p.uniform)
+    assert lat is not None and all(lv.sub == 2 for lv in lat.levels)
+    fine = lat.levels[-1]
+    assert fine.status.shape == p.uniform.shape
+    wait = fine.status == 2
+    edge = (fine.status > 0) & ~p.uniform
+    assert wait.any() and edge.any() and not (wait & edge).any()
+    # nor on one: a waiting pixel's lattice neighbours (left/right in an even row, up/down
+    # in an even column, the diagonals otherwise) are all uniform
+    bi, y, x = wait.nonzero(as_tuple=True)
+    for dy, dx, on in ((0, 1, (y % 2 == 0)), (1, 0, (x % 2 == 0)), (1, 1, (y % 2 == 1) & (x % 2 == 1)),
+                       (1, -1, (y % 2 == 1) & (x % 2 == 1))):
+        for sgn in (1, -1):
+            assert bool(p.uniform[bi[on], y[on] + sgn * dy, x[on] + sgn * dx].all()), (dy, dx)
+    first = g.shade.clone()
+    for lv in lat.levels:
+        first[:, ::lv.frame_stride, ::lv.frame_stride] &= lv.status != 2
+    assert torch.equal(g2.shade, first) and int(g2.shade.sum()) < int(g.shade.sum())
+    u, a = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
+    obj = (u.coverage[0] > 0).numpy()
+    assert flip_map(a.radiance[0].numpy(), u.radiance[0].numpy())[obj].mean() < 0.02
 
 
 def test_no_lattice_where_too_little_could_wait():

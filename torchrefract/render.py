@@ -172,8 +172,11 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     plan = None
     if current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
+            alpha = front_roughness(g, materials)
             g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
-                                    front_roughness(g, materials))
+                                    alpha)
+            g, centers = adaptive.lattice(g, alpha, uniform=plan.uniform)
+            plan = dataclasses.replace(plan, lattice=centers)
         else:
             g, plan = adaptive.lattice(g, front_roughness(g, materials))
     want = current().torch_device()

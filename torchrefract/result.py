@@ -144,15 +144,13 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     extra = render_hook.requested(scenes)
     extra_passes: dict[str, torch.Tensor] = {}
     with collect() as stage_times, render_hook.scope(extra) as rec:
-        lattice = plan if isinstance(plan, adaptive.Lattice) else None
+        lattice = plan.lattice if isinstance(plan, adaptive.Plan) else plan
         shaded = tiles.shade(entry, dataclasses.replace(g, lattice=lattice), lighting,
                              materials, options, state, budget)
         radiance, method_passes = shaded.radiance, shaded.passes
-        if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
-            radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
-        elif lattice is not None and adaptive.waiting(plan.levels[0]):  # (else the fused
+        if lattice is not None and adaptive.waiting(lattice.levels[0]):  # (else the fused
             # kernel ran every level: g.lattice) level by level, the waiting pixels:
-            for level in plan.levels:  # interpolated, or shaded over the image so far
+            for level in lattice.levels:  # interpolated, or shaded over the image so far
                 radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
                                                                     method_passes)
                 if rest is None:
@@ -162,6 +160,8 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest, soft)
+        if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
+            radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
         # never let NaN/Inf out, and never hide that it happened; a finite sum (one
         # reduction) proves every value finite, a non-finite one (or an overflow) is checked
         if not all_finite(radiance):

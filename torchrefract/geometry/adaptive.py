@@ -77,10 +77,12 @@ stride 4 for that coarser level to be planned (0: wherever any can; see FINE_SHA
 @dataclass(frozen=True)
 class Plan:
     """Which pixels are shaded once: ``uniform`` (B, H/n, W/n) bool, for a G-buffer of
-    supersampling n."""
+    supersampling n; ``lattice``: the levels over the uniform pixels' center samples
+    (:func:`lattice` with ``uniform``), or None."""
 
     uniform: torch.Tensor
     n: int
+    lattice: Lattice | None = None
 
 
 def _subs(x: torch.Tensor, n: int) -> list[torch.Tensor]:
@@ -206,6 +208,14 @@ class Level:
     stride: int
     status: torch.Tensor
     gap: torch.Tensor
+    sub: int = 1
+    """The G-buffer's sub-pixels per pixel side: the level's pixels are the frame's
+    (sub-)pixels of stride ``stride * sub`` (a supersampled G-buffer: the uniform pixels'
+    center samples, at each pixel's first sub-pixel)."""
+
+    @property
+    def frame_stride(self) -> int:
+        return self.stride * self.sub
 
 
 @dataclass(frozen=True)
@@ -241,9 +251,11 @@ def _inv_tol(tol: torch.Tensor | float) -> torch.Tensor:
 
 
 def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: float,
-                   depth_tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+                   depth_tol: float, uniform: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The tensor code of csrc/lattice.c's plan: (B, H, W) uint8 status and float32 gap
-    (:class:`Level`)."""
+    (:class:`Level`); ``uniform`` (B, H, W) bool: the pixels that may wait or be waited on
+    (None: all)."""
     b, h, w = fm.shape
     n = b * h * w
     status = torch.zeros(n, dtype=torch.uint8, device=fm.device)
@@ -259,12 +271,17 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
     p_fn, p_bn = take(fnf, obj), take(bnf, obj)
     tol = depth_tol * p_bd.abs()
     wait = valid.clone()
+    uf = None if uniform is None else uniform.reshape(-1)
+    if uf is not None:
+        wait &= take(uf, obj)
     inv_n, inv_d = _inv_tol(normal_tol), _inv_tol(tol)
     alpha_min = torch.tensor(alpha_min, dtype=torch.float32)
     gap = alpha_min * _inv_tol(take(al, obj))
     for k in range(4):
         q = nb[:, k]
         wait &= take(fmf, q) & (take(bmf, q) == p_bm)
+        if uf is not None:
+            wait &= take(uf, q)
         gap = torch.maximum(gap, alpha_min * _inv_tol(take(al, q)))
         gap = torch.maximum(gap, (1.0 - dot(take(fnf, q), p_fn)) * inv_n)
         back = torch.maximum((1.0 - dot(take(bnf, q), p_bn)) * inv_n,
@@ -278,11 +295,14 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
 
 
 def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
-          depth_tol: float, stride: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+          depth_tol: float, stride: int = 1, uniform: torch.Tensor | None = None
+          ) -> tuple[torch.Tensor, torch.Tensor]:
     """A level's status and gap over the (B, H, W) layers' pixels of stride ``stride``
-    (csrc/lattice.c, reading them in place; else the tensor code on copies)."""
+    (csrc/lattice.c, reading them in place; else the tensor code on copies); ``uniform``:
+    on the level's pixels, those that may wait or be waited on (None: all)."""
     tols = (smooth_alpha, normal_tol, depth_tol)
-    out = native.lattice_plan(fm, bm, fn, bn, bd, alpha, *tols, stride=stride)
+    out = native.lattice_plan(fm, bm, fn, bn, bd, alpha, *tols, stride=stride,
+                              uniform=uniform)
     if out is not None:
         return out
     if stride > 1:
@@ -290,12 +310,13 @@ def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
         if alpha.shape[1:] == fm.shape[1:]:  # per pixel (else per view)
             alpha = alpha[on].contiguous()
         fm, bm, fn, bn, bd = (x[on].contiguous() for x in (fm, bm, fn, bn, bd))
-    return _lattice_torch(fm, bm, fn, bn, bd, alpha, *tols)
+    return _lattice_torch(fm, bm, fn, bn, bd, alpha, *tols, uniform=uniform)
 
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
             depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA,
-            coarse_share: float | None = None) -> tuple[GBuffer, Lattice | None]:
+            coarse_share: float | None = None, uniform: torch.Tensor | None = None
+            ) -> tuple[GBuffer, Lattice | None]:
     """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
     sample per pixel (module docstring). Each view decides alone, so that a batch's images
     are those of its views rendered alone (and of any chunking): a view where under
@@ -308,32 +329,44 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     shades: each pass has a rough pixel where the full pass has one (the methods' switch
     of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
 
+    A supersampled G-buffer after :func:`plan` (``uniform``: its uniform pixels, whose
+    first sub-pixels hold their center samples) gets the same levels over those center
+    samples: only a uniform pixel waits, and only on uniform lattice neighbours (a
+    non-uniform pixel is shaded at every sub-pixel; its first sub-pixel is not a center
+    sample); ``g.shade`` (the plan's) then loses the waiting ones.
+
     Args:
-        alpha: the front roughness, (B, H, W) or per view (B, 1, 1).
+        alpha: the front roughness, per (sub-)pixel (B, H, W) or per view (B, 1, 1).
     """
+    n = g.supersample
+    if n > 1 and uniform is None:
+        raise ValueError("adaptive.lattice: a supersampled G-buffer needs its plan's uniform "
+                         "pixels")
     share = COARSE_SHARE if coarse_share is None else coarse_share
     layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     # the plan's tolerances: where blending ends (BLEND_FROM)
     tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
-    status, gap = _plan(*layers, alpha, *tol)
-    objects = g.front.mask.flatten(1).sum(1)  # (B,) per view
+    status, gap = _plan(*layers, alpha, *tol, stride=n, uniform=uniform)
+    objects = (status > 0).flatten(1).sum(1)  # (B,) per view
     waiting = (status == 2).flatten(1).sum(1)
     fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
     if not bool(fine_views.any()):
         return g, None
     _no_wait(status, fine_views)
-    fine = Level(1, status, gap)
-    even = (slice(None), slice(None, None, 2), slice(None, None, 2))
-    coarse_status, coarse_gap = _plan(*layers, alpha, *tol, stride=2)
+    fine = Level(1, status, gap, sub=n)
+    coarse_status, coarse_gap = _plan(*layers, alpha, *tol, stride=2 * n,
+                                      uniform=None if uniform is None else uniform[:, ::2, ::2])
     coarse_waiting = (coarse_status == 2).flatten(1).sum(1)
     coarse_views = fine_views & (coarse_waiting > 0) & (
         coarse_waiting >= share * (coarse_status > 0).flatten(1).sum(1))
-    first = fine.status == 1
+    # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
+    first = (g.front.mask if g.shade is None else g.shade).clone()
+    first[:, ::n, ::n] &= fine.status != 2
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))
     _no_wait(coarse_status, coarse_views)
-    first[even] &= coarse_status == 1
-    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status, coarse_gap),
+    first[:, ::2 * n, ::2 * n] &= coarse_status != 2
+    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status, coarse_gap, sub=n),
                                                     fine))
 
 
@@ -411,7 +444,7 @@ def fill(level: Level, radiance: torch.Tensor, passes: dict[str, torch.Tensor],
     b, h, w, _ = radiance.shape
     radiance = radiance.contiguous()
     passes = {k: v.contiguous() for k, v in passes.items()}
-    s = level.stride
+    s = level.frame_stride
     on = (slice(None), slice(None, None, s), slice(None, None, s))
     # the level's pixels, contiguous (copies at a stride above 1, written back below)
     sub = radiance if s == 1 else radiance[on].contiguous()

@@ -235,7 +235,8 @@ class _LatticeJob(ctypes.Structure):
                 ("rtol", ctypes.c_float), ("radiance", _p), ("status", _p), ("gap", _p),
                 ("weight", _p), ("blend_from", ctypes.c_float),
                 ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p),
-                ("stride", ctypes.c_int64), ("fh", ctypes.c_int64), ("fw", ctypes.c_int64)]
+                ("stride", ctypes.c_int64), ("fh", ctypes.c_int64), ("fw", ctypes.c_int64),
+                ("uniform", _p)]
 
 
 class _UniformJob(ctypes.Structure):
@@ -708,7 +709,8 @@ def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Ten
 def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                  front_normal: torch.Tensor, back_normal: torch.Tensor,
                  back_depth: torch.Tensor, alpha: torch.Tensor, alpha_min: float,
-                 normal_tol: float, depth_tol: float, stride: int = 1
+                 normal_tol: float, depth_tol: float, stride: int = 1,
+                 uniform: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """``adaptive._lattice_torch``'s (B, H/s, W/s) uint8 status and float32 gap of the
     layers' pixels of stride ``s`` (csrc/lattice.c; read in place, rounding up), or
@@ -717,13 +719,20 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
     Args:
         front_mask, back_mask: (B, H, W). front_normal, back_normal: (B, H, W, 3).
         back_depth: (B, H, W). alpha: (B, H, W) or (B, 1, 1) front roughness.
+        uniform: (B, H/s, W/s) bool, the pixels that may wait or be waited on (None: all).
     """
     made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
     if made is None:
         return None
-    _, fields = made
+    keep, fields = made
     b, fh, fw = front_mask.shape
     h, w = -(-fh // stride), -(-fw // stride)
+    if uniform is not None:
+        if uniform.shape != (b, h, w) or uniform.dtype != torch.bool or uniform.is_cuda:
+            return None
+        uniform = uniform.contiguous()
+        keep.append(uniform)
+        fields["uniform"] = uniform.data_ptr()
     status = torch.empty(b, h, w, dtype=torch.uint8)
     gap = torch.empty(b, h, w)
     job = _LatticeJob(b=b, h=h, w=w, alpha_min=alpha_min, normal_tol=normal_tol,

@@ -274,7 +274,7 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
     if not all(v.is_contiguous() and v.dtype == torch.float32 for v in passes.values()):
         return False
     rows = (native._ShadeLevel * len(levels))(*[native._ShadeLevel(
-        stride=lv.stride, h=lv.status.shape[1], w=lv.status.shape[2],
+        stride=lv.frame_stride, h=lv.status.shape[1], w=lv.status.shape[2],
         status=lv.status.data_ptr(), gap=lv.gap.data_ptr(),
         rtol=adaptive.fill_rtol(lv)) for lv in levels])
     bufs = [v.view(b * h * w, -1) for v in passes.values()]

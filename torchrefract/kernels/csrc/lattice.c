@@ -42,6 +42,9 @@ typedef struct {
      * (the layers, alpha, radiance and passes are the frame's; status, gap, weight the
      * level's); 0: the level is the frame */
     int64_t stride, fh, fw;
+    /* plan: (B*h*w,) the level's pixels that may wait or be waited on (a supersampled
+     * plan's uniform pixels: their first sub-pixels hold center samples), or NULL: all */
+    const uint8_t *uniform;
 } LatticeJob;
 
 /* The frame's flat index of the level's pixel p. */
@@ -101,10 +104,11 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
         /* the gap: each test's measure over its tolerance, the largest (a per-view
          * roughness is the neighbours' too) */
         float gap = j->alpha_min * inv_tol(alpha_of(j, p, fp));
-        int wait = k > 0;
+        int wait = k > 0 && (!j->uniform || j->uniform[p]);
         for (int i = 0; i < k && wait; i++) {
             int64_t q = frame_index(j, nb[i]);
-            wait = j->front_mask[q] && j->back_mask[q] == back;
+            wait = j->front_mask[q] && j->back_mask[q] == back &&
+                   (!j->uniform || j->uniform[nb[i]]);
             if (j->per_pixel) gap = fmaxf(gap, j->alpha_min * inv_tol(alpha_of(j, nb[i], q)));
             gap = fmaxf(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
             if (back) {
