@@ -89,6 +89,24 @@ def test_close_to_uniform_and_fused_equals_tensor():
             assert a.passes[k].shape == u.passes[k].shape
 
 
+def test_plan_box_is_the_box_filter_of_the_first_sub_pixels_copied():
+    """result.plan_box: the bits of the box filter (and the masked one) after each uniform
+    pixel's first sub-pixel was copied to its others, without the copies, on a mesh with
+    edges, folds and partly covered pixels."""
+    from torchrefract.result import box, masked_box, plan_box  # noqa: PLC0415
+
+    _, g, p = _plan(_scene("bunny_a01", 40))
+    assert p.uniform.any() and (~p.uniform & g.front.mask[:, ::2, ::2]).any()
+    x = torch.rand(*g.shape, 3, generator=torch.Generator().manual_seed(3)) * 5
+    copied = x.clone()
+    for i in range(2):
+        for j in range(2):
+            copied[:, i::2, j::2][p.uniform] = x[:, ::2, ::2][p.uniform]
+    assert torch.equal(plan_box(x, 2, p.uniform), box(copied, 2))
+    assert torch.equal(plan_box(x, 2, p.uniform, g.front.mask, {}),
+                       masked_box(copied, g.front.mask, 2, {}))
+
+
 def test_reference_is_sampled_uniformly():
     """Mitsuba renders every sub-pixel itself (``shades_object_index = False``): adaptive
     sampling leaves its image as it is."""

@@ -101,6 +101,38 @@ def masked_box(x: torch.Tensor, mask: torch.Tensor, n: int, cache: BoxCache | No
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))
 
 
+def plan_box(x: torch.Tensor, n: int, uniform: torch.Tensor,
+             mask: torch.Tensor | None = None, cache: BoxCache | None = None) -> torch.Tensor:
+    """:func:`box` (``mask`` None) or :func:`masked_box` of ``x`` (B, H, W, C) whose
+    ``uniform`` pixels (B, H/n, W/n; adaptive.plan: covered at every sub-pixel) hold their
+    value at their first sub-pixel only: the bits those give after adaptive.spread copied
+    it to the others, without the copies (the first sub-pixel summed n*n times in box's
+    order; masked, times a mask of ones over a coverage of one), and, masked, without
+    reading the others: only the other covered pixels are averaged."""
+    v = x[:, ::n, ::n]
+    s = v
+    for _ in range(n * n - 1):
+        s = s + v
+    first = s / (n * n)
+    if mask is None:
+        rest = box(x, n)
+    else:
+        _, den = mask_box(mask, n, x.dtype, cache)
+        rest = torch.zeros_like(first)
+        bi, yi, xi = ((den[..., 0] > 0) & ~uniform).nonzero(as_tuple=True)
+        if len(bi):
+            b, h, w, c = first.shape
+            subs = (x.view(b, h, n, w, n, c)[bi, yi, :, xi, :]
+                    * mask.view(b, h, n, w, n, 1)[bi, yi, :, xi, :].to(x.dtype))  # (N, n, n, C)
+            t = subs[:, 0, 0]
+            for i in range(n):
+                for j in range(n):
+                    if i or j:
+                        t = t + subs[:, i, j]
+            rest[bi, yi, xi] = (t / (n * n)) / den[bi, yi, xi].clamp(min=1e-12)
+    return torch.where(uniform[..., None], first, rest)
+
+
 def all_finite(x: torch.Tensor) -> bool:
     """Whether every value of ``x`` is finite: the sum of finite values is finite unless it
     overflows, where the elementwise test decides (NaN and Inf make the sum non-finite)."""
@@ -160,8 +192,8 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest, soft)
-        if isinstance(plan, adaptive.Plan):  # the pixels shaded once: to every sub-pixel
-            radiance, method_passes = adaptive.spread(plan, radiance, method_passes)
+        # (a supersampled plan's pixels shaded once hold their values at their first
+        # sub-pixel: plan_box averages them as if copied to every sub-pixel)
         # never let NaN/Inf out, and never hide that it happened; a finite sum (one
         # reduction) proves every value finite, a non-finite one (or an overflow) is checked
         if not all_finite(radiance):
@@ -188,11 +220,14 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     rough = front_roughness(g, materials)[..., None]
     for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
         passes[name] = v if n == 1 else masked_box(v, g.front.mask, n, cache)  # 0 outside
+    uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
     for k, v in method_passes.items():
-        passes[k] = masked_box(v, g.front.mask, n, cache)
+        passes[k] = (masked_box(v, g.front.mask, n, cache) if uniform is None
+                     else plan_box(v, n, uniform, g.front.mask, cache))
     passes.update(extra_passes)  # already per pixel
     return RenderResult(
-        radiance=box(radiance, n).float(),
+        radiance=(box(radiance, n) if uniform is None
+                  else plan_box(radiance, n, uniform)).float(),
         coverage=mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
@@ -238,4 +273,4 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
                         scenes=tuple(out_scenes), timings=timings)
 
 
-__all__ = ["BoxCache", "RenderResult", "all_finite", "box", "finish_pass", "front_roughness", "geometry_passes", "mask_box", "masked_box", "merge"]
+__all__ = ["BoxCache", "RenderResult", "all_finite", "box", "finish_pass", "front_roughness", "geometry_passes", "mask_box", "masked_box", "merge", "plan_box"]

@@ -13,8 +13,10 @@ pixel). Such pixels are shaded at every
 sub-pixel as the uniform n x n sampling does. In the others the first sub-pixel is replaced
 by the exact sample through the pixel's center (the center ray intersected with that
 sub-pixel's front triangle: position, distance, depth, shading normal, UV), shaded alone,
-and its radiance and passes are copied to the other sub-pixels before the box filter: the
-image of a pixel whose G-buffer is smooth inside it, at a quarter of the shading (n = 2).
+and its radiance and passes stand for the other sub-pixels in the box filter
+(result.plan_box): the image of a pixel whose G-buffer is smooth inside it, at a quarter
+of the shading (n = 2). The center samples get the lattice below too: a uniform pixel
+between uniform lattice pixels waits on their center samples.
 The back layer, which the marches read, stays the n x n one; the center sample lies on
 the sub-pixel triangle its ray hits (the most inside of the pixel's). What the G-buffer cannot show
 (a TIR boundary, a sharp feature of the environment seen through a smooth pixel) is not
@@ -170,29 +172,6 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
         x = getattr(g.front, name)
         x.view(-1, *x.shape[3:])[sel] = v.to(x.dtype)
     g.ray_dir.view(-1, 3)[sel] = d.to(g.ray_dir.dtype)
-
-
-def spread(p: Plan, radiance: torch.Tensor, passes: dict[str, torch.Tensor]
-           ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Each uniform pixel's first sub-pixel copied to its others: radiance (B, H, W, 3) and
-    the method's passes (B, H, W, C), in place."""
-    n = p.n
-    b, hp, wp = p.uniform.shape
-    pb, py, px = p.uniform.nonzero(as_tuple=True)
-    first = (pb * (hp * n) + py * n) * (wp * n) + px * n  # flat sub-pixel 0 of each
-    others = [first + i * (wp * n) + j for i in range(n) for j in range(n) if i or j]
-    for x in (radiance, *passes.values()):
-        if not x.is_contiguous() or x.requires_grad:  # (autograd: the masked writes)
-            subs = _subs(x, n)
-            v0 = subs[0][p.uniform]
-            for v in subs[1:]:
-                v[p.uniform] = v0
-            continue
-        flat = x.view(b * hp * n * wp * n, -1)
-        v0 = take(flat, first)
-        for k in others:
-            put_(flat, k, v0)
-    return radiance, passes
 
 
 @dataclass(frozen=True)
@@ -522,5 +501,5 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
 
 
 __all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
-           "Lattice", "Level", "Plan", "fill", "fill_rtol", "lattice", "merge", "plan", "spread",
+           "Lattice", "Level", "Plan", "fill", "fill_rtol", "lattice", "merge", "plan",
            "waiting"]
