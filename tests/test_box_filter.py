@@ -7,7 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from torchrefract.result import box as _box, masked_box as _masked_box
+from torchrefract.kernels import native
+from torchrefract.result import box as _box, masked_box as _masked_box, plan_box as _plan_box
 
 
 def _avg_pool(x: torch.Tensor, n: int) -> torch.Tensor:
@@ -44,4 +45,33 @@ def test_masked_box_with_shared_masks_is_unchanged(n):
             ref = torch.where(den > 0, _avg_pool(x * m, n) / den.clamp(min=1e-12),
                               torch.zeros_like(den))
             assert torch.equal(shared, ref)
-    assert len(cache) == (2 if n > 1 else 0)  # one entry per (mask, dtype)
+    # one entry per (mask, dtype) the tensor code averaged (the kernel needs none)
+    tensor_dtypes = {torch.float64} | (set() if native.available() else {torch.float32})
+    assert len(cache) == (len(tensor_dtypes) if n > 1 else 0)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+@pytest.mark.parametrize("c", [1, 3])
+def test_box_kernel_equals_the_tensor_code(monkeypatch, n, c):
+    """csrc/box.c gives the tensor code's bits for box, masked_box and plan_box (uniform
+    pixels at their first sub-pixel), NaN and Inf at uncovered sub-pixels included (a
+    value times a mask of 0 is NaN there, as torch's product)."""
+    assert native.available()
+    g = torch.Generator().manual_seed(10 * n + c)
+    b, h, w = 3, 11, 13
+    x = torch.randn(b, h * n, w * n, c, generator=g) * 3
+    mask = torch.rand(b, h * n, w * n, generator=g) > 0.3
+    x[~mask & (torch.rand(b, h * n, w * n, generator=g) > 0.9)] = float("inf")
+    x[0, 0, 1] = float("nan")
+    uniform = torch.rand(b, h, w, generator=g) > 0.5
+    for i in range(n):  # a uniform pixel is covered throughout
+        for j in range(n):
+            mask[:, i::n, j::n] |= uniform
+    calls = [lambda: _box(x, n), lambda: _masked_box(x, mask, n, {}),
+             lambda: _plan_box(x, n, uniform), lambda: _plan_box(x, n, uniform, mask, {})]
+    fast = [f() for f in calls]
+    monkeypatch.setattr(native, "box", lambda *a, **k: None)
+    for f, out in zip(calls, fast):
+        ref = f()
+        assert out.shape == ref.shape and torch.equal(out.isnan(), ref.isnan())
+        assert torch.equal(out.nan_to_num(), ref.nan_to_num())

@@ -48,7 +48,8 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "cone.c", "specular.c",
                                                                 "background.c", "rousiers.c",
                                                                 "lean.c", "raster.c",
-                                                                "lattice.c", "relight.c"))
+                                                                "lattice.c", "relight.c",
+                                                                "box.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
@@ -239,6 +240,14 @@ class _LatticeJob(ctypes.Structure):
                 ("uniform", _p)]
 
 
+class _BoxJob(ctypes.Structure):
+    """ctypes mirror of ``BoxJob`` in csrc/box.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64), ("c", ctypes.c_int64), ("x", _p), ("mask", _p),
+                ("uniform", _p), ("out", _p)]
+
+
 class _UniformJob(ctypes.Structure):
     """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
 
@@ -291,7 +300,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
-            "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob,
+            "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
             "center_samples": _CenterJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
@@ -777,6 +786,34 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
                       normal_tol=normal_tol, depth_tol=depth_tol, uniform=out.data_ptr(),
                       **made[1])
     return out if _call("uniform", job) else None
+
+
+def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
+        uniform: torch.Tensor | None = None) -> torch.Tensor | None:
+    """``result.box`` (``mask`` None) or ``result.masked_box`` of ``x`` (B, H, W, C) over
+    n x n blocks, ``uniform`` (B, H/n, W/n) pixels taken as their first sub-pixel's value
+    (``result.plan_box``), the same bits (csrc/box.c); ``None`` where the kernel is
+    unavailable, a gradient is wanted, or an input is not a float32 / bool CPU tensor."""
+    if not available() or x.dim() != 4 or x.requires_grad:
+        return None
+    b, fh, fw, c = x.shape
+    if fh % n or fw % n:
+        return None
+    keep = _inputs((x,), (), tuple(t for t in (mask, uniform) if t is not None))
+    if keep is None:
+        return None
+    h, w = fh // n, fw // n
+    if (mask is not None and mask.shape != (b, fh, fw)) or (
+            uniform is not None and uniform.shape != (b, h, w)):
+        return None
+    xs, rest = keep[0], keep[1:]
+    m = rest.pop(0) if mask is not None else None
+    u = rest.pop(0) if uniform is not None else None
+    out = torch.empty(b, h, w, c)
+    job = _BoxJob(b=b, h=h, w=w, n=n, c=c, x=xs.data_ptr(),
+                  mask=None if m is None else m.data_ptr(),
+                  uniform=None if u is None else u.data_ptr(), out=out.data_ptr())
+    return out if _call("box", job) else None
 
 
 def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:
