@@ -160,9 +160,9 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
 }
 
 /* A method's work on one block of m <= BLOCK pixels from r0, given each view's table
- * axes; and the filling of one view's axes. */
+ * axes; and the filling of one view's axes (returns how many it filled, from out[0]). */
 typedef void (*tr_block_fn)(const void *job, const SgAxes *axes, int64_t r0, int m);
-typedef void (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
+typedef int (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
 
 typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; } ShadeRange;
 
@@ -172,9 +172,11 @@ static void shade_range(const void *arg, int64_t begin, int64_t end) {
         rg->fn(rg->job, rg->axes, r, end - r < BLOCK ? (int)(end - r) : BLOCK);
 }
 
-/* A method kernel's entry: each view's ``naxes`` table axes filled (``fill``), then the
- * pixels in chunks of 64, handed out dynamically with OpenMP (a thread whose core is busy
- * with another process takes fewer), else one contiguous range per thread (common.h).
+/* A method kernel's entry: each view's ``naxes`` table axes filled (``fill``) with their
+ * slices of the table (sgtable.h's sg_slices, for the view's distribution: a lookup at
+ * the view's axes then reads two values per channel), then the pixels in chunks of 64,
+ * handed out dynamically with OpenMP (a thread whose core is busy with another process
+ * takes fewer), else one contiguous range per thread (common.h).
  * Returns 0, or -1 where memory or a thread could not be had (the caller then runs its
  * tensor code). */
 static int run_shading(const void *job, Frame *f, int naxes, tr_axes_fn fill, tr_block_fn fn,
@@ -182,10 +184,26 @@ static int run_shading(const void *job, Frame *f, int naxes, tr_axes_fn fill, tr
 #ifdef HAVE_AVX2_PATH
     f->march.simd = f->march.simd && __builtin_cpu_supports("avx2");
 #endif
-    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * (size_t)naxes *
-                                    (size_t)(f->nb > 0 ? f->nb : 1));
-    if (!axes) return -1;
-    for (int64_t b = 0; b < f->nb; b++) fill(f, b, axes + naxes * b);
+    size_t nviews = (size_t)(f->nb > 0 ? f->nb : 1), per = (size_t)(SG_SLICES * f->table.nt);
+    SgAxes *axes = (SgAxes *)malloc(sizeof(SgAxes) * (size_t)naxes * nviews);
+    int *filled = (int *)malloc(sizeof(int) * nviews);
+    float *slices = NULL;
+    size_t total = 0;
+    if (axes && filled) {
+        for (int64_t b = 0; b < f->nb; b++) {
+            filled[b] = fill(f, b, axes + naxes * b);
+            total += (size_t)filled[b];
+        }
+        slices = (float *)malloc(sizeof(float) * per * (total > 0 ? total : 1));
+    }
+    if (!slices) {
+        free(axes);
+        free(filled);
+        return -1;
+    }
+    for (int64_t b = 0, k = 0; b < f->nb; b++)
+        for (int q = 0; q < filled[b]; q++, k++)
+            sg_slices(&f->table, f->dist[b], axes + naxes * b + q, slices + per * (size_t)k);
     ShadeRange rg = {fn, job, axes};
     int rc = 0;
 #ifdef _OPENMP
@@ -197,6 +215,8 @@ static int run_shading(const void *job, Frame *f, int naxes, tr_axes_fn fill, tr
     rc = tr_parallel_for(shade_range, &rg, f->n, 256, threads);
 #endif
     free(axes);
+    free(filled);
+    free(slices);
     return rc;
 }
 

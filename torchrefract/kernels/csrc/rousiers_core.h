@@ -578,7 +578,7 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
  * roughness (at least microfacet.ALPHA_MIN) and at the table's smallest (sg_lobe's fade). */
-static void rous_axes(const Frame *f, int64_t b, SgAxes *out) {
+static int rous_axes(const Frame *f, int64_t b, SgAxes *out) {
     float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
     float a0 = f->table.alpha_min;
     sg_axes(&f->table, ior, a, out + IN);
@@ -588,6 +588,7 @@ static void rous_axes(const Frame *f, int64_t b, SgAxes *out) {
     const RousJob *rj = (const RousJob *)f;  /* f is the job's first member */
     for (int q = 0; q < rj->levels; q++)
         sg_axes(&f->table, 1.0f / ior, rj->level_alpha[b * rj->levels + q], out + AXES + q);
+    return AXES + rj->levels;
 }
 
 #endif

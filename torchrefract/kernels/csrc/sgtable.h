@@ -22,7 +22,30 @@ typedef struct {
 typedef struct {
     int64_t x0, x1, y0, y1;
     float wx, wy, log_a, fade;
+    /* The view's slices (sg_slices) for distribution slice_d: each looked-up volume's
+     * channels' (alpha, eta) bilinear parts at the T theta nodes, (SG_SLICES, T); NULL
+     * where the axes are a pixel's own (sg_axes): trilinear reads the volume. */
+    const float *slice;
+    int64_t slice_d;
 } SgAxes;
+
+/* The slots of a view's slices: per distribution, the energy change (2 channels), the
+ * moment-sharpness lobes (transmit, reflect: 3 each), the L2-sharpness ones, the energy
+ * (2): SgTable's dvol, vol, vol_l2, evol in the order the lookups read them. */
+enum { SG_DV = 0, SG_V = 2, SG_VL2 = 8, SG_EV = 14, SG_SLICES = 16 };
+
+/* The volume of a slot (lobe: the lobe volumes' 0 transmit, 1 reflect) for distribution d,
+ * and its channels. */
+static inline const float *sg_volume(const SgTable *t, int64_t d, int slot, int lobe,
+                                     int *channels) {
+    int64_t per = t->nt * t->ne * t->na;
+    switch (slot) {
+    case SG_DV: *channels = 2; return t->dvol + d * 2 * per;
+    case SG_V: *channels = 3; return t->vol + (d * 2 + lobe) * 3 * per;
+    case SG_VL2: *channels = 3; return t->vol_l2 + (d * 2 + lobe) * 3 * per;
+    default: *channels = 2; return t->evol + d * 2 * per;
+    }
+}
 
 static void axis_nodes(float g, int64_t size, int64_t *i0, int64_t *i1, float *w) {
     float f = clampf((g + 1.0f) * ((float)(size - 1) / 2.0f), 0.0f, (float)(size - 1));
@@ -48,6 +71,8 @@ static void sg_axes(const SgTable *t, float eta, float alpha, SgAxes *a) {
     axis_nodes(y, t->ne, &a->y0, &a->y1, &a->wy);
     a->log_a = la;
     a->fade = matched_fade(eta);
+    a->slice = NULL;
+    a->slice_d = -1;
 }
 
 /* sgfit._coordinates' z: theta_o = acos(c) (as _safe_acos01 takes it), normalized. */
@@ -62,25 +87,69 @@ static inline float sg_theta(float c) {
     return clampf(theta, 0.0f, (float)(0.5 * TR_PI)) * (float)(4.0 / TR_PI) - 1.0f;
 }
 
-/* The trilinear read of ``channels`` (T, E, A) volumes at (a, z). */
-static void trilinear(const float *vol, int channels, const SgTable *t, const SgAxes *a,
-                      float z, float *out) {
+/* The (alpha, eta) bilinear part of trilinear at one theta node: x, then y, on the
+ * node's (E, A) plane ``p`` (row stride se). The one formula of trilinear and sg_slices. */
+static inline float sg_bilinear(const float *p, int64_t se, const SgAxes *a) {
+    const float *r0 = p + a->y0 * se, *r1 = p + a->y1 * se;
+    float wx = a->wx, wy = a->wy;
+    float c0 = r0[a->x0] * (1.0f - wx) + r0[a->x1] * wx;
+    float c1 = r1[a->x0] * (1.0f - wx) + r1[a->x1] * wx;
+    return c0 * (1.0f - wy) + c1 * wy;
+}
+
+/* The trilinear read of ``channels`` (T, E, A) volumes at (a, z); ``slice``: the same
+ * channels' bilinear parts at each theta node (sg_slices), NULL: from the volume. */
+static void trilinear(const float *vol, const float *slice, int channels, const SgTable *t,
+                      const SgAxes *a, float z, float *out) {
     int64_t z0, z1;
     float wz;
     axis_nodes(z, t->nt, &z0, &z1, &wz);
     int64_t se = t->na, st = t->na * t->ne, sc = st * t->nt;
-    float wx = a->wx, wy = a->wy;
     for (int c = 0; c < channels; c++) {
-        const float *v = vol + c * sc;
-        const float *v00 = v + z0 * st + a->y0 * se, *v01 = v + z0 * st + a->y1 * se;
-        const float *v10 = v + z1 * st + a->y0 * se, *v11 = v + z1 * st + a->y1 * se;
-        float c00 = v00[a->x0] * (1.0f - wx) + v00[a->x1] * wx;
-        float c01 = v01[a->x0] * (1.0f - wx) + v01[a->x1] * wx;
-        float c10 = v10[a->x0] * (1.0f - wx) + v10[a->x1] * wx;
-        float c11 = v11[a->x0] * (1.0f - wx) + v11[a->x1] * wx;
-        float c0 = c00 * (1.0f - wy) + c01 * wy, c1 = c10 * (1.0f - wy) + c11 * wy;
+        float c0, c1;
+        if (slice) {
+            c0 = slice[c * t->nt + z0];
+            c1 = slice[c * t->nt + z1];
+        } else {
+            const float *v = vol + c * sc;
+            c0 = sg_bilinear(v + z0 * st, se, a);
+            c1 = sg_bilinear(v + z1 * st, se, a);
+        }
         out[c] = c0 * (1.0f - wz) + c1 * wz;
     }
+}
+
+/* trilinear of a slot's volume (sg_volume) for distribution d: from the axes' slices
+ * where they hold d's, else from the volume. */
+static inline void sg_read(const SgTable *t, const SgAxes *a, int64_t d, int slot, int lobe,
+                           float z, float *out) {
+    int channels;
+    const float *vol = sg_volume(t, d, slot, lobe, &channels);
+    const float *slice = a->slice && a->slice_d == d
+                             ? a->slice + (slot + lobe * channels) * t->nt : NULL;
+    trilinear(vol, slice, channels, t, a, z, out);
+}
+
+/* A view's slices at its axes ``a`` for distribution d into ``buf`` (SG_SLICES * T
+ * floats), then held by ``a``: every slot's channels' sg_bilinear at each theta node, the
+ * values trilinear computes per lookup. Axes outside the table (a non-finite roughness or
+ * index) keep none. */
+static void sg_slices(const SgTable *t, int64_t d, SgAxes *a, float *buf) {
+    if (!(a->x0 >= 0 && a->x1 < t->na && a->y0 >= 0 && a->y1 < t->ne && d >= 0 && d < 2))
+        return;
+    static const int slots[] = {SG_DV, SG_V, SG_V, SG_VL2, SG_VL2, SG_EV};
+    static const int lobes[] = {0, 0, 1, 0, 1, 0};
+    int64_t se = t->na, st = t->na * t->ne, sc = st * t->nt;
+    for (int s = 0; s < 6; s++) {
+        int channels;
+        const float *vol = sg_volume(t, d, slots[s], lobes[s], &channels);
+        float *o = buf + (slots[s] + lobes[s] * channels) * t->nt;
+        for (int c = 0; c < channels; c++)
+            for (int64_t z = 0; z < t->nt; z++)
+                o[c * t->nt + z] = sg_bilinear(vol + c * sc + z * st, se, a);
+    }
+    a->slice = buf;
+    a->slice_d = d;
 }
 
 /* sgfit.interface_energies: (1 - F, F) plus the roughness's change of the table's
@@ -88,8 +157,7 @@ static void trilinear(const float *vol, int channels, const SgTable *t, const Sg
 static void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, float c,
                                float f, float *e_t, float *e_r) {
     float dd[2];
-    int64_t per = t->nt * t->ne * t->na;
-    trilinear(t->dvol + d * 2 * per, 2, t, a, sg_theta(c), dd);  /* transmit, reflect */
+    sg_read(t, a, d, SG_DV, 0, sg_theta(c), dd);  /* transmit, reflect */
     float et = 1.0f - f + a->fade * dd[0], er = f + a->fade * dd[1];
     *e_t = et > 0.0f ? et : 0.0f;
     *e_r = er > 0.0f ? er : 0.0f;
@@ -102,8 +170,7 @@ static void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, flo
 static void sg_lookup_at(const SgTable *t, const SgAxes *a, int64_t d, int lobe, int l2,
                          float z, float *k, float *angle, float *energy) {
     float o[3];
-    int64_t per = 3 * t->nt * t->ne * t->na;
-    trilinear((l2 ? t->vol_l2 : t->vol) + (d * 2 + lobe) * per, 3, t, a, z, o);
+    sg_read(t, a, d, l2 ? SG_VL2 : SG_V, lobe, z, o);
     *angle = clampf(o[2], -1.0f + 1e-7f, 1.0f - 1e-7f);
     float extra = t->la0 - a->log_a;
     float log_k = o[1] + 2.0f * (extra > 0.0f ? extra : 0.0f);
@@ -191,16 +258,15 @@ static void spread_table_energies(const SgTable *t, const SgAxes *a, const SgAxe
                                   int64_t d, float cos_theta, float var, float *e_t,
                                   float *e_r) {
     float cs[3], ts = 0.0f, rs = 0.0f;
-    int64_t per = t->nt * t->ne * t->na;
     spread_cosines(cos_theta, var, cs);
     for (int i = 0; i < 3; i++) {
         float e[2], z = sg_theta(cs[i]);
-        trilinear(t->evol + d * 2 * per, 2, t, a, z, e);
+        sg_read(t, a, d, SG_EV, 0, z, e);
         e[0] = e[0] > 0.0f ? e[0] : 0.0f;
         e[1] = e[1] > 0.0f ? e[1] : 0.0f;
         if (a->fade < 1.0f) {
             float e0[2];
-            trilinear(t->evol + d * 2 * per, 2, t, a0, z, e0);
+            sg_read(t, a0, d, SG_EV, 0, z, e0);
             e0[0] = e0[0] > 0.0f ? e0[0] : 0.0f;
             e0[1] = e0[1] > 0.0f ? e0[1] : 0.0f;
             e[0] = e0[0] + a->fade * (e[0] - e0[0]);

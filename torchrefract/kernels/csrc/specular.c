@@ -288,9 +288,10 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
 
 /* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces on the table (views
  * with a roughness map take theirs per pixel). */
-static void spec_axes(const Frame *f, int64_t b, SgAxes *out) {
+static int spec_axes(const Frame *f, int64_t b, SgAxes *out) {
     sg_axes(&f->table, f->ior[b], f->alpha[b], out);
     sg_axes(&f->table, 1.0f / f->ior[b], f->alpha[b], out + 1);
+    return 2;
 }
 
 /* Entry point (ctypes, shading/fused.py): shade all object pixels of ``job`` on
