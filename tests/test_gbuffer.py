@@ -26,7 +26,7 @@ import trimesh
 
 import torchrefract.geometry.raster as raster
 from torchrefract.geometry.camera import project
-from torchrefract.geometry.gbuffer import build_gbuffer
+from torchrefract.geometry.gbuffer import build_gbuffer, carries_points
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.kernels import native
 from torchrefract.scene.model import Camera, Transform
@@ -177,7 +177,11 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
         mask = layer.mask[b].numpy().reshape(-1)
         assert np.array_equal(mask, tri_g >= 0), f"{label} {name}: mask != (tri >= 0)"
         assert (local < len(faces)).all(), f"{label} {name}: id outside this mesh's faces"
+        points = carries_points(name == "back")
+        assert (layer.position is not None) == points and (layer.bary is not None) == points
         for field in ("position", "dist", "depth", "bary", "normal", "uv"):
+            if getattr(layer, field) is None:
+                continue
             vals = getattr(layer, field)[b].numpy().reshape(mask.shape[0], -1)
             assert not vals[~mask].any(), f"{label} {name}.{field} nonzero outside the mask"
 
@@ -206,9 +210,11 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
             assert ok, (f"{label} {name}: pixel {center} has id {local[p]} but ray casting "
                         f"sees {ref_ids[p]}, not on a triangle edge")
 
-        pos = layer.position[b].numpy().reshape(-1, 3).astype(np.float64)
-        pos_err = np.linalg.norm(pos[agree] - ref_pos[agree], axis=1).max() / radius
         dist = layer.dist[b].numpy().reshape(-1).astype(np.float64)
+        # the back layer has no positions: its hits as eye + dist * ray
+        pos = (layer.position[b].numpy().reshape(-1, 3).astype(np.float64) if points
+               else np.where(mask[:, None], eye + dist[:, None] * dirs, 0.0))
+        pos_err = np.linalg.norm(pos[agree] - ref_pos[agree], axis=1).max() / radius
         dist_err = np.abs(dist[agree] - ref_dist[agree]).max() / radius
         depth = layer.depth[b].numpy().reshape(-1).astype(np.float64)
         ref_depth = (ref_pos[agree] - eye) @ fwd
@@ -227,15 +233,17 @@ def compare_layers(g, b, mesh, cam, n, ref, label):
         assert (facing < 0).all() if name == "front" else (facing > 0).all(), \
             f"{label} {name}: layer holds faces of the wrong orientation"
 
-        # Barycentrics: sum to 1, reproduce the position, match the reference's.
-        bary = layer.bary[b].numpy().reshape(-1, 3).astype(np.float64)
-        assert np.abs(bary[mask].sum(-1) - 1.0).max() < 1e-5
+        # Barycentrics (where the layer has them): sum to 1, reproduce the position, match
+        # the reference's.
         tv = verts[faces[np.maximum(local, 0)]]  # (N, 3, 3)
-        from_bary = (bary[:, :, None] * tv).sum(1)
-        assert np.abs(from_bary[mask] - pos[mask]).max() < 1e-5 * radius + 1e-6
         ref_bary = trimesh.triangles.points_to_barycentric(tv[agree], ref_pos[agree])
-        assert np.abs(bary[agree] - ref_bary).max() < 1e-3  # ~ position error / triangle size
-        assert bary[agree].min() > -1e-4  # agreeing pixels lie inside their triangle
+        if points:
+            bary = layer.bary[b].numpy().reshape(-1, 3).astype(np.float64)
+            assert np.abs(bary[mask].sum(-1) - 1.0).max() < 1e-5
+            from_bary = (bary[:, :, None] * tv).sum(1)
+            assert np.abs(from_bary[mask] - pos[mask]).max() < 1e-5 * radius + 1e-6
+            assert np.abs(bary[agree] - ref_bary).max() < 1e-3  # ~ position error / size
+            assert bary[agree].min() > -1e-4  # agreeing pixels lie inside their triangle
 
         # Shading normal: unit, equal to the clamped barycentric interpolation of the
         # mesh's vertex normals.
@@ -325,7 +333,9 @@ def test_supersampling_renders_subpixel_centers(mesh_paths):
     for name in ("front", "back"):
         a, b = getattr(g, name), getattr(full, name)
         assert torch.equal(a.tri, b.tri)
-        assert torch.allclose(a.position, b.position, atol=1e-6)
+        assert torch.allclose(a.dist, b.dist, atol=1e-6)
+        if a.position is not None:  # the front layer's (carries_points)
+            assert torch.allclose(a.position, b.position, atol=1e-6)
 
 
 def test_batch_of_two_meshes_indexes_concatenation(mesh_paths):
@@ -363,7 +373,9 @@ def test_batch_of_two_meshes_indexes_concatenation(mesh_paths):
             # the batch's triangle of each pixel is the mesh's own triangle
             assert torch.equal(g.meshes.tri_vertices[tri], mesh.vertices[mesh.faces[tri - off]])
             assert torch.equal(g.meshes.tri_normals[tri], mesh.normals[mesh.faces[tri - off]])
-            assert torch.allclose(lb.position[b], ls.position[0], atol=1e-6)
+            assert torch.allclose(lb.dist[b], ls.dist[0], atol=1e-6)
+            if lb.position is not None:  # the front layer's (carries_points)
+                assert torch.allclose(lb.position[b], ls.position[0], atol=1e-6)
             assert torch.allclose(lb.normal[b], ls.normal[0], atol=1e-6)
         assert torch.equal(g.eye[b], torch.tensor((cams_spot[0], cams_suz[0])[b].eye).float())
     # the second view checked against ray casting directly, through the batch
@@ -459,7 +471,10 @@ def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, mon
             lb, ls = getattr(g, name), getattr(single, name)
             assert torch.equal(lb.mask[b], ls.mask[0])
             assert torch.equal(torch.where(lb.tri[b] >= 0, lb.tri[b] - off, -1), ls.tri[0])
-            for f in ("position", "normal", "depth", "uv", "bary"):
+            for f in ("position", "normal", "depth", "dist", "uv", "bary"):
+                if getattr(ls, f) is None:  # the back layer's position and bary
+                    assert getattr(lb, f) is None and not carries_points(name == "back")
+                    continue
                 assert torch.equal(getattr(lb, f)[b], getattr(ls, f)[0]), (b, name, f)
         assert torch.equal(g.ray_dir[b], single.ray_dir[0])
         assert torch.equal(g.proj[b], single.proj[0])

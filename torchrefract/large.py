@@ -154,7 +154,7 @@ def _strip_layers(mesh, cam: Camera, n: int, batch: MeshBatch, eye, fwd, r0: int
 
     def exact(i: int, is_back: bool) -> Layer:
         lay = _layer(ids[i], eye, dirs, fwd, batch, back=is_back)
-        return Layer(**{k: v[:, cut] for k, v in vars(lay).items()})
+        return Layer(**{k: None if v is None else v[:, cut] for k, v in vars(lay).items()})
 
     out = (exact(0, False) if front else None, exact(1, True) if back else None)
     del ids

@@ -231,9 +231,12 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
         passes[name] = v if n == 1 else masked_box(v, g.front.mask, n, cache)  # 0 outside
     uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
-    for k, v in method_passes.items():
+    for k in list(method_passes):  # each method buffer let go once averaged (popped: the
+        # next average reuses its memory instead of all being held twice at the peak)
+        v = method_passes.pop(k)
         passes[k] = (masked_box(v, g.front.mask, n, cache) if uniform is None
                      else plan_box(v, n, uniform, g.front.mask, cache))
+        del v
     passes.update(extra_passes)  # already per pixel
     return RenderResult(
         radiance=(box(radiance, n) if uniform is None

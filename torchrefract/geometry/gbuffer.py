@@ -76,6 +76,8 @@ class MeshBatch:
             nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
             ac.append(torch.where(m.across >= 0, m.across + offset, m.across))
             offset += f.shape[0]
+        if offset >= 2 ** 31:  # the layers' ids are int32
+            raise ValueError(f"a batch's meshes have {offset} faces; at most 2**31 - 1")
         counts_t = torch.tensor([m.num_faces for m in meshes], dtype=torch.int64)
         offsets = torch.tensor([first[id(m)] for m in meshes], dtype=torch.int64)
         spheres = [m.face_sphere for m in meshes]
@@ -90,11 +92,13 @@ class Layer:
 
     Attributes:
         mask: (B, H, W) bool, a face is seen.
-        tri: (B, H, W) int64 index into the MeshBatch (-1 where ``mask`` is False).
-        position: (B, H, W, 3) exact world position of the hit.
+        tri: (B, H, W) int32 index into the MeshBatch (-1 where ``mask`` is False).
+        position: (B, H, W, 3) exact world position of the hit; None in the back layer
+            (:func:`carries_points`).
         dist: (B, H, W) distance from the eye along the pixel ray.
         depth: (B, H, W) camera-space depth (along the forward axis).
-        bary: (B, H, W, 3) barycentrics of the hit (may leave [0, 1] by ~1e-6 at edges).
+        bary: (B, H, W, 3) barycentrics of the hit (may leave [0, 1] by ~1e-6 at edges);
+            None in the back layer (:func:`carries_points`).
         normal: (B, H, W, 3) unit interpolated shading normal, outward.
         uv: (B, H, W, 2) interpolated UV.
     Values where ``mask`` is False are zeros.
@@ -102,12 +106,21 @@ class Layer:
 
     mask: torch.Tensor
     tri: torch.Tensor
-    position: torch.Tensor
+    position: torch.Tensor | None
     dist: torch.Tensor
     depth: torch.Tensor
-    bary: torch.Tensor
+    bary: torch.Tensor | None
     normal: torch.Tensor
     uv: torch.Tensor
+
+
+def carries_points(back: bool) -> bool:
+    """Whether a layer (the back one, or the front one) carries its hits' ``position`` and
+    ``bary``: the front layer's are read (the shading's entry points, ``sh``'s surface
+    lattice, adaptive shading's center samples), the back layer's by nothing (the marches
+    find the exits themselves), so they are not made (24 bytes per pixel: 13 MB for 8
+    views at 256 x 256)."""
+    return not back
 
 
 @dataclass(frozen=True)
@@ -267,7 +280,8 @@ def _layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: to
     a time, with the same values.
     """
     fast = native.layer(ids, eye, dirs, forward, meshes.tri_vertices, meshes.tri_normals,
-                        meshes.tri_uvs, meshes.tri_neighbors, back, tol, 1e-3)
+                        meshes.tri_uvs, meshes.tri_neighbors, back, tol, 1e-3,
+                        carries_points(back))
     if fast is not None:
         return Layer(**fast)
     return _layer_tensor(ids, eye, dirs, forward, meshes, back, tol)
@@ -307,13 +321,14 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
         put_(out, pix, v)
         return out.reshape((b, h, w) if c is None else (b, h, w, c))
 
+    points = carries_points(back)
     return Layer(
         mask=scatter(torch.ones_like(tri, dtype=torch.bool), None, False, torch.bool),
-        tri=scatter(tri, None, -1, torch.int64),
-        position=scatter(pos, 3),
+        tri=scatter(tri, None, -1, torch.int32),
+        position=scatter(pos, 3) if points else None,
         dist=scatter(t, None),
         depth=scatter(depth, None),
-        bary=scatter(bary, 3),
+        bary=scatter(bary, 3) if points else None,
         normal=scatter(n, 3),
         uv=scatter(uv, 2),
     )
@@ -375,8 +390,8 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     if len(views) < len(meshes):  # copy the distinct views to their batch items
         inv = torch.tensor(inverse, dtype=torch.int64)
 
-        def expand(x: torch.Tensor) -> torch.Tensor:
-            return x.index_select(0, inv)
+        def expand(x: torch.Tensor | None) -> torch.Tensor | None:
+            return None if x is None else x.index_select(0, inv)
 
         front, back_layer = (Layer(**{f.name: expand(getattr(lay, f.name)) for f in fields(Layer)})
                              for lay in (front, back_layer))

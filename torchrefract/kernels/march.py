@@ -161,6 +161,7 @@ def _camera_planes(g: GBuffer, both: bool) -> Marched:
     """:func:`camera_planes`, computed."""
     _, h, w = g.shape
     table, base = plane_table(g.meshes, g.eye, g.proj)
+    # the layers' own int32 ids (views: no copy; a layer changed in place gets new planes)
     back = g.back.tri.detach().reshape(-1).to(torch.int32)
     front = g.front.tri.detach().reshape(-1).to(torch.int32) if both else None
     return Marched(back=back, front=front, table=table, base=base, h=h, w=w)

@@ -562,8 +562,8 @@ def march(c0: torch.Tensor, ct: torch.Tensor, s_max: torch.Tensor, s_min: torch.
 
 def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: torch.Tensor,
           tri_vertices: torch.Tensor, tri_normals: torch.Tensor, tri_uvs: torch.Tensor,
-          tri_neighbors: torch.Tensor, back: bool, tol: float, keep_tol: float
-          ) -> dict[str, torch.Tensor] | None:
+          tri_neighbors: torch.Tensor, back: bool, tol: float, keep_tol: float,
+          points: bool = True) -> dict[str, torch.Tensor | None] | None:
     """``gbuffer._layer``'s exact attributes of one layer (with its edge repair), or
     ``None`` where the kernel is unavailable or an input is not float32 / int64 on the CPU.
 
@@ -572,9 +572,10 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
         dirs: (B, H, W, 3) pixel rays. tri_vertices, tri_normals: (F, 3, 3); tri_uvs:
             (F, 3, 2); tri_neighbors: (F, 3) int64 (``MeshBatch``).
         back: the back-face layer. tol, keep_tol: ``_repair_edge_ids``' tolerances.
+        points: make the position and the barycentrics (else None, not computed).
 
     Returns:
-        The ``Layer`` fields: mask (B, H, W) bool, tri (B, H, W) int64, position, bary,
+        The ``Layer`` fields: mask (B, H, W) bool, tri (B, H, W) int32, position, bary,
         normal (B, H, W, 3), dist, depth (B, H, W), uv (B, H, W, 2), float32.
     """
     if not available():
@@ -586,9 +587,10 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
     eye, dirs, forward, tri_vertices, tri_normals, tri_uvs, ids, tri_neighbors = keep
     b, h, w = ids.shape
     out = {"mask": torch.empty(b, h, w, dtype=torch.bool),
-           "tri": torch.empty(b, h, w, dtype=torch.int64),
-           "position": torch.empty(b, h, w, 3), "dist": torch.empty(b, h, w),
-           "depth": torch.empty(b, h, w), "bary": torch.empty(b, h, w, 3),
+           "tri": torch.empty(b, h, w, dtype=torch.int32),
+           "position": torch.empty(b, h, w, 3) if points else None,
+           "dist": torch.empty(b, h, w),
+           "depth": torch.empty(b, h, w), "bary": torch.empty(b, h, w, 3) if points else None,
            "normal": torch.empty(b, h, w, 3),
            "uv": torch.empty(b, h, w, 2)}
     job = _LayerJob(b=b, h=h, w=w, ids=ids.data_ptr(), eye=eye.data_ptr(),
@@ -596,7 +598,7 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
                     tv=tri_vertices.data_ptr(), tn=tri_normals.data_ptr(),
                     tuv=tri_uvs.data_ptr(), neighbors=tri_neighbors.data_ptr(),
                     back=int(back), tol=tol, keep_tol=keep_tol,
-                    **{k: v.data_ptr() for k, v in out.items()})
+                    **{k: None if v is None else v.data_ptr() for k, v in out.items()})
     if not _call("layer", job):
         return None
     return out
@@ -828,7 +830,7 @@ def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:
     ok = (available() and no_grad_through(*outs, *ins)
           and all(x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
                   for x in outs + ins)
-          and f.tri.dtype == torch.int64 and f.tri.is_contiguous()
+          and f.tri.dtype == torch.int32 and f.tri.is_contiguous()
           and uniform.dtype == torch.bool and uniform.is_contiguous())
     if not ok:
         return False

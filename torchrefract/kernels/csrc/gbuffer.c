@@ -6,7 +6,9 @@
  * grid), re-pick the nearest triangle really hit among the 3x3 neighbourhood's ids and the
  * triangle's edge neighbours and theirs (or keep the id for a tiny miss, or empty the
  * pixel); then the position, distance, camera depth, barycentrics, the
- * interpolated shading normal and UVs, stored as float32. The same operations in the
+ * interpolated shading normal and UVs, stored as float32 (the position and barycentrics
+ * only where the job asks for them: the back layer's are read by nothing), and the
+ * triangle id as int32. The same operations in the
  * same order as the tensor code (built with -ffp-contract=off and no fast-math; the fused
  * multiply-adds of torch.cross written out as fma), so the layers are identical
  * (tests/test_native.py). Plain C (threads: common.h); built and loaded by native.py.
@@ -78,9 +80,9 @@ typedef struct {
     const int64_t *neighbors; /* (F, 3) edge-adjacent faces or -1 */
     int back;                 /* 1: the back-face layer (faces pointing away) */
     double tol, keep_tol;
-    /* out, (B*H*W, ...) */
+    /* out, (B*H*W, ...); position and bary may be NULL (not written) */
     uint8_t *mask;
-    int64_t *tri;
+    int32_t *tri;
     float *position, *dist, *depth, *bary, *normal, *uv;
 } LayerJob;
 
@@ -156,11 +158,11 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
     double f[3] = {(double)j->forward[3 * bi], (double)j->forward[3 * bi + 1],
                    (double)j->forward[3 * bi + 2]};
     j->mask[p] = 1;
-    j->tri[p] = id;
+    j->tri[p] = (int32_t)id;
     for (int i = 0; i < 3; i++) {
         double td = t * d[i];
-        j->position[3 * p + i] = (float)(o[i] + td);
-        j->bary[3 * p + i] = (float)bary[i];
+        if (j->position) j->position[3 * p + i] = (float)(o[i] + td);
+        if (j->bary) j->bary[3 * p + i] = (float)bary[i];
         j->normal[3 * p + i] = (float)n[i];
     }
     j->dist[p] = (float)t;
@@ -174,11 +176,11 @@ static void layer_pixel(const LayerJob *j, int64_t p) {
 static void layer_empty(const LayerJob *j, int64_t a, int64_t b) {
     size_t n = (size_t)(b - a);
     memset(j->mask + a, 0, n);
-    memset(j->tri + a, 0xff, n * sizeof(int64_t));
+    memset(j->tri + a, 0xff, n * sizeof(int32_t));
     memset(j->dist + a, 0, n * sizeof(float));
     memset(j->depth + a, 0, n * sizeof(float));
-    memset(j->position + 3 * a, 0, 3 * n * sizeof(float));
-    memset(j->bary + 3 * a, 0, 3 * n * sizeof(float));
+    if (j->position) memset(j->position + 3 * a, 0, 3 * n * sizeof(float));
+    if (j->bary) memset(j->bary + 3 * a, 0, 3 * n * sizeof(float));
     memset(j->normal + 3 * a, 0, 3 * n * sizeof(float));
     memset(j->uv + 2 * a, 0, 2 * n * sizeof(float));
 }
@@ -307,18 +309,23 @@ static void layer_lanes(const LayerJob *j, int64_t p0, __m256i ids) {
     __m256 g8 = _mm256_castsi256_ps((__m256i)good);
     __m128 keep = _mm_shuffle_ps(_mm256_castps256_ps128(g8), _mm256_extractf128_ps(g8, 1),
                                  _MM_SHUFFLE(2, 0, 2, 0));
-    aos3(j->position + 3 * p0, narrow(o[0] + t * d[0], keep), narrow(o[1] + t * d[1], keep),
-         narrow(o[2] + t * d[2], keep));
-    aos3(j->bary + 3 * p0, narrow(bary[0], keep), narrow(bary[1], keep),
-         narrow(bary[2], keep));
+    if (j->position)
+        aos3(j->position + 3 * p0, narrow(o[0] + t * d[0], keep),
+             narrow(o[1] + t * d[1], keep), narrow(o[2] + t * d[2], keep));
+    if (j->bary)
+        aos3(j->bary + 3 * p0, narrow(bary[0], keep), narrow(bary[1], keep),
+             narrow(bary[2], keep));
     aos3(j->normal + 3 * p0, narrow(n[0], keep), narrow(n[1], keep), narrow(n[2], keep));
     __m128 u = narrow(uv[0], keep), w = narrow(uv[1], keep);
     _mm_storeu_ps(j->uv + 2 * p0, _mm_unpacklo_ps(u, w));
     _mm_storeu_ps(j->uv + 2 * p0 + 4, _mm_unpackhi_ps(u, w));
     _mm_storeu_ps(j->dist + p0, narrow(t, keep));
     _mm_storeu_ps(j->depth + p0, narrow(depth, keep));
-    /* tri: the id where kept, else all bits set (-1); mask: one byte per pixel */
-    _mm256_storeu_si256((__m256i *)(j->tri + p0), _mm256_or_si256(ids, ~(__m256i)good));
+    /* tri: the id where kept, else all bits set (-1), its low 32 bits (ids < 2^31);
+     * mask: one byte per pixel */
+    __m256i kept = _mm256_or_si256(ids, ~(__m256i)good);
+    _mm_storeu_si128((__m128i *)(j->tri + p0), _mm256_castsi256_si128(
+        _mm256_permutevar8x32_epi32(kept, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6))));
     int bits = _mm256_movemask_pd((__m256d)good);
     uint32_t m4 = (uint32_t)((bits & 1) | (bits & 2) << 7 | (bits & 4) << 14 |
                              (bits & 8) << 21);
@@ -375,7 +382,7 @@ typedef struct {
     const float *center_dirs;           /* (B, h, w, 3) unit center rays */
     const float *eye, *proj;            /* (B, 3), (B, 16): forward at 9..11 */
     const float *tv, *tn, *tuv;         /* (F, 3, 3), (F, 3, 3), (F, 3, 2) */
-    int64_t *tri;                       /* the front layer (B*nh*nw, ...) and rays */
+    int32_t *tri;                       /* the front layer (B*nh*nw, ...) and rays */
     float *position, *dist, *depth, *bary, *normal, *uv, *ray_dir;
 } CenterJob;
 
@@ -413,7 +420,7 @@ static void center_range(const void *job, int64_t begin, int64_t end) {
         interpolate(best_bary, j->tn + 9 * best, 3, nrm);
         normalize3(nrm);
         interpolate(best_bary, j->tuv + 6 * best, 2, uv);
-        j->tri[s0] = best;
+        j->tri[s0] = (int32_t)best;
         for (int e = 0; e < 3; e++) {
             float td = best_t * d[e];
             j->position[3 * s0 + e] = o[e] + td;

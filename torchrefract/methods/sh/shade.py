@@ -243,7 +243,7 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
     weights = window(options.order, options.window, options.window_width)
     b_idx = take(px.idx, sel)
     off = int(g.meshes.face_offset[bi])
-    faces = take(g.front.tri.reshape(-1), b_idx) - off
+    faces = take(g.front.tri.reshape(-1), b_idx).long() - off  # the layer's are int32
     bary = take(g.front.bary.reshape(-1, 3), b_idx)
     omega = take(px.view, sel) @ item.rotation  # world -> object: R^T w
     r = var_v = None
