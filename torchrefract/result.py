@@ -112,10 +112,10 @@ def plan_box(x: torch.Tensor, n: int, uniform: torch.Tensor,
              mask: torch.Tensor | None = None, cache: BoxCache | None = None) -> torch.Tensor:
     """:func:`box` (``mask`` None) or :func:`masked_box` of ``x`` (B, H, W, C) whose
     ``uniform`` pixels (B, H/n, W/n; adaptive.plan: covered at every sub-pixel) hold their
-    value at their first sub-pixel only: the bits those give after adaptive.spread copied
-    it to the others, without the copies (the first sub-pixel summed n*n times in box's
-    order; masked, times a mask of ones over a coverage of one), and, masked, without
-    reading the others: only the other covered pixels are averaged."""
+    value at their first sub-pixel only: the bits those give had it been copied to the
+    others, without the copies (the first sub-pixel summed n*n times in box's order;
+    masked, times a mask of ones over a coverage of one), and, masked, without reading the
+    others: only the other covered pixels are averaged."""
     out = native.box(x, n, mask, uniform)
     if out is not None:
         return out

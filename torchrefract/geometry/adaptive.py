@@ -176,8 +176,9 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
 
 @dataclass(frozen=True)
 class Level:
-    """One level of adaptive shading at one sample per pixel, on the pixels of stride
-    ``stride`` (1: every pixel; 2: the even rows and columns): ``status`` (B, H/s, W/s)
+    """One level of adaptive shading at one sample per pixel (or over a supersampled
+    plan's center samples: ``sub``), on the pixels of stride ``stride`` (1: every pixel;
+    2: the even rows and columns): ``status`` (B, H/s, W/s)
     uint8 on them, 0 not the object, 1 shaded before the level is filled, 2 waiting for its
     lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, 4,
     shaded in the level's own pass, or 5, shaded there and blended with the
@@ -199,8 +200,9 @@ class Level:
 
 @dataclass(frozen=True)
 class Lattice:
-    """Adaptive shading at one sample per pixel: its levels, coarsest first (the even
-    pixels' level, where it pays, then every pixel's)."""
+    """Adaptive shading at one sample per pixel (or over a supersampled plan's center
+    samples): its levels, coarsest first (the even pixels' level, where it pays, then
+    every pixel's)."""
 
     levels: tuple[Level, ...]
 

@@ -39,7 +39,7 @@ def check(method: str, passes: dict, options=None) -> None:
 @contextmanager
 def settings_for(passes: dict) -> Iterator[None]:
     """The render's settings with the tensor code (no fused kernel: it records nothing) and
-    uniform supersampling (adaptive sampling copies one sample to several sub-pixels)."""
+    uniform supersampling (adaptive sampling lets one sample stand for several sub-pixels)."""
     if not passes:
         yield
         return

@@ -2,8 +2,8 @@
  * each pixel the mean of its n x n sub-pixels, in one pass over the buffer. The tensor
  * code's float32 operations and order (the sub-pixels summed row-major, then divided by
  * n * n; masked: each value times its mask as 0 or 1, over the covered fraction, 0 where
- * none is covered), so the bits are the same; torch's strided adds took ~10x longer on
- * this layout (8 x 512 x 512 x 3 floats: 17 ms against one read's 0.3). */
+ * none is covered), so the bits are the same; torch's strided adds over a buffer of few
+ * channels cost many reads of it (docs/decisions.md, "Adaptive 2x2"). */
 
 #include "common.h"
 
