@@ -109,11 +109,11 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
             int64_t q = frame_index(j, nb[i]);
             wait = j->front_mask[q] && j->back_mask[q] == back &&
                    (!j->uniform || j->uniform[nb[i]]);
-            if (j->per_pixel) gap = fmaxf(gap, j->alpha_min * inv_tol(alpha_of(j, nb[i], q)));
-            gap = fmaxf(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
+            if (j->per_pixel) gap = tmax(gap, j->alpha_min * inv_tol(alpha_of(j, nb[i], q)));
+            gap = tmax(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
             if (back) {
-                gap = fmaxf(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
-                gap = fmaxf(gap, fabsf(j->back_depth[q] - bd) * inv_d);
+                gap = tmax(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
+                gap = tmax(gap, fabsf(j->back_depth[q] - bd) * inv_d);
             }
         }
         wait = wait && gap <= 1.0f;
@@ -153,7 +153,7 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
             finite &= isfinite(r);
             rel = r > rel ? r : rel;
         }
-        float t = fmaxf(j->gap[p], rel / j->rtol);
+        float t = tmax(j->gap[p], rel / j->rtol);
         if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
             for (int c = 0; c < 3; c++) j->radiance[3 * fp + c] = mean[c];
             for (int q = 0; q < j->npass; q++) {
