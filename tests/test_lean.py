@@ -30,7 +30,7 @@ from torchrefract.methods.lean.moments import (
     two_point,
 )
 from torchrefract.optics.materials import MaterialBatch
-from torchrefract.optics.smooth import normalize, refract, tangent_frame
+from torchrefract.optics.smooth import dot as dot3, normalize, refract, tangent_frame
 
 ENV = str(ASSETS / "envmaps" / "lebombo.exr")
 SUITE = ROOT / "configs" / "suite"
@@ -162,6 +162,37 @@ def test_roughness_moments_carry_a_map_jump(tmp_path):
     assert torch.allclose(a, torch.tensor([0.02, 0.5]), atol=2e-3), a
     cov = g.back.mask[0].float().mean()
     assert fp.alpha2_w[0, 0].sum() == pytest.approx(1.0, abs=1e-5) and cov > 0.2
+
+
+def test_roughness_lobes_keep_their_own_axes(monkeypatch):
+    """``spread: rays`` over a roughness jump (``globe_jump``): each roughness lobe is read
+    at its own axis (the SG table's for its roughness: the transmitted lobe's shift is a
+    microfacet effect) and is the bounding rays' covariance R plus its own microfacet
+    variance wide, the same R for every lobe (R is the geometry's part). Before, the axes
+    were pulled together until their spread fitted inside R (docs/decisions_lean.md)."""
+    from torchrefract.methods.lean import shade
+
+    seen = []
+    read = shade._read
+
+    def spy(lighting, px, lobes, covs, options):
+        if len(lobes) == 2:  # the rays mixture's two roughness nodes
+            seen.append(([lb.axis for lb in lobes], [lb.k for lb in lobes], covs))
+        return read(lighting, px, lobes, covs, options)
+
+    monkeypatch.setattr(shade, "_read", spy)
+    s = _suite("globe_jump", 32, "lean")
+    tr.render([s], settings=tr.RenderSettings(fused=False, adaptive=False))
+    assert seen
+    axes, ks, covs = seen[0]
+    apart = torch.linalg.norm(axes[0] - axes[1], dim=-1) > 1e-3  # distinct nodes
+    assert int(apart.sum()) > 10
+    for axis, k, (read_axis, cov, e1, e2) in zip(axes, ks, covs):
+        assert torch.allclose(read_axis, normalize(axis), atol=1e-6)
+        assert torch.allclose(dot3(e1, read_axis), torch.zeros_like(k), atol=1e-5)
+    r0 = covs[0][1] - (1.0 / ks[0])[:, None, None] * torch.eye(2)
+    r1 = covs[1][1] - (1.0 / ks[1])[:, None, None] * torch.eye(2)
+    assert torch.allclose(r0, r1, rtol=1e-4, atol=1e-7)
 
 
 # --- the exit lobe -----------------------------------------------------------------------

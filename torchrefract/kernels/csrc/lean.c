@@ -10,9 +10,9 @@
  *      extent and the roughness moments at its center (moments.footprint_sums), their
  *      Gaussians (moments.gaussians: per subdivision and merged, the two-point roughness),
  *   3. the exit lobes of the merged Gaussian at the exact exit normal (shade._lobes, exact),
- *      placed around the central exit direction with the bounding rays' covariance
- *      (shade._ray_covariances, lobes.ray_covariance, lobes.mixture_shrink), each read by
- *      EWA taps on the SG pyramid (lighting/ewa.py),
+ *      each at its own axis and widened by the bounding rays' covariance
+ *      (shade._ray_covariances, lobes.ray_covariance), each read by EWA taps on the SG
+ *      pyramid (lighting/ewa.py),
  *   4. ``gsr``: where the subdivisions' normals form separate groups (moments.separation),
  *      their own lobes, widened as the poster does (shade._paper_covariances,
  *      lobes.paper_covariance), blended in by the separation,
@@ -391,30 +391,6 @@ static void make_lobe(const LeanJob *lj, const SgAxes *view_axes, int64_t b, int
     }
 }
 
-/* The axis alone of exit.exit_lobe (``spread: rays``) at the exact exit normal (exit_lobe's
- * choice of lobe per rule, without its energies): the rays mixture's center. */
-static void exit_axis(const LeanJob *lj, int64_t b, int mode, const float *p_t1, float k_t1,
-                      int found, const float *n, const float *p2, float alpha, float *axis) {
-    const Frame *j = &lj->r.f;
-    if (!found) {
-        for (int c = 0; c < 3; c++) axis[c] = p_t1[c];
-        return;
-    }
-    float ior = j->ior[b];
-    ExitGeo e;
-    exit_geo(ior, p_t1, k_t1, found, n, p2, &e);
-    SgAxes out;
-    sg_axes(&j->table, 1.0f / ior, alpha, &out);
-    int64_t dist = j->dist[b];
-    float k, t, en, cos_in = e.cos2, sign = -1.0f;
-    int lobe = 0;
-    if (mode == REFLECT && e.tir) { lobe = 1; sign = 1.0f; }
-    else if (mode == CLAMP || mode == CONSERVE) cos_in = e.tir ? e.cos_crit + 1e-4f : e.cos2;
-    sg_lookup(&j->table, &out, dist, lobe, dist == 1, cos_in, &k, &t, &en);  /* sg_lobe's axis */
-    lobe_axis(e.view2, e.n_in, t, sign, axis);
-    normalize3(axis);
-}
-
 /* What every lobe of a pixel shares: the front lobe, the exit point, the exact normal. */
 typedef struct {
     const float *p_t1;
@@ -518,23 +494,9 @@ static void e_perp_of(const float *i, const float *n_in, float *e_perp, float *n
     }
 }
 
-/* lobes.mixture_shrink: s^2 = min(1, 1 / lambda_max(total^-1 between)). */
-static float mixture_shrink(const float *t, const float *bt) {
-    float tr = t[0] + t[2];
-    float d0 = (t[0] + 1e-12f) + 1e-6f * tr, d1 = (t[2] + 1e-12f) + 1e-6f * tr, o = t[1];
-    float det = d0 * d1 - o * o;
-    float i00 = d1 / det, i01 = -o / det, i11 = d0 / det;
-    float a00 = i00 * bt[0] + i01 * bt[1], a01 = i00 * bt[1] + i01 * bt[2];
-    float a10 = i01 * bt[0] + i11 * bt[1], a11 = i01 * bt[1] + i11 * bt[2];
-    float atr = a00 + a11, adet = a00 * a11 - a01 * a10;
-    float disc = 0.25f * atr * atr - adet;
-    float lam = 0.5f * atr + sqrtf(disc > 1e-30f ? disc : 1e-30f);
-    return lam > 1.0f ? 1.0f / lam : 1.0f;
-}
-
 /* shade._rays_mixture with shade._ray_covariances and shade._read (``spread: rays``): the
- * light of the merged Gaussian's lobes around the central exit direction (l, N x 3) and the
- * mixture's per-axis variance. */
+ * light of the merged Gaussian's lobes, each at its own axis and widened by the bounding
+ * rays' covariance (l, N x 3), and the mixture's per-axis variance. */
 static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Block *k, int i,
                           int64_t b, int mode, const PixelExit *px, const ExitGeo *xe,
                           const Gauss *merged, float *l) {
@@ -542,39 +504,23 @@ static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Bloc
     float ior = j->ior[b];
     Lobe lobes[2];
     int m = lobe_set(lj, view_axes, b, mode, px, merged, 1, 1, 0, lobes);
-    float ac = 0.0f;
-    for (int q = 0; q < m; q++) {
-        float v = lobes[q].share * (lobes[q].alpha * lobes[q].alpha);
-        ac = q == 0 ? v : ac + v;
-    }
-    Lobe center;
-    float alpha_c = sqrtf(ac);
-    if (m == 1 && lobes[0].alpha == alpha_c && lobes[0].n[0] == px->exact_n[0] &&
-        lobes[0].n[1] == px->exact_n[1] && lobes[0].n[2] == px->exact_n[2]) {
-        /* the one lobe is the center's (the same lookups on the same inputs) */
-        for (int c = 0; c < 3; c++) center.axis[c] = lobes[0].axis[c];
-    } else {
-        exit_axis(lj, b, mode, px->p_t1, px->k_t1, px->found, px->exact_n, px->p2, alpha_c,
-                  center.axis);
-    }
-    /* out_basis at the center */
-    float e1[3], e2[3], n_f[3];
+    /* lobes.incidence_frame's e_perp: the basis' second axis at every lobe */
+    float e2[3], n_f[3];
     e_perp_of(px->p_t1, xe->n_in, e2, n_f);
-    cross3(e2, center.axis, e1);
-    normalize3(e1);
-    float d[2][2], db[2] = {0.0f, 0.0f}, between[3] = {0.0f, 0.0f, 0.0f};
-    for (int q = 0; q < m; q++) {
-        d[q][0] = dot3(lobes[q].axis, e1);
-        d[q][1] = dot3(lobes[q].axis, e2);
-        for (int c = 0; c < 2; c++)
-            db[c] = q == 0 ? lobes[0].share * d[0][c] : db[c] + lobes[q].share * d[q][c];
-    }
-    for (int q = 0; q < m; q++) {
-        d[q][0] = d[q][0] - db[0];
-        d[q][1] = d[q][1] - db[1];
-        float s = lobes[q].share;
-        float bq[3] = {(s * d[q][0]) * d[q][0], (s * d[q][0]) * d[q][1], (s * d[q][1]) * d[q][1]};
-        for (int c = 0; c < 3; c++) between[c] = q == 0 ? bq[c] : between[c] + bq[c];
+    float variance = 0.0f;
+    if (m > 1) {  /* the nodes' axes about their mean (the mixture's own spread) */
+        float mean[3];
+        for (int c = 0; c < 3; c++) {
+            mean[c] = 0.0f;
+            for (int q = 0; q < m; q++) mean[c] = mean[c] + lobes[q].share * lobes[q].axis[c];
+        }
+        float sum = 0.0f;
+        for (int q = 0; q < m; q++) {
+            float dq[3] = {lobes[q].axis[0] - mean[0], lobes[q].axis[1] - mean[1],
+                           lobes[q].axis[2] - mean[2]};
+            sum = sum + lobes[q].share * dot3(dq, dq);
+        }
+        variance = 0.5f * sum;
     }
     /* lobes.ray_covariance: the bounding rays refracted out at their own exit normals */
     float t_c[3], nc[3], e1r[3], rays[3] = {0.0f, 0.0f, 0.0f};
@@ -603,21 +549,15 @@ static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Bloc
         float v = exit_mag2(ior, xe->cos2) / px->k_t1;
         rays[0] = v; rays[1] = 0.0f; rays[2] = v;
     }
-    float s2 = m > 1 ? mixture_shrink(rays, between) : 1.0f;
-    float wthn[3], diff[3] = {rays[0] - s2 * between[0], rays[1] - s2 * between[1],
-                              rays[2] - s2 * between[2]};
-    psd2(diff, wthn);
-    float variance = 0.5f * s2 * (between[0] + between[2]), s = sqrtf(s2);
+    float wthn[3];
+    psd2(rays, wthn);
     for (int q = 0; q < m; q++) {
         Lobe *lb = lobes + q;
-        float axis[3], cov[3], lq[3];
-        if (px->found) {
-            float o0 = s * d[q][0], o1 = s * d[q][1];
-            for (int c = 0; c < 3; c++) axis[c] = (center.axis[c] + o0 * e1[c]) + o1 * e2[c];
-            normalize3(axis);
-        } else {
-            for (int c = 0; c < 3; c++) axis[c] = lb->axis[c];
-        }
+        float axis[3], cov[3], lq[3], e1[3];
+        for (int c = 0; c < 3; c++) axis[c] = lb->axis[c];
+        if (px->found) normalize3(axis);
+        cross3(e2, lb->axis, e1);  /* out_basis at the lobe's axis */
+        normalize3(e1);
         float iso = 1.0f / (lb->k > 1e-12f ? lb->k : 1e-12f);
         cov[0] = (px->found ? wthn[0] : 0.0f) + iso;
         cov[1] = (px->found ? wthn[1] : 0.0f) + 0.0f;

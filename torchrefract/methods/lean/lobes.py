@@ -110,23 +110,6 @@ def ray_covariance(p_t1: torch.Tensor, exact_n: torch.Tensor, dirs: torch.Tensor
     return cov, cnt
 
 
-def mixture_shrink(total: torch.Tensor, between: torch.Tensor) -> torch.Tensor:
-    """s^2 (N,) = min(1, 1 / lambda_max(total^-1 between)): the largest scale of the lobes'
-    spread about their mean (``between``, 2x2) that the measured ``total`` covariance can
-    hold (s^2 between <= total), so the lobes keep their shape (GSR) and the mixture the
-    measured width (``spread: rays``)."""
-    eps = 1e-12 * torch.eye(2, dtype=total.dtype)
-    a = torch.linalg.solve(total + eps + 1e-6 * _trace(total)[:, None, None] * torch.eye(
-        2, dtype=total.dtype), between)
-    tr, det = a[:, 0, 0] + a[:, 1, 1], torch.linalg.det(a)
-    lam = 0.5 * tr + torch.sqrt((0.25 * tr * tr - det).clamp(min=1e-30))
-    return torch.where(lam > 1.0, 1.0 / lam.clamp(min=1e-30), torch.ones_like(lam))
-
-
-def _trace(c: torch.Tensor) -> torch.Tensor:
-    return c[..., 0, 0] + c[..., 1, 1]
-
-
 def out_basis(o: torch.Tensor, i: torch.Tensor, n_in: torch.Tensor
               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The basis (e_perp x o, e_perp) at the outgoing axis o for incident i at n_in."""
@@ -134,5 +117,5 @@ def out_basis(o: torch.Tensor, i: torch.Tensor, n_in: torch.Tensor
     return normalize(torch.cross(e_perp, o, dim=-1)), e_perp
 
 
-__all__ = ["M_MAX", "exit_jacobians", "incidence_frame", "mixture_shrink", "out_basis", "paper_covariance",
+__all__ = ["M_MAX", "exit_jacobians", "incidence_frame", "out_basis", "paper_covariance",
            "ray_covariance", "to_basis"]

@@ -21,8 +21,7 @@ from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.lighting.ewa import ewa_radiance
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.lean.lobes import (
-    mixture_shrink,
-    out_basis,
+    incidence_frame,
     paper_covariance,
     ray_covariance,
 )
@@ -197,13 +196,11 @@ def _rays_mixture(g: GBuffer, table, lighting: Lighting, materials: MaterialBatc
                   px: Pixels, front: FrontLobes, cone: Cone, xi: ExitInterface,
                   fp: Footprint, mode: str):
     """``spread: rays``: the light read by the lobes of a footprint's merged Gaussian (its
-    roughness nodes, at the exact exit normal) placed around the central exit direction
-    (:func:`_ray_covariances`) and the mixture's per-axis variance."""
+    roughness nodes, at the exact exit normal), each widened by the bounding rays'
+    covariance (:func:`_ray_covariances`), and the mixture's per-axis variance."""
     lobes = _lobes(g, table, px, front, cone, fp, materials, options, mode, exact=True,
                    reflected=False)[0]
-    alpha_c = torch.sqrt(sum(lb.share * lb.alpha ** 2 for lb in lobes))
-    center = exit_lobe(table, px, xi, materials, "rays", mode, alpha_c)[0]
-    covs, variance = _ray_covariances(g, px, front.p_t1, front.k_t1, cone, xi, center, lobes)
+    covs, variance = _ray_covariances(g, px, front.p_t1, front.k_t1, cone, xi, lobes)
     return _read(lighting, px, lobes, covs, options), variance
 
 
@@ -235,32 +232,31 @@ def _paper_covariances(px: Pixels, p_t1: torch.Tensor, cone: Cone, fp: Footprint
 
 
 def _ray_covariances(g: GBuffer, px: Pixels, p_t1: torch.Tensor, k_t1: torch.Tensor,
-                     cone: Cone, xi: ExitInterface, center: torch.Tensor,
-                     lobes: list[_Lobe]):
-    """``spread: rays`` (ours): the central ray's exit direction ``center`` (at the exact
-    exit normal ``xi``) is the mixture's mean and the bounding rays' exit directions give
-    its covariance R (:func:`.lobes.ray_covariance`); the lobes keep only their shape,
-    their axes' spread B about their own mean (the roughness nodes' axes differ a little),
-    shrunk by s where it exceeds R (:func:`.lobes.mixture_shrink`), each lobe then
-    R - s^2 B wide plus its microfacet part, so the mixture has R's covariance. Returns
-    per lobe (axis, covariance, e1, e2) and the mixture's per-axis variance (N,)."""
-    share = torch.stack([lb.share for lb in lobes], -1)  # (N, M)
-    axes = torch.stack([lb.axis for lb in lobes], 1)  # (N, M, 3)
-    e1, e2 = out_basis(center, p_t1, xi.n_in)
-    d = torch.stack([dot(axes, e1[:, None]), dot(axes, e2[:, None])], -1)  # (N, M, 2)
-    d = d - (share[..., None] * d).sum(1, keepdim=True)
-    between = (share[..., None, None] * d[..., :, None] * d[..., None, :]).sum(1)
+                     cone: Cone, xi: ExitInterface, lobes: list[_Lobe]):
+    """``spread: rays`` (ours): the bounding rays' exit directions give the covariance R of
+    the front lobe carried through the object to the exit (:func:`.lobes.ray_covariance`:
+    the geometry's part, the same for every lobe); each lobe (a roughness node of the
+    merged Gaussian at the exact exit normal) keeps its own axis, the SG table's for its
+    roughness, and is R plus its microfacet part wide: the convolution of the exit's BTDF
+    lobe with the arriving light's spread (the poster's "convolve for the outgoing
+    refraction lobe", per roughness lobe as de Rousiers' levels, sec. 5.1). The nodes'
+    axes differ by the table's roughness-dependent shift, a microfacet effect that R does
+    not contain, so their spread is kept, not traded against R. Returns per lobe (axis,
+    covariance, e1, e2; the basis (e_perp x axis, e_perp), R's axes carried there) and the
+    mixture's per-axis variance (N,)."""
+    e2 = incidence_frame(p_t1, xi.n_in)[0]
     n4, ok4 = bounding_normals(g, cone, px.bi)
     rays, cnt = ray_covariance(p_t1, cone.exact_n, cone.dirs, n4, ok4, px.ior, e2)
     rays = torch.where((cnt > 0)[:, None, None], rays, _iso(xi.mag2 / k_t1, rays))
-    s2 = mixture_shrink(rays, between)
-    within = psd2(rays - s2[:, None, None] * between)
+    within = psd2(rays)
     found = cone.ex.found
-    out, variance = [], 0.5 * s2 * (between[:, 0, 0] + between[:, 1, 1])
-    for m, lobe in enumerate(lobes):
-        off = torch.sqrt(s2)[:, None] * d[:, m]
-        axis = torch.where(found[:, None], normalize(
-            center + off[:, :1] * e1 + off[:, 1:] * e2), lobe.axis)
+    out, variance = [], torch.zeros_like(px.alpha)
+    if len(lobes) > 1:  # the nodes' axes about their mean (the mixture's own spread)
+        mean = sum(lb.share[:, None] * lb.axis for lb in lobes)
+        variance = 0.5 * sum(lb.share * dot(lb.axis - mean, lb.axis - mean) for lb in lobes)
+    for lobe in lobes:
+        axis = torch.where(found[:, None], normalize(lobe.axis), lobe.axis)
+        e1 = normalize(torch.cross(e2, lobe.axis, dim=-1))
         cov = torch.where(found[:, None, None], within, torch.zeros_like(within)) \
             + _iso(_var(lobe.k), within)
         out.append((axis, cov, e1, e2))
