@@ -98,11 +98,11 @@ def mask_box(mask: torch.Tensor, n: int, dtype: torch.dtype, cache: BoxCache | N
 def masked_box(x: torch.Tensor, mask: torch.Tensor, n: int, cache: BoxCache | None = None
                 ) -> torch.Tensor:
     """Average of x over the covered sub-pixels of each pixel (0 where none is covered)."""
-    if n == 1:  # one sub-pixel per pixel: x where covered (x * 1 / 1 is x), else 0
-        return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype))
-    out = native.box(x, n, mask)
+    out = native.box(x, n, mask)  # (csrc/box.c: the same bits, one pass)
     if out is not None:
         return out
+    if n == 1:  # one sub-pixel per pixel: x where covered (x * 1 / 1 is x), else 0
+        return torch.where(mask[..., None], x, torch.zeros((), dtype=x.dtype))
     m, den = mask_box(mask, n, x.dtype, cache)
     num = box(x * m, n)
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num))

@@ -793,10 +793,11 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
 def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
         uniform: torch.Tensor | None = None) -> torch.Tensor | None:
     """``result.box`` (``mask`` None) or ``result.masked_box`` of ``x`` (B, H, W, C) over
-    n x n blocks, ``uniform`` (B, H/n, W/n) pixels taken as their first sub-pixel's value
-    (``result.plan_box``), the same bits (csrc/box.c); ``None`` where the kernel is
-    unavailable, a gradient is wanted, or an input is not a float32 / bool CPU tensor."""
-    if not available() or x.dim() != 4 or x.requires_grad:
+    n x n blocks (n = 1: x where ``mask``, else 0), ``uniform`` (B, H/n, W/n) pixels taken
+    as their first sub-pixel's value (``result.plan_box``), the same bits (csrc/box.c);
+    ``None`` where the kernel is unavailable, a gradient is wanted, or an input is not a
+    float32 / bool CPU tensor."""
+    if not available() or x.dim() != 4 or x.requires_grad or (n == 1 and mask is None):
         return None
     b, fh, fw, c = x.shape
     if fh % n or fw % n:

@@ -66,8 +66,24 @@ static void box2_range(const BoxJob *j, int64_t begin, int64_t end) {
     }
 }
 
+/* n = 1 with a mask: each value where covered, else 0 (the tensor code's where). */
+static void select_range(const BoxJob *j, int64_t begin, int64_t end) {
+    const int64_t c = j->c, w = j->w;
+    for (int64_t row = begin; row < end; row++) {
+        const float *x = j->x + row * w * c;
+        const uint8_t *m = j->mask + row * w;
+        float *o = j->out + row * w * c;
+        for (int64_t p = 0; p < w; p++)
+            for (int64_t k = 0; k < c; k++) o[p * c + k] = m[p] ? x[p * c + k] : 0.0f;
+    }
+}
+
 static void box_range(const void *job, int64_t begin, int64_t end) {
     const BoxJob *j = (const BoxJob *)job;
+    if (j->n == 1) {
+        select_range(j, begin, end);
+        return;
+    }
     if (j->n == 2) {
         box2_range(j, begin, end);
         return;
