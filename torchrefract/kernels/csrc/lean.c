@@ -677,7 +677,7 @@ static void lean_pixel_of(const void *job, const SgAxes *view_axes, Block *k, in
 
 /* One block of pixels: rousiers_core.h's cone_block with lean_pixel. */
 static void lean_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    cone_block(job, &((const LeanJob *)job)->r, axes, r0, m, lean_pixel_of);
+    cone_block(job, &((const LeanJob *)job)->r, axes, r0, m, lean_pixel_of, 0);
 }
 
 /* ---- the LEAN moments of the back layer (moments.lean_mips' level 0) ---- */

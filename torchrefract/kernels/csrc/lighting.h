@@ -335,30 +335,61 @@ typedef struct {
     const int64_t *base_hw, *atlas_hw;  /* (B, 2) */
 } SgEnv;
 
-/* Bilinear read (grid_sample: border padding, aligned corners) of the level at rect
- * ``r`` of a (3, ih, iw) image at (u, v). */
-static void sg_sample(const float *img, int64_t ih, int64_t iw, const float *r, float u,
-                      float v, float *out) {
+/* One level's bilinear read (grid_sample: border padding, aligned corners) of the level
+ * at rect ``r`` of a (3, ih, iw) image at (u, v): its texels and weights. */
+typedef struct {
+    const float *img;
+    int64_t plane, iw, x0, x1, y0, y1;
+    float fx, fy;
+} SgLevelTap;
+
+static inline SgLevelTap sg_level_tap(const float *img, int64_t ih, int64_t iw,
+                                      const float *r, float u, float v) {
     float x = r[1] + 1.0f + u * r[3] - 0.5f, y = r[0] + v * (r[2] - 1.0f);
     float gx = 2.0f * x / (float)(iw - 1) - 1.0f, gy = 2.0f * y / (float)(ih - 1) - 1.0f;
     float px = clampf((gx + 1.0f) * ((float)(iw - 1) / 2.0f), 0.0f, (float)(iw - 1));
     float py = clampf((gy + 1.0f) * ((float)(ih - 1) / 2.0f), 0.0f, (float)(ih - 1));
-    int64_t x0 = (int64_t)floorf(px), y0 = (int64_t)floorf(py);
-    int64_t x1 = x0 + 1 < iw ? x0 + 1 : x0, y1 = y0 + 1 < ih ? y0 + 1 : y0;
-    float fx = px - (float)x0, fy = py - (float)y0;
+    SgLevelTap q = {.img = img, .plane = ih * iw, .iw = iw};
+    q.x0 = (int64_t)floorf(px);
+    q.y0 = (int64_t)floorf(py);
+    q.x1 = q.x0 + 1 < iw ? q.x0 + 1 : q.x0;
+    q.y1 = q.y0 + 1 < ih ? q.y0 + 1 : q.y0;
+    q.fx = px - (float)q.x0;
+    q.fy = py - (float)q.y0;
+    return q;
+}
+
+static inline void sg_level_read(const SgLevelTap *q, float *out) {
     for (int c = 0; c < 3; c++) {
-        const float *p = img + c * ih * iw;
-        float top = p[y0 * iw + x0] * (1.0f - fx) + p[y0 * iw + x1] * fx;
-        float bot = p[y1 * iw + x0] * (1.0f - fx) + p[y1 * iw + x1] * fx;
-        out[c] = top * (1.0f - fy) + bot * fy;
+        const float *p = q->img + c * q->plane;
+        float top = p[q->y0 * q->iw + q->x0] * (1.0f - q->fx) + p[q->y0 * q->iw + q->x1] * q->fx;
+        float bot = p[q->y1 * q->iw + q->x0] * (1.0f - q->fx) + p[q->y1 * q->iw + q->x1] * q->fx;
+        out[c] = top * (1.0f - q->fy) + bot * q->fy;
     }
 }
 
-/* sg_pyramid.sg_lookup_env: the map convolved with a normalized SG of sharpness k (inf: a
- * plain lookup) around dir: the two levels around k, blended linearly in the effective
- * sharpness k / (1 + v0 k) (_blend_weights). */
-static void sg_env_lookup(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
-                          float k, float *out) {
+/* The level's texel rows asked into the cache (three channel planes, two rows). */
+static inline void sg_level_prefetch(const SgLevelTap *q) {
+    for (int c = 0; c < 3; c++) {
+        const float *p = q->img + c * q->plane;
+        __builtin_prefetch(p + q->y0 * q->iw + q->x0);
+        __builtin_prefetch(p + q->y1 * q->iw + q->x0);
+    }
+}
+
+/* One SG lookup's two levels and their blend weight, computed apart from their reads so
+ * that a kernel can ask for the texels early (sg_tap_prefetch) and read them after other
+ * work (sg_env_read): the atlas is tens of MB and the lobes scatter over it. */
+typedef struct {
+    SgLevelTap hi, lo;
+    float t;
+} SgTap;
+
+/* sg_pyramid.sg_lookup_env's tap: the map convolved with a normalized SG of sharpness k
+ * (inf: a plain lookup) around dir: the two levels around k, blended linearly in the
+ * effective sharpness k / (1 + v0 k) (_blend_weights). */
+static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
+                               float k) {
     float u, v;
     map_uv(L, b, dir, &u, &v);
     const float *m = e->meta[b];
@@ -369,13 +400,32 @@ static void sg_env_lookup(const Lights *L, const SgEnv *e, int64_t b, const floa
     while (i < n && ks[i] > k) i++;  /* torch.searchsorted(-ks, -k) */
     float kap = isinf(k) ? 1.0f / v0 : k / (1.0f + v0 * k);
     float hi_k = kap_levels[i], lo_k = kap_levels[i + 1];
-    float t = (hi_k - kap) / (hi_k - lo_k);
-    float lo[3], hi[3];
+    SgTap q;
+    q.t = (hi_k - kap) / (hi_k - lo_k);
     const int64_t *ahw = e->atlas_hw + 2 * b, *bhw = e->base_hw + 2 * b;
-    sg_sample(e->atlas[b], ahw[0], ahw[1], rects + 4 * (i + 1), u, v, hi);
-    if (i == 0) sg_sample(e->base[b], bhw[0], bhw[1], rects, u, v, lo);
-    else sg_sample(e->atlas[b], ahw[0], ahw[1], rects + 4 * i, u, v, lo);
-    for (int c = 0; c < 3; c++) out[c] = (lo[c] * (1.0f - t) + hi[c] * t) * L->scale[b];
+    q.hi = sg_level_tap(e->atlas[b], ahw[0], ahw[1], rects + 4 * (i + 1), u, v);
+    q.lo = i == 0 ? sg_level_tap(e->base[b], bhw[0], bhw[1], rects, u, v)
+                  : sg_level_tap(e->atlas[b], ahw[0], ahw[1], rects + 4 * i, u, v);
+    return q;
+}
+
+static inline void sg_tap_prefetch(const SgTap *q) {
+    sg_level_prefetch(&q->hi);
+    sg_level_prefetch(&q->lo);
+}
+
+static inline void sg_env_read(const Lights *L, int64_t b, const SgTap *q, float *out) {
+    float lo[3], hi[3];
+    sg_level_read(&q->hi, hi);
+    sg_level_read(&q->lo, lo);
+    for (int c = 0; c < 3; c++) out[c] = (lo[c] * (1.0f - q->t) + hi[c] * q->t) * L->scale[b];
+}
+
+/* sg_pyramid.sg_lookup_env: sg_env_tap, then its reads. */
+static void sg_env_lookup(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
+                          float k, float *out) {
+    SgTap q = sg_env_tap(L, e, b, dir, k);
+    sg_env_read(L, b, &q, out);
 }
 
 /* lights.hit_lights: the nearest sphere light along a ray (inf where none). */
@@ -468,12 +518,12 @@ static double light_coverage(const Lights *L, int64_t b, int64_t l, const float 
     return mass < 0.0 ? 0.0 : (mass > 1.0 ? 1.0 : mass);
 }
 
-/* lights.incident_radiance_sg: the environment convolved with the lobe (sg_env_lookup);
- * with sphere lights, the share of the lobe on each light's disc sees the light (a plain
- * lookup, k = inf: the light the axis hits). */
-static void incident_sg(const Lights *L, const SgEnv *e, int64_t b, const float *o,
-                        const float *dir, float k, float *out) {
-    sg_env_lookup(L, e, b, dir, k, out);
+/* lights.incident_radiance_sg: the environment convolved with the lobe (``tap``: the
+ * sg_env_tap of dir and k); with sphere lights, the share of the lobe on each light's disc
+ * sees the light (a plain lookup, k = inf: the light the axis hits). */
+static void incident_sg_at(const Lights *L, int64_t b, const float *o, const float *dir,
+                           float k, const SgTap *tap, float *out) {
+    sg_env_read(L, b, tap, out);
     if (L->nl == 0) return;
     int64_t hit;
     float t = hit_light(L, b, o, dir, &hit);
@@ -497,6 +547,13 @@ static void incident_sg(const Lights *L, const SgEnv *e, int64_t b, const float 
         }
         out[c] = (1.0f - total) * out[c] + lights;
     }
+}
+
+/* incident_sg_at with the tap computed here. */
+static void incident_sg(const Lights *L, const SgEnv *e, int64_t b, const float *o,
+                        const float *dir, float k, float *out) {
+    SgTap tap = sg_env_tap(L, e, b, dir, k);
+    incident_sg_at(L, b, o, dir, k, &tap, out);
 }
 
 #endif

@@ -169,6 +169,12 @@ typedef struct {
     const SgAxes *ax[BLOCK];         /* its table axes: the view's, or own */
     SgAxes own[BLOCK][AXES];
     Paths paths;
+    /* rousiers' exits, prepared for the whole block before any pixel's lookups are read
+     * (prepare_exits), so that the lookups' texels come in while other pixels are shaded */
+    ExitGeo ex[BLOCK];
+    float c_xy[BLOCK][2], minor[BLOCK], major[BLOCK];
+    float lobe_p[BLOCK][3], lobe_k[BLOCK], lobe_w[BLOCK];  /* the exit lobe (levels 0) */
+    SgTap tap_r[BLOCK], tap_t[BLOCK];  /* the reflected and the exit lobe's lookups */
 } Block;
 
 /* Step 1 for pixel i (lobes.front_lobes, cone.trace_cone): the front lobes (eqs. 8-9), the
@@ -422,8 +428,11 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
 /* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
  * exit lobe widened by the bounding rays, the environment around it and around the
  * reflected lobe, the absorption; the pixel and its passes written. */
-static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
-                        int64_t px, int64_t b) {
+/* Steps 3-4 for pixel i (exit.exit_interface, cone.trace_cone's footprint): the exit
+ * interface at the exact exit normal, the footprint; without roughness levels also the
+ * exit lobe (exit_light's), and both lookups' taps, their texels asked for (read by
+ * shade_pixel after the block's other exits are prepared). */
+static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     const Frame *j = &rj->f;
     const SgAxes *ax = k->ax[i];
     float ior = j->ior[b], alpha = k->alpha[i];
@@ -437,32 +446,65 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
         for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
     }
     /* the exit interface: the exact exit normal, inward */
-    ExitGeo e = {.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
+    ExitGeo *e = k->ex + i;
+    *e = (ExitGeo){.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
     float m_n[3] = {-exact_n[0], -exact_n[1], -exact_n[2]};
-    face_forward(m_n, p_t1, e.n_in);
-    for (int c = 0; c < 3; c++) e.view2[c] = -p_t1[c];
-    e.cos2 = clampf(dot3(e.view2, e.n_in), 0.0f, 1.0f);
+    face_forward(m_n, p_t1, e->n_in);
+    for (int c = 0; c < 3; c++) e->view2[c] = -p_t1[c];
+    e->cos2 = clampf(dot3(e->view2, e->n_in), 0.0f, 1.0f);
     float cc = 1.0f - 1.0f / (ior * ior);
-    e.cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
-    e.tir = e.cos2 < e.cos_crit && found;
-    float sin2 = 1.0f - e.cos2 * e.cos2;
+    e->cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    e->tir = e->cos2 < e->cos_crit && found;
+    float sin2 = 1.0f - e->cos2 * e->cos2;
     float co = 1.0f - ior * ior * (sin2 > 0.0f ? sin2 : 0.0f);
-    float mg = ior * e.cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
-    e.var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
-    e.var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
-                           (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
-    int bounce = rj->bo.limit > 0, mode = bounce ? SPLIT : j->tir_mode;
-    float l_refl[3], l_trans[3], c_xy[2], minor;
+    float mg = ior * e->cos2 / sqrtf(co > 1e-4f ? co : 1e-4f), mag2 = mg * mg;
+    e->var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+    e->var_geo = ray_spread(rj, p_t1, exact_n, (const float (*)[3])k->dirs[i],
+                            (const float (*)[3])n4, ok4, ior, mag2 / k_t1);
     const float *p1 = k->axis.p + 3 * i;
-    for (int c = 0; c < 3; c++) e.p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
-    float major = footprint_major(j, k, i, b, c_xy, &minor);
-    incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
-    float kk = transmitted(rj, view_axes, ax, b, alpha, mode, &e, c_xy, minor, l_trans);
-    finish_pixel(rj, view_axes, k, i, px, b, &e, l_refl, l_trans, 0.0f, 0.0f);
+    for (int c = 0; c < 3; c++) e->p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
+    k->major[i] = footprint_major(j, k, i, b, k->c_xy[i], &k->minor[i]);
+    k->tap_r[i] = sg_env_tap(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i]);
+    sg_tap_prefetch(&k->tap_r[i]);
+    if (rj->levels == 0) {  /* exit_light's lobe */
+        int mode = rj->bo.limit > 0 ? SPLIT : j->tir_mode;
+        float *lp = k->lobe_p[i];
+        exit_lobe(rj, ax, b, alpha, mode, e, lp, &k->lobe_k[i], &k->lobe_w[i]);
+        if (!e->found) {  /* leave with the front lobe */
+            for (int c = 0; c < 3; c++) lp[c] = e->p_t1[c];
+            k->lobe_k[i] = e->k_t1;
+            k->lobe_w[i] = 1.0f;
+        }
+        k->tap_t[i] = sg_env_tap(&j->lights, &j->env, b, lp, k->lobe_k[i]);
+        sg_tap_prefetch(&k->tap_t[i]);
+    }
+}
+
+/* Step 5 for pixel i (prepare_exit first): the front reflection's and the exit lobe's
+ * light, the pixel (finish_pixel) and its passes. */
+static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
+                        int64_t px, int64_t b) {
+    const Frame *j = &rj->f;
+    const ExitGeo *e = k->ex + i;
+    int found = k->axis.found[i];
+    float l_refl[3], l_trans[3], kk;
+    const float *p1 = k->axis.p + 3 * i;
+    incident_sg_at(&j->lights, b, p1, k->axis_r + 3 * i, k->k_r[i], k->tap_r + i, l_refl);
+    if (rj->levels == 0) {  /* transmitted()'s one lobe, from its prepared tap */
+        incident_sg_at(&j->lights, b, e->p2, k->lobe_p[i], k->lobe_k[i], k->tap_t + i,
+                       l_trans);
+        for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * k->lobe_w[i];
+        kk = k->lobe_k[i];
+    } else {
+        int mode = rj->bo.limit > 0 ? SPLIT : j->tir_mode;
+        kk = transmitted(rj, view_axes, k->ax[i], b, k->alpha[i], mode, e, k->c_xy[i],
+                         k->minor[i], l_trans);
+    }
+    finish_pixel(rj, view_axes, k, i, px, b, e, l_refl, l_trans, 0.0f, 0.0f);
     j->exit_found[px] = found ? 1.0f : 0.0f;
-    j->tir[px] = e.tir ? 1.0f : 0.0f;
+    j->tir[px] = e->tir ? 1.0f : 0.0f;
     rj->lobe_sigma[px] = 1.0f / sqrtf(kk > 1e-12f ? kk : 1e-12f);
-    rj->footprint[px] = found ? major : 0.0f;
+    rj->footprint[px] = found ? k->major[i] : 0.0f;
 }
 
 /* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
@@ -543,9 +585,10 @@ typedef void (*cone_pixel_fn)(const void *job, const SgAxes *view_axes, Block *k
 
 /* One block of pixels of a method on the cone (``rousiers``, ``lean``, ``gsr``): step 1
  * per pixel, step 2 (the marches, march_core.h) per ray family over the block, then
- * ``pixel`` per pixel, then the bounces. */
+ * (``prepare``: rousiers' prepare_exit per pixel, then) ``pixel`` per pixel, then the
+ * bounces. */
 static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, int64_t r0,
-                       int m, cone_pixel_fn pixel) {
+                       int m, cone_pixel_fn pixel, int prepare) {
     const Frame *j = &rj->f;
     Block k;
     for (int i = 0; i < m; i++) {  /* the front roughness (pixels.object_pixels) */
@@ -558,6 +601,8 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
     for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
+    if (prepare)  /* every exit of the block first, its lookups asked for (prepare_exit) */
+        for (int i = 0; i < m; i++) prepare_exit(rj, &k, i, j->batch[r0 + i]);
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
         pixel(job, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
@@ -573,7 +618,7 @@ static void rous_pixel(const void *job, const SgAxes *view_axes, Block *k, int i
 }
 
 static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    cone_block(job, (const RousJob *)job, axes, r0, m, rous_pixel);
+    cone_block(job, (const RousJob *)job, axes, r0, m, rous_pixel, 1);
 }
 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
