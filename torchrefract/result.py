@@ -114,8 +114,8 @@ def plan_box(x: torch.Tensor, n: int, uniform: torch.Tensor,
     ``uniform`` pixels (B, H/n, W/n; adaptive.plan: covered at every sub-pixel) hold their
     value at their first sub-pixel only: the bits those give had it been copied to the
     others, without the copies (the first sub-pixel summed n*n times in box's order;
-    masked, times a mask of ones over a coverage of one), and, masked, without reading the
-    others: only the other covered pixels are averaged."""
+    masked, times a mask of ones over a coverage of one). csrc/box.c reads only the first
+    sub-pixel of a uniform pixel; the tensor code filters every pixel and picks."""
     out = native.box(x, n, mask, uniform)
     if out is not None:
         return out
@@ -123,24 +123,8 @@ def plan_box(x: torch.Tensor, n: int, uniform: torch.Tensor,
     s = v
     for _ in range(n * n - 1):
         s = s + v
-    first = s / (n * n)
-    if mask is None:
-        rest = box(x, n)
-    else:
-        _, den = mask_box(mask, n, x.dtype, cache)
-        rest = torch.zeros_like(first)
-        bi, yi, xi = ((den[..., 0] > 0) & ~uniform).nonzero(as_tuple=True)
-        if len(bi):
-            b, h, w, c = first.shape
-            subs = (x.view(b, h, n, w, n, c)[bi, yi, :, xi, :]
-                    * mask.view(b, h, n, w, n, 1)[bi, yi, :, xi, :].to(x.dtype))  # (N, n, n, C)
-            t = subs[:, 0, 0]
-            for i in range(n):
-                for j in range(n):
-                    if i or j:
-                        t = t + subs[:, i, j]
-            rest[bi, yi, xi] = (t / (n * n)) / den[bi, yi, xi].clamp(min=1e-12)
-    return torch.where(uniform[..., None], first, rest)
+    rest = box(x, n) if mask is None else masked_box(x, mask, n, cache)
+    return torch.where(uniform[..., None], s / (n * n), rest)
 
 
 def all_finite(x: torch.Tensor) -> bool:
@@ -202,8 +186,6 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest, soft)
-        # (a supersampled plan's pixels shaded once hold their values at their first
-        # sub-pixel: plan_box averages them as if copied to every sub-pixel)
         # never let NaN/Inf out, and never hide that it happened; a finite sum (one
         # reduction) proves every value finite, a non-finite one (or an overflow) is checked
         if not all_finite(radiance):
@@ -230,6 +212,8 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     rough = front_roughness(g, materials)[..., None]
     for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
         passes[name] = v if n == 1 else masked_box(v, g.front.mask, n, cache)  # 0 outside
+    # a supersampled plan's pixels shaded once hold their values at their first
+    # sub-pixel: plan_box averages them as if copied to every sub-pixel
     uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
     for k in list(method_passes):  # each method buffer let go once averaged (popped: the
         # next average reuses its memory instead of all being held twice at the peak)

@@ -800,14 +800,12 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
     if not available() or x.dim() != 4 or x.requires_grad or (n == 1 and mask is None):
         return None
     b, fh, fw, c = x.shape
-    if fh % n or fw % n:
+    h, w = fh // n, fw // n
+    if fh % n or fw % n or (mask is not None and mask.shape != (b, fh, fw)) or (
+            uniform is not None and uniform.shape != (b, h, w)):
         return None
     keep = _inputs((x,), (), tuple(t for t in (mask, uniform) if t is not None))
     if keep is None:
-        return None
-    h, w = fh // n, fw // n
-    if (mask is not None and mask.shape != (b, fh, fw)) or (
-            uniform is not None and uniform.shape != (b, h, w)):
         return None
     xs, rest = keep[0], keep[1:]
     m = rest.pop(0) if mask is not None else None

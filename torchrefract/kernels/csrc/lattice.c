@@ -18,8 +18,6 @@
  * the mean, from 1 on it is shaded, and between, the shaded value weighs smoothstep of
  * where t lies: the image changes continuously as t crosses the thresholds. */
 
-#include <string.h>
-
 #include "frame.h"
 
 typedef struct {

@@ -623,7 +623,7 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
     const Frame *j = &rj->f;
     float ior = j->ior[b];
     int found = k->axis.found[i], nk = lj->k, bounce = rj->bo.limit > 0;
-    int mode = bounce ? SPLIT : j->tir_mode;
+    int mode = exit_mode(rj);
     const float *p1 = k->axis.p + 3 * i;
     Foot fp;
     footprint(j, k, i, b, &fp);

@@ -45,6 +45,12 @@ typedef struct {
 
 enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULES, + split */
 
+/* The exit's rule: with internal bounces the table's own split (they follow the
+ * reflected part), else the scene's ``tir`` rule. */
+static inline int exit_mode(const RousJob *rj) {
+    return rj->bo.limit > 0 ? SPLIT : rj->f.tir_mode;
+}
+
 /* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
  * (eta = ior) and leaving (eta = 1 / ior). */
 enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
@@ -170,7 +176,7 @@ typedef struct {
     SgAxes own[BLOCK][AXES];
     Paths paths;
     /* rousiers' exits, prepared for the whole block before any pixel's lookups are read
-     * (prepare_exits), so that the lookups' texels come in while other pixels are shaded */
+     * (prepare_exit), so that the lookups' texels come in while other pixels are shaded */
     ExitGeo ex[BLOCK];
     float c_xy[BLOCK][2], minor[BLOCK], major[BLOCK];
     float lobe_p[BLOCK][3], lobe_k[BLOCK], lobe_w[BLOCK];  /* the exit lobe (levels 0) */
@@ -326,19 +332,25 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
     }
 }
 
-/* The light of one exit lobe (exit.exit_lobe at roughness ``alpha``, axes ``ax``; where
- * the exit is not found, the front lobe's): its sharpness k and weight, and the
- * environment and lights around it, seen from the exit point. */
-static void exit_light(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
-                       const ExitGeo *e, float *k, float *wt, float *l) {
-    const Frame *j = &rj->f;
-    float p[3];
+/* The lobe the light leaves by: exit.exit_lobe at roughness ``alpha``, axes ``ax`` (its
+ * direction p, sharpness k and weight); where the exit is not found, the front lobe's. */
+static void leaving_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
+                         int mode, const ExitGeo *e, float *p, float *k, float *wt) {
     exit_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
     if (!e->found) {  /* leave with the front lobe */
         for (int c = 0; c < 3; c++) p[c] = e->p_t1[c];
         *k = e->k_t1;
         *wt = 1.0f;
     }
+}
+
+/* The light of one exit lobe (leaving_lobe): its sharpness k and weight, and the
+ * environment and lights around it, seen from the exit point. */
+static void exit_light(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
+                       const ExitGeo *e, float *k, float *wt, float *l) {
+    const Frame *j = &rj->f;
+    float p[3];
+    leaving_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
     incident_sg(&j->lights, &j->env, b, e->p2, p, *k, l);
 }
 
@@ -425,12 +437,9 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
     }
 }
 
-/* Steps 3-5 for pixel i (exit.exit_interface, exit.exit_lobe, shade.render_rousiers): the
- * exit lobe widened by the bounding rays, the environment around it and around the
- * reflected lobe, the absorption; the pixel and its passes written. */
 /* Steps 3-4 for pixel i (exit.exit_interface, cone.trace_cone's footprint): the exit
  * interface at the exact exit normal, the footprint; without roughness levels also the
- * exit lobe (exit_light's), and both lookups' taps, their texels asked for (read by
+ * exit lobe (leaving_lobe), and both lookups' taps, their texels asked for (read by
  * shade_pixel after the block's other exits are prepared). */
 static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     const Frame *j = &rj->f;
@@ -467,21 +476,16 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     k->tap_r[i] = sg_env_tap(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i]);
     sg_tap_prefetch(&k->tap_r[i]);
     if (rj->levels == 0) {  /* exit_light's lobe */
-        int mode = rj->bo.limit > 0 ? SPLIT : j->tir_mode;
-        float *lp = k->lobe_p[i];
-        exit_lobe(rj, ax, b, alpha, mode, e, lp, &k->lobe_k[i], &k->lobe_w[i]);
-        if (!e->found) {  /* leave with the front lobe */
-            for (int c = 0; c < 3; c++) lp[c] = e->p_t1[c];
-            k->lobe_k[i] = e->k_t1;
-            k->lobe_w[i] = 1.0f;
-        }
-        k->tap_t[i] = sg_env_tap(&j->lights, &j->env, b, lp, k->lobe_k[i]);
+        int mode = exit_mode(rj);
+        leaving_lobe(rj, ax, b, alpha, mode, e, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
+        k->tap_t[i] = sg_env_tap(&j->lights, &j->env, b, k->lobe_p[i], k->lobe_k[i]);
         sg_tap_prefetch(&k->tap_t[i]);
     }
 }
 
-/* Step 5 for pixel i (prepare_exit first): the front reflection's and the exit lobe's
- * light, the pixel (finish_pixel) and its passes. */
+/* Step 5 for pixel i (prepare_exit first; exit.exit_lobe, shade.render_rousiers): the
+ * front reflection's and the exit lobe's light, the absorption, the pixel (finish_pixel)
+ * and its passes. */
 static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, int i,
                         int64_t px, int64_t b) {
     const Frame *j = &rj->f;
@@ -496,7 +500,7 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
         for (int c = 0; c < 3; c++) l_trans[c] = l_trans[c] * k->lobe_w[i];
         kk = k->lobe_k[i];
     } else {
-        int mode = rj->bo.limit > 0 ? SPLIT : j->tir_mode;
+        int mode = exit_mode(rj);
         kk = transmitted(rj, view_axes, k->ax[i], b, k->alpha[i], mode, e, k->c_xy[i],
                          k->minor[i], l_trans);
     }
