@@ -88,7 +88,7 @@ def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Te
     # x depends on the column only, y on the row only: (f + x r) per column and y u per row,
     # added once over the image (each element's operations and order unchanged)
     # pixel indices as float64 (exact integers; kornia's create_meshgrid gave the same, and
-    # its import cost every process ~30 MB)
+    # its import cost every process memory: docs/decisions.md, "Peak memory")
     x = (2.0 * (torch.arange(w, dtype=torch.float64) + 0.5) / w - 1.0) * t * a  # (w,)
     y = (1.0 - 2.0 * (torch.arange(r0, r1, dtype=torch.float64) + 0.5) / h) * t  # (r1 - r0,)
     fx = torch.from_numpy(f) + x[:, None] * torch.from_numpy(r)  # (w, 3)

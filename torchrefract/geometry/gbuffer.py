@@ -118,8 +118,7 @@ def carries_points(back: bool) -> bool:
     """Whether a layer (the back one, or the front one) carries its hits' ``position`` and
     ``bary``: the front layer's are read (the shading's entry points, ``sh``'s surface
     lattice, adaptive shading's center samples), the back layer's by nothing (the marches
-    find the exits themselves), so they are not made (24 bytes per pixel: 13 MB for 8
-    views at 256 x 256)."""
+    find the exits themselves), so they are not made (docs/decisions.md, "Peak memory")."""
     return not back
 
 

@@ -2,11 +2,11 @@
 
 A mesh file without normals gets trimesh's vertex normals (SCENE_SPEC.md), computed after
 the scene transform, so once per pose. Importing trimesh for them brought scipy and
-networkx into every render process (~70 MB resident) although the mesh cache spares
-trimesh everywhere else. This is the same computation in the same floating-point
-operations (trimesh 4.x/5.x ``geometry.weighted_vertex_normals``: face normals from edge
-cross products, corner angles, each vertex's sum of angle times face normal in face
-order, then unit length), so the normals are bit-identical to trimesh's
+networkx into every render process (docs/decisions.md, "Peak memory") although the mesh
+cache spares trimesh everywhere else. This is the same computation in the same
+floating-point operations (trimesh 4.x/5.x ``geometry.weighted_vertex_normals``: face
+normals from edge cross products, corner angles, each vertex's sum of angle times face
+normal in face order, then unit length), so the normals are bit-identical to trimesh's
 (``tests/test_vertex_normals.py`` checks against trimesh itself).
 """
 

@@ -629,9 +629,9 @@ def _npz_member(path: Path, name: str) -> np.ndarray:
     """Member ``name`` of an uncompressed ``.npz`` (what :func:`_save_npz` writes) mapped
     from the file copy-on-write, not read: a render reads a few of the pyramid's levels (a
     lobe's sharpness picks two), so only their pages come into memory, where reading the
-    file held the whole atlas (~88 MB for a 512 x 1024 map) in every render process. The
-    pages stay the file's (the cache's writes replace the file, never change it in place),
-    and processes that map one file share them. Falls back to reading the member."""
+    file held the whole atlas in every render process (docs/decisions.md, "Peak memory").
+    The pages stay the file's (the cache's writes replace the file, never change it in
+    place), and processes that map one file share them. Falls back to reading the member."""
     try:
         with zipfile.ZipFile(path) as z:
             info = z.getinfo(name + ".npy")
