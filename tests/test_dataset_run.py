@@ -499,3 +499,33 @@ def test_a_folder_keeps_the_adaptive_sampling_it_was_started_with(cfg_path, tmp_
     (out / "sweep.json").write_text(json.dumps(rec))
     s = run_sweep(cfg_path, out, quiet=True, settings=RenderSettings())
     assert seen == [True, True, False] and (s.skipped, s.ok) == (6, 2)
+
+
+def test_a_resume_across_image_revisions_warns_and_records_each_samples(cfg_path, tmp_path,
+                                                                        monkeypatch):
+    """A folder begun at another IMAGE_REVISION (or before revisions were recorded) is
+    resumed with a warning naming both revisions; every record carries its own revision,
+    and a folder resumed at its own revision says nothing."""
+    import warnings
+
+    import torchrefract
+    from torchrefract.dataset.manifest import latest_entries, read_manifest
+
+    out = tmp_path / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a fresh folder and a same-revision resume: silent
+        run_sweep(cfg_path, out, quiet=True, limit=2)
+        run_sweep(cfg_path, out, quiet=True, limit=3)
+    rec = json.loads((out / "sweep.json").read_text())
+    assert rec["image_revision"] == torchrefract.IMAGE_REVISION
+    monkeypatch.setattr(torchrefract, "IMAGE_REVISION", torchrefract.IMAGE_REVISION + 1)
+    with pytest.warns(UserWarning, match=r"5 finished samples were rendered at image "
+                                         rf"revision {rec['image_revision']}"):
+        run_sweep(cfg_path, out, quiet=True, limit=2)
+    entries = latest_entries(read_manifest(out / "manifest.jsonl"))
+    revs = sorted(e.get("image_revision") for e in entries.values())
+    assert revs == [rec["image_revision"]] * 5 + [rec["image_revision"] + 1] * 2
+    del rec["image_revision"]  # a folder begun before revisions were recorded
+    (out / "sweep.json").write_text(json.dumps(rec))
+    with pytest.warns(UserWarning, match="unrecorded revision"):
+        run_sweep(cfg_path, out, quiet=True, limit=1)

@@ -33,6 +33,11 @@ from torchrefract.settings import RenderSettings
 
 __version__ = "0.1.0"
 
+IMAGE_REVISION = 1
+"""Raised by one whenever a default render's image changes (a method's result, adaptive
+sampling, a default option): datasets record it per sample and in ``sweep.json``, and a
+resume whose folder was begun at another revision says so (its images would mix both)."""
+
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "RenderSettings", "Scene",
            "SphereLight", "Transform", "load_scene", "register_method", "relight", "render",
-           "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "__version__"]
+           "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "IMAGE_REVISION", "__version__"]

@@ -47,7 +47,7 @@ def camera_metadata(cam: Camera) -> dict:
 def _sample_meta(cfg: SweepConfig, sample: Sample, root: str | Path | None = None) -> dict:
     """Everything that decides a sample (deterministic: no times or hosts in it); with a
     dataset folder ``root``, input paths relative to it (else absolute)."""
-    from torchrefract import __version__  # noqa: PLC0415
+    from torchrefract import IMAGE_REVISION, __version__  # noqa: PLC0415
 
     scene = sample.scene
     meta = {
@@ -62,6 +62,7 @@ def _sample_meta(cfg: SweepConfig, sample: Sample, root: str | Path | None = Non
         "scene": scene.to_dict(),
         "camera": camera_metadata(scene.camera),
         "torchrefract_version": __version__,
+        "image_revision": IMAGE_REVISION,
     }
     return meta if root is None else portable_record(meta, root)
 

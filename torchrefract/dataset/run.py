@@ -52,6 +52,7 @@ import re
 import socket
 import sys
 import time
+import warnings
 from collections import deque
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
@@ -214,12 +215,15 @@ def _remove_temporaries(out: Path) -> int:
     return n
 
 
-def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str, adaptive: bool) -> bool:
+def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str, adaptive: bool
+                        ) -> tuple[bool, int | None]:
     """Refuse a folder holding another sweep or format; record this sweep in a new one.
     Returns whether its samples are rendered with adaptive sampling: as the record says
     (a record without it is from before adaptive sampling was the default: False), so
-    that a resumed folder's images are all made alike; else ``adaptive``."""
-    from torchrefract import __version__  # noqa: PLC0415
+    that a resumed folder's images are all made alike; else ``adaptive``. And the image
+    revision the folder was begun at (``torchrefract.IMAGE_REVISION``; None: a record from
+    before revisions were recorded)."""
+    from torchrefract import IMAGE_REVISION, __version__  # noqa: PLC0415
 
     path = out / SWEEP_RECORD
     if path.exists():
@@ -236,7 +240,7 @@ def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str, adaptive: bool) -
             if rec.get("format") != fmt:
                 raise ConfigError(f"{out} was written with --format {rec.get('format')}; "
                                   f"resume it with the same format (or use a new --out)")
-            return bool(rec.get("adaptive", False))
+            return bool(rec.get("adaptive", False)), rec.get("image_revision")
     # Paths relative to the folder (a moved dataset keeps them valid); the config as written.
     source = cfg.source
     if source and os.path.isfile(source):
@@ -246,9 +250,10 @@ def _check_sweep_record(out: Path, cfg: SweepConfig, fmt: str, adaptive: bool) -
               "num_samples": cfg.num_samples, "source": source,
               "sampling": asdict(cfg.sampling), "config": cfg.raw,
               "base_scene": base, "adaptive": adaptive, "torchrefract_version": __version__,
+              "image_revision": IMAGE_REVISION,
               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     write_bytes(path, (json.dumps(record, indent=2, default=str) + "\n").encode(), fsync=True)
-    return adaptive
+    return adaptive, IMAGE_REVISION
 
 def _completed(out: Path, fmt: str, latest: dict[str, dict], verify: bool
                ) -> tuple[set[str], int]:
@@ -342,6 +347,22 @@ def _check_args(fmt: str, executor: str, batch_size, shard_size, workers) -> Non
             raise ConfigError(f"{name}: expected an integer >= {lo}, got {v!r}")
 
 
+def _warn_revision(out: Path, revision: int | None, done: int) -> None:
+    """Warn where ``done`` samples of ``out`` were rendered at another image revision than
+    this code's: the resumed folder would hold images of both (nothing is deleted; each
+    sample's record carries its revision, so the two sets can be told apart)."""
+    from torchrefract import IMAGE_REVISION  # noqa: PLC0415
+
+    if done and revision != IMAGE_REVISION:
+        begun = "an unrecorded revision (before 1)" if revision is None else \
+            f"image revision {revision}"
+        warnings.warn(f"{out}: its {done} finished samples were rendered at {begun}; this "
+                      f"torchrefract renders revision {IMAGE_REVISION}, whose default images "
+                      f"differ. The new samples are rendered at {IMAGE_REVISION} (each "
+                      f"record's image_revision tells them apart); use a new --out folder "
+                      f"for a dataset made alike.", stacklevel=3)
+
+
 def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None,
           summary: RunSummary, settings, quiet: bool = True
           ) -> tuple[list[Sample], list[dict], int, object]:
@@ -353,7 +374,7 @@ def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None
     (:func:`_check_sweep_record`). Sets ``summary.skipped``.
     """
     _remove_temporaries(out)
-    adaptive = _check_sweep_record(out, cfg, fmt, settings.adaptive)
+    adaptive, revision = _check_sweep_record(out, cfg, fmt, settings.adaptive)
     if adaptive != settings.adaptive:
         if not quiet:
             print(f"{out}: resumed with adaptive sampling {'on' if adaptive else 'off'}, as "
@@ -362,6 +383,7 @@ def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None
     latest = latest_entries(read_manifest(out / MANIFEST))
     done, last_shard = _completed(out, fmt, latest, verify)
     summary.skipped = len(done)
+    _warn_revision(out, revision, len(done))
     todo: list[Sample] = []
     planned_failures: list[dict] = []
     for i in range(cfg.num_samples):

@@ -39,10 +39,11 @@ def exr_channels(result: RenderResult, i: int) -> dict[str, np.ndarray]:
 
 def metadata(result: RenderResult, i: int) -> dict:
     """How scene ``i`` was rendered (Kubric-style ``metadata.json``)."""
-    from torchrefract import __version__  # noqa: PLC0415
+    from torchrefract import IMAGE_REVISION, __version__  # noqa: PLC0415
 
     meta = {
         "torchrefract_version": __version__,
+        "image_revision": IMAGE_REVISION,
         "scene": result.scenes[i].to_dict(),
         "batch_size": int(result.radiance.shape[0]),
         "timings_s_per_batch": result.timings,
