@@ -244,6 +244,10 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
     pixels) is zero elsewhere (it adds 0); the scenes are the last part's at each position;
     timings are summed."""
     first = parts[0][1]
+    if (all(w is None for _, _, w in parts)
+            and [i for idx, _, _ in parts for i in idx] == list(range(b))
+            and all(r.passes.keys() == first.passes.keys() for _, r, _ in parts)):
+        return _concatenated([r for _, r, _ in parts])  # a batch's chunks, in order
     dev = first.radiance.device
     radiance = torch.zeros((b, *first.radiance.shape[1:]), dtype=first.radiance.dtype,
                            device=dev)
@@ -268,6 +272,20 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
             timings[k] = timings.get(k, 0.0) + v
     return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
                         scenes=tuple(out_scenes), timings=timings)
+
+
+def _concatenated(results: list[RenderResult]) -> RenderResult:
+    """:func:`merge` of unweighted parts that hold the batch's scenes in order: their images
+    concatenated (the values the sums give, without zeroed buffers to add into)."""
+    timings: dict[str, float] = {}
+    for r in results:
+        for k, v in r.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+    return RenderResult(
+        radiance=torch.cat([r.radiance for r in results]),
+        coverage=torch.cat([r.coverage for r in results]),
+        passes={k: torch.cat([r.passes[k] for r in results]) for k in results[0].passes},
+        scenes=tuple(s for r in results for s in r.scenes), timings=timings)
 
 
 __all__ = ["BoxCache", "RenderResult", "all_finite", "box", "finish_pass", "front_roughness", "geometry_passes", "mask_box", "masked_box", "merge", "plan_box"]
