@@ -130,11 +130,12 @@ def _render_method(scenes: list[Scene], entry, options) -> RenderResult:
     return merge_parts(len(scenes), placed)
 
 
-MAX_PASS_SUBPIXELS = 1 << 19
-"""Sub-pixels shaded in one tensor pass (8 views at 256x256). A larger batch is rendered in
-consecutive chunks of views (the same pixels: a batch's images are those of its scenes
-rendered alone): the march's per-sample plane lookups and the shading's gathers then stay
-within a few views' buffers, and the peak memory follows the chunk, not the batch."""
+MAX_PASS_SUBPIXELS = 1 << 21
+"""Sub-pixels shaded in one pass (8 views at 256x256 with 2x2 samples, or at 512x512). A
+larger batch is rendered in consecutive chunks of views (the same pixels: a batch's images
+are those of its scenes rendered alone), so the peak memory follows the chunk, not the
+batch; a pass's fixed cost (set-up, kernel calls) is paid once per chunk (measured:
+docs/decisions.md, "Chunked passes and shared views")."""
 
 
 def _chunks(scenes: list[Scene], budget: int | None = None) -> list[list[Scene]]:
