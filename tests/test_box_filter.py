@@ -78,3 +78,26 @@ def test_box_kernel_equals_the_tensor_code(monkeypatch, n, c):
         ref = f()
         assert out.shape == ref.shape and torch.equal(out.isnan(), ref.isnan())
         assert torch.equal(out.nan_to_num(), ref.nan_to_num())
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_material_passes_are_the_masked_mean_of_their_sub_pixels(n):
+    """The ``roughness`` and ``ior`` passes of per-view materials (computed per pixel from
+    the coverage) equal the masked box of the sub-pixels' values, which a roughness map
+    still takes, and are exactly the view's value wherever a sub-pixel is covered."""
+    import torchrefract as tr
+    from conftest import ROOT
+
+    s = tr.load_scene(str(ROOT / "configs" / "demo.yaml"))
+    cam = tr.Camera(eye=(0.0, 0.3, 3.0), width=20, height=16, samples_per_pixel=n)
+    scenes = [s.replace(camera=cam, method="specular",
+                        material=tr.Material(ior=ior, roughness=a))
+              for ior, a in ((1.5, 0.1), (1.33, 0.37))]
+    out = tr.render(scenes)
+    cov = out.coverage
+    assert 0 < int((cov > 0).sum()) < cov.numel() and bool(((cov > 0) & (cov < 1)).any()) == (n > 1)
+    for name, vals in (("roughness", (0.1, 0.37)), ("ior", (1.5, 1.33))):
+        p = out.passes[name][..., 0]
+        for i, v in enumerate(vals):
+            assert torch.equal(p[i][cov[i] > 0], torch.full_like(p[i][cov[i] > 0], v))
+            assert bool((p[i][cov[i] == 0] == 0).all())

@@ -208,10 +208,13 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     passes = geometry_passes(g, cache)
     # Material passes (per object pixel): what a model trained on the data may regress.
-    fm = mask_box(g.front.mask, n, torch.float32, cache)[0]  # (B, H, W, 1)
+    fm, cov = mask_box(g.front.mask, n, torch.float32, cache)  # (B, H, W, 1), its box
     rough = front_roughness(g, materials)[..., None]
-    for name, v in (("roughness", fm * rough), ("ior", fm * materials.ior[:, None, None, None])):
-        passes[name] = v if n == 1 else masked_box(v, g.front.mask, n, cache)  # 0 outside
+    for name, v in (("roughness", rough), ("ior", materials.ior[:, None, None, None])):
+        if n > 1 and v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
+            passes[name] = (cov > 0).to(v.dtype) * v  # sub-pixels is that value
+        else:
+            passes[name] = fm * v if n == 1 else masked_box(fm * v, g.front.mask, n, cache)
     # a supersampled plan's pixels shaded once hold their values at their first
     # sub-pixel: plan_box averages them as if copied to every sub-pixel
     uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
