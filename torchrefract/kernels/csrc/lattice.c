@@ -45,11 +45,32 @@ typedef struct {
     const uint8_t *uniform;
 } LatticeJob;
 
-/* The frame's flat index of the level's pixel p. */
-static inline int64_t frame_index(const LatticeJob *j, int64_t p) {
+/* The frame's flat index of the level's pixel p, at (view bi, row y, column x). */
+static inline int64_t frame_at(const LatticeJob *j, int64_t p, int64_t bi, int64_t y,
+                               int64_t x) {
     if (j->stride <= 1) return p;
-    int64_t hw = j->h * j->w, bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
     return (bi * j->fh + y * j->stride) * j->fw + x * j->stride;
+}
+
+/* A level's pixel p and its view, row and column, walked in order from ``begin`` without a
+ * division per pixel (the ranges' loops: pos_start, then pos_next per pixel). */
+typedef struct {
+    int64_t bi, y, x;
+} Pos;
+
+static inline Pos pos_start(const LatticeJob *j, int64_t p) {
+    Pos q = {p / (j->h * j->w), (p / j->w) % j->h, p % j->w};
+    return q;
+}
+
+static inline void pos_next(const LatticeJob *j, Pos *q) {
+    if (++q->x == j->w) {
+        q->x = 0;
+        if (++q->y == j->h) {
+            q->y = 0;
+            q->bi++;
+        }
+    }
 }
 
 /* The mean of the neighbours' values (k = 2 or 4) of channel c of a (B*H*W, ch) array. */
@@ -59,25 +80,37 @@ static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, 
     return k == 4 ? ((s + x[nb[2] * ch + c]) + x[nb[3] * ch + c]) * 0.25f : s * 0.5f;
 }
 
-/* The flat indices of pixel p's lattice neighbours (2 or 4; 0 where p is a lattice pixel
- * or a neighbour leaves the frame). */
-static int lattice_neighbours(const LatticeJob *j, int64_t p, int64_t *nb) {
-    int64_t x = p % j->w, y = (p / j->w) % j->h;
+/* The flat indices of pixel p's (at ``at``) lattice neighbours (2 or 4; 0 where p is a
+ * lattice pixel or a neighbour leaves the frame), and their frame indices ``fnb``. */
+static int lattice_neighbours(const LatticeJob *j, int64_t p, const Pos *at, int64_t *nb,
+                              int64_t *fnb) {
+    int64_t x = at->x, y = at->y, bi = at->bi;
     int oy = (int)(y & 1), ox = (int)(x & 1);
     if (!oy && !ox) return 0;
     if ((ox && x + 1 >= j->w) || (oy && y + 1 >= j->h)) return 0;
     if (oy && ox) {
         nb[0] = p - j->w - 1; nb[1] = p - j->w + 1; nb[2] = p + j->w - 1; nb[3] = p + j->w + 1;
+        fnb[0] = frame_at(j, nb[0], bi, y - 1, x - 1);
+        fnb[1] = frame_at(j, nb[1], bi, y - 1, x + 1);
+        fnb[2] = frame_at(j, nb[2], bi, y + 1, x - 1);
+        fnb[3] = frame_at(j, nb[3], bi, y + 1, x + 1);
         return 4;
     }
-    if (ox) { nb[0] = p - 1; nb[1] = p + 1; }
-    else { nb[0] = p - j->w; nb[1] = p + j->w; }
+    if (ox) {
+        nb[0] = p - 1; nb[1] = p + 1;
+        fnb[0] = frame_at(j, nb[0], bi, y, x - 1);
+        fnb[1] = frame_at(j, nb[1], bi, y, x + 1);
+    } else {
+        nb[0] = p - j->w; nb[1] = p + j->w;
+        fnb[0] = frame_at(j, nb[0], bi, y - 1, x);
+        fnb[1] = frame_at(j, nb[1], bi, y + 1, x);
+    }
     return 2;
 }
 
-/* The roughness at the frame's pixel fp of the level's pixel p (per view: p's view). */
-static inline float alpha_of(const LatticeJob *j, int64_t p, int64_t fp) {
-    return j->per_pixel ? j->alpha[fp] : j->alpha[p / (j->h * j->w)];
+/* The roughness at the frame's pixel fp (per view: view bi's). */
+static inline float alpha_of(const LatticeJob *j, int64_t bi, int64_t fp) {
+    return j->per_pixel ? j->alpha[fp] : j->alpha[bi];
 }
 
 /* The reciprocal of a tolerance (tolerances below 1e-30 taken as 1e-30): measures are
@@ -86,28 +119,29 @@ static inline float inv_tol(float tol) { return 1.0f / (tol > 1e-30f ? tol : 1e-
 
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
-    for (int64_t p = begin; p < end; p++) {
-        int64_t fp = frame_index(j, p);  /* the layers are the frame's */
+    Pos at = pos_start(j, begin);
+    for (int64_t p = begin; p < end; p++, pos_next(j, &at)) {
+        int64_t fp = frame_at(j, p, at.bi, at.y, at.x);  /* the layers are the frame's */
         if (!j->front_mask[fp]) {
             j->status[p] = 0;
             j->gap[p] = 0.0f;
             continue;
         }
-        int64_t nb[4];
-        int k = lattice_neighbours(j, p, nb);
+        int64_t nb[4], fnb[4];
+        int k = lattice_neighbours(j, p, &at, nb, fnb);
         const float *fn = j->front_normal + 3 * fp, *bn = j->back_normal + 3 * fp;
         int back = j->back_mask[fp];
         float bd = j->back_depth[fp], tol = j->depth_tol * fabsf(bd);
         float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
         /* the gap: each test's measure over its tolerance, the largest (a per-view
          * roughness is the neighbours' too) */
-        float gap = j->alpha_min * inv_tol(alpha_of(j, p, fp));
+        float gap = j->alpha_min * inv_tol(alpha_of(j, at.bi, fp));
         int wait = k > 0 && (!j->uniform || j->uniform[p]);
         for (int i = 0; i < k && wait; i++) {
-            int64_t q = frame_index(j, nb[i]);
+            int64_t q = fnb[i];
             wait = j->front_mask[q] && j->back_mask[q] == back &&
                    (!j->uniform || j->uniform[nb[i]]);
-            if (j->per_pixel) gap = tmax(gap, j->alpha_min * inv_tol(alpha_of(j, nb[i], q)));
+            if (j->per_pixel) gap = tmax(gap, j->alpha_min * inv_tol(alpha_of(j, at.bi, q)));
             gap = tmax(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
             if (back) {
                 gap = tmax(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
@@ -129,12 +163,12 @@ int torchrefract_lattice_plan(LatticeJob *job, int threads) {
 
 static void fill_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
-    for (int64_t p = begin; p < end; p++) {
+    Pos at = pos_start(j, begin);
+    for (int64_t p = begin; p < end; p++, pos_next(j, &at)) {
         if (j->status[p] != 2) continue;
-        int64_t nb[4];
-        int k = lattice_neighbours(j, p, nb);
-        for (int i = 0; i < k; i++) nb[i] = frame_index(j, nb[i]);  /* into the frame */
-        int64_t fp = frame_index(j, p);
+        int64_t lnb[4], nb[4];  /* the level's neighbours, and theirs in the frame */
+        int k = lattice_neighbours(j, p, &at, lnb, nb);
+        int64_t fp = frame_at(j, p, at.bi, at.y, at.x);
         const float *v[4];
         for (int i = 0; i < k; i++) v[i] = j->radiance + 3 * nb[i];
         float mean[3], rel = 0.0f;
@@ -258,7 +292,7 @@ static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f,
     /* the buffers a status-5 pixel blends: the radiance, then the method's passes */
     int nbuf = J->npass + 1;
     float *buf[nbuf];
-    int64_t ch[nbuf], n = lj->b * lj->h * lj->w, hw = J->h * J->w, rest = 0, soft = 0;
+    int64_t ch[nbuf], n = lj->b * lj->h * lj->w, rest = 0, soft = 0;
     int64_t chans = 0;
     buf[0] = J->radiance;
     ch[0] = 3;
@@ -281,11 +315,12 @@ static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f,
         return -1;
     }
     int64_t *batch = idx + rest, r = 0, s = 0;
-    for (int64_t p = 0; p < n; p++) {
+    Pos at = pos_start(lj, 0);
+    for (int64_t p = 0; p < n; p++, pos_next(lj, &at)) {
         if (lj->status[p] < 4) continue;
-        int64_t fp = frame_index(lj, p);
+        int64_t fp = frame_at(lj, p, at.bi, at.y, at.x);
         idx[r] = fp;
-        batch[r++] = fp / hw;
+        batch[r++] = at.bi;
         if (lj->status[p] == 5) {  /* its means, read before the pass overwrites them */
             float *m = mean + s * chans;
             for (int q = 0; q < nbuf; m += ch[q], q++)
