@@ -347,6 +347,41 @@ def _floor_lines(rows: list[dict], metric: str) -> dict[str, float]:
     return out
 
 
+def _aggregate(rows: list[dict], metric: str) -> list[dict]:
+    """Per variant, the mean time and mean error over the scenes, for the variants that
+    every scene of ``rows`` has."""
+    scenes = set(r["scene"] for r in rows)
+    agg = []
+    for v in dict.fromkeys(r["variant"] for r in rows):
+        rs = [r for r in rows if r["variant"] == v]
+        if len({r["scene"] for r in rs}) < len(scenes):
+            continue
+        a = dict(rs[0])
+        a[metric] = float(np.mean([r[metric] for r in rs]))
+        if a["method"] not in ("truth", "floor"):
+            a["ms_per_frame"] = float(np.mean([r["ms_per_frame"] for r in rs]))
+        agg.append(a)
+    return agg
+
+
+def plot_mean_panel(rows: list[dict], metric: str, path: Path, title: str) -> None:
+    """The chart's aggregate panel alone (means over the scenes of ``rows``), titled
+    ``title``: e.g. the validation set's held-out half beside the suite's chart."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    agg = _aggregate(rows, metric)
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
+    _panel(ax, agg, _floor_lines(agg, metric), metric, title)
+    handles, labels = ax.get_legend_handles_labels()
+    ax.legend(handles, labels, fontsize=6, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
 def plot_pareto(rows: list[dict], metric: str, path: Path) -> None:
     import matplotlib  # noqa: PLC0415
 
@@ -362,17 +397,7 @@ def plot_pareto(rows: list[dict], metric: str, path: Path) -> None:
     for ax, s in zip(axes.flat, scenes):
         rs = [r for r in rows if r["scene"] == s]
         _panel(ax, rs, _floor_lines(rs, metric), metric, s)
-    # Aggregate: per variant, mean time and mean error over the scenes that all have it.
-    agg = []
-    for v in dict.fromkeys(r["variant"] for r in rows):
-        rs = [r for r in rows if r["variant"] == v]
-        if len({r["scene"] for r in rs}) < len(scenes):
-            continue
-        a = dict(rs[0])
-        a[metric] = float(np.mean([r[metric] for r in rs]))
-        if a["method"] not in ("truth", "floor"):
-            a["ms_per_frame"] = float(np.mean([r["ms_per_frame"] for r in rs]))
-        agg.append(a)
+    agg = _aggregate(rows, metric)
     _panel(axes.flat[len(scenes)], agg, _floor_lines(agg, metric), metric,
            f"mean over {len(scenes)} scenes")
     for ax in list(axes.flat)[n:]:
@@ -453,6 +478,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--report", action="store_true",
                     help="render nothing: redraw pareto.png and rewrite summary.md from "
                          "--out's results.csv")
+    ap.add_argument("--mean-panel", metavar="TITLE", default=None,
+                    help="also draw the aggregate panel alone (mean_panel.png in --out), "
+                         "titled TITLE (e.g. the validation set's held-out half)")
     ap.add_argument("--metric", default="flip_object", choices=METRICS,
                     help="y axis of pareto.png (default flip_object)")
     ap.add_argument("--no-floors", action="store_true",
@@ -467,6 +495,9 @@ def main(argv: list[str] | None = None) -> int:
         with open(Path(args.out) / "results.csv", newline="") as f:
             kept = [_parsed(r) for r in csv.DictReader(f)]
         plot_pareto(kept, args.metric, Path(args.out) / "pareto.png")
+        if args.mean_panel:
+            plot_mean_panel(kept, args.metric, Path(args.out) / "mean_panel.png",
+                            args.mean_panel)
         (Path(args.out) / "summary.md").write_text(summarize(kept, args.metric))
         print(summarize(kept, args.metric))
         return 0
@@ -587,6 +618,8 @@ def main(argv: list[str] | None = None) -> int:
         print("pareto: nothing measured", file=sys.stderr)
         return 1
     plot_pareto(kept, args.metric, out / "pareto.png")
+    if args.mean_panel:
+        plot_mean_panel(kept, args.metric, out / "mean_panel.png", args.mean_panel)
     (out / "summary.md").write_text(summarize(kept, args.metric))
     if any(g["images"] for g in gallery.values()) or not args.append:
         plot_gallery(gallery, out / "gallery.png")

@@ -109,3 +109,10 @@ def test_quick_run_writes_rows_and_figures(tmp_path):
     names = {v["variant"] for s in table["scenes"] for v in s["variants"]}
     assert "specular" in names and "specular 1x1" not in names
     assert not {"auto"} & {v["method"] for s in table["scenes"] for v in s["variants"]}
+
+    # --report redraws from the csv; --mean-panel adds the aggregate panel alone
+    r = subprocess.run([sys.executable, str(SCRIPT), "--report", "--mean-panel", "held out",
+                        "--out", str(out)], capture_output=True, text=True, cwd=ROOT,
+                       timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert (out / "mean_panel.png").stat().st_size > 10_000
