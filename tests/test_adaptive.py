@@ -237,6 +237,31 @@ def test_lattice_fill_kernel_equals_tensor_code():
     assert ((w1[s1 == 5] > 0) & (w1[s1 == 5] < 1)).all() and (w1[s1 != 5] == 0).all()
 
 
+def test_fill_where_no_waiting_pixel_is_interpolated_keeps_the_passes():
+    """A level whose waiting pixels all disagree with their neighbours (each is shaded)
+    fills nothing, passes included: the tensor code and the kernel alike (the tensor code
+    once failed on the empty set with passes to fill)."""
+    _, args = _lattice_inputs(_scene("sphere_a03", 41, n=1))
+    st, gap = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
+                                      adaptive.DEPTH_TOL)
+    assert (st == 2).any()
+    # lattice neighbours two apart always differ: 1 or 100 by row and column modulo 4
+    ys, xs = torch.meshgrid(torch.arange(st.shape[1]), torch.arange(st.shape[2]),
+                            indexing="ij")
+    v = 1.0 + 99.0 * ((xs % 4 == 2) ^ (ys % 4 == 2)).float()
+    rad = v.expand(st.shape).reshape(-1, 1).repeat(1, 3).contiguous()
+    passes = [torch.arange(st.numel() * 2, dtype=torch.float32).view(-1, 2)]
+    for run in ("kernel", "tensor"):
+        s, r, w, p = st.clone(), rad.clone(), torch.zeros(st.shape), [passes[0].clone()]
+        if run == "kernel":
+            assert native.lattice_fill(s, gap, w, r, adaptive.LATTICE_RTOL,
+                                       adaptive.BLEND_FROM, p)
+        else:
+            adaptive._fill_torch(s, gap, w, r, adaptive.LATTICE_RTOL, adaptive.BLEND_FROM, p)
+        assert torch.equal(s[st == 2], torch.full_like(s[st == 2], 4)), run
+        assert torch.equal(r, rad) and torch.equal(p[0], passes[0]) and not w.any(), run
+
+
 def test_one_sample_shades_the_lattice_and_interpolates_the_smooth_rest():
     """The rough sphere: under half of its pixels are shaded; those are the full render's
     bit for bit, the others interpolated close to it (FLIP); the passes too."""

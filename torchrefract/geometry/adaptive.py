@@ -394,7 +394,7 @@ def _fill_torch(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,
     done, nb, four = take(idx, sel), take(nb, sel), take(four, sel)
     put_(flat, done, take(mean, sel))
     for x in passes:
-        put_(x, done, _mean(take(x, nb.reshape(-1)).view(len(done), 4, -1), four))
+        put_(x, done, _mean(take(x, nb.reshape(-1)).view(len(done), 4, x.shape[-1]), four))
     ss = where_true(soft)
     u = (take(t, ss) - blend_from) / (torch.ones((), dtype=t.dtype) - blend_from)
     put_(weight.view(-1), take(idx, ss), u * u * (3.0 - 2.0 * u))
