@@ -28,8 +28,8 @@ G-buffer included). Mitsuba variants render at the output resolution with ``spp`
 per pixel (its own box-filtered pixel sampling replaces the scene's sub-pixel grid); their
 time is bench.py's: the render of a scene built once (:func:`time_mitsuba`; before
 2026-12-05 it included the scene build and the coverage pass, 100+ ms at 128x128), and
-``denoise`` adds Intel Open Image Denoise. A variant whose options the renderer rejects (``ConfigError``, e.g. an option not
-implemented yet) is skipped with a warning.
+``denoise`` adds Intel Open Image Denoise. A variant whose options the renderer rejects
+(``ConfigError``, e.g. an option not implemented yet) is skipped with a warning.
 """
 
 from __future__ import annotations
@@ -250,8 +250,8 @@ def time_mitsuba(scene: tr.Scene, options: dict, repeats: int) -> tuple[np.ndarr
     """A Mitsuba variant: the ``reference`` method's image of ``scene`` (one untimed
     ``torchrefract.render``, which also warms up: LLVM kernels, OIDN's device), and the
     median ms of Mitsuba's render alone of the scene built once (read back to host memory;
-    with ``denoise``, plus OIDN): bench.py's protocol. The scene build (conversion, ``load_dict``) and the coverage pass
-    are not timed, as our rows' loads are cached."""
+    with ``denoise``, plus OIDN): bench.py's protocol. The scene build (conversion,
+    ``load_dict``) and the coverage pass are not timed, as our rows' loads are cached."""
     from torchrefract.methods.reference import denoise_oidn  # noqa: PLC0415
     from torchrefract.truth.mitsuba import mitsuba, to_mitsuba_dict  # noqa: PLC0415
 

@@ -40,4 +40,5 @@ resume whose folder was begun at another revision says so (its images would mix 
 
 __all__ = ["Camera", "ConfigError", "EnvMap", "Material", "RenderResult", "RenderSettings", "Scene",
            "SphereLight", "Transform", "load_scene", "register_method", "relight", "render",
-           "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "IMAGE_REVISION", "__version__"]
+           "scene_from_dict", "set_compile", "set_heap_reuse", "set_native", "IMAGE_REVISION",
+           "__version__"]
