@@ -120,6 +120,7 @@ def test_a_view_the_strips_do_not_cover_fails_up_front(monkeypatch):
         tr.render(globe, settings=RenderSettings(memory_budget_mb=3584))
 
 
+@needs_native
 def test_a_view_that_does_not_fit_even_in_strips_fails_up_front(monkeypatch):
     """The issue's 4096x4096 view at 4x4 samples fits 3.5 GiB in strips; under 1 GiB its
     ids and output alone do not: the render fails before any work, naming the size and
@@ -139,6 +140,7 @@ def test_a_view_that_does_not_fit_even_in_strips_fails_up_front(monkeypatch):
         tr.render(scene, settings=RenderSettings(memory_budget_mb=1024))
 
 
+@needs_native
 def test_a_batch_in_strips_counts_every_views_output(monkeypatch):
     """The views of a batch are rendered in strips one after another, but the result holds
     all their outputs: a budget that fits one 2048x2048 view at 4x4 samples in strips does
