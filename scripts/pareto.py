@@ -27,7 +27,7 @@ Heap reuse (``RenderSettings(heap_reuse=True)``) is on, as in the ``torchrefract
 G-buffer included). Mitsuba variants render at the output resolution with ``spp`` samples
 per pixel (its own box-filtered pixel sampling replaces the scene's sub-pixel grid); their
 time is bench.py's: the render of a scene built once (:func:`time_mitsuba`; before
-2026-12-05 it included the scene build and the coverage pass, 100+ ms at 128x128), and
+2026-12-05 it included the scene build and the coverage pass: docs/benchmarks.md), and
 ``denoise`` adds Intel Open Image Denoise. A variant whose options the renderer rejects
 (``ConfigError``, e.g. an option not implemented yet) is skipped with a warning.
 """
