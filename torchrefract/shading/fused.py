@@ -119,7 +119,7 @@ def background(g, lighting) -> torch.Tensor | None:
 
 
 def _sg_meta(pyr) -> torch.Tensor:
-    """A pyramid's constants for ``sg_env_lookup`` (csrc/lighting.h) as
+    """A pyramid's constants for ``sg_env_tap`` (csrc/lighting.h) as
     ``sg_pyramid._blend_weights`` takes them: the base texel's variance v0, the level
     count, each level's blended sharpness, the atlas rectangles and the sharpnesses (kept
     per pyramid: a batch of views of one map reads the same)."""
@@ -139,8 +139,8 @@ _SG_META = KeptByIdentity(8)
 
 
 def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
-    """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_lookup`` in
-    csrc/lighting.h (a map's pyramid looked up once per batch)."""
+    """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_tap`` and ``sg_env_read``
+    in csrc/lighting.h (a map's pyramid looked up once per batch)."""
     bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
     pyramids: dict = {}
     for b in range(len(lighting.texels)):

@@ -421,13 +421,6 @@ static inline void sg_env_read(const Lights *L, int64_t b, const SgTap *q, float
     for (int c = 0; c < 3; c++) out[c] = (lo[c] * (1.0f - q->t) + hi[c] * q->t) * L->scale[b];
 }
 
-/* sg_pyramid.sg_lookup_env: sg_env_tap, then its reads. */
-static void sg_env_lookup(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
-                          float k, float *out) {
-    SgTap q = sg_env_tap(L, e, b, dir, k);
-    sg_env_read(L, b, &q, out);
-}
-
 /* lights.hit_lights: the nearest sphere light along a ray (inf where none). */
 static float hit_light(const Lights *j, int64_t b, const float *o, const float *d,
                        int64_t *which) {
