@@ -258,7 +258,6 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
                            device=dev)
     passes: dict[str, torch.Tensor] = {}
     out_scenes: list[Scene | None] = [None] * b
-    timings: dict[str, float] = {}
     for idx, res, weights in parts:
         sel = torch.tensor(idx, device=dev)
         # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
@@ -271,24 +270,29 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
             passes[k].index_add_(0, sel, w.to(v.dtype) * v)
         for j, i in enumerate(idx):
             out_scenes[i] = res.scenes[j]
-        for k, v in res.timings.items():
-            timings[k] = timings.get(k, 0.0) + v
     return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
-                        scenes=tuple(out_scenes), timings=timings)
+                        scenes=tuple(out_scenes),
+                        timings=_summed_timings([r for _, r, _ in parts]))
 
 
 def _concatenated(results: list[RenderResult]) -> RenderResult:
     """:func:`merge` of unweighted parts that hold the batch's scenes in order: their images
     concatenated (the values the sums give, without zeroed buffers to add into)."""
-    timings: dict[str, float] = {}
-    for r in results:
-        for k, v in r.timings.items():
-            timings[k] = timings.get(k, 0.0) + v
     return RenderResult(
         radiance=torch.cat([r.radiance for r in results]),
         coverage=torch.cat([r.coverage for r in results]),
         passes={k: torch.cat([r.passes[k] for r in results]) for k in results[0].passes},
-        scenes=tuple(s for r in results for s in r.scenes), timings=timings)
+        scenes=tuple(s for r in results for s in r.scenes),
+        timings=_summed_timings(results))
+
+
+def _summed_timings(results: list[RenderResult]) -> dict[str, float]:
+    """The parts' timings, each key summed over the parts that have it."""
+    timings: dict[str, float] = {}
+    for r in results:
+        for k, v in r.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+    return timings
 
 
 __all__ = ["BoxCache", "RenderResult", "all_finite", "box", "finish_pass", "front_roughness", "geometry_passes", "mask_box", "masked_box", "merge", "plan_box"]
