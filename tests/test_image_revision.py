@@ -14,6 +14,7 @@ difference within 1e-3 of the mean value, 99% of them within 2% relative.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -42,9 +43,7 @@ def render_cases() -> dict[str, np.ndarray]:
     out = {}
     for name, path, method, options, size, spp in CASES:
         s = tr.load_scene(str(ROOT / "configs" / "suite" / path))
-        c = s.camera
-        cam = tr.Camera(eye=c.eye, target=c.target, up=c.up, yfov_deg=c.yfov_deg,
-                        width=size, height=size, samples_per_pixel=spp)
+        cam = dataclasses.replace(s.camera, width=size, height=size, samples_per_pixel=spp)
         r = tr.render([s.replace(camera=cam, method=method, method_options=options)])
         out[name] = r.radiance[0].numpy()
         out[name + ".coverage"] = r.coverage[0].numpy()
