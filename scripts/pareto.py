@@ -448,6 +448,17 @@ def plot_gallery(gallery: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def write_figures(rows: list[dict], args: argparse.Namespace, out: Path) -> str:
+    """pareto.png, with ``--mean-panel`` mean_panel.png, and summary.md of ``rows`` in
+    ``out``; returns the summary."""
+    plot_pareto(rows, args.metric, out / "pareto.png")
+    if args.mean_panel:
+        plot_mean_panel(rows, args.metric, out / "mean_panel.png", args.mean_panel)
+    summary = summarize(rows, args.metric)
+    (out / "summary.md").write_text(summary)
+    return summary
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -494,12 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         with open(Path(args.out) / "results.csv", newline="") as f:
             kept = [_parsed(r) for r in csv.DictReader(f)]
-        plot_pareto(kept, args.metric, Path(args.out) / "pareto.png")
-        if args.mean_panel:
-            plot_mean_panel(kept, args.metric, Path(args.out) / "mean_panel.png",
-                            args.mean_panel)
-        (Path(args.out) / "summary.md").write_text(summarize(kept, args.metric))
-        print(summarize(kept, args.metric))
+        print(write_figures(kept, args, Path(args.out)))
         return 0
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -617,10 +623,7 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         print("pareto: nothing measured", file=sys.stderr)
         return 1
-    plot_pareto(kept, args.metric, out / "pareto.png")
-    if args.mean_panel:
-        plot_mean_panel(kept, args.metric, out / "mean_panel.png", args.mean_panel)
-    (out / "summary.md").write_text(summarize(kept, args.metric))
+    write_figures(kept, args, out)
     if any(g["images"] for g in gallery.values()) or not args.append:
         plot_gallery(gallery, out / "gallery.png")
     meta = {"args": vars(args), **common, "size": size, "metric": args.metric,
