@@ -528,3 +528,22 @@ def test_direct_id_pass_gives_pyrender_forward_pass_ids(mesh_paths, name):
                 b = raster.visibility_pass(mesh, cam, n, back=back, direct=False)
                 assert (a >= 0).sum() > 50
                 assert torch.equal(a, b), (name, cam, n, back)
+
+
+def test_object_index_follows_the_mask_it_reads(mesh_paths):
+    """object_index is kept per G-buffer family (``derived``), but always names the set
+    bits of the mask in use: a replaced G-buffer's own ``shade``, and a mask changed in
+    place, get their own indices."""
+    transform, cams = CASES["spot"]
+    g = build_gbuffer([load_mesh(mesh_paths["spot"], transform)], [cams[0]])
+    flat = g.front.mask.reshape(-1)
+    first = g.object_index()
+    assert torch.equal(first, flat.nonzero(as_tuple=True)[0]) and first.numel() > 100
+    assert g.object_index() is first  # kept
+    half = g.front.mask.clone()
+    half.view(-1)[first[::2]] = False
+    h = dataclasses.replace(g, shade=half)  # shares g.derived
+    assert torch.equal(h.object_index(), first[1::2])
+    assert torch.equal(g.object_index(), first)
+    half.view(-1)[first[1]] = False  # in place: a new version of the same mask
+    assert torch.equal(h.object_index(), first[3::2])

@@ -173,9 +173,16 @@ class GBuffer:
         return b, h, w
 
     def object_index(self) -> torch.Tensor:
-        """(N,) flat (B*H*W) indices of the object (sub-)pixels to shade, in order."""
+        """(N,) flat (B*H*W) indices of the object (sub-)pixels to shade, in order. Kept in
+        ``derived`` with the mask it was found in (held, so its identity cannot be reused)
+        and that mask's version: the tiling and the method of one pass ask for it alike."""
         mask = self.front.mask if self.shade is None else self.shade
-        return mask.reshape(-1).nonzero(as_tuple=True)[0]
+        kept = self.derived.get("object_index")
+        if kept is not None and kept[0] is mask and kept[1] == mask._version:
+            return kept[2]
+        idx = mask.reshape(-1).nonzero(as_tuple=True)[0]
+        self.derived["object_index"] = (mask, mask._version, idx)
+        return idx
 
 
 def intersect_triangles(origin: torch.Tensor, direction: torch.Tensor,

@@ -315,7 +315,9 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         rough = bool((materials.roughness_at(
             bi, g.front.uv.reshape(-1, 2).index_select(0, idx)) > 0).any())
     else:
-        shaded = (g.front.mask if g.shade is None else g.shade).reshape(b, -1).any(1)
+        # the views holding a shaded pixel: idx is sorted, so where it crosses view ends
+        ends = torch.searchsorted(idx, torch.arange(1, b + 1, dtype=idx.dtype) * (h * w))
+        shaded = torch.diff(ends, prepend=ends.new_zeros(1)) > 0
         rough = bool((shaded & (materials.roughness > 0)).any())
     dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
     # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
