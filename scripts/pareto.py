@@ -98,6 +98,8 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("prefiltered tir clamp", "prefiltered", {"tir": "clamp"}, 1, False),
     ("rousiers tir clamp", "rousiers", {"tir": "clamp"}, 1, False),
     ("auto", "auto", {}, 1, False),
+    # the first pass's ramp blended over the whole object (before per-region weights)
+    ("auto scene blend", "auto", {"auto_regions": False}, 1, False),
     # Dai and Wyman 2012 (issue #24): LEAN moments, EWA; GSR's subdivisions; the poster's
     # own spread (``paper``) and environment lookup (``mip``, Lee et al. 2008)
     ("lean", "lean", {}, 1, False),

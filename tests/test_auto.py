@@ -442,12 +442,12 @@ def test_divergence_of_two_pass_images():
 def test_the_pass_renders_the_weighted_sum_and_records_its_evidence(tmp_path, monkeypatch):
     """With the shipped table the first pass compares one and four bounce rays on the scene
     itself: a divergence below the ramp renders the cheap variant alone, above it the
-    accurate one, inside it both with the ramp's weights; the sidecar carries the divergence
-    with the table's prediction."""
+    accurate one, inside it both with the ramp's weights (``auto_regions: false``: over the
+    whole object); the sidecar carries the divergence with the table's prediction."""
     import torchrefract.auto as auto
     from torchrefract.output.export import save_render
 
-    scene = _scene(roughness=0.15)
+    scene = _scene(roughness=0.15, auto_regions=False)
     d = choose_by_pass([scene])[0].divergence
     assert d > 0
     parts = {_key(m): tr.render([scene.replace(method=m[0], method_options=m[1])]).radiance
@@ -467,6 +467,75 @@ def test_the_pass_renders_the_weighted_sum_and_records_its_evidence(tmp_path, mo
                                                                                   d + 0.03]
     assert pred["pass_ms"] > 0 and len(pred["neighbours"]) == NEIGHBOURS
     assert pred["best_predicted_flip"] <= pred["predicted_flip"] + 1e-12
+
+
+def test_inside_the_ramp_each_variant_renders_where_it_weighs(monkeypatch):
+    """``auto_regions`` (the default): inside the ramp each variant's weight is a map of
+    the scene's pixels from the pass's local divergence, adding up to 1; a variant renders
+    only where its map is above 0 (the region's pixels as its whole render's, every pixel
+    shaded), and the image is the per-pixel weighted sum. The maps slide with the
+    scene-level weight: at its ends a single variant weighs everywhere."""
+    import torchrefract.auto as auto
+    from torchrefract.auto_pass import local_ramp, region_weights
+
+    scene = _scene(roughness=0.15)
+    d = choose_by_pass([scene])[0].divergence
+    monkeypatch.setattr(auto, "DIVERGENCE", (d - 0.01, d + 0.01))  # half and half
+    c = choose_by_pass([scene])[0]
+    assert c.maps is not None and len(c.maps) == len(c.blend) == 2
+    total = c.maps[0] + c.maps[1]
+    assert torch.allclose(total, torch.ones_like(total), atol=1e-6)
+    shares = [float((m > 0).float().mean()) for m in c.maps]
+    assert min(shares) < 1.0  # the split saves shading: a variant skips some pixels
+    assert c.record()["region_shares"] == pytest.approx(shares)
+    flat = tr.RenderSettings(adaptive=False)
+    parts = {_key(m): tr.render([scene.replace(method=m[0], method_options=m[1])],
+                                settings=flat).radiance[0] for m in (IB_AUTO, RAYS4)}
+    out = tr.render([scene], settings=flat)
+    img = sum(m[..., None] * parts[_key(b[:2])] for m, b in zip(c.maps, c.blend))
+    assert torch.allclose(out.radiance[0], img, rtol=1e-5, atol=1e-6)
+    # the weights at the scene-level weight's ends, and their continuity in it
+    r = torch.linspace(0, 1, 11)
+    assert torch.equal(region_weights(r, 0.0), torch.zeros(11))
+    assert torch.equal(region_weights(r, 1.0), torch.ones(11))
+    steps = [region_weights(r, w) for w in torch.linspace(0, 1, 101).tolist()]
+    assert max(float((a - b).abs().max()) for a, b in zip(steps, steps[1:])) <= 0.021
+    # the local ramp: a uniform divergence map gives the scene's own ramp value everywhere
+    cov = np.zeros((8, 8))
+    cov[2:6, 2:6] = 1
+    lr = local_ramp(np.full((8, 8), 0.5 * (d - 0.01 + d + 0.01)), cov, (24, 24),
+                    (d - 0.01, d + 0.01))
+    assert lr.shape == (24, 24) and torch.allclose(lr, torch.full((24, 24), 0.5), atol=1e-5)
+
+
+def test_a_region_render_shades_only_its_pixels():
+    """render's regions (a policy's variants): the pixels inside equal the whole render's
+    where every pixel is shaded; outside, the object's pixels keep the background's zero
+    and the method's passes are 0; with adaptive shading the region's pixels stay within
+    the interpolation's reach of the whole render's."""
+    from torchrefract.methods import registry
+    from torchrefract.render import _render_method
+    from torchrefract.settings import using
+
+    scene = _scene(roughness=0.2).replace(method="rousiers", method_options={})
+    entry = registry.get("rousiers")
+    options = entry.parse({}, None)
+    region = torch.zeros(24, 24, dtype=torch.bool)
+    region[:, :12] = True
+    for adaptive, tol in ((False, 0.0), (True, 0.05)):
+        with using(tr.RenderSettings(adaptive=adaptive)):
+            whole = _render_method([scene], entry, options)
+            part = _render_method([scene], entry, options, [region])
+        obj = whole.coverage[0] > 0
+        inside, outside = obj & region, obj & ~region
+        assert int(inside.sum()) > 20 and int(outside.sum()) > 20
+        diff = (part.radiance[0] - whole.radiance[0]).abs().amax(-1)
+        scale = whole.radiance[0].amax(-1).clamp(min=1e-3)
+        assert float((diff / scale)[inside].max()) <= tol + 1e-6
+        if not adaptive:
+            assert float(part.radiance[0][outside].abs().max()) == 0.0
+            assert float(part.passes["exit_found"][0][outside].abs().max()) == 0.0
+        assert torch.equal(part.coverage, whole.coverage)
 
 
 def test_the_pass_is_per_scene_in_a_mixed_batch():

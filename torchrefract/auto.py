@@ -6,7 +6,9 @@ By default (``auto_pass``) the evidence is the scene's own: a cheap first pass
 most accurate on average (``accurate``) and the fastest within ``auto_tolerance`` of it on
 average (``cheap``). Where their pass images diverge by less than ``DIVERGENCE[0]`` the cheap
 variant renders the image, above ``DIVERGENCE[1]`` the accurate one, in between both,
-blended linearly in the divergence (continuous in roughness and IOR as the images are). The
+blended linearly in the divergence (continuous in roughness and IOR as the images are);
+with ``auto_regions`` (default) in between each renders only on the pixels where it weighs,
+weighted per pixel by the pass's local divergence (:mod:`torchrefract.auto_pass`). The
 table's neighbours (2. below) still give the prediction recorded with the image.
 Without the pass (``auto_pass: false``) the table's neighbours choose, as follows.
 
@@ -49,6 +51,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from torchrefract.checks import ConfigError
 from torchrefract.options import option, parse_options
@@ -114,6 +117,10 @@ class AutoOptions:
     auto_pass: bool = option(True, boolean=True)
     """Choose by a cheap first pass of the scene itself (docstring, top); ``false``: by the
     table's neighbours alone (1.-5.)."""
+    auto_regions: bool = option(True, boolean=True)
+    """Inside the first pass's ramp, render each variant only on the pixels where it weighs,
+    by the pass's local divergence (:mod:`torchrefract.auto_pass`, "Per region"), instead of
+    both over the whole object; ``false``: the scene-level blend."""
 
 
 @dataclass(frozen=True)
@@ -137,6 +144,10 @@ class Choice:
     without a pass)."""
     pass_ms: float | None = None
     """The first pass's time, per scene of the batch it ran for."""
+    maps: tuple[torch.Tensor, ...] | None = None
+    """With ``auto_regions`` inside the ramp: per entry of ``blend`` its (height, width)
+    float32 weight per pixel (adding up to 1; a variant renders only where its weight is
+    above 0); ``blend``'s weights are then the scene-level ones the maps refine."""
 
     def record(self) -> dict | None:
         """What ``auto`` predicted, JSON-ready, for the sidecar and the manifest (None
@@ -149,6 +160,8 @@ class Choice:
         if self.divergence is not None:
             out.update(divergence=self.divergence, divergence_ramp=list(DIVERGENCE),
                        pass_ms=self.pass_ms)
+        if self.maps is not None:  # per variant of ``blend``: the share of pixels rendered
+            out["region_shares"] = [float((m > 0).float().mean()) for m in self.maps]
         return out
 
 
@@ -363,12 +376,13 @@ def choose_by_pass(scenes: list[Scene], options: AutoOptions = AutoOptions()) ->
     t = _arrays(table)
     cheap, accurate = pass_variants(t, options.auto_tolerance)
     decode = [(t.keys[j][0], json.loads(t.keys[j][1])) for j in (cheap, accurate)]
+    maps = [None] * len(scenes)
     if cheap == accurate:
         div, secs = [0.0] * len(scenes), 0.0
     else:
-        from torchrefract.auto_pass import divergences  # noqa: PLC0415
+        from torchrefract.auto_pass import divergence_maps  # noqa: PLC0415
 
-        div, secs = divergences(scenes, decode[0], decode[1])
+        div, maps, secs = divergence_maps(scenes, decode[0], decode[1])
     pts = np.array([_point(features(s)) for s in scenes])
     _, pf, pm, near, _ = _crisp(t, pts, options.auto_tolerance)
     out = []
@@ -379,12 +393,29 @@ def choose_by_pass(scenes: list[Scene], options: AutoOptions = AutoOptions()) ->
         blend = tuple((decode[k][0], decode[k][1], float(wk)) for wk, k, _ in parts)
         cols = [c for _, _, c in parts]
         ws = np.array([wk for wk, _, _ in parts])
+        region_maps = None
+        if options.auto_regions and len(parts) == 2:
+            region_maps = _region_maps(scenes[i], maps[i], 1.0 - w, [k for _, k, _ in parts])
         out.append(Choice(blend[0][0], blend[0][1], float((ws * pf[i, cols]).sum()),
                           float(pm[i, cols].sum()), tuple(t.names[j] for j in near[i]), blend,
                           float(min(pf[i, cheap], pf[i, accurate])),
                           float(options.auto_tolerance), float(d),
-                          1000.0 * secs / max(len(scenes), 1)))
+                          1000.0 * secs / max(len(scenes), 1), region_maps))
     return out
+
+
+def _region_maps(scene: Scene, pass_maps, w_accurate: float, order: list[int]
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (cheap, accurate) variants' per-pixel weights at the scene's pixels, in the
+    blend's ``order`` (0 cheap, 1 accurate): :func:`torchrefract.auto_pass.region_weights`."""
+    from torchrefract.auto_pass import local_ramp, region_weights  # noqa: PLC0415
+
+    div_map, coverage = pass_maps
+    c = scene.camera
+    acc = region_weights(local_ramp(div_map, coverage, (c.height, c.width), DIVERGENCE),
+                         w_accurate)
+    both = (1.0 - acc, acc)
+    return tuple(both[k] for k in order)
 
 
 class Auto:

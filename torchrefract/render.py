@@ -80,7 +80,11 @@ def render(scenes: Scene | list[Scene], method: str | None = None,
         return _render(scenes, method)
 
 
-def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
+def _render(scenes: Scene | list[Scene], method: str | None,
+            regions: list[torch.Tensor | None] | None = None) -> RenderResult:
+    """:func:`render` in the settings in force; ``regions`` (a policy's variants, per scene:
+    (height, width) bool or None): the object pixels a method shades
+    (:func:`_render_method`)."""
     if isinstance(scenes, Scene):
         scenes = [scenes]
     scenes = list(scenes)
@@ -111,21 +115,31 @@ def _render(scenes: Scene | list[Scene], method: str | None) -> RenderResult:
         return _render_policy(scenes, entry, options)
     render_hook.check(method, extra, options)
     with render_hook.settings_for(extra):  # the tensor code, where lookups are recorded
-        return _render_method(scenes, entry, options)
+        return _render_method(scenes, entry, options, regions)
 
 
-def _render_method(scenes: list[Scene], entry, options) -> RenderResult:
+def _render_method(scenes: list[Scene], entry, options,
+                   regions: list[torch.Tensor | None] | None = None) -> RenderResult:
+    """A method's render of the batch, in chunks where it is large. ``regions``: per scene
+    the (height, width) bool pixels whose object sub-pixels are shaded (None: all); the
+    others' radiance is what the background leaves there and their method passes are 0.
+    The same pixels inside a region as the whole render's, except where adaptive shading
+    would have interpolated them from pixels outside it (shaded instead). A view shaded in
+    strips (:mod:`torchrefract.large`) is shaded whole."""
     budget = tiles.memory_budget()  # once: the passes' own memory must not shrink it
     if not tiles.fits_whole(scenes[0].camera, budget):  # a view larger than a G-buffer
         return large.render(scenes, entry, options, budget)
+    if regions is not None and all(r is None for r in regions):
+        regions = None
     parts = _chunks(scenes, budget)
     if len(parts) == 1:
-        return _render_pass(scenes, entry, options, budget)
+        return _render_pass(scenes, entry, options, budget, regions)
     start = 0
     placed = []
     for p in parts:
+        sub = None if regions is None else regions[start:start + len(p)]
         placed.append((list(range(start, start + len(p))),
-                       _render_pass(p, entry, options, budget), None))
+                       _render_pass(p, entry, options, budget, sub), None))
         start += len(p)
     return merge_parts(len(scenes), placed)
 
@@ -158,9 +172,11 @@ def _chunks(scenes: list[Scene], budget: int | None = None) -> list[list[Scene]]
     return [scenes[i:i + size] for i in range(0, len(scenes), size)]
 
 
-def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResult:
+def _render_pass(scenes: list[Scene], entry, options, budget: int,
+                 regions: list[torch.Tensor | None] | None = None) -> RenderResult:
     """One tensor pass over ``scenes`` (checked: one resolution, method and options), its
-    shading in tiles where it does not fit ``budget`` bytes at once (:mod:`torchrefract.tiles`)."""
+    shading in tiles where it does not fit ``budget`` bytes at once (:mod:`torchrefract.tiles`);
+    ``regions``: :func:`_render_method`'s."""
 
     method = entry.name
     t0 = time.perf_counter()
@@ -170,16 +186,19 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     t1 = time.perf_counter()
     g = build_gbuffer(meshes, [s.camera for s in scenes])
     materials = MaterialBatch.from_scenes(scenes)
+    region = _subpixel_region(regions, g) if entry.shades_object_index else None
     plan = None
     if current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
             alpha = front_roughness(g, materials)
             g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
-                                    alpha)
-            g, centers = adaptive.lattice(g, alpha, uniform=plan.uniform)
+                                    alpha, region=region)
+            g, centers = adaptive.lattice(g, alpha, uniform=plan.uniform, region=region)
             plan = dataclasses.replace(plan, lattice=centers)
         else:
-            g, plan = adaptive.lattice(g, front_roughness(g, materials))
+            g, plan = adaptive.lattice(g, front_roughness(g, materials), region=region)
+    elif region is not None:
+        g = dataclasses.replace(g, shade=g.front.mask & region)
     want = current().torch_device()
     # a CPU-only method shades on the CPU; its result is moved at the end
     device = want if want.type in entry.devices else torch.device("cpu")
@@ -194,23 +213,47 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int) -> RenderResu
     return result if want == device else to_device(result, want)
 
 
+def _subpixel_region(regions: list[torch.Tensor | None] | None, g) -> torch.Tensor | None:
+    """(B, H, W) bool over ``g``'s sub-pixels: each view's (height, width) region repeated
+    over its sub-pixels, True everywhere for a view without one; None without regions."""
+    if regions is None:
+        return None
+    b, h, w = g.shape
+    n = g.supersample
+    out = torch.ones((b, h, w), dtype=torch.bool)
+    for i, r in enumerate(regions):
+        if r is not None:
+            if tuple(r.shape) != (h // n, w // n):
+                raise ValueError(f"render: region of view {i} is {tuple(r.shape)}, the view "
+                                 f"{(h // n, w // n)}")
+            out[i] = r.to(torch.bool).repeat_interleave(n, 0).repeat_interleave(n, 1)
+    return out
+
+
 def _render_policy(scenes: list[Scene], policy, options) -> RenderResult:
     """A policy (``auto``): the variants of each scene (:meth:`resolve`: one, or a weighted
     blend near the choice's thresholds), the scenes that share a variant rendered together,
     and each scene's images summed with their weights in batch order. The result's scenes
     carry the picked method and options (a blend's: the policy's scene); ``blends`` every
-    variant and weight."""
+    variant and weight. A choice with per-pixel weights (``maps``) renders each variant
+    only on the pixels where it weighs (:func:`_render_method`'s regions) and adds the
+    images with those weights."""
     t0 = time.perf_counter()
     picked = policy.resolve(scenes, options)
-    groups: dict[tuple[str, str], list[tuple[int, float]]] = {}
+    groups: dict[tuple[str, str], list[tuple[int, object]]] = {}
     for i, c in enumerate(picked):
-        for method, opts, w in c.blend:
-            groups.setdefault((method, json.dumps(opts, sort_keys=True)), []).append((i, w))
+        for k, (method, opts, w) in enumerate(c.blend):
+            weight = w if getattr(c, "maps", None) is None else c.maps[k]
+            if not isinstance(weight, float) and not bool((weight > 0).any()):
+                continue  # weighs nowhere: nothing to add
+            groups.setdefault((method, json.dumps(opts, sort_keys=True)), []).append(
+                (i, weight))
     parts = []
     for (method, opts), members in groups.items():
         idx = [i for i, _ in members]
         sub = [scenes[i].replace(method=method, method_options=json.loads(opts)) for i in idx]
-        parts.append((idx, _render(sub, None), [w for _, w in members]))
+        regions = [None if isinstance(w, float) else w > 0 for _, w in members]
+        parts.append((idx, _render(sub, None, regions), [w for _, w in members]))
     out = merge_parts(len(scenes), parts)
     out.timings["total"] = time.perf_counter() - t0
     # A single pick is recorded as the scene (re-rendering it gives the same image); a blend

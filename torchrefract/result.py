@@ -242,7 +242,8 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
            ) -> RenderResult:
     """One RenderResult of B scenes from parts rendered apart: ``(idx, result, weights)``,
     the batch positions of the part's scenes, each image added to its position's with its
-    weight (``auto``'s variants), or copied there with ``weights`` None (a large batch's
+    weight (``auto``'s variants: a float, or an (H, W) map per pixel), or copied there with
+    ``weights`` None (a large batch's
     chunks). A pass that only some parts have (another method's, or a part without object
     pixels) is zero elsewhere (it adds 0); the scenes are the last part's at each position;
     timings are summed."""
@@ -260,8 +261,7 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
     out_scenes: list[Scene | None] = [None] * b
     for idx, res, weights in parts:
         sel = torch.tensor(idx, device=dev)
-        # (n, 1, 1, 1) weights; 0 + 1 * x is x exactly, so unweighted parts are copies
-        w = torch.tensor(weights or [1.0] * len(idx), device=dev)[:, None, None, None]
+        w = _weights(weights, len(idx), res.radiance.shape[1:3], dev)
         radiance.index_add_(0, sel, w * res.radiance)
         coverage[sel] = res.coverage  # the geometry's: the same for every variant
         for k, v in res.passes.items():
@@ -273,6 +273,16 @@ def merge(b: int, parts: list[tuple[list[int], RenderResult, list[float] | None]
     return RenderResult(radiance=radiance, coverage=coverage, passes=passes,
                         scenes=tuple(out_scenes),
                         timings=_summed_timings([r for _, r, _ in parts]))
+
+
+def _weights(weights: list | None, n: int, size: tuple[int, int], dev) -> torch.Tensor:
+    """A part's weights for :func:`merge`: (n, 1, 1, 1) from floats (0 + 1 * x is x exactly,
+    so unweighted parts are copies), or (n, H, W, 1) where any is a per-pixel (H, W) map."""
+    weights = weights or [1.0] * n
+    if all(isinstance(w, float) for w in weights):
+        return torch.tensor(weights, device=dev)[:, None, None, None]
+    return torch.stack([torch.full(size, w) if isinstance(w, float) else w.to(torch.float32)
+                        for w in weights]).to(dev)[..., None]
 
 
 def _concatenated(results: list[RenderResult]) -> RenderResult:

@@ -111,7 +111,8 @@ def _uniform_torch(g: GBuffer, alpha: torch.Tensor, n: int, smooth_alpha: float,
 
 def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
          normal_tol: float = NORMAL_TOL, depth_tol: float = DEPTH_TOL,
-         smooth_alpha: float = SMOOTH_ALPHA) -> tuple[GBuffer, Plan]:
+         smooth_alpha: float = SMOOTH_ALPHA, region: torch.Tensor | None = None
+         ) -> tuple[GBuffer, Plan]:
     """The G-buffer to shade and the plan (module docstring). Writes the center samples
     into ``g``'s front layer and rays (a render's own G-buffer).
 
@@ -121,6 +122,7 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         alpha: the front roughness of each sub-pixel, broadcastable to (B, H, W) (per view:
             (B, 1, 1)): a pixel with a sub-pixel smoother than ``smooth_alpha`` is shaded
             at all of them.
+        region: (B, H, W) bool, whole pixels: the only sub-pixels shaded (None: all).
 
     Returns:
         The G-buffer with ``shade`` set (the sub-pixels to shade), and the plan.
@@ -136,10 +138,12 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
         tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
         _center_samples(g, sel, tris, center_dirs[uniform])
-    shade = g.front.mask.clone()
+    shade = g.front.mask.clone() if region is None else g.front.mask & region
     for k, v in enumerate(_subs(shade, n)):
         if k:
             v[uniform] = False
+    if region is not None:  # a pixel outside is neither shaded nor waited on
+        uniform = uniform & region[:, ::n, ::n]
     return replace(g, shade=shade), Plan(uniform=uniform, n=n)
 
 
@@ -296,8 +300,8 @@ def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
             depth_tol: float = DEPTH_TOL, smooth_alpha: float = SMOOTH_ALPHA,
-            coarse_share: float | None = None, uniform: torch.Tensor | None = None
-            ) -> tuple[GBuffer, Lattice | None]:
+            coarse_share: float | None = None, uniform: torch.Tensor | None = None,
+            region: torch.Tensor | None = None) -> tuple[GBuffer, Lattice | None]:
     """The G-buffer of the first pass (``shade``) and the plan, for a G-buffer of one
     sample per pixel (module docstring). Each view decides alone, so that a batch's images
     are those of its views rendered alone (and of any chunking): a view where under
@@ -318,13 +322,16 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
 
     Args:
         alpha: the front roughness, per (sub-)pixel (B, H, W) or per view (B, 1, 1).
+        region: (B, H, W) bool: the only (sub-)pixels shaded (None: all). The levels see
+            the object only there, so a pixel inside never waits on one outside.
     """
     n = g.supersample
     if n > 1 and uniform is None:
         raise ValueError("adaptive.lattice: a supersampled G-buffer needs its plan's uniform "
                          "pixels")
     share = COARSE_SHARE if coarse_share is None else coarse_share
-    layers = (g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
+    front = g.front.mask if region is None else g.front.mask & region
+    layers = (front, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     # the plan's tolerances: where blending ends (BLEND_FROM)
     tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
     status, gap = _plan(*layers, alpha, *tol, stride=n, uniform=uniform)
@@ -332,6 +339,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     waiting = (status == 2).flatten(1).sum(1)
     fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
     if not bool(fine_views.any()):
+        if region is not None:  # every pixel shaded, in the region only
+            g = replace(g, shade=front if g.shade is None else g.shade & region)
         return g, None
     _no_wait(status, fine_views)
     fine = Level(1, status, gap, sub=n)
@@ -341,7 +350,9 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     coarse_views = fine_views & (coarse_waiting > 0) & (
         coarse_waiting >= share * (coarse_status > 0).flatten(1).sum(1))
     # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
-    first = (g.front.mask if g.shade is None else g.shade).clone()
+    first = (front if g.shade is None else g.shade).clone()
+    if region is not None:
+        first &= region
     first[:, ::n, ::n] &= fine.status != 2
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))
