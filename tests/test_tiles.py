@@ -184,10 +184,10 @@ def test_render_stream_batches_keep_to_the_budget(counted, tmp_path, monkeypatch
     passes: list[int] = []
     one_pass = render_mod._render_pass
 
-    def spy(scenes, entry, options, budget):
+    def spy(scenes, entry, options, budget, regions=None):
         c = scenes[0].camera
         frame = len(scenes) * c.width * c.height * c.samples_per_pixel ** 2
-        out = one_pass(scenes, entry, options, budget)
+        out = one_pass(scenes, entry, options, budget, regions)
         shaded = min(int(out.coverage.sum() * c.samples_per_pixel ** 2),
                      tiles.tile_size(frame, budget))
         passes.append(tiles.pass_bytes(frame, shaded))
