@@ -33,7 +33,7 @@ from torchrefract.methods.sh.basis import (
 )
 from torchrefract.methods.sh.layout import build_layout, interpolation, lattice_rate
 from torchrefract.methods.sh.paths import trace_paths
-from torchrefract.methods.sh.precompute import Settings
+from torchrefract.methods.sh.precompute import CHANNELS, Settings
 from torchrefract.methods.sh.shade import evaluate
 from torchrefract.methods.sh.tracer import intersector
 from torchrefract.optics.smooth import dot, fresnel_dielectric, normalize, refract
@@ -269,14 +269,15 @@ def test_native_kernel_matches_the_tensor_code(sphere4, tmp_path, one_thread):
     scale = table.coeffs.float().abs().amax(1).sum(0)  # per channel, bounds the sums
     for order in (0, 3, 8):
         w = window(order, "gauss", 1.0)
-        ref = _evaluate_tensor(table, samples, s_w, om[:, None], order, w, 6)
+        c = len(CHANNELS)
+        ref = _evaluate_tensor(table, samples, s_w, om[:, None], order, w, c)
         nat = sh_native.evaluate(table.padded, table.layout.frame, samples, s_w, om[:, None],
-                                 order, w, 6, 6)
+                                 order, w, c, c)
         assert nat is not None and ((nat - ref).abs() <= 1e-5 * scale + 1e-6).all(), order
         with using(RenderSettings(native=False)):
             ref5 = _map_values(table, faces, b, om, r, order, w)
         nat5 = _map_values(table, faces, b, om, r, order, w)
-        assert ref5.shape == nat5.shape == (n, 5, 6)
+        assert ref5.shape == nat5.shape == (n, 5, len(CHANNELS))
         assert (nat5[:, 1:, 3:] == 0).all() and (ref5[:, 1:, 3:] == 0).all()
         assert ((nat5 - ref5).abs() <= 1e-5 * scale + 1e-6).all(), order
     scene = tr.Scene(mesh=str(sphere4), material=tr.Material(ior=1.5, roughness=0.2),
@@ -574,7 +575,7 @@ def test_second_branch_on_a_sphere_is_the_first_internal_reflection(one_thread):
 def test_second_branch_c_paths_equal_the_tensor_code(tmp_path, one_thread):
     """``branches: 2``: the C paths (the branch as a second wavefront in the same block)
     give the tensor code's table bit for bit on the shell with a bead (rays counted alike);
-    its first 6 channels are the ``branches: 1`` table's; the path ends of an open mesh,
+    its first 7 channels are the ``branches: 1`` table's; the path ends of an open mesh,
     branch included, agree with packets and one ray at a time; the cache keeps the
     ``branches: 1`` key and file of before and gives ``branches: 2`` its own."""
     sh_native, EmbreeNative = _native_paths_or_skip()
@@ -588,8 +589,8 @@ def test_second_branch_c_paths_equal_the_tensor_code(tmp_path, one_thread):
     nat = precompute(mesh, s2, "x", tracer="auto")
     one = precompute(mesh, s1, "x", tracer="auto")
     assert nat.stats["paths_in"] == "c" and ref.stats["rays"] == nat.stats["rays"]
-    assert nat.coeffs.shape[-1] == 12 and torch.equal(ref.coeffs, nat.coeffs)
-    assert torch.equal(one.coeffs, nat.coeffs[..., :6])
+    assert nat.coeffs.shape[-1] == 2 * len(CHANNELS) and torch.equal(ref.coeffs, nat.coeffs)
+    assert torch.equal(one.coeffs, nat.coeffs[..., :len(CHANNELS)])
     assert "branches" not in sh_cache.settings_key(s1)
     assert sh_cache.cache_path(tmp_path, "k", s1) != sh_cache.cache_path(tmp_path, "k", s2)
     sh_cache.clear_memory()
@@ -673,3 +674,44 @@ def _sphere_rays(seed: int):
     om = normalize(torch.randn(20000, 3, generator=g))
     om = torch.where((dot(om, nrm) < 0)[:, None], -om, om)
     return v, f, n, p, nrm, om
+
+
+def test_the_rough_interface_gain_counts_the_interfaces_inside(one_thread):
+    """PathEnds.gain: a path straight through the shell's center (entry, out into the
+    cavity, into its far wall, out) gains (ior - 1)^2 at the cavity's near wall and
+    (1/ior - 1)^2 at its far wall, nothing at the entry or the last exit; every path that
+    meets the cavity gains, none through a solid sphere does. The C paths give the tensor
+    code's values bit for bit."""
+    from torchrefract.methods.sh.paths import geometric_normals, trace_paths
+    from torchrefract.methods.sh.tracer import intersector
+
+    _tracer_or_skip()
+    mesh = load_mesh(str(ASSETS / "meshes" / "shell_bead.ply"))
+    isect, _ = intersector(mesh.vertices, mesh.faces, "embree")
+    tri_v, tri_n = mesh.vertices[mesh.faces], mesh.normals[mesh.faces]
+    ior = 1.5
+    g = torch.Generator().manual_seed(3)
+    n = normalize(torch.cat([torch.tensor([[0.0, 0.0, 1.0]]), torch.randn(2000, 3, generator=g)]))
+    omega = normalize(n + 0.7 * torch.randn(2001, 3, generator=g))
+    omega[0] = torch.tensor([0.0, 0.0, 1.0])
+    omega = torch.where((omega * n).sum(-1, keepdim=True) > 0.05, omega, n)
+    p = n * 0.9999  # on the outer sphere (radius 1)
+    ends = trace_paths(isect, tri_v, tri_n, p, n, omega, ior, 8, 1e-4, "tir")
+    expect = (ior - 1.0) ** 2 + (1.0 / ior - 1.0) ** 2
+    assert int(ends.events[0]) == 3 and abs(float(ends.gain[0]) - expect) < 0.01 * expect
+    more = ends.events >= 3
+    assert more.sum() > 1000 and (ends.gain[more] > 0).all()
+    # a solid sphere: every path leaves at the first interface it meets, gaining nothing
+    ball = load_mesh(str(ASSETS / "meshes" / "sphere.ply"))
+    b_isect, _ = intersector(ball.vertices, ball.faces, "embree")
+    solid = trace_paths(b_isect, ball.vertices[ball.faces], ball.normals[ball.faces],
+                        n * 0.99, n, omega, ior, 8, 1e-4, "tir")
+    assert (solid.events == 1).all() and (solid.gain == 0).all()
+    try:
+        sh_native, EmbreeNative = _native_paths_or_skip()
+    except pytest.skip.Exception:
+        return
+    emb = EmbreeNative(mesh.vertices.numpy(), mesh.faces.numpy())
+    nat = sh_native.trace_paths(emb, tri_n, geometric_normals(tri_v), p, n, omega, ior, 8, 1e-4,
+                                "tir")
+    assert torch.equal(nat.gain, ends.gain) and torch.equal(nat.events, ends.events)

@@ -36,8 +36,9 @@ from torchrefract.output.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
-FORMAT = 1
-"""Version of the file layout and of the path rules (bumped when either changes)."""
+FORMAT = 2
+"""Version of the file layout and of the path rules (bumped when either changes; 2: the
+rough-interface gain channel)."""
 
 MEMORY_TABLES = 4
 """Tables kept loaded in memory (LRU)."""

@@ -68,7 +68,8 @@ class _ShPathJob(ctypes.Structure):
                 ("intersect16", _p), ("vsqrt", _p), ("direction", _p), ("length", _p),
                 ("cos_exit", _p), ("throughput", _p), ("events", _p),
                 ("branches", ctypes.c_int64), ("b_direction", _p), ("b_length", _p),
-                ("b_cos_exit", _p), ("b_throughput", _p), ("b_events", _p), ("b_split", _p)]
+                ("b_cos_exit", _p), ("b_throughput", _p), ("b_events", _p), ("b_split", _p),
+                ("gain", _p), ("b_gain", _p)]
 
 
 _LOCK = threading.Lock()
@@ -249,11 +250,11 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
     count = p.shape[0]
     out = {"direction": torch.empty(count, 3), "length": torch.empty(count),
            "cos_exit": torch.empty(count), "throughput": torch.empty(count),
-           "events": torch.empty(count, dtype=torch.int64)}
+           "events": torch.empty(count, dtype=torch.int64), "gain": torch.empty(count)}
     fork = {"b_direction": torch.empty(count, 3), "b_length": torch.empty(count),
             "b_cos_exit": torch.empty(count), "b_throughput": torch.empty(count),
             "b_events": torch.zeros(count, dtype=torch.int64),
-            "b_split": torch.zeros(count, dtype=torch.uint8)}
+            "b_split": torch.zeros(count, dtype=torch.uint8), "b_gain": torch.empty(count)}
     two = int(branches) == 2
     held = {"p": p.float().contiguous(), "nrm": n.float().contiguous(),
             "omega": omega.float().contiguous(), "tri_n": tri_normals.float().contiguous(),
@@ -278,7 +279,7 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
         length=torch.where(split, fork["b_length"], out["length"]),
         cos_exit=torch.where(split, fork["b_cos_exit"], out["cos_exit"]),
         throughput=torch.where(split, fork["b_throughput"], 0.0),
-        events=fork["b_events"])
+        events=fork["b_events"], gain=torch.where(split, fork["b_gain"], out["gain"]))
     return PathEnds(**out, branch=branch_ends)
 
 

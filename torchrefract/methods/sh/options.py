@@ -35,7 +35,7 @@ class SHOptions:
     """Branches stored per path: 1 (the followed path only) or 2 (also the Fresnel-reflected
     branch at the first interface where the path refracts out from inside, e.g. the cavity
     wall or a bead, with its share F of the energy; the main path's weight is reduced by the
-    same share at shading; a second table of 6 channels, docs/decisions_sh.md)."""
+    same share at shading; a second table of 7 channels, docs/decisions_sh.md)."""
     tracer: str = option("auto", choices=TRACERS)
     """Ray caster of the precomputation: ``embree`` (embreex), ``mitsuba`` (LLVM variant)
     or ``auto`` (the first available)."""

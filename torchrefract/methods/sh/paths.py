@@ -15,8 +15,14 @@ leaves there, refracted: at the critical angle under TIR, the usual clamp). Inte
 use the flat triangles, refraction the interpolated shading normals (SCENE_SPEC.md).
 
 Recorded per path: the final direction, the length travelled inside (sec. 5.4, for
-absorption exp(-sigma d)), the cosine at the last exit (for the rough exit lobe), and the
-throughput of the branches taken after the entry (the product of F or 1 - F).
+absorption exp(-sigma d)), the cosine at the last exit (for the rough exit lobe), the
+throughput of the branches taken after the entry (the product of F or 1 - F), and the
+rough-interface gain G (ours): the summed variance of the path's direction per unit
+microfacet slope variance at the interfaces between the entry and the last exit, whose
+roughness the entry's and exit's lobes do not carry. Tilting the normal by delta turns a
+refracted ray by (eta cos_i / cos_t - 1) delta in the plane of incidence and (eta - 1)
+delta across it, a reflected one by 2 delta and 2 cos_i delta; G adds the mean of the two
+squared factors per interface, so the shading's lobe widens by (alpha^2 / 2) G.
 
 With ``branches=2`` (ours, the Fresnel share a single path loses inside a shell or at a
 bead): at the first interface where the path refracts out from inside (not at the last
@@ -36,6 +42,11 @@ from torchrefract.optics.smooth import dot, face_forward, fresnel_dielectric, no
     reflect, refract
 
 
+GRAZING_COS = 0.05
+"""The smallest cos_t in a refraction's gain (eta cos_i / cos_t grows without bound at
+grazing exits; a lobe there is wide already)."""
+
+
 @dataclass(frozen=True)
 class PathEnds:
     """What the precomputation stores per (sample, view direction); all (P,) or (P, 3).
@@ -47,6 +58,8 @@ class PathEnds:
             it never met an exit).
         throughput: product of the Fresnel factors of the branches taken after the entry.
         events: interfaces met after the entry.
+        gain: the rough-interface gain G at the last exit (module docstring; 0 where the
+            path met no interface between the entry and its last exit).
         branch: with ``branches=2``, the reflected branch's ends (a :class:`PathEnds`
             without ``branch``): direction, length (from the entry), exit cosine,
             throughput = the energy it carries (the main path's throughput at the split
@@ -61,6 +74,7 @@ class PathEnds:
     throughput: torch.Tensor
     events: torch.Tensor
     branch: "PathEnds | None" = None
+    gain: torch.Tensor | None = None
 
 
 def geometric_normals(tri_vertices: torch.Tensor) -> torch.Tensor:
@@ -107,6 +121,8 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
     cos_exit = torch.ones(rows)
     throughput = torch.ones(rows)
     events = torch.zeros(rows, dtype=torch.int64)
+    gain = torch.zeros(rows)  # G so far; at the last exit so far
+    gain_exit = torch.zeros(rows)
     split = torch.zeros(count, dtype=torch.bool)  # the main path has split off its branch
     live = torch.arange(count)
     g_n = geometric_normals(tri_vertices)
@@ -137,6 +153,12 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         f = fresnel_dielectric(cos_i, eta)
         t_dir, tir = refract(d, ns_f, eta)
         r_dir = reflect(d, ns_f)
+        # this interface's gain (module docstring); cos_t as refract computes it
+        cos_t = torch.sqrt((1.0 - eta * eta * (1.0 - cos_i * cos_i)).clamp(min=0.0))
+        turn = eta * cos_i / cos_t.clamp(min=GRAZING_COS)
+        e1 = eta - 1.0
+        g_t = 0.5 * ((turn - 1.0) * (turn - 1.0) + e1 * e1)
+        g_r = 2.0 * (1.0 + cos_i * cos_i)
         last = k == max_events
         if last:  # leave here, refracted (at the critical angle under TIR)
             take_r = torch.zeros_like(leaving)
@@ -154,6 +176,8 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
             origin[br] = x[fork] + (eps * -1.0) * -ng_f[fork]
             direction[br] = normalize(r_dir[fork])
             throughput[br] = throughput[src] * f[fork]
+            gain[br] = gain[src] + g_r[fork]
+            gain_exit[br] = gain_exit[src]
             length[br] = length[src]
             cos_exit[br] = cos_exit[src]
             inside[br] = ins[fork]
@@ -164,6 +188,9 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         throughput[live] *= torch.where(take_r, f, 1.0 - f)
         events[live] += 1
         cos_exit[live] = torch.where(exits, cos_i, cos_exit[live])
+        g_live = gain[live]
+        gain_exit[live] = torch.where(exits, g_live, gain_exit[live])
+        gain[live] = g_live + torch.where(take_r, g_r, g_t)
         inside[live] = torch.where(take_r, ins, ~ins)
         if last:
             break
@@ -171,16 +198,18 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
             live = torch.cat([live, live[fork] + count])
     if branches != 2:
         return PathEnds(direction=direction, length=length, cos_exit=cos_exit,
-                        throughput=throughput, events=events)
+                        throughput=throughput, events=events, gain=gain_exit)
     m, b = slice(0, count), slice(count, rows)
     s1 = split[:, None]
     fork_ends = PathEnds(direction=torch.where(s1, direction[b], direction[m]),
                          length=torch.where(split, length[b], length[m]),
                          cos_exit=torch.where(split, cos_exit[b], cos_exit[m]),
                          throughput=torch.where(split, throughput[b], 0.0),
-                         events=events[b])
+                         events=events[b],
+                         gain=torch.where(split, gain_exit[b], gain_exit[m]))
     return PathEnds(direction=direction[m], length=length[m], cos_exit=cos_exit[m],
-                    throughput=throughput[m], events=events[m], branch=fork_ends)
+                    throughput=throughput[m], events=events[m], branch=fork_ends,
+                    gain=gain_exit[m])
 
 
-__all__ = ["PathEnds", "geometric_normals", "trace_paths"]
+__all__ = ["GRAZING_COS", "PathEnds", "geometric_normals", "trace_paths"]

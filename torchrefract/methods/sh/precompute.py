@@ -4,7 +4,8 @@ outer hemisphere and compress it into real SH (Genevaux et al. 2006, secs. 3-4).
 For every surface sample o_i (:mod:`.layout`) and every view direction omega_j of the
 direction set (:func:`.basis.view_directions`, in o_i's tangent frame), one path is traced
 through the mesh (:mod:`.paths`); the samples of o_i, r_j = (exit direction x, y, z in
-object space, length inside / radius, exit cosine, throughput), are compressed with one
+object space, length inside / radius, exit cosine, throughput, rough-interface gain), are
+compressed with one
 matrix product W = M R (eq. 10, M from :func:`.basis.projection_matrix`) up to band 8.
 The order actually used and the ringing window (sec. 4.3) are applied when shading: the
 projection's coefficients of bands <= L do not depend on the bands kept above L, so one
@@ -12,7 +13,7 @@ table serves every order and window.
 
 The coefficients are stored as float16 (the paper found 8 bits per weight enough, fig. 5).
 With ``branches: 2`` the reflected branch of each path (:attr:`.paths.PathEnds.branch`)
-adds 6 channels (:data:`BRANCH_CHANNELS`) after these.
+adds 7 channels (:data:`BRANCH_CHANNELS`) after these.
 """
 
 from __future__ import annotations
@@ -33,10 +34,12 @@ from torchrefract.methods.sh import native as sh_native
 from torchrefract.methods.sh.paths import geometric_normals, trace_paths
 from torchrefract.methods.sh.tracer import EmbreeNative, intersector
 
-CHANNELS = ("dir_x", "dir_y", "dir_z", "length", "cos_exit", "throughput")
-"""What each coefficient vector holds (length: inside the object over the mesh's radius)."""
+CHANNELS = ("dir_x", "dir_y", "dir_z", "length", "cos_exit", "throughput", "rough_gain")
+"""What each coefficient vector holds (length: inside the object over the mesh's radius;
+rough_gain: :attr:`.paths.PathEnds.gain`)."""
 
-BRANCH_CHANNELS = ("b_dir_x", "b_dir_y", "b_dir_z", "b_length", "b_cos_exit", "b_energy")
+BRANCH_CHANNELS = ("b_dir_x", "b_dir_y", "b_dir_z", "b_length", "b_cos_exit", "b_energy",
+                   "b_rough_gain")
 """With ``branches: 2``, the reflected branch's (:attr:`.paths.PathEnds.branch`), after
 :data:`CHANNELS`: the same quantities, its throughput being the energy it carries (F at
 the split times the rest; 0 where the path never split)."""
@@ -161,7 +164,7 @@ def _trace_chunk(layout: Layout, s0: int, s1: int, intersect, tri_v: torch.Tenso
     ws = []
     for e in [ends] if ends.branch is None else [ends, ends.branch]:
         r = torch.cat([e.direction, (e.length / radius)[:, None], e.cos_exit[:, None],
-                       e.throughput[:, None]], 1)
+                       e.throughput[:, None], e.gain[:, None]], 1)
         r = r.view(s1 - s0, n_dir, len(CHANNELS))
         ws.append(torch.einsum("kj,sjc->skc", m, r).to(torch.float16))  # eq. 10
     # (the main path's channels as a branches: 1 table's, bit for bit)

@@ -18,7 +18,9 @@ Per object pixel (all pixels of a batch, compacted):
    view directions one standard deviation away, and the mean squared change of the exit
    direction is the lobe's geometric variance (as ``rousiers``' bounding rays, measured on
    the precomputed paths instead of the depth buffer). The exit interface's own roughness
-   adds the table's transmitted lobe at the stored exit cosine: k = 1 / (1/k_t2 + var_geo).
+   adds the table's transmitted lobe at the stored exit cosine, and the rough interfaces
+   met inside (ours: the stored gain G, :attr:`.paths.PathEnds.gain`) their spread
+   alpha^2 / 2 G: k = 1 / (1/k_t2 + var_geo + alpha^2 / 2 G).
 4. L = E_r L_env(axis_r, k_r) + E_t1 W2 exp(-sigma d) L_env(exit, k), the environment
    read from the SG-pre-convolved pyramid, sphere lights included; W2 per ``exit_weight``.
 5. ``branches: 2``: the reflected branch's channels (the table's second half) are read
@@ -258,6 +260,10 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
         r2 = (r ** 2).clamp(min=1e-12)
         diff = normalize(vals[:, 1:, :3]) - center[:, None, :]  # (n, 4, 3): chords ~ angles
         var_geo = (diff * diff).sum(-1).mean(1) * (var_v / r2)
+        # the rough interfaces met between the entry and the exit (PathEnds.gain): Beckmann
+        # slopes' variance per axis alpha^2 / 2 times the path's gain
+        a = take(px.alpha, sel)
+        var_geo = var_geo + (0.5 * a * a) * vals[:, 0, 6].clamp(min=0.0)
     weak = exit_obj.norm(dim=-1) < 1e-3  # ringing cancelled the vector: go straight
     center = torch.where(weak[:, None], -omega, center)
     direction = center @ item.rotation.T  # object -> world

@@ -6,8 +6,8 @@
  * sample, then per interface the nearest hit (rtcIntersect16 packets, or rtcIntersect1 as
  * embreex's EmbreeScene.run calls it, with the same ray fields: the same hits), the side of
  * the flat triangle, the interpolated shading normal, the exact Fresnel term, the branch
- * (tir or greedy), refraction or reflection, the length inside, the throughput and the
- * last exit cosine. Paths run in blocks of SH_BLOCK as a wavefront: the live ones stay compact in
+ * (tir or greedy), refraction or reflection, the length inside, the throughput, the
+ * last exit cosine and the rough-interface gain there (paths.py). Paths run in blocks of SH_BLOCK as a wavefront: the live ones stay compact in
  * the block's arrays (no scatter back per interface), ended ones are written out. With
  * branches = 2, a path refracting out from inside for the first time (not at the last
  * interface) also appends its reflected branch to the block's live rays (room for 2 x
@@ -93,7 +93,11 @@ typedef struct {
     float *b_throughput;  /* (n,) out: its energy (0 where the path never split) */
     int64_t *b_events;    /* (n,) out: its interfaces after the split */
     uint8_t *b_split;     /* (n,) out: whether the path split (0: the branch outputs unset) */
+    float *gain;          /* (n,) out: the rough-interface gain at the last exit */
+    float *b_gain;        /* (n,) out (branches 2): the branch's */
 } ShPathJob;
+
+#define SH_GRAZING_COS 0.05f /* paths.GRAZING_COS */
 
 /* optics.smooth.normalize */
 static inline void normalize3p(float *v) {
@@ -151,6 +155,7 @@ typedef struct {
     int64_t idx[SH_CAP];
     float org[SH_CAP][3], dir[SH_CAP][3];
     float length[SH_CAP], cos_exit[SH_CAP], thr[SH_CAP];
+    float gain[SH_CAP], gain_exit[SH_CAP]; /* G so far; at the last exit so far */
     int inside[SH_CAP];
     int fork[SH_CAP];    /* 1: a reflected branch (branches 2) */
     int split[SH_CAP];   /* a main path that has split off its branch */
@@ -233,6 +238,7 @@ static void finish(const ShPathJob *job, const ShBlock *b, int j) {
         job->b_cos_exit[i] = b->cos_exit[j];
         job->b_throughput[i] = b->thr[j];
         job->b_events[i] = b->events[j];
+        job->b_gain[i] = b->gain_exit[j];
         job->b_split[i] = 1;
         return;
     }
@@ -241,6 +247,7 @@ static void finish(const ShPathJob *job, const ShBlock *b, int j) {
     job->cos_exit[i] = b->cos_exit[j];
     job->throughput[i] = b->thr[j];
     job->events[i] = b->events[j];
+    job->gain[i] = b->gain_exit[j];
 }
 
 static void copy_live(ShBlock *b, int to, int from) {
@@ -256,6 +263,8 @@ static void copy_live(ShBlock *b, int to, int from) {
     b->length[to] = b->length[from];
     b->cos_exit[to] = b->cos_exit[from];
     b->thr[to] = b->thr[from];
+    b->gain[to] = b->gain[from];
+    b->gain_exit[to] = b->gain_exit[from];
     b->inside[to] = b->inside[from];
     b->fork[to] = b->fork[from];
     b->split[to] = b->split[from];
@@ -299,6 +308,8 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
             b->length[j] = 0.0f;
             b->cos_exit[j] = 1.0f;
             b->thr[j] = 1.0f;
+            b->gain[j] = 0.0f;
+            b->gain_exit[j] = 0.0f;
             b->fork[j] = 0;
             b->split[j] = 0;
             b->events[j] = 0;
@@ -350,6 +361,12 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
                 const float dn = dot3p(d, nsf);
                 for (int t = 0; t < 3; t++) rdir[t] = d[t] - (2.0f * dn) * nsf[t];
                 const int take_r = last ? 0 : (job->greedy ? fr > 0.5f : b->tir[j]);
+                /* this interface's gain (paths.trace_paths, in its operations' order) */
+                const float ct = cos_t < SH_GRAZING_COS ? SH_GRAZING_COS : cos_t;
+                const float turn = (eta * cos_i) / ct;
+                const float e1 = eta - 1.0f;
+                const float g_t = 0.5f * ((turn - 1.0f) * (turn - 1.0f) + e1 * e1);
+                const float g_r = 2.0f * (1.0f + cos_i * cos_i);
                 if (job->branches == 2 && !last && !take_r && b->leaving[j] && !b->fork[j]
                     && !b->split[j]) {
                     /* the first refraction out: the reflected branch joins the wavefront */
@@ -362,6 +379,8 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
                     normalize3p(b->dir[q]);
                     b->idx[q] = b->idx[j];
                     b->thr[q] = b->thr[j] * fr;
+                    b->gain[q] = b->gain[j] + g_r;
+                    b->gain_exit[q] = b->gain_exit[j];
                     b->length[q] = b->length[j];
                     b->cos_exit[q] = b->cos_exit[j];
                     b->inside[q] = b->inside[j];
@@ -378,7 +397,11 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
                 normalize3p(b->dir[j]);
                 b->thr[j] = b->thr[j] * (take_r ? fr : 1.0f - fr);
                 b->events[j] += 1;
-                if (!take_r && b->leaving[j]) b->cos_exit[j] = cos_i;
+                if (!take_r && b->leaving[j]) {
+                    b->cos_exit[j] = cos_i;
+                    b->gain_exit[j] = b->gain[j];
+                }
+                b->gain[j] = b->gain[j] + (take_r ? g_r : g_t);
                 if (!take_r) b->inside[j] = !b->inside[j];
             }
             if (last)
