@@ -40,7 +40,7 @@ def test_report_means_best_variant_and_auto_checks(tmp_path):
     for scene, (r, r2, au) in {"a": (0.30, 0.20, 0.20), "b": (0.40, 0.30, 0.45),
                                "c": (0.50, 0.10, 0.11), "d": (0.20, 0.25, 0.21)}.items():
         rows += [(scene, "rousiers", r, 10.0), (scene, "rousiers ib2", r2, 20.0),
-                 (scene, "auto", au, 15.0)]
+                 (scene, "auto", au, 15.0), (scene, "auto scene blend", 0.0, 15.0)]
     _chart(tmp_path / "results.csv", rows)
     splits = tmp_path / "splits.json"
     splits.write_text(json.dumps({"fit": ["a", "b"], "heldout": ["c", "d", "e"]}))
