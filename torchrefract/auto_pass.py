@@ -57,13 +57,22 @@ def srgb01(rgb: np.ndarray) -> np.ndarray:
     return linear_to_srgb8(rgb).astype(np.float64) / 255.0
 
 
+def divergence_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(H, W) largest per-channel difference of the sRGB previews of two linear (H, W, 3)
+    images."""
+    return np.abs(srgb01(a) - srgb01(b)).max(-1)
+
+
+def object_mean(div_map: np.ndarray, coverage: np.ndarray) -> float:
+    """Mean of a divergence map over object pixels (``coverage`` > 0.5); 0 without any."""
+    obj = coverage > 0.5
+    return float(div_map[obj].mean()) if obj.any() else 0.0
+
+
 def divergence(a: np.ndarray, b: np.ndarray, coverage: np.ndarray) -> float:
     """Mean over object pixels (``coverage`` > 0.5) of the largest per-channel difference of
     the sRGB previews of two linear (H, W, 3) images; 0 without object pixels."""
-    obj = coverage > 0.5
-    if not obj.any():
-        return 0.0
-    return float(np.abs(srgb01(a) - srgb01(b)).max(-1)[obj].mean())
+    return object_mean(divergence_map(a, b), coverage)
 
 
 REGION_BLUR = 1.0
@@ -107,8 +116,8 @@ def divergence_maps(scenes: list[Scene], cheap: tuple[str, dict], accurate: tupl
             imgs.append(r.radiance.detach().cpu().numpy())
         cov = r.coverage.detach().cpu().numpy()
         for j, i in enumerate(idx):
-            out[i] = divergence(imgs[0][j], imgs[1][j], cov[j])
-            maps[i] = (np.abs(srgb01(imgs[0][j]) - srgb01(imgs[1][j])).max(-1), cov[j])
+            m = divergence_map(imgs[0][j], imgs[1][j])
+            out[i], maps[i] = object_mean(m, cov[j]), (m, cov[j])
     return out, maps, time.perf_counter() - t0
 
 
@@ -148,5 +157,6 @@ def region_weights(r: torch.Tensor, w: float, width: float = REGION_WIDTH) -> to
     return ((r - t) / width + 0.5).clamp(0.0, 1.0)
 
 
-__all__ = ["PASS_SIZE", "REGION_BLUR", "REGION_WIDTH", "divergence", "divergence_maps",
-           "divergences", "local_ramp", "region_weights", "small"]
+__all__ = ["PASS_SIZE", "REGION_BLUR", "REGION_WIDTH", "divergence", "divergence_map",
+           "divergence_maps", "divergences", "local_ramp", "object_mean", "region_weights",
+           "small"]

@@ -331,6 +331,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
                          "pixels")
     share = COARSE_SHARE if coarse_share is None else coarse_share
     front = g.front.mask if region is None else g.front.mask & region
+    # the (sub-)pixels shaded so far (the plan's, or the object's), in the region
+    shaded = front if g.shade is None else (g.shade if region is None else g.shade & region)
     layers = (front, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     # the plan's tolerances: where blending ends (BLEND_FROM)
     tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
@@ -338,10 +340,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     objects = (status > 0).flatten(1).sum(1)  # (B,) per view
     waiting = (status == 2).flatten(1).sum(1)
     fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
-    if not bool(fine_views.any()):
-        if region is not None:  # every pixel shaded, in the region only
-            g = replace(g, shade=front if g.shade is None else g.shade & region)
-        return g, None
+    if not bool(fine_views.any()):  # every pixel shaded (in the region only)
+        return (g if region is None else replace(g, shade=shaded)), None
     _no_wait(status, fine_views)
     fine = Level(1, status, gap, sub=n)
     coarse_status, coarse_gap = _plan(*layers, alpha, *tol, stride=2 * n,
@@ -350,9 +350,7 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     coarse_views = fine_views & (coarse_waiting > 0) & (
         coarse_waiting >= share * (coarse_status > 0).flatten(1).sum(1))
     # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
-    first = (front if g.shade is None else g.shade).clone()
-    if region is not None:
-        first &= region
+    first = shaded.clone()
     first[:, ::n, ::n] &= fine.status != 2
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))

@@ -45,6 +45,14 @@ def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     return d - 2.0 * dot(d, n)[..., None] * n
 
 
+def snell_cos(cos_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Snell's law for the transmitted cosine: cos_t = sqrt(1 - eta^2 (1 - cos_i^2)), 0
+    under total internal reflection, and whether it is (``refract``, ``fresnel_dielectric``
+    and the sh paths share it, operation for operation)."""
+    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
+    return torch.sqrt((1.0 - sin2_t).clamp(min=0.0)), sin2_t >= 1.0
+
+
 def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.Tensor:
     """Exact unpolarized Fresnel reflectance of a smooth dielectric interface.
 
@@ -57,9 +65,7 @@ def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.
     """
     cos_i = cos_i.clamp(0.0, 1.0)
     eta = torch.as_tensor(eta, dtype=cos_i.dtype, device=cos_i.device)
-    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
-    tir = sin2_t >= 1.0
-    cos_t = torch.sqrt((1.0 - sin2_t).clamp(min=0.0))
+    cos_t, tir = snell_cos(cos_i, eta)
     # r_s = (eta cos_i - cos_t) / (eta cos_i + cos_t), r_p = (cos_i - eta cos_t) / (cos_i + eta cos_t)
     rs_den = (eta * cos_i + cos_t).clamp(min=1e-12)
     rp_den = (cos_i + eta * cos_t).clamp(min=1e-12)
@@ -86,9 +92,7 @@ def refract(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor | float
     """
     eta = torch.as_tensor(eta, dtype=d.dtype, device=d.device)
     cos_i = (-dot(d, n)).clamp(0.0, 1.0)
-    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
-    tir = sin2_t >= 1.0
-    cos_t = torch.sqrt((1.0 - sin2_t).clamp(min=0.0))
+    cos_t, tir = snell_cos(cos_i, eta)
     # cos_t = 0 (TIR) leaves the tangent part: the critical-angle direction.
     t = eta[..., None] * d + (eta * cos_i - cos_t)[..., None] * n
     return normalize(t), tir

@@ -39,7 +39,7 @@ import torch
 
 from torchrefract.methods.sh.tracer import Intersector
 from torchrefract.optics.smooth import dot, face_forward, fresnel_dielectric, normalize, \
-    reflect, refract
+    reflect, refract, snell_cos
 
 
 GRAZING_COS = 0.05
@@ -154,7 +154,7 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         t_dir, tir = refract(d, ns_f, eta)
         r_dir = reflect(d, ns_f)
         # this interface's gain (module docstring); cos_t as refract computes it
-        cos_t = torch.sqrt((1.0 - eta * eta * (1.0 - cos_i * cos_i)).clamp(min=0.0))
+        cos_t, _ = snell_cos(cos_i, eta)
         turn = eta * cos_i / cos_t.clamp(min=GRAZING_COS)
         e1 = eta - 1.0
         g_t = 0.5 * ((turn - 1.0) * (turn - 1.0) + e1 * e1)
