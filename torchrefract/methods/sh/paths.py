@@ -47,6 +47,17 @@ GRAZING_COS = 0.05
 grazing exits; a lobe there is wide already)."""
 
 
+def interface_gains(cos_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """An interface's rough-interface gain (module docstring) if the path refracts there
+    and if it reflects: ((eta cos_i / cos_t - 1)^2 + (eta - 1)^2) / 2, cos_t as ``refract``
+    computes it (at least GRAZING_COS), and 2 (1 + cos_i^2). csrc/sh_paths.c's
+    ``interface_gains`` does the same operations."""
+    cos_t, _ = snell_cos(cos_i, eta)
+    turn = eta * cos_i / cos_t.clamp(min=GRAZING_COS)
+    e1 = eta - 1.0
+    return 0.5 * ((turn - 1.0) * (turn - 1.0) + e1 * e1), 2.0 * (1.0 + cos_i * cos_i)
+
+
 @dataclass(frozen=True)
 class PathEnds:
     """What the precomputation stores per (sample, view direction); all (P,) or (P, 3).
@@ -153,12 +164,7 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         f = fresnel_dielectric(cos_i, eta)
         t_dir, tir = refract(d, ns_f, eta)
         r_dir = reflect(d, ns_f)
-        # this interface's gain (module docstring); cos_t as refract computes it
-        cos_t, _ = snell_cos(cos_i, eta)
-        turn = eta * cos_i / cos_t.clamp(min=GRAZING_COS)
-        e1 = eta - 1.0
-        g_t = 0.5 * ((turn - 1.0) * (turn - 1.0) + e1 * e1)
-        g_r = 2.0 * (1.0 + cos_i * cos_i)
+        g_t, g_r = interface_gains(cos_i, eta)
         last = k == max_events
         if last:  # leave here, refracted (at the critical angle under TIR)
             take_r = torch.zeros_like(leaving)
@@ -212,4 +218,4 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
                     gain=gain_exit[m])
 
 
-__all__ = ["GRAZING_COS", "PathEnds", "geometric_normals", "trace_paths"]
+__all__ = ["GRAZING_COS", "PathEnds", "geometric_normals", "interface_gains", "trace_paths"]

@@ -146,6 +146,17 @@ static inline float fresnel_with(float cos_i, float eta, float cos_t, int tir) {
     return clamp01(0.5f * (rs * rs + rp * rp));
 }
 
+/* paths.interface_gains: the rough-interface gain if the path refracts here (g_t) and if
+ * it reflects (g_r), in its operations' order */
+static inline void interface_gains(float eta, float cos_i, float cos_t, float *g_t,
+                                   float *g_r) {
+    const float ct = cos_t < SH_GRAZING_COS ? SH_GRAZING_COS : cos_t;
+    const float turn = (eta * cos_i) / ct;
+    const float e1 = eta - 1.0f;
+    *g_t = 0.5f * ((turn - 1.0f) * (turn - 1.0f) + e1 * e1);
+    *g_r = 2.0f * (1.0f + cos_i * cos_i);
+}
+
 #define SH_BLOCK 256
 #define SH_CAP (2 * SH_BLOCK) /* live rays of a block: its paths and their branches */
 
@@ -361,12 +372,8 @@ static void sh_paths_range(const void *vjob, int64_t begin, int64_t end) {
                 const float dn = dot3p(d, nsf);
                 for (int t = 0; t < 3; t++) rdir[t] = d[t] - (2.0f * dn) * nsf[t];
                 const int take_r = last ? 0 : (job->greedy ? fr > 0.5f : b->tir[j]);
-                /* this interface's gain (paths.trace_paths, in its operations' order) */
-                const float ct = cos_t < SH_GRAZING_COS ? SH_GRAZING_COS : cos_t;
-                const float turn = (eta * cos_i) / ct;
-                const float e1 = eta - 1.0f;
-                const float g_t = 0.5f * ((turn - 1.0f) * (turn - 1.0f) + e1 * e1);
-                const float g_r = 2.0f * (1.0f + cos_i * cos_i);
+                float g_t, g_r;
+                interface_gains(eta, cos_i, cos_t, &g_t, &g_r);
                 if (job->branches == 2 && !last && !take_r && b->leaving[j] && !b->fork[j]
                     && !b->split[j]) {
                     /* the first refraction out: the reflected branch joins the wavefront */
