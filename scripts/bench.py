@@ -28,6 +28,9 @@ The batch items differ by their environment map's rotation (10 degrees apart). `
 ``distinct`` (default) also turns each item's camera 3 degrees further around the object,
 so every item has its own G-buffer; ``shared`` keeps one camera for the whole batch (a
 sweep of materials or maps over one view), whose G-buffer is then built once per batch.
+Every timed batch turns all its cameras a hundredth of a degree further than the last, so
+nothing kept per camera (rays, frames) carries over from one timed batch to the next, as
+in a dataset whose every batch has new views.
 
 A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps=24``; a
 trailing ``+adaptive`` renders that row with ``RenderSettings(adaptive=True)`` (adaptive
@@ -163,8 +166,12 @@ class OursRow:
         self.warmup = time.perf_counter() - t0
 
     def once(self) -> None:
+        # Each timed batch sees new cameras (turned by a hundredth of a degree more each
+        # time), as a dataset's batches do: nothing kept per camera from the last batch.
+        turn = 0.01 * (len(self.totals) + 1)
+        scenes = [s.replace(camera=orbit(s.camera, turn)) for s in self.scenes]
         t0 = time.perf_counter()
-        out = tr.render(self.scenes, method=self.method, settings=self.settings)
+        out = tr.render(scenes, method=self.method, settings=self.settings)
         self.totals.append(time.perf_counter() - t0)
         for k, v in out.timings.items():
             self.stages.setdefault(k, []).append(v)

@@ -15,6 +15,7 @@ import torch
 from conftest import ASSETS
 
 import torchrefract as tr
+from torchrefract.geometry.camera import pixel_rays_rows, views_pixel_rays
 from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.kernels import native
@@ -234,6 +235,22 @@ def test_gbuffer_layers_are_identical(mesh, size, eye, sphere_ply, tensor_code):
     assert slow.front.mask.sum() > 200 and slow.back.mask.sum() > 200
     for layer in ("front", "back"):
         _assert_same(getattr(fast, layer), getattr(slow, layer))
+
+
+@needs_native
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_pixel_rays_are_identical(n, tensor_code):
+    """The batch's camera rays (csrc/gbuffer.c) are pixel_rays_rows' bit for bit, for
+    views of every kind (wide and narrow fields, odd widths: the lanes' remainder)."""
+    cams = [tr.Camera(eye=(3.0 * i - 4.0, 1.5 - i, 2.5 + 0.7 * i), target=(0.2 * i, -0.1, 0.0),
+                      yfov_deg=12.0 + 19.0 * i, width=37, height=23) for i in range(5)]
+    fast = views_pixel_rays(cams, n)
+    slow = torch.stack([pixel_rays_rows(c, n, 0, c.height * n) for c in cams])
+    assert fast.shape == (5, 23 * n, 37 * n, 3)
+    assert torch.equal(fast, slow)
+    assert torch.equal(tensor_code(lambda: views_pixel_rays(cams, n)), slow)
+    with pytest.raises(ValueError, match="one width and height"):
+        views_pixel_rays([cams[0], dataclasses.replace(cams[1], width=38)], n)
 
 
 def test_build_failure_falls_back_to_the_tensor_code_with_one_warning(monkeypatch,

@@ -19,7 +19,7 @@ import torch
 from torchrefract import large, tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
-from torchrefract.geometry.camera import pixel_rays
+from torchrefract.geometry.camera import views_pixel_rays
 from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
@@ -191,7 +191,7 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     if current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
             alpha = front_roughness(g, materials)
-            g, plan = adaptive.plan(g, torch.stack([pixel_rays(s.camera) for s in scenes]),
+            g, plan = adaptive.plan(g, views_pixel_rays([s.camera for s in scenes]),
                                     alpha, region=region)
             g, centers = adaptive.lattice(g, alpha, uniform=plan.uniform, region=region)
             plan = dataclasses.replace(plan, lattice=centers)

@@ -16,6 +16,7 @@ import math
 import numpy as np
 import torch
 
+from torchrefract.kernels import native
 from torchrefract.optics.smooth import dot
 from torchrefract.scene.model import Camera
 
@@ -61,20 +62,30 @@ def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
         >>> d.shape
         torch.Size([2, 4, 3])
     """
-    return _pixel_rays_cached(cam, supersample).clone()  # callers may write to theirs
+    return views_pixel_rays([cam], supersample)[0]
 
 
-def kept_pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
-    """:func:`pixel_rays` without the copy: the kept tensor itself, for a caller that only
-    reads it (or copies it anyway, as ``torch.stack`` does)."""
-    return _pixel_rays_cached(cam, supersample)
-
-
-@functools.lru_cache(maxsize=16)
-def _pixel_rays_cached(cam: Camera, supersample: int) -> torch.Tensor:
-    """:func:`pixel_rays`, kept for the last cameras (a sweep renders one camera in batch
-    after batch)."""
-    return pixel_rays_rows(cam, supersample, 0, cam.height * supersample)
+def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int = 1
+                     ) -> torch.Tensor:
+    """:func:`pixel_rays` of views of one size, (B, n H, n W, 3), in one buffer: the
+    native kernel (csrc/gbuffer.c, the same bits) where it runs, else
+    :func:`pixel_rays_rows` per view. Computed every time, not kept: a dataset's views
+    are new in every batch, and the kernel takes ~0.1 ms per view."""
+    n = supersample
+    c0 = cams[0]
+    if any((c.width, c.height) != (c0.width, c0.height) for c in cams):
+        raise ValueError("views_pixel_rays needs cameras of one width and height; got "
+                         f"{sorted({(c.width, c.height) for c in cams})}")
+    rows = []
+    for cam in cams:
+        _, r, u, f = camera_frame(cam)
+        t = math.tan(math.radians(cam.yfov_deg) / 2.0)
+        rows.append([*f, *r, *u, t, cam.width / cam.height])
+    out = native.pixel_rays(torch.tensor(rows, dtype=torch.float64), c0.height * n,
+                            c0.width * n)
+    if out is not None:
+        return out
+    return torch.stack([pixel_rays_rows(cam, n, 0, cam.height * n) for cam in cams])
 
 
 def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Tensor:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchrefract.geometry.camera import kept_pixel_rays, projection_params
+from torchrefract.geometry.camera import projection_params, views_pixel_rays
 from torchrefract.geometry.mesh import MeshData
 from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
@@ -386,10 +386,9 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     # both layers' ids of every distinct view, global (the MeshBatch's face indices)
     front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
                                             n, [int(batch.face_offset[b]) for b, _, _ in views])
-    # the kept rays themselves, not pixel_rays' copies: the stack below copies them once
-    dirs = [kept_pixel_rays(cam, n) for _, _, cam in views]
+    dirs_t = views_pixel_rays([cam for _, _, cam in views], n)
     eyes, fwd, proj = zip(*(view_frame(cam, n) for _, _, cam in views))
-    dirs_t, eye_t, fwd_t = torch.stack(dirs), torch.stack(eyes), torch.stack(fwd)
+    eye_t, fwd_t = torch.stack(eyes), torch.stack(fwd)
     front = _layer(front_ids, eye_t, dirs_t, fwd_t, batch, back=False)
     back_layer = _layer(back_ids, eye_t, dirs_t, fwd_t, batch, back=True)
     proj_t = torch.stack(proj)

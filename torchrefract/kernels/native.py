@@ -259,6 +259,13 @@ class _UniformJob(ctypes.Structure):
                 ("uniform", _p)]
 
 
+class _RaysJob(ctypes.Structure):
+    """ctypes mirror of ``RaysJob`` in csrc/gbuffer.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("frame", _p), ("out", _p)]
+
+
 class _CenterJob(ctypes.Structure):
     """ctypes mirror of ``CenterJob`` in csrc/gbuffer.c."""
 
@@ -301,7 +308,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
-            "center_samples": _CenterJob,
+            "center_samples": _CenterJob, "pixel_rays": _RaysJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -815,6 +822,18 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
                   mask=None if m is None else m.data_ptr(),
                   uniform=None if u is None else u.data_ptr(), out=out.data_ptr())
     return out if _call("box", job) else None
+
+
+def pixel_rays(frames: torch.Tensor, h: int, w: int) -> torch.Tensor | None:
+    """``camera.pixel_rays_rows`` of every view at once (csrc/gbuffer.c, the same bits):
+    ``frames`` (B, 11) float64 rows of forward, right, up, t and a; the (B, h, w, 3)
+    float32 rays, or ``None`` where the kernel is unavailable."""
+    if not available():
+        return None
+    fr = frames.to(torch.float64).contiguous()
+    out = torch.empty(fr.shape[0], h, w, 3)
+    job = _RaysJob(b=fr.shape[0], h=h, w=w, frame=fr.data_ptr(), out=out.data_ptr())
+    return out if _call("pixel_rays", job) else None
 
 
 def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:

@@ -442,3 +442,65 @@ int torchrefract_center_samples(const CenterJob *job, int threads) {
 }
 
 int64_t torchrefract_center_samples_job_size(void) { return (int64_t)sizeof(CenterJob); }
+
+/* camera.pixel_rays_rows for a batch of views of one size: the unit ray through every
+ * (sub-)pixel center, written straight into the batch's (B, h, w, 3) buffer. The tensor
+ * code's float64 operations in its order: x = ((2 (col + 0.5)) / w - 1) t a per column,
+ * y = (1 - (2 (row + 0.5)) / h) t per row, d = (f + x r) + y u, divided by its norm as
+ * torch takes it (sqrt of fma(z, z, fma(y, y, x x))), rounded to float32. */
+typedef struct {
+    int64_t b, h, w;            /* views; rows and columns of the (sub-)pixel grid */
+    const double *frame;        /* (B, 11): forward (3), right (3), up (3), t, a */
+    float *out;                 /* (B, h, w, 3) */
+} RaysJob;
+
+static void rays_range(const void *job, int64_t begin, int64_t end) {
+    const RaysJob *j = (const RaysJob *)job;
+    for (int64_t row = begin; row < end; row++) {
+        int64_t b = row / j->h, y = row - b * j->h;
+        const double *fr = j->frame + 11 * b, *f = fr, *r = fr + 3, *u = fr + 6;
+        double t = fr[9], a = fr[10];
+        double yy = (1.0 - (2.0 * ((double)y + 0.5)) / (double)j->h) * t;
+        double yu[3] = {yy * u[0], yy * u[1], yy * u[2]};
+        float *o = j->out + row * j->w * 3;
+        int64_t col = 0;
+#ifdef LAYER_LANES
+        /* 4 columns at a time: the same IEEE operations (fma, sqrt, division and the
+         * conversion are each correctly rounded in the lanes as in the scalar code) */
+        for (; col + 4 <= j->w; col += 4, o += 12) {
+            __m256d cx = _mm256_add_pd(_mm256_set_pd((double)(col + 3), (double)(col + 2),
+                                                     (double)(col + 1), (double)col),
+                                       _mm256_set1_pd(0.5));
+            __m256d x = _mm256_sub_pd(_mm256_div_pd(_mm256_mul_pd(_mm256_set1_pd(2.0), cx),
+                                                    _mm256_set1_pd((double)j->w)),
+                                      _mm256_set1_pd(1.0));
+            x = _mm256_mul_pd(_mm256_mul_pd(x, _mm256_set1_pd(t)), _mm256_set1_pd(a));
+            __m256d d[3];
+            for (int c = 0; c < 3; c++)
+                d[c] = _mm256_add_pd(_mm256_add_pd(_mm256_set1_pd(f[c]),
+                                                   _mm256_mul_pd(x, _mm256_set1_pd(r[c]))),
+                                     _mm256_set1_pd(yu[c]));
+            __m256d nrm = _mm256_sqrt_pd(_mm256_fmadd_pd(
+                d[2], d[2], _mm256_fmadd_pd(d[1], d[1], _mm256_mul_pd(d[0], d[0]))));
+            float lanes[3][4];
+            for (int c = 0; c < 3; c++)
+                _mm_storeu_ps(lanes[c], _mm256_cvtpd_ps(_mm256_div_pd(d[c], nrm)));
+            for (int k = 0; k < 4; k++)
+                for (int c = 0; c < 3; c++) o[3 * k + c] = lanes[c][k];
+        }
+#endif
+        for (; col < j->w; col++, o += 3) {
+            double x = ((2.0 * ((double)col + 0.5)) / (double)j->w - 1.0) * t * a;
+            double d[3];
+            for (int c = 0; c < 3; c++) d[c] = (f[c] + x * r[c]) + yu[c];
+            double nrm = sqrt(fma(d[2], d[2], fma(d[1], d[1], d[0] * d[0])));
+            for (int c = 0; c < 3; c++) o[c] = (float)(d[c] / nrm);
+        }
+    }
+}
+
+int torchrefract_pixel_rays(const RaysJob *job, int threads) {
+    return tr_parallel_for_grain(rays_range, job, job->b * job->h, 16, threads, 8);
+}
+
+int64_t torchrefract_pixel_rays_job_size(void) { return (int64_t)sizeof(RaysJob); }
