@@ -420,6 +420,25 @@ def test_validation_is_remembered_per_object_but_sees_changed_options(tmp_path):
         validate(s)
 
 
+def test_new_scenes_differing_by_their_cameras_are_checked_as_a_whole(tmp_path):
+    """A new scene object whose fields but the camera were checked before (a dataset's
+    next view) gets only its camera checked again: the result equals a full check, a bad
+    camera is still refused, and any other changed field is checked in full."""
+    from torchrefract.scene.loader import validate
+
+    s = load_scene(write(tmp_path, base(tmp_path)))
+    validate(s)
+    moved = s.replace(camera=dataclasses.replace(s.camera, eye=(0.5, 0.25, 3.0), width=7))
+    assert validate(moved) == scene_from_dict(moved.to_dict(), name=moved.name)
+    assert validate(moved).camera.width == 7
+    with pytest.raises(ConfigError, match=r"camera\.yfov_deg.*nan"):
+        validate(s.replace(camera=dataclasses.replace(s.camera, yfov_deg=float("nan"))))
+    with pytest.raises(ConfigError, match=r"camera\.up"):
+        validate(s.replace(camera=dataclasses.replace(s.camera, up=(0.0, 0.0, 0.0))))
+    with pytest.raises(ConfigError, match=r"material\.roughness"):
+        validate(moved.replace(material=dataclasses.replace(s.material, roughness=-0.5)))
+
+
 def test_name_key_sets_the_output_stem_and_is_checked(tmp_path):
     data = base(tmp_path)
     data["name"] = "custom"

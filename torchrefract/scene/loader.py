@@ -8,7 +8,9 @@ method until one is used).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -204,11 +206,32 @@ def validate(scene: Scene, method: str | None = None) -> Scene:
     if checked is None:
         asked = scene if method is None or method == scene.method else scene.replace(
             method=method)
-        checked = _validated.put(scene, mutable, scene_from_dict(
-            asked.to_dict(), source=f"scene {scene.name!r}", name=scene.name))
+        checked = _validated.put(scene, mutable, _check(asked))
     return checked
+
+
+def _check(scene: Scene) -> Scene:
+    """:func:`validate`'s check of a new scene object. A dataset's scenes are new objects
+    that differ from the last ones by their cameras: everything but the camera is checked
+    once per value (its repr: every field exact) and only the camera again."""
+    source = f"scene {scene.name!r}"
+    rest = repr([(f.name, getattr(scene, f.name)) for f in dataclasses.fields(scene)
+                 if f.name != "camera"])
+    checked = _checked_rest.get(rest)
+    if checked is None:
+        checked = scene_from_dict(scene.to_dict(), source=source, name=scene.name)
+        _checked_rest[rest] = checked
+        while len(_checked_rest) > 64:
+            _checked_rest.popitem(last=False)
+        return checked
+    _checked_rest.move_to_end(rest)
+    return dataclasses.replace(checked, camera=_camera(dataclasses.asdict(scene.camera),
+                                                       source))
 
 
 _validated = KeptByIdentity(256)
 """validate's memory: per scene object and (the method asked for, its mutable fields'
 repr), the checked scene."""
+_checked_rest: OrderedDict[str, Scene] = OrderedDict()
+"""_check's memory: the last 64 scenes checked, by the repr of all their fields but the
+camera."""
