@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import ROOT
-from sweep_fixtures import SPOT, small_sweep, write_config
+from sweep_fixtures import SPOT, STUDIO, small_sweep, write_config
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
@@ -390,6 +390,41 @@ def test_shards_are_deterministic(reference, cfg_path, tmp_path):
     run_sweep(cfg_path, a, fmt="webdataset", shard_size=3, batch_size=2, quiet=True)
     run_sweep(cfg_path, b, fmt="webdataset", shard_size=3, batch_size=8, quiet=True)
     assert _files(a) == _files(b) and len(_files(a)) == 3
+
+
+def test_a_batch_is_encoded_in_threads_in_order_and_a_failure_stays_its_own():
+    """The writer encodes a batch's samples in threads: each sample's bytes are the ones it
+    encodes alone, in the batch's order, and a sample that cannot be encoded is recorded
+    as failed without its neighbours."""
+    import dataclasses
+    import types
+
+    import torch
+
+    from torchrefract.dataset.encode import _encode
+    from torchrefract.dataset.run import _encode_batch
+
+    base = tr.Scene(mesh=SPOT, envmap=STUDIO, camera=tr.Camera(width=24, height=24),
+                    method="specular")
+    scenes = [base.replace(camera=dataclasses.replace(base.camera, eye=(0.3 * i, 0.2, 3.0)))
+              for i in range(4)]
+    res = tr.render(scenes)
+    results = [{"ok": True, "result": res, "result_index": i, "timings": {}} for i in range(4)]
+    results[2]["result_index"] = 7  # no such view: its encoding raises
+    batch = [types.SimpleNamespace(scene=s) for s in scenes]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        total = _encode_batch(batch, results)
+    finally:
+        torch.set_num_threads(threads)
+    assert [r["ok"] for r in results] == [True, True, False, True]
+    assert "index" in results[2]["reason"].lower() and "exr" not in results[2]
+    for i in (0, 1, 3):
+        alone = _encode(res, i, scenes[i])
+        assert results[i]["exr"] == alone["exr"] and results[i]["png"] == alone["png"]
+        assert results[i]["sha256"] == alone["sha256"]
+    assert total == pytest.approx(sum(r["timings"]["encode_s"] for r in results))
 
 
 def test_local_worker_processes_give_the_serial_files(reference, cfg_path, tmp_path):

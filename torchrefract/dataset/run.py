@@ -54,6 +54,7 @@ import sys
 import time
 import warnings
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -627,23 +628,44 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
             bar.close()
 
 
+def _encode_batch(batch: list[Sample], results: list[dict]) -> float:
+    """Encode, in place, the samples of a batch rendered in this process (not yet encoded:
+    the EXR and PNG bytes and their hashes), as many at once as the run has torch threads:
+    zlib, OpenEXR and hashlib let go of the GIL, and one thread alone encoded slower than
+    the renders came (docs/datasets.md, section 4). A sample whose encoding fails is
+    recorded as failed. Returns the samples' encoding times, summed."""
+    todo = [(s, r) for s, r in zip(batch, results) if r["ok"] and "result" in r]
+
+    def one(item: tuple[Sample, dict]) -> float:
+        sample, res = item
+        te = time.perf_counter()
+        try:
+            res.update(_encode(res.pop("result"), res.pop("result_index"), sample.scene))
+        except Exception as exc:  # noqa: BLE001
+            res.update(ok=False, reason=failure_reason(exc))
+        res["timings"]["encode_s"] = time.perf_counter() - te
+        return res["timings"]["encode_s"]
+
+    import torch  # noqa: PLC0415
+
+    threads = min(len(todo), torch.get_num_threads())
+    if threads <= 1:
+        return sum(one(item) for item in todo)
+    with ThreadPoolExecutor(threads, thread_name_prefix="torchrefract-encode") as pool:
+        return sum(pool.map(one, todo))
+
+
 def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
                  results: list[dict], manifest: _Manifest, shards: _TarShards | None,
                  summary: RunSummary) -> None:
     """Write one batch's files (or shard members), then append its manifest lines."""
     t0 = time.perf_counter()
     records = []
-    batch_render = batch_encode = 0.0
+    batch_render = 0.0
+    batch_encode = _encode_batch(batch, results)
+    t_encoded = time.perf_counter()
     for sample, res in zip(batch, results):
         meta = _sample_meta(cfg, sample, out)
-        if res["ok"] and "result" in res:  # rendered in this process, not yet encoded
-            te = time.perf_counter()
-            try:
-                res.update(_encode(res.pop("result"), res.pop("result_index"), sample.scene))
-            except Exception as exc:  # noqa: BLE001
-                res.update(ok=False, reason=failure_reason(exc))
-            res["timings"]["encode_s"] = time.perf_counter() - te
-            batch_encode += res["timings"]["encode_s"]
         timings = dict(res.get("timings", {}))
         if "batch" in timings:
             batch_render = max(batch_render, timings["batch"]["total"])
@@ -684,7 +706,7 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
     summary.render_s += batch_render
     t1 = time.perf_counter()
     summary.encode_s += batch_encode
-    summary.write_s += t1 - t0 - batch_encode
+    summary.write_s += t1 - t_encoded
     run = _run_info()
     manifest.append([dict(r, run=run) for r in records])
     summary.manifest_s += time.perf_counter() - t1

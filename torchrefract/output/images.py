@@ -124,10 +124,17 @@ def linear_to_srgb8(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.round(s * 255.0).astype(np.uint8)
 
 
+PNG_LEVEL = 1
+"""zlib level of the PNG previews: a 256x256 preview takes ~4 ms at 1 against ~15 at PIL's
+default 6, for files ~25% larger (tens of kB beside the EXR's MB): a dataset's encoding
+had become as slow as its rendering (docs/datasets.md, section 4)."""
+
+
 def write_png(path: str | Path, rgb: np.ndarray, exposure: float = 0.0) -> None:
     """Write an sRGB PNG preview of linear radiance (H, W, 3), atomically."""
     from PIL import Image  # noqa: PLC0415
 
     path = Path(path)
     with atomic_path(path, suffix=path.suffix) as tmp:
-        Image.fromarray(linear_to_srgb8(rgb, exposure)).save(tmp, format="PNG")
+        Image.fromarray(linear_to_srgb8(rgb, exposure)).save(tmp, format="PNG",
+                                                              compress_level=PNG_LEVEL)
