@@ -83,6 +83,29 @@ def test_rotation_axes_and_order_by_example(tmp_path):
     assert np.abs(m.vertices.numpy() - np.stack([-y, x, z], 1)).max() < 1e-6
 
 
+@pytest.mark.parametrize("mesh", ["spot.ply", "suzanne.ply", "bunny.ply"])
+def test_a_new_pose_turns_the_kept_normals_to_the_posed_meshs_own(mesh):
+    """A pose's computed normals are the file's at that scale, turned (kept per scale, not
+    recomputed per pose): the same float32 values as computing them from the posed
+    vertices, for any rotation, translation and scale."""
+    from torchrefract.geometry.mesh import _topology, file_version
+    from torchrefract.geometry.vertex_normals import vertex_normals
+
+    path = str(ASSETS / "meshes" / mesh)
+    top = _topology(*file_version(path, "mesh"))
+    assert top.file_normals is None  # computed, not read
+    rng = np.random.default_rng(7)
+    for _ in range(4):
+        t = Transform(scale=float(rng.uniform(0.2, 3.0)),
+                      rotate_deg=tuple(float(a) for a in rng.uniform(-180.0, 180.0, 3)),
+                      translate=tuple(float(a) for a in rng.uniform(-2.0, 2.0, 3)))
+        m = transform_matrix(t)
+        posed = vertex_normals(top.verts @ m[:3, :3].T + m[:3, 3], top.faces)
+        posed /= np.linalg.norm(posed, axis=1, keepdims=True)
+        np.testing.assert_array_equal(load_mesh(path, t).normals.numpy(),
+                                      posed.astype(np.float32))
+
+
 def test_computed_normals_follow_the_transform(tmp_path):
     ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
     path = write_ply(tmp_path / "ico.ply", ico.vertices, ico.faces)

@@ -58,10 +58,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     ok = (face_normals ** 2).sum(axis=1) > 0.5
     faces, face_normals, angles = faces[ok], face_normals[ok], angles[ok]
     # Each vertex's contributions added one at a time in face order, starting from zero
-    # (scipy's sparse product, which trimesh uses, adds them so).
-    summed = np.zeros((len(verts), 3), dtype=np.float64)
-    np.add.at(summed, faces.reshape(-1),
-              angles.reshape(-1, 1) * np.repeat(face_normals, 3, axis=0))
+    # (scipy's sparse product, which trimesh uses, adds them so; so does bincount, per
+    # component, faster than np.add.at).
+    contrib = angles.reshape(-1, 1) * np.repeat(face_normals, 3, axis=0)
+    idx = faces.reshape(-1)
+    summed = np.stack([np.bincount(idx, weights=contrib[:, c], minlength=len(verts))
+                       for c in range(3)], axis=1)
     return _unitize(summed)[0]
 
 
