@@ -69,7 +69,7 @@ class MeshBatch:
                 continue
             first[id(m)] = offset
             f, corners = m.faces, m.faces.reshape(-1)
-            tv.append(take(m.vertices, corners).view(-1, 3, 3))  # (F_i, 3, 3)
+            tv.append(m.tri_vertices)  # (F_i, 3, 3)
             tn.append(take(m.normals, corners).view(-1, 3, 3))
             tu.append(take(m.uvs, corners).view(-1, 3, 2) if m.uvs is not None
                       else torch.zeros(f.shape[0], 3, 2))

@@ -58,10 +58,16 @@ class MeshData:
         return int(self.faces.shape[0])
 
     @functools.cached_property
+    def tri_vertices(self) -> torch.Tensor:
+        """(F, 3, 3) float32 corner positions, gathered once per mesh (the batch's table
+        and the face sphere read them)."""
+        return self.vertices.index_select(0, self.faces.reshape(-1)).view(-1, 3, 3)
+
+    @functools.cached_property
     def face_sphere(self) -> tuple[torch.Tensor, torch.Tensor]:
         """float32 center (3,) and radius () of the sphere around the faces' corners
         (centered on their axis-aligned box), computed once per mesh: the march's bound."""
-        v = self.vertices[self.faces].reshape(-1, 3)
+        v = self.tri_vertices.reshape(-1, 3)
         c = 0.5 * (v.min(0).values + v.max(0).values)
         return c, (v - c).norm(dim=-1).max()
 
