@@ -68,21 +68,26 @@ class MeshBatch:
             if id(m) in first:
                 continue
             first[id(m)] = offset
-            f, corners = m.faces, m.faces.reshape(-1)
-            tv.append(m.tri_vertices)  # (F_i, 3, 3)
-            tn.append(take(m.normals, corners).view(-1, 3, 3))
-            tu.append(take(m.uvs, corners).view(-1, 3, 2) if m.uvs is not None
-                      else torch.zeros(f.shape[0], 3, 2))
-            nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors))
-            ac.append(torch.where(m.across >= 0, m.across + offset, m.across))
-            offset += f.shape[0]
+            tv.append(m.tri_vertices)  # (F_i, 3, 3), kept with the mesh
+            tn.append(m.tri_normals)
+            tu.append(m.tri_uvs)
+            nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors)
+                      if offset else m.neighbors)
+            ac.append(torch.where(m.across >= 0, m.across + offset, m.across)
+                      if offset else m.across)
+            offset += m.num_faces
         if offset >= 2 ** 31:  # the layers' ids are int32
             raise ValueError(f"a batch's meshes have {offset} faces; at most 2**31 - 1")
         counts_t = torch.tensor([m.num_faces for m in meshes], dtype=torch.int64)
         offsets = torch.tensor([first[id(m)] for m in meshes], dtype=torch.int64)
         spheres = [m.face_sphere for m in meshes]
-        return MeshBatch(torch.cat(tv), torch.cat(tn), torch.cat(tu), offsets, counts_t,
-                         torch.cat(nb), torch.cat(ac), torch.stack([c for c, _ in spheres]),
+
+        def joined(parts: list[torch.Tensor]) -> torch.Tensor:
+            # one mesh: its own tensors, read only (nothing writes a batch's tables)
+            return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+        return MeshBatch(joined(tv), joined(tn), joined(tu), offsets, counts_t, joined(nb),
+                         joined(ac), torch.stack([c for c, _ in spheres]),
                          torch.stack([r for _, r in spheres]))
 
 

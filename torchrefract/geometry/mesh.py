@@ -64,6 +64,18 @@ class MeshData:
         return self.vertices.index_select(0, self.faces.reshape(-1)).view(-1, 3, 3)
 
     @functools.cached_property
+    def tri_normals(self) -> torch.Tensor:
+        """(F, 3, 3) float32 corner shading normals, gathered once per mesh."""
+        return self.normals.index_select(0, self.faces.reshape(-1)).view(-1, 3, 3)
+
+    @functools.cached_property
+    def tri_uvs(self) -> torch.Tensor:
+        """(F, 3, 2) float32 corner UVs (zeros without UVs), gathered once per mesh."""
+        if self.uvs is None:
+            return torch.zeros(self.num_faces, 3, 2)
+        return self.uvs.index_select(0, self.faces.reshape(-1)).view(-1, 3, 2)
+
+    @functools.cached_property
     def face_sphere(self) -> tuple[torch.Tensor, torch.Tensor]:
         """float32 center (3,) and radius () of the sphere around the faces' corners
         (centered on their axis-aligned box), computed once per mesh: the march's bound."""
