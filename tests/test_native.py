@@ -241,7 +241,8 @@ def test_gbuffer_layers_are_identical(mesh, size, eye, sphere_ply, tensor_code):
 @pytest.mark.parametrize("n", [1, 2, 3])
 def test_pixel_rays_are_identical(n, tensor_code):
     """The batch's camera rays (csrc/gbuffer.c) are pixel_rays_rows' bit for bit, for
-    views of every kind (wide and narrow fields, odd widths: the lanes' remainder)."""
+    views of every kind (wide and narrow fields, odd widths: the lanes' remainder), whole
+    or a strip of rows."""
     cams = [tr.Camera(eye=(3.0 * i - 4.0, 1.5 - i, 2.5 + 0.7 * i), target=(0.2 * i, -0.1, 0.0),
                       yfov_deg=12.0 + 19.0 * i, width=37, height=23) for i in range(5)]
     fast = views_pixel_rays(cams, n)
@@ -249,6 +250,8 @@ def test_pixel_rays_are_identical(n, tensor_code):
     assert fast.shape == (5, 23 * n, 37 * n, 3)
     assert torch.equal(fast, slow)
     assert torch.equal(tensor_code(lambda: views_pixel_rays(cams, n)), slow)
+    strip = (5 * n, 17 * n + 1)  # a large frame's strip of sub-pixel rows
+    assert torch.equal(views_pixel_rays(cams, n, rows=strip), slow[:, strip[0]:strip[1]])
     with pytest.raises(ValueError, match="one width and height"):
         views_pixel_rays([cams[0], dataclasses.replace(cams[1], width=38)], n)
 

@@ -38,7 +38,7 @@ import torch
 
 from torchrefract import tiles
 from torchrefract.checks import ConfigError
-from torchrefract.geometry.camera import pixel_rays_rows
+from torchrefract.geometry.camera import views_pixel_rays
 from torchrefract.geometry.gbuffer import GBuffer, Layer, MeshBatch, _layer, view_frame
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import native_layers
@@ -149,7 +149,7 @@ def _strip_layers(mesh, cam: Camera, n: int, batch: MeshBatch, eye, fwd, r0: int
     ids = native_layers([mesh], [cam], n, [0], rows=(a, b))
     if ids is None:
         raise RuntimeError("the native rasterizer could not run (strips need it)")
-    dirs = pixel_rays_rows(cam, n, a, b)[None]  # (1, b - a, W, 3)
+    dirs = views_pixel_rays([cam], n, rows=(a, b))  # (1, b - a, W, 3)
     cut = slice(r0 - a, r1 - a)
 
     def exact(i: int, is_back: bool) -> Layer:

@@ -65,27 +65,29 @@ def pixel_rays(cam: Camera, supersample: int = 1) -> torch.Tensor:
     return views_pixel_rays([cam], supersample)[0]
 
 
-def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int = 1
-                     ) -> torch.Tensor:
-    """:func:`pixel_rays` of views of one size, (B, n H, n W, 3), in one buffer: the
-    native kernel (csrc/gbuffer.c, the same bits) where it runs, else
-    :func:`pixel_rays_rows` per view. Computed every time, not kept: a dataset's views
-    are new in every batch, and the kernel takes ~0.1 ms per view."""
+def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int = 1,
+                     rows: tuple[int, int] | None = None) -> torch.Tensor:
+    """:func:`pixel_rays` of views of one size, (B, n H, n W, 3), in one buffer (``rows``:
+    only the sub-pixel rows [r0, r1), a strip of a large frame): the native kernel
+    (csrc/gbuffer.c, the same bits) where it runs, else :func:`pixel_rays_rows` per view.
+    Computed every time, not kept: a dataset's views are new in every batch, and the
+    kernel takes ~0.1 ms per view."""
     n = supersample
     c0 = cams[0]
     if any((c.width, c.height) != (c0.width, c0.height) for c in cams):
         raise ValueError("views_pixel_rays needs cameras of one width and height; got "
                          f"{sorted({(c.width, c.height) for c in cams})}")
-    rows = []
+    frames = []
     for cam in cams:
         _, r, u, f = camera_frame(cam)
         t = math.tan(math.radians(cam.yfov_deg) / 2.0)
-        rows.append([*f, *r, *u, t, cam.width / cam.height])
-    out = native.pixel_rays(torch.tensor(rows, dtype=torch.float64), c0.height * n,
-                            c0.width * n)
+        frames.append([*f, *r, *u, t, cam.width / cam.height])
+    r0, r1 = (0, c0.height * n) if rows is None else rows
+    out = native.pixel_rays(torch.tensor(frames, dtype=torch.float64), c0.height * n,
+                            c0.width * n, r0, r1)
     if out is not None:
         return out
-    return torch.stack([pixel_rays_rows(cam, n, 0, cam.height * n) for cam in cams])
+    return torch.stack([pixel_rays_rows(cam, n, r0, r1) for cam in cams])
 
 
 def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Tensor:

@@ -263,7 +263,7 @@ class _RaysJob(ctypes.Structure):
     """ctypes mirror of ``RaysJob`` in csrc/gbuffer.c."""
 
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
-                ("frame", _p), ("out", _p)]
+                ("r0", ctypes.c_int64), ("rows", ctypes.c_int64), ("frame", _p), ("out", _p)]
 
 
 class _CenterJob(ctypes.Structure):
@@ -824,15 +824,19 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
     return out if _call("box", job) else None
 
 
-def pixel_rays(frames: torch.Tensor, h: int, w: int) -> torch.Tensor | None:
+def pixel_rays(frames: torch.Tensor, h: int, w: int, r0: int = 0, r1: int | None = None
+               ) -> torch.Tensor | None:
     """``camera.pixel_rays_rows`` of every view at once (csrc/gbuffer.c, the same bits):
-    ``frames`` (B, 11) float64 rows of forward, right, up, t and a; the (B, h, w, 3)
-    float32 rays, or ``None`` where the kernel is unavailable."""
+    ``frames`` (B, 11) float64 rows of forward, right, up, t and a, for an (h, w) grid; the
+    (B, r1 - r0, w, 3) float32 rays of its rows [r0, r1) (default: all), or ``None`` where
+    the kernel is unavailable."""
     if not available():
         return None
+    r1 = h if r1 is None else r1
     fr = frames.to(torch.float64).contiguous()
-    out = torch.empty(fr.shape[0], h, w, 3)
-    job = _RaysJob(b=fr.shape[0], h=h, w=w, frame=fr.data_ptr(), out=out.data_ptr())
+    out = torch.empty(fr.shape[0], r1 - r0, w, 3)
+    job = _RaysJob(b=fr.shape[0], h=h, w=w, r0=r0, rows=r1 - r0, frame=fr.data_ptr(),
+                   out=out.data_ptr())
     return out if _call("pixel_rays", job) else None
 
 

@@ -444,20 +444,21 @@ int torchrefract_center_samples(const CenterJob *job, int threads) {
 int64_t torchrefract_center_samples_job_size(void) { return (int64_t)sizeof(CenterJob); }
 
 /* camera.pixel_rays_rows for a batch of views of one size: the unit ray through every
- * (sub-)pixel center, written straight into the batch's (B, h, w, 3) buffer. The tensor
+ * (sub-)pixel center of rows [r0, r0 + rows), written straight into the batch's buffer. The tensor
  * code's float64 operations in its order: x = ((2 (col + 0.5)) / w - 1) t a per column,
  * y = (1 - (2 (row + 0.5)) / h) t per row, d = (f + x r) + y u, divided by its norm as
  * torch takes it (sqrt of fma(z, z, fma(y, y, x x))), rounded to float32. */
 typedef struct {
     int64_t b, h, w;            /* views; rows and columns of the (sub-)pixel grid */
+    int64_t r0, rows;           /* the rows [r0, r0 + rows) of it written (a strip) */
     const double *frame;        /* (B, 11): forward (3), right (3), up (3), t, a */
-    float *out;                 /* (B, h, w, 3) */
+    float *out;                 /* (B, rows, w, 3) */
 } RaysJob;
 
 static void rays_range(const void *job, int64_t begin, int64_t end) {
     const RaysJob *j = (const RaysJob *)job;
     for (int64_t row = begin; row < end; row++) {
-        int64_t b = row / j->h, y = row - b * j->h;
+        int64_t b = row / j->rows, y = j->r0 + row - b * j->rows;
         const double *fr = j->frame + 11 * b, *f = fr, *r = fr + 3, *u = fr + 6;
         double t = fr[9], a = fr[10];
         double yy = (1.0 - (2.0 * ((double)y + 0.5)) / (double)j->h) * t;
@@ -500,7 +501,7 @@ static void rays_range(const void *job, int64_t begin, int64_t end) {
 }
 
 int torchrefract_pixel_rays(const RaysJob *job, int threads) {
-    return tr_parallel_for_grain(rays_range, job, job->b * job->h, 16, threads, 8);
+    return tr_parallel_for_grain(rays_range, job, job->b * job->rows, 16, threads, 8);
 }
 
 int64_t torchrefract_pixel_rays_job_size(void) { return (int64_t)sizeof(RaysJob); }
