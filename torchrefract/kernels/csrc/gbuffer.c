@@ -444,10 +444,10 @@ int torchrefract_center_samples(const CenterJob *job, int threads) {
 int64_t torchrefract_center_samples_job_size(void) { return (int64_t)sizeof(CenterJob); }
 
 /* camera.pixel_rays_rows for a batch of views of one size: the unit ray through every
- * (sub-)pixel center of rows [r0, r0 + rows), written straight into the batch's buffer. The tensor
- * code's float64 operations in its order: x = ((2 (col + 0.5)) / w - 1) t a per column,
- * y = (1 - (2 (row + 0.5)) / h) t per row, d = (f + x r) + y u, divided by its norm as
- * torch takes it (sqrt of fma(z, z, fma(y, y, x x))), rounded to float32. */
+ * (sub-)pixel center of rows [r0, r0 + rows), written straight into the batch's buffer.
+ * The tensor code's float64 operations in its order: x = ((2 (col + 0.5)) / w - 1) t a per
+ * column, y = (1 - (2 (row + 0.5)) / h) t per row, d = (f + x r) + y u, divided by its norm
+ * as torch takes it (sqrt of fma(z, z, fma(y, y, x x))), rounded to float32. */
 typedef struct {
     int64_t b, h, w;            /* views; rows and columns of the (sub-)pixel grid */
     int64_t r0, rows;           /* the rows [r0, r0 + rows) of it written (a strip) */
