@@ -71,7 +71,7 @@ def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int =
     only the sub-pixel rows [r0, r1), a strip of a large frame): the native kernel
     (csrc/gbuffer.c, the same bits) where it runs, else :func:`pixel_rays_rows` per view.
     Computed every time, not kept: a dataset's views are new in every batch, and the
-    kernel takes ~0.1 ms per view."""
+    kernel is cheap beside the rest of a view (docs/benchmarks.md, "eleventh sitting")."""
     n = supersample
     c0 = cams[0]
     if any((c.width, c.height) != (c0.width, c0.height) for c in cams):

@@ -264,8 +264,8 @@ def _scaled_normals(path: str, _mtime: int, _size: int, scale: float) -> np.ndar
     """The file's computed vertex normals (``vertex_normals``) at ``scale``, unturned: the
     corner angles and face normals of a turned and moved copy are these turned (the same
     values up to rounding, tests/test_mesh.py), so a sweep's new pose costs a product
-    instead of the whole computation (~2-6 ms a pose of spot or suzanne). Computed at the
-    scale itself, so that what counts as a degenerate face is the posed mesh's."""
+    instead of the whole computation. Computed at the scale itself, so that what counts
+    as a degenerate face is the posed mesh's."""
     top = _topology(path, _mtime, _size)
     return vertex_normals(top.verts * scale, top.faces)
 

@@ -125,9 +125,9 @@ def linear_to_srgb8(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
 
 
 PNG_LEVEL = 1
-"""zlib level of the PNG previews: a 256x256 preview takes ~4 ms at 1 against ~15 at PIL's
-default 6, for files ~25% larger (tens of kB beside the EXR's MB): a dataset's encoding
-had become as slow as its rendering (docs/datasets.md, section 4)."""
+"""zlib level of the PNG previews: the fastest. A preview is only a view of the EXR, and at
+PIL's default level its encoding weighed on a dataset's pace for files little smaller
+(docs/datasets.md, section 4)."""
 
 
 def write_png(path: str | Path, rgb: np.ndarray, exposure: float = 0.0) -> None:
