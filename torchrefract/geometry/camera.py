@@ -39,6 +39,11 @@ def _camera_frame_cached(cam: Camera) -> tuple[np.ndarray, ...]:
     return eye, r, u, f
 
 
+def screen_scale(cam: Camera) -> tuple[float, float]:
+    """t = tan(yfov / 2) and the aspect a = width / height (module docstring's ray)."""
+    return math.tan(math.radians(cam.yfov_deg) / 2.0), cam.width / cam.height
+
+
 def camera_pose(cam: Camera) -> np.ndarray:
     """4x4 camera-to-world matrix in OpenGL convention (camera looks down -Z)."""
     eye, r, u, f = camera_frame(cam)
@@ -80,8 +85,7 @@ def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int =
     frames = []
     for cam in cams:
         _, r, u, f = camera_frame(cam)
-        t = math.tan(math.radians(cam.yfov_deg) / 2.0)
-        frames.append([*f, *r, *u, t, cam.width / cam.height])
+        frames.append([*f, *r, *u, *screen_scale(cam)])
     r0, r1 = (0, c0.height * n) if rows is None else rows
     out = native.pixel_rays(torch.tensor(frames, dtype=torch.float64), c0.height * n,
                             c0.width * n, r0, r1)
@@ -96,8 +100,7 @@ def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Te
     n = supersample
     h, w = cam.height * n, cam.width * n
     eye, r, u, f = camera_frame(cam)
-    t = math.tan(math.radians(cam.yfov_deg) / 2.0)
-    a = cam.width / cam.height
+    t, a = screen_scale(cam)
     # x depends on the column only, y on the row only: (f + x r) per column and y u per row,
     # added once over the image (each element's operations and order unchanged)
     # pixel indices as float64 (exact integers; kornia's create_meshgrid gave the same, and
@@ -116,8 +119,7 @@ def projection_params(cam: Camera) -> torch.Tensor:
     t = tan(yfov/2), a = width/height.
     """
     eye, r, u, f = camera_frame(cam)
-    t = math.tan(math.radians(cam.yfov_deg) / 2.0)
-    a = cam.width / cam.height
+    t, a = screen_scale(cam)
     return torch.tensor([*eye, *r, *u, *f, t * a, t, cam.width, cam.height],
                         dtype=torch.float32)
 
