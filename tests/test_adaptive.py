@@ -186,7 +186,8 @@ def test_lattice_plan_kernel_equals_tensor_code():
         b = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
                                     adaptive.DEPTH_TOL)
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]), name
-        a, gap = a
+        a, gap, counts = a
+        assert torch.equal(counts, adaptive._counts(a)), name  # per view: objects, waiting
         assert (gap[a == 2] <= 1).all() and (gap[a == 2] >= 0).all() and (gap[a != 2] == 0).all()
         blends.append(bool((gap[a == 2] > adaptive.BLEND_FROM).any()))
         assert set(a.unique().tolist()) <= {0, 1, 2}
@@ -201,6 +202,7 @@ def test_lattice_plan_kernel_equals_tensor_code():
         tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
         a2, b2 = native.lattice_plan(*args, *tols, stride=2), adaptive._lattice_torch(*sub, *tols)
         assert torch.equal(a2[0], b2[0]) and torch.equal(a2[1], b2[1]), name
+        assert torch.equal(a2[2], adaptive._counts(b2[0])), name
         coarse_waits.append(bool((a2[0] == 2).any()))
         # over a supersampled plan only its uniform pixels wait or are waited on
         uni = torch.rand(a.shape, generator=torch.Generator().manual_seed(size)) > 0.05
@@ -208,6 +210,7 @@ def test_lattice_plan_kernel_equals_tensor_code():
             a3 = native.lattice_plan(*args, *tols, stride=st, uniform=u)
             b3 = adaptive._lattice_torch(*ins, *tols, uniform=u)
             assert torch.equal(a3[0], b3[0]) and torch.equal(a3[1], b3[1]), (name, st)
+            assert torch.equal(a3[2], adaptive._counts(b3[0])), (name, st)
             assert not ((a3[0] == 2) & ~u).any(), (name, st)
             if st == 1:  # fewer wait (some still do: below)
                 fewer.append(0 < int((a3[0] == 2).sum()) < int((a == 2).sum()))

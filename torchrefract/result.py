@@ -221,8 +221,11 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     for k in list(method_passes):  # each method buffer let go once averaged (popped: the
         # next average reuses its memory instead of all being held twice at the peak)
         v = method_passes.pop(k)
-        passes[k] = (masked_box(v, g.front.mask, n, cache) if uniform is None
-                     else plan_box(v, n, uniform, g.front.mask, cache))
+        if n == 1:  # zero off the object already (methods.base.Shaded): masked_box's bits
+            passes[k] = v
+        else:
+            passes[k] = (masked_box(v, g.front.mask, n, cache) if uniform is None
+                         else plan_box(v, n, uniform, g.front.mask, cache))
         del v
     passes.update(extra_passes)  # already per pixel
     return RenderResult(

@@ -281,10 +281,11 @@ def _lattice_torch(fm, bm, fn, bn, bd, alpha, alpha_min: float, normal_tol: floa
 
 def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
           depth_tol: float, stride: int = 1, uniform: torch.Tensor | None = None
-          ) -> tuple[torch.Tensor, torch.Tensor]:
+          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A level's status and gap over the (B, H, W) layers' pixels of stride ``stride``
-    (csrc/lattice.c, reading them in place; else the tensor code on copies); ``uniform``:
-    on the level's pixels, those that may wait or be waited on (None: all)."""
+    (csrc/lattice.c, reading them in place; else the tensor code on copies), and its
+    :func:`_counts`; ``uniform``: on the level's pixels, those that may wait or be waited
+    on (None: all)."""
     tols = (smooth_alpha, normal_tol, depth_tol)
     out = native.lattice_plan(fm, bm, fn, bn, bd, alpha, *tols, stride=stride,
                               uniform=uniform)
@@ -295,7 +296,15 @@ def _plan(fm, bm, fn, bn, bd, alpha, smooth_alpha: float, normal_tol: float,
         if alpha.shape[1:] == fm.shape[1:]:  # per pixel (else per view)
             alpha = alpha[on].contiguous()
         fm, bm, fn, bn, bd = (x[on].contiguous() for x in (fm, bm, fn, bn, bd))
-    return _lattice_torch(fm, bm, fn, bn, bd, alpha, *tols, uniform=uniform)
+    status, gap = _lattice_torch(fm, bm, fn, bn, bd, alpha, *tols, uniform=uniform)
+    return status, gap, _counts(status)
+
+
+def _counts(status: torch.Tensor) -> torch.Tensor:
+    """(B, 2) int64: each view's object pixels (status > 0) and waiting pixels (status 2)
+    of a (B, H, W) plan."""
+    flat = status.flatten(1)
+    return torch.stack([(flat > 0).sum(1), (flat == 2).sum(1)], 1)
 
 
 def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
@@ -336,19 +345,18 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     layers = (front, g.back.mask, g.front.normal, g.back.normal, g.back.depth)
     # the plan's tolerances: where blending ends (BLEND_FROM)
     tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
-    status, gap = _plan(*layers, alpha, *tol, stride=n, uniform=uniform)
-    objects = (status > 0).flatten(1).sum(1)  # (B,) per view
-    waiting = (status == 2).flatten(1).sum(1)
+    status, gap, counts = _plan(*layers, alpha, *tol, stride=n, uniform=uniform)
+    objects, waiting = counts.unbind(1)  # (B,) per view
     fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
     if not bool(fine_views.any()):  # every pixel shaded (in the region only)
         return (g if region is None else replace(g, shade=shaded)), None
     _no_wait(status, fine_views)
     fine = Level(1, status, gap, sub=n)
-    coarse_status, coarse_gap = _plan(*layers, alpha, *tol, stride=2 * n,
-                                      uniform=None if uniform is None else uniform[:, ::2, ::2])
-    coarse_waiting = (coarse_status == 2).flatten(1).sum(1)
-    coarse_views = fine_views & (coarse_waiting > 0) & (
-        coarse_waiting >= share * (coarse_status > 0).flatten(1).sum(1))
+    coarse_status, coarse_gap, coarse = _plan(
+        *layers, alpha, *tol, stride=2 * n,
+        uniform=None if uniform is None else uniform[:, ::2, ::2])
+    coarse_waiting = coarse[:, 1]
+    coarse_views = fine_views & (coarse_waiting > 0) & (coarse_waiting >= share * coarse[:, 0])
     # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
     first = shaded.clone()
     first[:, ::n, ::n] &= fine.status != 2
@@ -363,8 +371,10 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
 def waiting(level: Level) -> bool:
     """Whether any pixel of ``level`` still waits (:func:`fill` not run on it yet; a level
     of :func:`lattice` starts with at least one, and a fused kernel that fills the levels
-    itself, ``GBuffer.lattice``, fills them all: the first, the smallest, tells)."""
-    return bool((level.status == 2).any())
+    itself, ``GBuffer.lattice``, fills them all: the first, the smallest, tells). A fill
+    turns every waiting pixel (2) into 3-5, so the largest status tells, in one reduction
+    without a mask."""
+    return level.status.numel() > 0 and int(level.status.max()) == 2
 
 
 def _no_wait(status: torch.Tensor, views: torch.Tensor) -> None:

@@ -237,7 +237,7 @@ class _LatticeJob(ctypes.Structure):
                 ("weight", _p), ("blend_from", ctypes.c_float),
                 ("npass", ctypes.c_int), ("pass_ptr", _p), ("pass_ch", _p),
                 ("stride", ctypes.c_int64), ("fh", ctypes.c_int64), ("fw", ctypes.c_int64),
-                ("uniform", _p)]
+                ("uniform", _p), ("counts", _p)]
 
 
 class _BoxJob(ctypes.Structure):
@@ -729,9 +729,10 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
                  back_depth: torch.Tensor, alpha: torch.Tensor, alpha_min: float,
                  normal_tol: float, depth_tol: float, stride: int = 1,
                  uniform: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor] | None:
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """``adaptive._lattice_torch``'s (B, H/s, W/s) uint8 status and float32 gap of the
-    layers' pixels of stride ``s`` (csrc/lattice.c; read in place, rounding up), or
+    layers' pixels of stride ``s`` (csrc/lattice.c; read in place, rounding up), and each
+    view's counts (B, 2) int64 of object and waiting pixels (status > 0, status 2), or
     ``None`` where the kernel is unavailable or an input is not a float32 / bool CPU tensor.
 
     Args:
@@ -753,10 +754,12 @@ def lattice_plan(front_mask: torch.Tensor, back_mask: torch.Tensor,
         fields["uniform"] = uniform.data_ptr()
     status = torch.empty(b, h, w, dtype=torch.uint8)
     gap = torch.empty(b, h, w)
+    counts = torch.zeros(b, 2, dtype=torch.int64)
     job = _LatticeJob(b=b, h=h, w=w, alpha_min=alpha_min, normal_tol=normal_tol,
                       depth_tol=depth_tol, rtol=0.0, radiance=None, status=status.data_ptr(),
-                      gap=gap.data_ptr(), stride=stride, fh=fh, fw=fw, **fields)
-    return (status, gap) if _call("lattice_plan", job) else None
+                      gap=gap.data_ptr(), stride=stride, fh=fh, fw=fw,
+                      counts=counts.data_ptr(), **fields)
+    return (status, gap, counts) if _call("lattice_plan", job) else None
 
 
 def _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha

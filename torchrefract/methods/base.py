@@ -39,7 +39,9 @@ class Shaded:
 
     Attributes:
         radiance: (B, H, W, 3) linear RGB, background included.
-        passes: the method's own buffers, name -> (B, H, W, C), on object pixels.
+        passes: the method's own buffers, name -> (B, H, W, C), on object pixels and 0 at
+            every other (sub-)pixel (so that one sample per pixel needs no masking:
+            ``result.finish_pass``; tests/test_methods.py holds every method to it).
     """
 
     radiance: torch.Tensor

@@ -43,6 +43,9 @@ typedef struct {
     /* plan: (B*h*w,) the level's pixels that may wait or be waited on (a supersampled
      * plan's uniform pixels: their first sub-pixels hold center samples), or NULL: all */
     const uint8_t *uniform;
+    /* plan: (B, 2) out, each view's object pixels and waiting pixels (the level's), added
+     * to (zeroed by the caller), or NULL */
+    int64_t *counts;
 } LatticeJob;
 
 /* The frame's flat index of the level's pixel p, at (view bi, row y, column x). */
@@ -117,10 +120,23 @@ static inline float alpha_of(const LatticeJob *j, int64_t bi, int64_t fp) {
  * multiplied by it (one division per pixel, not one per test). */
 static inline float inv_tol(float tol) { return 1.0f / (tol > 1e-30f ? tol : 1e-30f); }
 
+/* A range's counts of view bi added to the job's (ranges of one view may run at once). */
+static void add_counts(const LatticeJob *j, int64_t bi, int64_t objects, int64_t waiting) {
+    if (!j->counts || (!objects && !waiting)) return;
+    __atomic_fetch_add(j->counts + 2 * bi, objects, __ATOMIC_RELAXED);
+    __atomic_fetch_add(j->counts + 2 * bi + 1, waiting, __ATOMIC_RELAXED);
+}
+
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
     Pos at = pos_start(j, begin);
+    int64_t view = at.bi, objects = 0, waiting = 0;
     for (int64_t p = begin; p < end; p++, pos_next(j, &at)) {
+        if (at.bi != view) {
+            add_counts(j, view, objects, waiting);
+            view = at.bi;
+            objects = waiting = 0;
+        }
         int64_t fp = frame_at(j, p, at.bi, at.y, at.x);  /* the layers are the frame's */
         if (!j->front_mask[fp]) {
             j->status[p] = 0;
@@ -151,7 +167,10 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
         wait = wait && gap <= 1.0f;
         j->status[p] = wait ? 2 : 1;
         j->gap[p] = wait ? gap : 0.0f;
+        objects++;
+        waiting += wait;
     }
+    add_counts(j, view, objects, waiting);
 }
 
 /* No pass lacks a rough pixel that the full pass has (the methods' switch of the rough
