@@ -101,3 +101,43 @@ def test_material_passes_are_the_masked_mean_of_their_sub_pixels(n):
         for i, v in enumerate(vals):
             assert torch.equal(p[i][cov[i] > 0], torch.full_like(p[i][cov[i] > 0], v))
             assert bool((p[i][cov[i] == 0] == 0).all())
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_filter_passes_at_once_equals_one_at_a_time(monkeypatch, n):
+    """result.filter_passes: csrc/box.c's one pass over every request (2 x 2) gives each
+    request the bits of its own filter (the tensor code, one at a time): masks front, back,
+    both and none, the coverage, a plan's uniform pixels, 1 and 3 channels, odd sizes."""
+    from types import SimpleNamespace
+
+    from torchrefract.result import filter_passes
+
+    if not native.available():
+        pytest.skip("no C compiler for the native kernels")
+    g = torch.Generator().manual_seed(7 + n)
+    b, h, w = 3, n * 13, n * 9
+    front = torch.rand(b, h, w, generator=g) > 0.3
+    back = front & (torch.rand(b, h, w, generator=g) > 0.3)
+    buf = SimpleNamespace(supersample=n, front=SimpleNamespace(mask=front),
+                          back=SimpleNamespace(mask=back))
+    uniform = torch.rand(b, h // n, w // n, generator=g) > 0.5 if n > 1 else None
+
+    def x(c):
+        return torch.randn(b, h, w, c, generator=g) * 5
+
+    requests = {"a": (x(1), "front", False), "b": (x(3), "back", False),
+                "c": (x(1), "both", False), "d": (x(3), None, True), "e": (x(1), "front", True),
+                "f": (None, "front", False), "g": (None, "both", False), "h": (x(2), None, False)}
+    if native.available() and n == 2:  # the kernel ran: it was not the fallback
+        assert native.boxes([(v, i % 4, False) for i, (v, _, _) in enumerate(
+            requests.values()) if v is not None], (front, back), None) is not None
+    at_once = filter_passes(buf, requests, uniform)
+    monkeypatch.setattr(native, "boxes", lambda *a: None)
+    monkeypatch.setattr(native, "box", lambda *a: None)
+    alone = filter_passes(buf, requests, uniform)
+    assert at_once.keys() == alone.keys() == requests.keys()
+    for k in requests:
+        assert at_once[k].shape == alone[k].shape == (b, h // n, w // n, at_once[k].shape[3])
+        assert torch.equal(at_once[k], alone[k]), k
+    both = (front & back)[..., None].float()
+    assert torch.equal(alone["g"], _box(both, n))  # the coverage of both layers

@@ -134,21 +134,49 @@ def all_finite(x: torch.Tensor) -> bool:
         return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
 
 
-def geometry_passes(g: GBuffer, cache: BoxCache | None = None) -> dict[str, torch.Tensor]:
+MASKS = (None, "front", "back", "both")
+"""The masks a pass is averaged over (:func:`filter_passes`' requests): none, a layer's
+coverage, or both layers'."""
+
+
+def filter_passes(g: GBuffer, requests: dict[str, tuple], uniform: torch.Tensor | None,
+                  cache: BoxCache | None = None) -> dict[str, torch.Tensor]:
+    """Each request ``name -> (x, mask, plan)`` filtered to pixels: x (B, H, W, C) (None:
+    the mask's covered fraction, (B, H/n, W/n, 1)) averaged over ``mask``'s (one of MASKS)
+    covered sub-pixels, ``plan``: with a supersampled plan's ``uniform`` pixels holding
+    their first sub-pixel (:func:`plan_box`). At 2 x 2 one pass of csrc/box.c filters them
+    all (each mask's coverage counted once per pixel); else, or where it does not run, one
+    request at a time. The bits are the same either way."""
     n = g.supersample
+    kinds = {m: i for i, m in enumerate(MASKS)}
+    items = [(x, kinds[m], bool(p) and uniform is not None) for x, m, p in requests.values()]
+    out = native.boxes(items, (g.front.mask, g.back.mask), uniform) if n == 2 else None
+    if out is not None:
+        return dict(zip(requests, out))
+    masks = {"front": g.front.mask, "back": g.back.mask}
+    if any(m == "both" for _, m, _ in requests.values()):
+        masks["both"] = g.front.mask & g.back.mask
+    done = {}
+    for name, (x, m, p) in requests.items():
+        mask = masks.get(m)
+        if x is None:
+            done[name] = mask_box(mask, n, torch.float32, cache)[1]
+        elif p and uniform is not None:
+            done[name] = plan_box(x, n, uniform, mask, cache)
+        else:
+            done[name] = box(x, n) if mask is None else masked_box(x, mask, n, cache)
+    return done
+
+
+def geometry_requests(g: GBuffer) -> dict[str, tuple]:
+    """The geometry passes' :func:`filter_passes` requests: each layer's depth and normal
+    over its own coverage, the thickness between them over both."""
     thick = (g.back.dist - g.front.dist).clamp(min=0.0)
-    both = g.front.mask & g.back.mask
-    if n == 1:  # a layer is zero where it is empty (gbuffer._layer): nothing to mask
-        return {"depth_front": g.front.depth[..., None], "depth_back": g.back.depth[..., None],
-                "normal_front": g.front.normal, "normal_back": g.back.normal,
-                "thickness": masked_box(thick[..., None], both, n, cache)}
-    return {
-        "depth_front": masked_box(g.front.depth[..., None], g.front.mask, n, cache),
-        "depth_back": masked_box(g.back.depth[..., None], g.back.mask, n, cache),
-        "normal_front": masked_box(g.front.normal, g.front.mask, n, cache),
-        "normal_back": masked_box(g.back.normal, g.back.mask, n, cache),
-        "thickness": masked_box(thick[..., None], both, n, cache),
-    }
+    return {"depth_front": (g.front.depth[..., None], "front", False),
+            "depth_back": (g.back.depth[..., None], "back", False),
+            "normal_front": (g.front.normal, "front", False),
+            "normal_back": (g.back.normal, "back", False),
+            "thickness": (thick[..., None], "both", False)}
 
 
 def front_roughness(g: GBuffer, materials: MaterialBatch) -> torch.Tensor:
@@ -206,32 +234,42 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     t3 = time.perf_counter()
 
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
-    passes = geometry_passes(g, cache)
-    # Material passes (per object pixel): what a model trained on the data may regress.
-    fm, cov = mask_box(g.front.mask, n, torch.float32, cache)  # (B, H, W, 1), its box
-    rough = front_roughness(g, materials)[..., None]
-    for name, v in (("roughness", rough), ("ior", materials.ior[:, None, None, None])):
-        if n > 1 and v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
-            passes[name] = (cov > 0).to(v.dtype) * v  # sub-pixels is that value
-        else:
-            passes[name] = fm * v if n == 1 else masked_box(fm * v, g.front.mask, n, cache)
     # a supersampled plan's pixels shaded once hold their values at their first
     # sub-pixel: plan_box averages them as if copied to every sub-pixel
     uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
-    for k in list(method_passes):  # each method buffer let go once averaged (popped: the
-        # next average reuses its memory instead of all being held twice at the peak)
-        v = method_passes.pop(k)
-        if n == 1:  # zero off the object already (methods.base.Shaded): masked_box's bits
-            passes[k] = v
-        else:
-            passes[k] = (masked_box(v, g.front.mask, n, cache) if uniform is None
-                         else plan_box(v, n, uniform, g.front.mask, cache))
-        del v
+    requests = geometry_requests(g)
+    # Material passes (per object pixel): what a model trained on the data may regress.
+    rough = front_roughness(g, materials)[..., None]
+    materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))
+    fm = g.front.mask[..., None].to(torch.float32)
+    for name, v in materials_px:
+        if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
+            requests[name] = (fm * v, "front", False)
+    order = [*requests, "roughness", "ior", *method_passes]
+    if n == 1:  # the layers are zero where empty, and so are the method's passes off the
+        # object (methods.base.Shaded): only the thickness needs its mask
+        done = {k: x for k, (x, _, _) in requests.items()}
+        done.update(filter_passes(g, {"thickness": requests["thickness"]}, None, cache))
+        done.update(method_passes)
+        done.update((name, fm * v) for name, v in materials_px)
+        pixel_radiance, coverage = radiance, fm
+    else:
+        requests.update((k, (v, "front", True)) for k, v in method_passes.items())
+        requests["radiance"] = (radiance, None, True)
+        requests["coverage"] = (None, "front", False)
+        method_passes.clear()
+        done = filter_passes(g, requests, uniform, cache)
+        del requests
+        pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
+        for name, v in materials_px:
+            if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
+                done[name] = (coverage > 0).to(v.dtype) * v  # sub-pixels is that value
+    passes = {k: done[k] for k in order}
+    del done
     passes.update(extra_passes)  # already per pixel
     return RenderResult(
-        radiance=(box(radiance, n) if uniform is None
-                  else plan_box(radiance, n, uniform)).float(),
-        coverage=mask_box(g.front.mask, n, torch.float32, cache)[1][..., 0],
+        radiance=pixel_radiance.float(),
+        coverage=coverage[..., 0],
         passes=passes,
         scenes=tuple(s if s.method == method else s.replace(method=method) for s in scenes),
         timings={"shading": t3 - t_start,
@@ -308,4 +346,6 @@ def _summed_timings(results: list[RenderResult]) -> dict[str, float]:
     return timings
 
 
-__all__ = ["BoxCache", "RenderResult", "all_finite", "box", "finish_pass", "front_roughness", "geometry_passes", "mask_box", "masked_box", "merge", "plan_box"]
+__all__ = ["MASKS", "BoxCache", "RenderResult", "all_finite", "box", "filter_passes",
+           "finish_pass", "front_roughness", "geometry_requests", "mask_box", "masked_box",
+           "merge", "plan_box"]

@@ -240,6 +240,14 @@ class _LatticeJob(ctypes.Structure):
                 ("uniform", _p), ("counts", _p)]
 
 
+class _BoxesJob(ctypes.Structure):
+    """ctypes mirror of ``BoxesJob`` in csrc/box.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("nitems", ctypes.c_int64), ("masks", _p * 2), ("uniform", _p), ("x", _p),
+                ("out", _p), ("c", _p), ("mask_of", _p), ("use_uniform", _p)]
+
+
 class _BoxJob(ctypes.Structure):
     """ctypes mirror of ``BoxJob`` in csrc/box.c."""
 
@@ -308,6 +316,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
+            "boxes": _BoxesJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
@@ -827,6 +836,57 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
     return out if _call("box", job) else None
 
 
+def boxes(items: list[tuple[torch.Tensor | None, int, bool]], masks: tuple, uniform
+          ) -> list[torch.Tensor] | None:
+    """Several 2 x 2 box filters of one supersampled frame in one pass (csrc/box.c's
+    ``boxes``), each item's bits those :func:`box` gives it alone: ``(x, mask, uniform)``
+    with x (B, 2h, 2w, C) float32 (None: the mask's coverage, (B, h, w, 1)), mask 0 (none),
+    1 or 2 (``masks``' first or second, (B, 2h, 2w) bool) or 3 (both), and whether the
+    ``uniform`` pixels (B, h, w) bool (or None) hold their first sub-pixel's value. ``None``
+    where the kernel is unavailable, a gradient is wanted, or an input does not fit."""
+    if not available() or not items:
+        return None
+    shape = next((m.shape for m in masks if m is not None), None)
+    xs = [x for x, _, _ in items if x is not None]
+    if shape is None and xs:
+        shape = xs[0].shape[:3]
+    if shape is None or shape[1] % 2 or shape[2] % 2:
+        return None
+    b, fh, fw = shape
+    h, w = fh // 2, fw // 2
+    if any(x.requires_grad or x.dim() != 4 or x.shape[:3] != shape for x in xs) or any(
+            m is not None and m.shape != shape for m in masks) or (
+            uniform is not None and uniform.shape != (b, h, w)):
+        return None
+    for _, mk, uni in items:
+        if (mk in (1, 3) and masks[0] is None) or (mk in (2, 3) and masks[1] is None) or (
+                uni and uniform is None):
+            return None
+    keep = _inputs(tuple(xs), (), tuple(m for m in (*masks, uniform) if m is not None))
+    if keep is None:
+        return None
+    inputs, rest = keep[:len(xs)], keep[len(xs):]
+    mptr = [rest.pop(0).data_ptr() if m is not None else None for m in masks]
+    u = rest.pop(0) if uniform is not None else None
+    outs, xp, it = [], [], iter(inputs)
+    for x, _, _ in items:
+        xi = next(it) if x is not None else None
+        outs.append(torch.empty(b, h, w, 1 if xi is None else xi.shape[3]))
+        xp.append(None if xi is None else xi.data_ptr())
+    n = len(items)
+    c = torch.tensor([o.shape[3] for o in outs], dtype=torch.int64)
+    mask_of = torch.tensor([mk for _, mk, _ in items], dtype=torch.int64)
+    use_u = torch.tensor([bool(uni) for _, _, uni in items], dtype=torch.uint8)
+    x_arr, out_arr = (_p * n)(*xp), (_p * n)(*[o.data_ptr() for o in outs])  # (held here)
+    job = _BoxesJob(b=b, h=h, w=w, nitems=n, masks=(_p * 2)(*mptr),
+                    uniform=None if u is None else u.data_ptr(),
+                    x=ctypes.cast(x_arr, _p), out=ctypes.cast(out_arr, _p),
+                    c=c.data_ptr(), mask_of=mask_of.data_ptr(), use_uniform=use_u.data_ptr())
+    done = _call("boxes", job)
+    del keep, x_arr, out_arr
+    return outs if done else None
+
+
 def pixel_rays(frames: torch.Tensor, h: int, w: int, r0: int = 0, r1: int | None = None
                ) -> torch.Tensor | None:
     """``camera.pixel_rays_rows`` of every view at once (csrc/gbuffer.c, the same bits):
@@ -996,6 +1056,6 @@ def relight_values(vals: torch.Tensor, tex: torch.Tensor, row: torch.Tensor,
     return n == 0 or (_call("relight_reads", job) and int(status) == 0)
 
 
-__all__ = ["available", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
+__all__ = ["available", "boxes", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
            "library_path", "march", "native_enabled", "no_grad_through", "raster_ids",
            "relight_reads", "relight_values", "set_native", "spread"]

@@ -127,6 +127,126 @@ static void box_range(const void *job, int64_t begin, int64_t end) {
     }
 }
 
+/* Many buffers of one frame filtered 2 x 2 at once (native.boxes): each pixel's coverage
+ * of the two masks (and of both) counted once, then every item as box2_range computes it
+ * alone, the same operations in the same order, so the bits are the same. */
+typedef struct {
+    int64_t b, h, w, nitems;
+    const uint8_t *masks[2];     /* (B, 2h, 2w) each, or NULL where no item uses it */
+    const uint8_t *uniform;      /* (B, h, w) or NULL */
+    const float *const *x;       /* (nitems,) each (B, 2h, 2w, c); NULL: the coverage */
+    float *const *out;           /* (nitems,) each (B, h, w, c) */
+    const int64_t *c;            /* (nitems,) channels */
+    const int64_t *mask_of;      /* (nitems,) 0 none, 1 masks[0], 2 masks[1], 3 both */
+    const uint8_t *use_uniform;  /* (nitems,) 1: the uniform pixels hold their first */
+} BoxesJob;
+
+/* CHUNK pixels of a row at a time: their masks' weights, then each item over them. */
+#define CHUNK 64
+
+/* One item over pixels [0, m) of a chunk, its channels C, masked (MASKED) and with the
+ * uniform pixels' first sub-pixel (UNI) constants, so that each loop has no branch and
+ * the compiler vectorizes it over the pixels: every case computed, then selected (the
+ * values of box2_range's branches). r0, r1: the chunk's first sub-pixel rows; wt: the
+ * item's mask's four sub-pixel weights per pixel; uni: the uniform flags. */
+#if defined(__GNUC__) && !defined(__clang__)
+/* GCC if-converts the selects only without trapping math (no value changes: it may then
+ * compute both sides of a select, as written here anyway). */
+#define TR_NO_TRAPS __attribute__((optimize("no-trapping-math")))
+#else
+#define TR_NO_TRAPS
+#endif
+
+#define BOXES_ITEM(NAME, C, MASKED, UNI)                                                      \
+    TR_NO_TRAPS static void NAME(const float *restrict r0, const float *restrict r1, float *restrict o,   \
+                     const float (*restrict wt)[CHUNK], const uint8_t *restrict uni, int m,   \
+                     int64_t cc) {                                                            \
+        const int64_t c = (C) > 0 ? (C) : cc;                                                 \
+        for (int64_t k = 0; k < c; k++)                                                       \
+            for (int x = 0; x < m; x++) {                                                     \
+                float v00 = r0[2 * x * c + k], v01 = r0[(2 * x + 1) * c + k];                 \
+                float v10 = r1[2 * x * c + k], v11 = r1[(2 * x + 1) * c + k];                 \
+                float v;                                                                      \
+                if (MASKED) {                                                                 \
+                    float a = wt[0][x], b = wt[1][x], d = wt[2][x], e = wt[3][x];             \
+                    float cnt = ((a + b) + d) + e;                                            \
+                    /* (divided by 1 where none is covered: no trap, so no branch) */         \
+                    float den = cnt == 0.0f ? 1.0f : cnt * 0.25f;                             \
+                    float q = ((((v00 * a + v01 * b) + v10 * d) + v11 * e) * 0.25f) / den;    \
+                    v = cnt == 0.0f ? 0.0f : q;                                               \
+                } else {                                                                      \
+                    v = (((v00 + v01) + v10) + v11) * 0.25f;                                  \
+                }                                                                             \
+                if (UNI) {                                                                    \
+                    float f = (((v00 + v00) + v00) + v00) * 0.25f;                            \
+                    v = uni[x] ? f : v;                                                       \
+                }                                                                             \
+                o[x * c + k] = v;                                                             \
+            }                                                                                 \
+    }
+#define BOXES_ITEMS(C, S)                                                                     \
+    BOXES_ITEM(boxes_##S##_p, C, 0, 0)                                                        \
+    BOXES_ITEM(boxes_##S##_pu, C, 0, 1)                                                       \
+    BOXES_ITEM(boxes_##S##_m, C, 1, 0)                                                        \
+    BOXES_ITEM(boxes_##S##_mu, C, 1, 1)                                                       \
+    static void boxes_##S(const float *r0, const float *r1, float *o,                        \
+                          const float (*wt)[CHUNK], const uint8_t *uni, int m, int64_t c) {   \
+        if (wt) (uni ? boxes_##S##_mu : boxes_##S##_m)(r0, r1, o, wt, uni, m, c);             \
+        else (uni ? boxes_##S##_pu : boxes_##S##_p)(r0, r1, o, wt, uni, m, c);                \
+    }
+BOXES_ITEMS(1, c1)
+BOXES_ITEMS(3, c3)
+BOXES_ITEMS(0, cn)
+
+static void boxes_range(const void *job, int64_t begin, int64_t end) {
+    const BoxesJob *j = (const BoxesJob *)job;
+    const int64_t h = j->h, w = j->w, nw = 2 * w;
+    float wt[4][4][CHUNK];  /* per mask kind (1-3): the four sub-pixels' 0 / 1 */
+    int used = 0;  /* the mask kinds the items read (bits 1-3) */
+    for (int64_t it = 0; it < j->nitems; it++) used |= 1 << (int)j->mask_of[it];
+    for (int64_t row = begin; row < end; row++) {
+        int64_t bi = row / h, y = row - bi * h, s0 = (bi * h * 2 + y * 2) * nw;
+        for (int64_t x0 = 0; x0 < w; x0 += CHUNK) {
+            int m = (int)(w - x0 < CHUNK ? w - x0 : CHUNK);
+            int64_t q0 = s0 + 2 * x0, p0 = row * w + x0;
+            for (int kind = 1; kind <= 3; kind++) {  /* bool bytes are 0 or 1 */
+                if (!(used & (1 << kind))) continue;
+                const uint8_t *ma = kind == 3 ? j->masks[0] : j->masks[kind - 1];
+                const uint8_t *mb = kind == 3 ? j->masks[1] : ma;
+                for (int k = 0; k < 4; k++) {
+                    const uint8_t *pa = ma + q0 + (k >> 1) * nw + (k & 1);
+                    const uint8_t *pb = mb + q0 + (k >> 1) * nw + (k & 1);
+                    float *o = wt[kind][k];
+                    for (int x = 0; x < m; x++) o[x] = (float)(pa[2 * x] & pb[2 * x]);
+                }
+            }
+            const uint8_t *uni = j->uniform ? j->uniform + p0 : NULL;
+            for (int64_t it = 0; it < j->nitems; it++) {
+                int64_t c = j->c[it], mk = j->mask_of[it];
+                float *o = j->out[it] + p0 * c;
+                if (!j->x[it]) {  /* the coverage: box of the mask as 0 / 1 */
+                    for (int x = 0; x < m; x++)
+                        o[x] = (((wt[mk][0][x] + wt[mk][1][x]) + wt[mk][2][x]) + wt[mk][3][x])
+                               * 0.25f;
+                    continue;
+                }
+                const float *r0 = j->x[it] + q0 * c, *r1 = r0 + nw * c;
+                const float (*wi)[CHUNK] = mk ? (const float (*)[CHUNK])wt[mk] : NULL;
+                const uint8_t *u = j->use_uniform[it] ? uni : NULL;
+                if (c == 1) boxes_c1(r0, r1, o, wi, u, m, c);
+                else if (c == 3) boxes_c3(r0, r1, o, wi, u, m, c);
+                else boxes_cn(r0, r1, o, wi, u, m, c);
+            }
+        }
+    }
+}
+
+int torchrefract_boxes(const BoxesJob *job, int threads) {
+    return tr_parallel_for_grain(boxes_range, job, job->b * job->h, 16, threads, 1);
+}
+
+int64_t torchrefract_boxes_job_size(void) { return (int64_t)sizeof(BoxesJob); }
+
 int torchrefract_box(const BoxJob *job, int threads) {
     return tr_parallel_for_grain(box_range, job, job->b * job->h, 16, threads, 1);
 }
