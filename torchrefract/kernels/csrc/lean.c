@@ -345,6 +345,7 @@ static void exit_geo(float ior, const float *p_t1, float k_t1, int found, const 
     e->tir = e->cos2 < e->cos_crit && found;
     e->var1 = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
     e->var_geo = 0.0f;  /* the table's lobe alone: widened by the covariances */
+    e->split_at = NULL;  /* no split kept (rousiers_core.h's prepare_exit keeps one) */
 }
 
 /* exit.py's mag2, (d theta_out / d theta_in)^2 at the exit. */

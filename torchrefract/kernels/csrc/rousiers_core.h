@@ -93,6 +93,11 @@ typedef struct {
     float view2[3], n_in[3], p2[3];
     float k_t1, var1, cos2, cos_crit, var_geo;
     int tir, found;
+    /* with bounces and a uniform roughness: the table's split at this exit, averaged over
+     * the lobe (spread_table_energies at cos2, var1 on the leaving interface split_at,
+     * kept for exit_lobe and first_reflection, which both ask for it); NULL: not kept */
+    const SgAxes *split_at;
+    float split_t, split_r;
 } ExitGeo;
 
 static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
@@ -108,7 +113,8 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
         float er;
         sg_lobe(&j->table, out, out0, dist, 0, cos2, &k_t2, &t_t2, &e_t2);
         lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
-        spread_table_energies(&j->table, out, out0, dist, cos2, var1, &weight, &er);
+        if (e->split_at == out) weight = e->split_t;
+        else spread_table_energies(&j->table, out, out0, dist, cos2, var1, &weight, &er);
     } else if (mode == REFLECT) {  /* the internal reflection lobe under TIR */
         float k_ti, t_ti, e_ti, z2 = sg_theta(cos2);
         sg_lobe_at(&j->table, out, out0, dist, 0, z2, &k_t2, &t_t2, &e_t2);
@@ -299,7 +305,8 @@ static inline float lerpf(float a, float b, float w) {
 static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int i, int64_t b,
                              int reflects, const float *p_t1, const float *n_in, float cos2,
                              float var1, const float *p2, const float *w1,
-                             const float *l_trans, float apart, float sectors) {
+                             const float *l_trans, float apart, float sectors,
+                             const SgAxes *split_at, float split_r) {
     const Frame *j = &rj->f;
     int64_t dist = j->dist[b];
     for (int c = 0; c < 3; c++) ps->acc[i][c] = w1[c] * l_trans[c];
@@ -309,7 +316,8 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
     if (reflects) {
         float e_unused;
         sg_lobe(&j->table, ax + OUT, ax + OUT0, dist, 1, cos2, &k_ri, &t_ri, &e_unused);
-        spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
+        if (split_at == ax + OUT) e_ri = split_r;  /* the exit's, kept (ExitGeo) */
+        else spread_table_energies(&j->table, ax + OUT, ax + OUT0, dist, cos2, var1, &e_ti, &e_ri);
         if (apart > 0.0f) e_ri = lerpf(e_ri, sectors, apart);
     }
     if (!goes_on(&rj->bo, ps, i, reflects, 0, w1, e_ri, w_next)) return;
@@ -433,7 +441,7 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
         SgAxes own_x[AXES];
         first_reflection(rj, axes_at(j, view_axes, b, a_x, own_x), &k->paths, i, b,
                          found && ior != 1.0f, k->axis.t + 3 * i, e->n_in, e->cos2, e->var1,
-                         e->p2, w1, l_trans, apart, sectors);
+                         e->p2, w1, l_trans, apart, sectors, e->split_at, e->split_r);
     }
 }
 
@@ -475,6 +483,11 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     k->major[i] = footprint_major(j, k, i, b, k->c_xy[i], &k->minor[i]);
     k->tap_r[i] = sg_env_tap(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i]);
     sg_tap_prefetch(&k->tap_r[i]);
+    if (rj->bo.limit > 0 && !j->rmap[b]) {  /* the split, asked for twice (ExitGeo) */
+        e->split_at = ax + OUT;
+        spread_table_energies(&j->table, ax + OUT, ax + OUT0, j->dist[b], e->cos2, e->var1,
+                              &e->split_t, &e->split_r);
+    }
     if (rj->levels == 0) {  /* exit_light's lobe */
         int mode = exit_mode(rj);
         leaving_lobe(rj, ax, b, alpha, mode, e, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
