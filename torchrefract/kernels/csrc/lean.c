@@ -472,10 +472,19 @@ static void ewa(const Frame *j, const LeanJob *lj, int64_t b, const float *origi
             sn[t] = -sn[taps - 1 - t];
         }
     }
+    /* every tap's texels asked for first, then read in order (incident_sg, split so the
+     * reads overlap: the taps scatter over the pyramid) */
+    float d[16][3];
+    SgTap tap[16];
+    for (int t = 0; t < taps; t++)
+        for (int c = 0; c < 3; c++) d[t][c] = cs[t] * axis[c] + sn[t] * major[c];
+    for (int t0 = 0; t0 < taps; t0 += 8)  /* eight at a time, in lanes */
+        sg_env_taps(&j->lights, &j->env, b, (const float (*)[3])d[t0],
+                    taps - t0 < 8 ? taps - t0 : 8, k, tap + t0);
+    for (int t = 0; t < taps; t++) sg_tap_prefetch(&tap[t]);
     for (int t = 0; t < taps; t++) {
-        float cz = cs[t], sz = sn[t], d[3], l[3];
-        for (int c = 0; c < 3; c++) d[c] = cz * axis[c] + sz * major[c];
-        incident_sg(&j->lights, &j->env, b, origin, d, k, l);
+        float l[3];
+        incident_sg_at(&j->lights, b, origin, d[t], k, &tap[t], l);
         for (int c = 0; c < 3; c++) sum[c] = t == 0 ? l[c] : sum[c] + l[c];
     }
     for (int c = 0; c < 3; c++) out[c] = sum[c] / (float)taps;

@@ -388,25 +388,66 @@ typedef struct {
 /* sg_pyramid.sg_lookup_env's tap: the map convolved with a normalized SG of sharpness k
  * (inf: a plain lookup) around dir: the two levels around k, blended linearly in the
  * effective sharpness k / (1 + v0 k) (_blend_weights). */
-static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
-                               float k) {
-    float u, v;
-    map_uv(L, b, dir, &u, &v);
+/* The two levels around sharpness k in view b's pyramid (torch.searchsorted(-ks, -k)):
+ * the lower one's index, and the blend weight. */
+static inline int64_t sg_levels_of(const SgEnv *e, int64_t b, float k, float *t) {
     const float *m = e->meta[b];
     float v0 = m[0];
     int64_t n = (int64_t)m[1];
-    const float *kap_levels = m + 2, *rects = m + 2 + (n + 2), *ks = rects + 4 * (n + 2);
+    const float *kap_levels = m + 2, *ks = m + 2 + (n + 2) + 4 * (n + 2);
     int64_t i = 0;
-    while (i < n && ks[i] > k) i++;  /* torch.searchsorted(-ks, -k) */
+    while (i < n && ks[i] > k) i++;
     float kap = isinf(k) ? 1.0f / v0 : k / (1.0f + v0 * k);
     float hi_k = kap_levels[i], lo_k = kap_levels[i + 1];
-    SgTap q;
-    q.t = (hi_k - kap) / (hi_k - lo_k);
+    *t = (hi_k - kap) / (hi_k - lo_k);
+    return i;
+}
+
+/* The tap at map coordinates (u, v) between levels i and i + 1 (sg_levels_of). */
+static inline SgTap sg_tap_uv(const SgEnv *e, int64_t b, int64_t i, float t, float u, float v) {
+    const float *m = e->meta[b];
+    int64_t n = (int64_t)m[1];
+    const float *rects = m + 2 + (n + 2);
     const int64_t *ahw = e->atlas_hw + 2 * b, *bhw = e->base_hw + 2 * b;
+    SgTap q;
+    q.t = t;
     q.hi = sg_level_tap(e->atlas[b], ahw[0], ahw[1], rects + 4 * (i + 1), u, v);
     q.lo = i == 0 ? sg_level_tap(e->base[b], bhw[0], bhw[1], rects, u, v)
                   : sg_level_tap(e->atlas[b], ahw[0], ahw[1], rects + 4 * i, u, v);
     return q;
+}
+
+static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
+                               float k) {
+    float u, v, t;
+    map_uv(L, b, dir, &u, &v);
+    int64_t i = sg_levels_of(e, b, k, &t);
+    return sg_tap_uv(e, b, i, t, u, v);
+}
+
+/* sg_env_tap of n <= 8 directions of view b at one sharpness k (an anisotropic lobe's
+ * taps): their map coordinates in AVX2 lanes where built for it (map_uv8, the same bits
+ * as map_uv), the levels found once. */
+static inline void sg_env_taps(const Lights *L, const SgEnv *e, int64_t b,
+                               const float (*dirs)[3], int n, float k, SgTap *out) {
+    float u[8], v[8], t;
+#ifdef TR_HAVE_ENV8
+    float xs[3][8];
+    for (int i = 0; i < 8; i++)
+        for (int c = 0; c < 3; c++) xs[c][i] = dirs[i < n ? i : 0][c];
+    EnvView8 ev;
+    ev.ca = _mm256_set1_ps(L->rot_cos[b]);
+    ev.sa = _mm256_set1_ps(L->rot_sin[b]);
+    __m256 uu, vv;
+    map_uv8(&ev, _mm256_loadu_ps(xs[0]), _mm256_loadu_ps(xs[1]), _mm256_loadu_ps(xs[2]), &uu,
+            &vv);
+    _mm256_storeu_ps(u, uu);
+    _mm256_storeu_ps(v, vv);
+#else
+    for (int i = 0; i < n; i++) map_uv(L, b, dirs[i], &u[i], &v[i]);
+#endif
+    int64_t lv = sg_levels_of(e, b, k, &t);
+    for (int i = 0; i < n; i++) out[i] = sg_tap_uv(e, b, lv, t, u[i], v[i]);
 }
 
 static inline void sg_tap_prefetch(const SgTap *q) {
