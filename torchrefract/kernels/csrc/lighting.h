@@ -425,6 +425,38 @@ static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const
     return sg_tap_uv(e, b, i, t, u, v);
 }
 
+/* sg_env_tap of n <= 8 lookups, lookup i along dirs[3 i ...] at sharpness ks[i] in view
+ * bs[i] (a block's pixels): their map coordinates in AVX2 lanes where built for it
+ * (map_uv8 with each lane's rotation, the same bits as map_uv). */
+static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int64_t *bs,
+                               const float *dirs, const float *ks, SgTap *out) {
+    float u[8], v[8];
+#ifdef TR_HAVE_ENV8
+    float xs[3][8], ca[8], sa[8];
+    for (int i = 0; i < 8; i++) {
+        int q = i < n ? i : 0;
+        for (int c = 0; c < 3; c++) xs[c][i] = dirs[3 * q + c];
+        ca[i] = L->rot_cos[bs[q]];
+        sa[i] = L->rot_sin[bs[q]];
+    }
+    EnvView8 ev;
+    ev.ca = _mm256_loadu_ps(ca);
+    ev.sa = _mm256_loadu_ps(sa);
+    __m256 uu, vv;
+    map_uv8(&ev, _mm256_loadu_ps(xs[0]), _mm256_loadu_ps(xs[1]), _mm256_loadu_ps(xs[2]), &uu,
+            &vv);
+    _mm256_storeu_ps(u, uu);
+    _mm256_storeu_ps(v, vv);
+#else
+    for (int i = 0; i < n; i++) map_uv(L, bs[i], dirs + 3 * i, &u[i], &v[i]);
+#endif
+    for (int i = 0; i < n; i++) {
+        float t;
+        int64_t lv = sg_levels_of(e, bs[i], ks[i], &t);
+        out[i] = sg_tap_uv(e, bs[i], lv, t, u[i], v[i]);
+    }
+}
+
 /* sg_env_tap of n <= 8 directions of view b at one sharpness k (an anisotropic lobe's
  * taps): their map coordinates in AVX2 lanes where built for it (map_uv8, the same bits
  * as map_uv), the levels found once. */

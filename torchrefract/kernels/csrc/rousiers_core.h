@@ -182,7 +182,8 @@ typedef struct {
     SgAxes own[BLOCK][AXES];
     Paths paths;
     /* rousiers' exits, prepared for the whole block before any pixel's lookups are read
-     * (prepare_exit), so that the lookups' texels come in while other pixels are shaded */
+     * (prepare_exit, block_taps: the reflections' taps before the marches, the exit
+     * lobes' after), so that the lookups' texels come in while other work is done */
     ExitGeo ex[BLOCK];
     float c_xy[BLOCK][2], minor[BLOCK], major[BLOCK];
     float lobe_p[BLOCK][3], lobe_k[BLOCK], lobe_w[BLOCK];  /* the exit lobe (levels 0) */
@@ -447,8 +448,7 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
 
 /* Steps 3-4 for pixel i (exit.exit_interface, cone.trace_cone's footprint): the exit
  * interface at the exact exit normal, the footprint; without roughness levels also the
- * exit lobe (leaving_lobe), and both lookups' taps, their texels asked for (read by
- * shade_pixel after the block's other exits are prepared). */
+ * exit lobe (leaving_lobe), whose lookup cone_block then taps for the whole block. */
 static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     const Frame *j = &rj->f;
     const SgAxes *ax = k->ax[i];
@@ -481,8 +481,6 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     const float *p1 = k->axis.p + 3 * i;
     for (int c = 0; c < 3; c++) e->p2[c] = found ? k->axis.pos[3 * i + c] : p1[c];
     k->major[i] = footprint_major(j, k, i, b, k->c_xy[i], &k->minor[i]);
-    k->tap_r[i] = sg_env_tap(&j->lights, &j->env, b, k->axis_r + 3 * i, k->k_r[i]);
-    sg_tap_prefetch(&k->tap_r[i]);
     if (rj->bo.limit > 0 && !j->rmap[b]) {  /* the split, asked for twice (ExitGeo) */
         e->split_at = ax + OUT;
         spread_table_energies(&j->table, ax + OUT, ax + OUT0, j->dist[b], e->cos2, e->var1,
@@ -491,8 +489,18 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     if (rj->levels == 0) {  /* exit_light's lobe */
         int mode = exit_mode(rj);
         leaving_lobe(rj, ax, b, alpha, mode, e, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
-        k->tap_t[i] = sg_env_tap(&j->lights, &j->env, b, k->lobe_p[i], k->lobe_k[i]);
-        sg_tap_prefetch(&k->tap_t[i]);
+    }
+}
+
+/* sg_env_tap of a block's m lookups (view of pixel i: the job's batch[r0 + i]; directions
+ * dirs[3 i ...], sharpness ks[i]), eight at a time in lanes, their texels asked for. */
+static void block_taps(const Frame *j, int64_t r0, int m, const float *dirs, const float *ks,
+                       SgTap *out) {
+    for (int i0 = 0; i0 < m; i0 += 8) {
+        int n = m - i0 < 8 ? m - i0 : 8;
+        sg_env_tap8(&j->lights, &j->env, n, j->batch + r0 + i0, dirs + 3 * i0, ks + i0,
+                    out + i0);
+        for (int i = 0; i < n; i++) sg_tap_prefetch(out + i0 + i);
     }
 }
 
@@ -602,8 +610,8 @@ typedef void (*cone_pixel_fn)(const void *job, const SgAxes *view_axes, Block *k
 
 /* One block of pixels of a method on the cone (``rousiers``, ``lean``, ``gsr``): step 1
  * per pixel, step 2 (the marches, march_core.h) per ray family over the block, then
- * (``prepare``: rousiers' prepare_exit per pixel, then) ``pixel`` per pixel, then the
- * bounces. */
+ * (``prepare``: rousiers' prepare_exit per pixel and the block's lookups tapped, then)
+ * ``pixel`` per pixel, then the bounces. */
 static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, int64_t r0,
                        int m, cone_pixel_fn pixel, int prepare) {
     const Frame *j = &rj->f;
@@ -615,11 +623,15 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
         k.ax[i] = axes_at(j, axes + NAXES * b, b, k.alpha[i], k.own[i]);
         front_and_cone(j, k.ax[i], &k, i, px, b);
     }
+    if (prepare)  /* the front reflections' lookups, asked for before the marches */
+        block_taps(j, r0, m, k.axis_r, k.k_r, k.tap_r);
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
     for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
-    if (prepare)  /* every exit of the block first, its lookups asked for (prepare_exit) */
+    if (prepare) {  /* every exit of the block first, then its lookups asked for */
         for (int i = 0; i < m; i++) prepare_exit(rj, &k, i, j->batch[r0 + i]);
+        if (rj->levels == 0) block_taps(j, r0, m, &k.lobe_p[0][0], k.lobe_k, k.tap_t);
+    }
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
         pixel(job, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
