@@ -30,11 +30,15 @@ typedef struct {
     float p[RAYS][3], t[RAYS][3], w[RAYS][3], var[RAYS], share[RAYS], normal[RAYS][3];
     float alpha[RAYS];  /* materials.roughness_at at the arrival's UV (not clamped) */
     uint8_t found[RAYS];
+    /* the light leaving each ray's interface, asked for by the method's tr_inside_fn and
+     * looked up for the whole wave (inside_lookups): along look_d, with sharpness look_k
+     * (an SG lookup) or a plain one (the method's ``sg`` 0), times look_w */
+    float look_d[RAYS][3], look_k[RAYS], look_w[RAYS];
 } Paths;
 
-/* A method's interface model for ray r of the paths at a later interface: adds the light
- * leaving to ``acc``; returns the reflectance, and the reflected lobe's direction and
- * variance. */
+/* A method's interface model for ray r of the paths at a later interface: asks for the
+ * light leaving (``look_d``, ``look_k``, ``look_w``: inside_lookups adds it to ``acc``);
+ * returns the reflectance, and the reflected lobe's direction and variance. */
 typedef float (*tr_inside_fn)(const void *job, const SgAxes *view_axes, Paths *ps, int r,
                               int64_t b, int last, float *dir, float *var_out);
 
@@ -74,12 +78,43 @@ static void add_ray(Paths *ps, int pix, const float *p, const float *t, const fl
     ps->bounces[pix] += share;
 }
 
+/* The light leaving the interfaces of rays [0, n) (their look_* requests), added to their
+ * pixels' ``acc`` in ray order: eight rays' lookups at a time, their map coordinates in
+ * lanes and their texels asked for before any is read. ``sg``: SG lookups (incident_sg),
+ * else plain ones (incident). */
+static void inside_lookups(const Frame *j, Paths *ps, int64_t r0, int n, int sg) {
+    for (int i0 = 0; i0 < n; i0 += 8) {
+        int m = n - i0 < 8 ? n - i0 : 8;
+        int64_t bs[8];
+        for (int i = 0; i < m; i++) bs[i] = j->batch[r0 + ps->pix[i0 + i]];
+        SgTap st[8];
+        EnvTap et[8];
+        if (sg) {
+            sg_env_tap8(&j->lights, &j->env, m, bs, &ps->look_d[i0][0], ps->look_k + i0, st);
+            for (int i = 0; i < m; i++) sg_tap_prefetch(st + i);
+        } else {
+            env_taps8(&j->lights, m, bs, &ps->look_d[i0][0], et);
+        }
+        for (int i = 0; i < m; i++) {
+            int r = i0 + i;
+            float l_out[3];
+            if (sg)
+                incident_sg_at(&j->lights, bs[i], ps->p[r], ps->look_d[r], ps->look_k[r], st + i,
+                               l_out);
+            else
+                incident_at(&j->lights, bs[i], ps->p[r], ps->look_d[r], et + i, l_out);
+            for (int c = 0; c < 3; c++)
+                ps->acc[ps->pix[r]][c] += ps->w[r][c] * ps->look_w[r] * l_out[c];
+        }
+    }
+}
+
 /* bounces.follow from the second interface on, over a block: march the rays still alive
  * to their next interface (march_inside: both layers, from 1e-4 of the chord), attenuate
  * them over the segment, shade it (``shade``, with view b's ``naxes`` table axes), keep
  * the rays that go on; until none does. */
 static void follow_block(const Frame *j, const Bounces *bo, const void *job,
-                         tr_inside_fn shade, const SgAxes *axes, int naxes, Paths *ps,
+                         tr_inside_fn shade, int sg, const SgAxes *axes, int naxes, Paths *ps,
                          int64_t r0) {
     Job inside = j->march;
     inside.pw = 8;
@@ -112,14 +147,18 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
             }
         }
         int last = k >= bo->limit, n = ps->n;
+        float dirs[RAYS][3], vars[RAYS], refls[RAYS];
+        for (int r = 0; r < n; r++) {  /* shade, the light leaving looked up for all */
+            int64_t b = j->batch[r0 + ps->pix[r]];
+            refls[r] = shade(job, axes + naxes * b, ps, r, b, last, dirs[r], &vars[r]);
+        }
+        inside_lookups(j, ps, r0, n, sg);
         ps->n = 0;
-        for (int r = 0; r < n; r++) {  /* shade, and compact the rays that go on in place */
+        for (int r = 0; r < n; r++) {  /* compact the rays that go on in place */
             int pix = ps->pix[r];
-            int64_t b = j->batch[r0 + pix];
-            float dir[3], var, w_next[3];
-            float refl = shade(job, axes + naxes * b, ps, r, b, last, dir, &var);
-            if (goes_on(bo, ps, pix, ps->found[r], last, ps->w[r], refl, w_next))
-                add_ray(ps, pix, ps->p[r], dir, w_next, var, ps->share[r]);
+            float w_next[3];
+            if (goes_on(bo, ps, pix, ps->found[r], last, ps->w[r], refls[r], w_next))
+                add_ray(ps, pix, ps->p[r], dirs[r], w_next, vars[r], ps->share[r]);
         }
     }
 }
@@ -128,9 +167,9 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
  * ``front`` (its front reflection's light) plus what left through the interfaces met from
  * inside, over the background unless a light hides it (``hidden``), and its bounce passes. */
 static void finish_block(const Frame *j, const Bounces *bo, const void *job,
-                         tr_inside_fn shade, const SgAxes *axes, int naxes, Paths *ps,
+                         tr_inside_fn shade, int sg, const SgAxes *axes, int naxes, Paths *ps,
                          const float (*front)[3], const uint8_t *hidden, int64_t r0, int m) {
-    follow_block(j, bo, job, shade, axes, naxes, ps, r0);
+    follow_block(j, bo, job, shade, sg, axes, naxes, ps, r0);
     for (int i = 0; i < m; i++) {
         int64_t px = j->idx[r0 + i];
         for (int c = 0; c < 3 && !hidden[i]; c++)

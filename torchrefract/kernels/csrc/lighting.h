@@ -425,12 +425,10 @@ static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const
     return sg_tap_uv(e, b, i, t, u, v);
 }
 
-/* sg_env_tap of n <= 8 lookups, lookup i along dirs[3 i ...] at sharpness ks[i] in view
- * bs[i] (a block's pixels): their map coordinates in AVX2 lanes where built for it
- * (map_uv8 with each lane's rotation, the same bits as map_uv). */
-static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int64_t *bs,
-                               const float *dirs, const float *ks, SgTap *out) {
-    float u[8], v[8];
+/* The map coordinates of n <= 8 directions dirs[3 i ...], lookup i in view bs[i] (map_uv;
+ * in AVX2 lanes where built for it: map_uv8 with each lane's rotation, the same bits). */
+static inline void map_uv_n(const Lights *L, int n, const int64_t *bs, const float *dirs,
+                            float *u, float *v) {
 #ifdef TR_HAVE_ENV8
     float xs[3][8], ca[8], sa[8];
     for (int i = 0; i < 8; i++) {
@@ -445,11 +443,38 @@ static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int
     __m256 uu, vv;
     map_uv8(&ev, _mm256_loadu_ps(xs[0]), _mm256_loadu_ps(xs[1]), _mm256_loadu_ps(xs[2]), &uu,
             &vv);
-    _mm256_storeu_ps(u, uu);
-    _mm256_storeu_ps(v, vv);
+    float ub[8], vb[8];
+    _mm256_storeu_ps(ub, uu);
+    _mm256_storeu_ps(vb, vv);
+    for (int i = 0; i < n; i++) {
+        u[i] = ub[i];
+        v[i] = vb[i];
+    }
 #else
     for (int i = 0; i < n; i++) map_uv(L, bs[i], dirs + 3 * i, &u[i], &v[i]);
 #endif
+}
+
+/* env_prefetch of n <= 8 lookups (directions dirs[3 i ...], views bs[i]). */
+static inline void env_taps8(const Lights *L, int n, const int64_t *bs, const float *dirs,
+                             EnvTap *out) {
+    float u[8], v[8];
+    map_uv_n(L, n, bs, dirs, u, v);
+    for (int i = 0; i < n; i++) {
+        out[i] = env_tap(L, bs[i], u[i], v[i]);
+        int64_t w = L->tex_w[bs[i]];
+        __builtin_prefetch(L->tex[bs[i]] + (out[i].y0 * w + out[i].c0) * 3);
+        __builtin_prefetch(L->tex[bs[i]] + (out[i].y1 * w + out[i].c0) * 3);
+    }
+}
+
+/* sg_env_tap of n <= 8 lookups, lookup i along dirs[3 i ...] at sharpness ks[i] in view
+ * bs[i] (a block's pixels): their map coordinates in AVX2 lanes where built for it
+ * (map_uv8 with each lane's rotation, the same bits as map_uv). */
+static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int64_t *bs,
+                               const float *dirs, const float *ks, SgTap *out) {
+    float u[8], v[8];
+    map_uv_n(L, n, bs, dirs, u, v);
     for (int i = 0; i < n; i++) {
         float t;
         int64_t lv = sg_levels_of(e, bs[i], ks[i], &t);
@@ -463,21 +488,9 @@ static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int
 static inline void sg_env_taps(const Lights *L, const SgEnv *e, int64_t b,
                                const float (*dirs)[3], int n, float k, SgTap *out) {
     float u[8], v[8], t;
-#ifdef TR_HAVE_ENV8
-    float xs[3][8];
-    for (int i = 0; i < 8; i++)
-        for (int c = 0; c < 3; c++) xs[c][i] = dirs[i < n ? i : 0][c];
-    EnvView8 ev;
-    ev.ca = _mm256_set1_ps(L->rot_cos[b]);
-    ev.sa = _mm256_set1_ps(L->rot_sin[b]);
-    __m256 uu, vv;
-    map_uv8(&ev, _mm256_loadu_ps(xs[0]), _mm256_loadu_ps(xs[1]), _mm256_loadu_ps(xs[2]), &uu,
-            &vv);
-    _mm256_storeu_ps(u, uu);
-    _mm256_storeu_ps(v, vv);
-#else
-    for (int i = 0; i < n; i++) map_uv(L, b, dirs[i], &u[i], &v[i]);
-#endif
+    int64_t bs[8];
+    for (int i = 0; i < n; i++) bs[i] = b;
+    map_uv_n(L, n, bs, &dirs[0][0], u, v);
     int64_t lv = sg_levels_of(e, b, k, &t);
     for (int i = 0; i < n; i++) out[i] = sg_tap_uv(e, b, lv, t, u[i], v[i]);
 }

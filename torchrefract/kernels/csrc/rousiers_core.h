@@ -594,9 +594,9 @@ static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, i
         w_out = escape(j, b, alpha);
         refl = 0.0f;
     }
-    float l_out[3];
-    incident_sg(&j->lights, &j->env, b, ps->p[r], p_t, k_out, l_out);
-    for (int c = 0; c < 3; c++) ps->acc[ps->pix[r]][c] += ps->w[r][c] * w_out * l_out[c];
+    for (int c = 0; c < 3; c++) ps->look_d[r][c] = p_t[c];  /* (bounces.h: looked up) */
+    ps->look_k[r] = k_out;
+    ps->look_w[r] = w_out;
     reflect(t, n_view, dir);
     normalize3(dir);
     *var_out = var + inv_kr;
@@ -637,7 +637,7 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
         pixel(job, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
     if (rj->bo.limit > 0)
-        finish_block(j, &rj->bo, rj, shade_inside, axes, NAXES, &k.paths,
+        finish_block(j, &rj->bo, rj, shade_inside, 1, axes, NAXES, &k.paths,
                      (const float (*)[3])k.front, k.hidden, r0, m);
 }
 

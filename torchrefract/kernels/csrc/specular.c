@@ -136,7 +136,7 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
         sg_axes(&j->table, 1.0f / eta, alpha, &own);
         out = &own;
     }
-    float n_view[3], t_out[3], l_out[3];
+    float n_view[3], t_out[3];
     face_forward(ps->normal[r], t, n_view);
     float cos = -dot3(t, n_view), f = fresnel(cos, eta);
     int tir = refract(t, n_view, eta, t_out);
@@ -160,8 +160,9 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
         w_out = esc;
         refl = 0.0f;
     }
-    incident(&j->lights, b, ps->p[r], t_out, l_out);
-    for (int c = 0; c < 3; c++) ps->acc[ps->pix[r]][c] += ps->w[r][c] * w_out * l_out[c];
+    for (int c = 0; c < 3; c++) ps->look_d[r][c] = t_out[c];  /* (bounces.h: looked up) */
+    ps->look_k[r] = INFINITY;
+    ps->look_w[r] = w_out;
     *var_out = var;
     return refl;
 }
@@ -282,7 +283,7 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
                     b, &sb);
     }
     if (sj->bo.limit > 0)
-        finish_block(j, &sj->bo, sj, inside_specular, axes, 2, &sb.paths,
+        finish_block(j, &sj->bo, sj, inside_specular, 0, axes, 2, &sb.paths,
                      (const float (*)[3])sb.front, sb.hidden, r0, m);
 }
 
