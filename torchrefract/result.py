@@ -241,11 +241,12 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     # Material passes (per object pixel): what a model trained on the data may regress.
     rough = front_roughness(g, materials)[..., None]
     materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))
-    fm = g.front.mask[..., None].to(torch.float32)
+    order = [*requests, "roughness", "ior", *method_passes]
+    # the front coverage as 0 / 1 where a pass is taken per sub-pixel (one sample, or a map)
+    fm = g.front.mask[..., None].to(torch.float32) if n == 1 or rough.shape[1] != 1 else None
     for name, v in materials_px:
         if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
             requests[name] = (fm * v, "front", False)
-    order = [*requests, "roughness", "ior", *method_passes]
     if n == 1:  # the layers are zero where empty, and so are the method's passes off the
         # object (methods.base.Shaded): only the thickness needs its mask
         done = {k: x for k, (x, _, _) in requests.items()}
@@ -261,9 +262,12 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
         done = filter_passes(g, requests, uniform, cache)
         del requests
         pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
+        covered = None
         for name, v in materials_px:
             if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
-                done[name] = (coverage > 0).to(v.dtype) * v  # sub-pixels is that value
+                if covered is None:  # sub-pixels is that value
+                    covered = (coverage > 0).to(v.dtype)
+                done[name] = covered * v
     passes = {k: done[k] for k in order}
     del done
     passes.update(extra_passes)  # already per pixel

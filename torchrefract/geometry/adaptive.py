@@ -138,10 +138,12 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
         tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
         _center_samples(g, sel, tris, center_dirs[uniform])
-    shade = g.front.mask.clone() if region is None else g.front.mask & region
-    for k, v in enumerate(_subs(shade, n)):
-        if k:
-            v[uniform] = False
+    # a uniform pixel is shaded at its first sub-pixel only (one op over the sub-pixels)
+    b = uniform.shape[0]
+    later = torch.ones(n, n, dtype=torch.bool)
+    later[0, 0] = False
+    drop = (uniform[:, :, None, :, None] & later[:, None, :]).reshape(b, h, w)
+    shade = g.front.mask & ~drop if region is None else g.front.mask & region & ~drop
     if region is not None:  # a pixel outside is neither shaded nor waited on
         uniform = uniform & region[:, ::n, ::n]
     return replace(g, shade=shade), Plan(uniform=uniform, n=n)
