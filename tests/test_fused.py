@@ -292,3 +292,25 @@ def test_background_lanes_match_the_tensor_code_at_odd_sizes():
             rel = ((ra - rb).abs() / ra.abs().clamp(min=1e-3)).amax(-1)
             assert rel.numel() and float(rel.max()) < 5e-3, (name, i, float(rel.max()))
             assert float((rel > 1e-4).float().mean()) < 0.05, (name, i)
+
+
+@pytest.mark.parametrize("method, options", [
+    ("rousiers", {"internal_bounces": 2, "bounce_rays": 4}),
+    ("rousiers", {"internal_bounces": "auto"}),
+    ("specular", {"internal_bounces": 3}),
+    ("gsr", {"internal_bounces": 2})])
+def test_fused_bounces_the_same_bits_in_lanes_and_scalar(method, options):
+    """The fused marches' search in AVX2 lanes gives the scalar search's bits, image and
+    every pass, also for the rays a bounce keeps (part blocks: their empty lanes copies
+    of the first ray, dropped). Where the CPU has no AVX2 both runs are scalar."""
+    s = _small(SUITE[0].parent / "suzanne_a01.yaml", 48, method=method,
+               method_options=options)
+    with using(RenderSettings(native_simd=True)):
+        a = tr.render(s)
+    with using(RenderSettings(native_simd=False)):
+        b = tr.render(s)
+    assert a.timings.get("fused", 0) > 0 and float(a.passes["bounces"].max()) >= 1
+    assert torch.equal(a.radiance, b.radiance)
+    assert list(a.passes) == list(b.passes)
+    for k in a.passes:
+        assert torch.equal(a.passes[k], b.passes[k]), k
