@@ -149,6 +149,8 @@ def filter_passes(g: GBuffer, requests: dict[str, tuple], uniform: torch.Tensor 
     request at a time. The bits are the same either way."""
     n = g.supersample
     kinds = {m: i for i, m in enumerate(MASKS)}
+    if any(x is None and m is None for x, m, _ in requests.values()):
+        raise ValueError("filter_passes: a coverage request (x None) needs a mask")
     items = [(x, kinds[m], bool(p) and uniform is not None) for x, m, p in requests.values()]
     out = native.boxes(items, (g.front.mask, g.back.mask), uniform) if n == 2 else None
     if out is not None:
@@ -244,9 +246,6 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
     order = [*requests, "roughness", "ior", *method_passes]
     # the front coverage as 0 / 1 where a pass is taken per sub-pixel (one sample, or a map)
     fm = g.front.mask[..., None].to(torch.float32) if n == 1 or rough.shape[1] != 1 else None
-    for name, v in materials_px:
-        if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
-            requests[name] = (fm * v, "front", False)
     if n == 1:  # the layers are zero where empty, and so are the method's passes off the
         # object (methods.base.Shaded): only the thickness needs its mask
         done = {k: x for k, (x, _, _) in requests.items()}
@@ -255,6 +254,9 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
         done.update((name, fm * v) for name, v in materials_px)
         pixel_radiance, coverage = radiance, fm
     else:
+        for name, v in materials_px:
+            if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
+                requests[name] = (fm * v, "front", False)
         requests.update((k, (v, "front", True)) for k, v in method_passes.items())
         requests["radiance"] = (radiance, None, True)
         requests["coverage"] = (None, "front", False)

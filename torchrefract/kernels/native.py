@@ -858,9 +858,9 @@ def boxes(items: list[tuple[torch.Tensor | None, int, bool]], masks: tuple, unif
             m is not None and m.shape != shape for m in masks) or (
             uniform is not None and uniform.shape != (b, h, w)):
         return None
-    for _, mk, uni in items:
+    for x, mk, uni in items:
         if (mk in (1, 3) and masks[0] is None) or (mk in (2, 3) and masks[1] is None) or (
-                uni and uniform is None):
+                uni and uniform is None) or (x is None and mk == 0):
             return None
     keep = _inputs(tuple(xs), (), tuple(m for m in (*masks, uniform) if m is not None))
     if keep is None:
