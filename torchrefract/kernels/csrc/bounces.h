@@ -89,12 +89,8 @@ static void inside_lookups(const Frame *j, Paths *ps, int64_t r0, int n, int sg)
         for (int i = 0; i < m; i++) bs[i] = j->batch[r0 + ps->pix[i0 + i]];
         SgTap st[8];
         EnvTap et[8];
-        if (sg) {
-            sg_env_tap8(&j->lights, &j->env, m, bs, &ps->look_d[i0][0], ps->look_k + i0, st);
-            for (int i = 0; i < m; i++) sg_tap_prefetch(st + i);
-        } else {
-            env_taps8(&j->lights, m, bs, &ps->look_d[i0][0], et);
-        }
+        if (sg) sg_env_tap8(&j->lights, &j->env, m, bs, &ps->look_d[i0][0], ps->look_k + i0, st);
+        else env_taps8(&j->lights, m, bs, &ps->look_d[i0][0], et);
         for (int i = 0; i < m; i++) {
             int r = i0 + i;
             float l_out[3];

@@ -481,7 +481,6 @@ static void ewa(const Frame *j, const LeanJob *lj, int64_t b, const float *origi
     for (int t0 = 0; t0 < taps; t0 += 8)  /* eight at a time, in lanes */
         sg_env_taps(&j->lights, &j->env, b, (const float (*)[3])d[t0],
                     taps - t0 < 8 ? taps - t0 : 8, k, tap + t0);
-    for (int t = 0; t < taps; t++) sg_tap_prefetch(&tap[t]);
     for (int t = 0; t < taps; t++) {
         float l[3];
         incident_sg_at(&j->lights, b, origin, d[t], k, &tap[t], l);

@@ -315,14 +315,19 @@ static inline void tr_store_xyz8(float *p, __m256 x, __m256 y, __m256 z) {
 }
 #endif
 
+/* A tap's two texel rows asked into the cache. */
+static inline void env_tap_prefetch(const Lights *j, const EnvTap *p) {
+    int64_t w = j->tex_w[p->b];
+    __builtin_prefetch(j->tex[p->b] + (p->y0 * w + p->c0) * 3);
+    __builtin_prefetch(j->tex[p->b] + (p->y1 * w + p->c0) * 3);
+}
+
 /* The tap along dir, its texel rows asked into the cache: a pixel's lookups then overlap
  * their memory reads with the work done before them (the refracted directions scatter
  * over the map); env_read reads them later. */
 static inline EnvTap env_prefetch(const Lights *j, int64_t b, const float *dir) {
     EnvTap p = env_tap_dir(j, b, dir);
-    int64_t w = j->tex_w[b];
-    __builtin_prefetch(j->tex[b] + (p.y0 * w + p.c0) * 3);
-    __builtin_prefetch(j->tex[b] + (p.y1 * w + p.c0) * 3);
+    env_tap_prefetch(j, &p);
     return p;
 }
 
@@ -385,11 +390,14 @@ typedef struct {
     float t;
 } SgTap;
 
-/* sg_pyramid.sg_lookup_env's tap: the map convolved with a normalized SG of sharpness k
- * (inf: a plain lookup) around dir: the two levels around k, blended linearly in the
- * effective sharpness k / (1 + v0 k) (_blend_weights). */
+static inline void sg_tap_prefetch(const SgTap *q) {
+    sg_level_prefetch(&q->hi);
+    sg_level_prefetch(&q->lo);
+}
+
 /* The two levels around sharpness k in view b's pyramid (torch.searchsorted(-ks, -k)):
- * the lower one's index, and the blend weight. */
+ * the lower one's index, and the blend weight, linear in the effective sharpness
+ * k / (1 + v0 k) (_blend_weights). */
 static inline int64_t sg_levels_of(const SgEnv *e, int64_t b, float k, float *t) {
     const float *m = e->meta[b];
     float v0 = m[0];
@@ -417,6 +425,8 @@ static inline SgTap sg_tap_uv(const SgEnv *e, int64_t b, int64_t i, float t, flo
     return q;
 }
 
+/* sg_pyramid.sg_lookup_env's tap: the map convolved with a normalized SG of sharpness k
+ * (inf: a plain lookup) around dir, between the two levels around k. */
 static inline SgTap sg_env_tap(const Lights *L, const SgEnv *e, int64_t b, const float *dir,
                                float k) {
     float u, v, t;
@@ -455,22 +465,21 @@ static inline void map_uv_n(const Lights *L, int n, const int64_t *bs, const flo
 #endif
 }
 
-/* env_prefetch of n <= 8 lookups (directions dirs[3 i ...], views bs[i]). */
+/* env_prefetch of n <= 8 lookups (directions dirs[3 i ...], views bs[i]): their map
+ * coordinates by map_uv_n. */
 static inline void env_taps8(const Lights *L, int n, const int64_t *bs, const float *dirs,
                              EnvTap *out) {
     float u[8], v[8];
     map_uv_n(L, n, bs, dirs, u, v);
     for (int i = 0; i < n; i++) {
         out[i] = env_tap(L, bs[i], u[i], v[i]);
-        int64_t w = L->tex_w[bs[i]];
-        __builtin_prefetch(L->tex[bs[i]] + (out[i].y0 * w + out[i].c0) * 3);
-        __builtin_prefetch(L->tex[bs[i]] + (out[i].y1 * w + out[i].c0) * 3);
+        env_tap_prefetch(L, out + i);
     }
 }
 
 /* sg_env_tap of n <= 8 lookups, lookup i along dirs[3 i ...] at sharpness ks[i] in view
- * bs[i] (a block's pixels): their map coordinates in AVX2 lanes where built for it
- * (map_uv8 with each lane's rotation, the same bits as map_uv). */
+ * bs[i] (a block's pixels), their texels asked for: their map coordinates in AVX2 lanes
+ * where built for it (map_uv8 with each lane's rotation, the same bits as map_uv). */
 static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int64_t *bs,
                                const float *dirs, const float *ks, SgTap *out) {
     float u[8], v[8];
@@ -479,12 +488,12 @@ static inline void sg_env_tap8(const Lights *L, const SgEnv *e, int n, const int
         float t;
         int64_t lv = sg_levels_of(e, bs[i], ks[i], &t);
         out[i] = sg_tap_uv(e, bs[i], lv, t, u[i], v[i]);
+        sg_tap_prefetch(out + i);
     }
 }
 
-/* sg_env_tap of n <= 8 directions of view b at one sharpness k (an anisotropic lobe's
- * taps): their map coordinates in AVX2 lanes where built for it (map_uv8, the same bits
- * as map_uv), the levels found once. */
+/* sg_env_tap8 of n <= 8 directions of view b at one sharpness k (an anisotropic lobe's
+ * taps), the levels found once. */
 static inline void sg_env_taps(const Lights *L, const SgEnv *e, int64_t b,
                                const float (*dirs)[3], int n, float k, SgTap *out) {
     float u[8], v[8], t;
@@ -492,12 +501,10 @@ static inline void sg_env_taps(const Lights *L, const SgEnv *e, int64_t b,
     for (int i = 0; i < n; i++) bs[i] = b;
     map_uv_n(L, n, bs, &dirs[0][0], u, v);
     int64_t lv = sg_levels_of(e, b, k, &t);
-    for (int i = 0; i < n; i++) out[i] = sg_tap_uv(e, b, lv, t, u[i], v[i]);
-}
-
-static inline void sg_tap_prefetch(const SgTap *q) {
-    sg_level_prefetch(&q->hi);
-    sg_level_prefetch(&q->lo);
+    for (int i = 0; i < n; i++) {
+        out[i] = sg_tap_uv(e, b, lv, t, u[i], v[i]);
+        sg_tap_prefetch(out + i);
+    }
 }
 
 static inline void sg_env_read(const Lights *L, int64_t b, const SgTap *q, float *out) {

@@ -496,12 +496,9 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
  * dirs[3 i ...], sharpness ks[i]), eight at a time in lanes, their texels asked for. */
 static void block_taps(const Frame *j, int64_t r0, int m, const float *dirs, const float *ks,
                        SgTap *out) {
-    for (int i0 = 0; i0 < m; i0 += 8) {
-        int n = m - i0 < 8 ? m - i0 : 8;
-        sg_env_tap8(&j->lights, &j->env, n, j->batch + r0 + i0, dirs + 3 * i0, ks + i0,
-                    out + i0);
-        for (int i = 0; i < n; i++) sg_tap_prefetch(out + i0 + i);
-    }
+    for (int i0 = 0; i0 < m; i0 += 8)
+        sg_env_tap8(&j->lights, &j->env, m - i0 < 8 ? m - i0 : 8, j->batch + r0 + i0,
+                    dirs + 3 * i0, ks + i0, out + i0);
 }
 
 /* Step 5 for pixel i (prepare_exit first; exit.exit_lobe, shade.render_rousiers): the
