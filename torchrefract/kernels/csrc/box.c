@@ -29,43 +29,6 @@ static inline float block_sum(const float *restrict x, const uint8_t *restrict m
     return s;
 }
 
-/* n = 2 (the default supersampling) written out: the same operations in the same order,
- * dividing by 4 as multiplying by 0.25 (both exact: the same correctly rounded value). */
-static void box2_range(const BoxJob *j, int64_t begin, int64_t end) {
-    const float *restrict xs = j->x;
-    const uint8_t *restrict mask = j->mask, *restrict uniform = j->uniform;
-    float *restrict out = j->out;
-    const int64_t c = j->c, h = j->h, w = j->w, nw = 2 * w;
-    for (int64_t row = begin; row < end; row++) {
-        int64_t bi = row / h, y = row - bi * h, s0 = (bi * h * 2 + y * 2) * nw;
-        const float *r0 = xs + s0 * c, *r1 = xs + (s0 + nw) * c;
-        const uint8_t *m0 = mask ? mask + s0 : NULL, *m1 = mask ? mask + s0 + nw : NULL;
-        const uint8_t *u = uniform ? uniform + row * w : NULL;
-        float *o = out + row * w * c;
-        for (int64_t x = 0; x < w; x++, r0 += 2 * c, r1 += 2 * c, o += c) {
-            if (u && u[x]) {
-                for (int64_t k = 0; k < c; k++) o[k] = (((r0[k] + r0[k]) + r0[k]) + r0[k]) * 0.25f;
-                continue;
-            }
-            if (!m0) {
-                for (int64_t k = 0; k < c; k++)
-                    o[k] = (((r0[k] + r0[c + k]) + r1[k]) + r1[c + k]) * 0.25f;
-                continue;
-            }
-            float a = m0[2 * x] ? 1.0f : 0.0f, b = m0[2 * x + 1] ? 1.0f : 0.0f;
-            float d = m1[2 * x] ? 1.0f : 0.0f, e = m1[2 * x + 1] ? 1.0f : 0.0f;
-            float cnt = ((a + b) + d) + e;
-            if (cnt == 0.0f) {
-                for (int64_t k = 0; k < c; k++) o[k] = 0.0f;
-                continue;
-            }
-            float den = cnt * 0.25f;
-            for (int64_t k = 0; k < c; k++)
-                o[k] = ((((r0[k] * a + r0[c + k] * b) + r1[k] * d) + r1[c + k] * e) * 0.25f) / den;
-        }
-    }
-}
-
 /* n = 1 with a mask: each value where covered, else 0 (the tensor code's where). */
 static void select_range(const BoxJob *j, int64_t begin, int64_t end) {
     const int64_t c = j->c, w = j->w;
@@ -82,10 +45,6 @@ static void box_range(const void *job, int64_t begin, int64_t end) {
     const BoxJob *j = (const BoxJob *)job;
     if (j->n == 1) {
         select_range(j, begin, end);
-        return;
-    }
-    if (j->n == 2) {
-        box2_range(j, begin, end);
         return;
     }
     const float *restrict xs = j->x;
@@ -127,9 +86,10 @@ static void box_range(const void *job, int64_t begin, int64_t end) {
     }
 }
 
-/* Many buffers of one frame filtered 2 x 2 at once (native.boxes): each pixel's coverage
- * of the two masks (and of both) counted once, then every item as box2_range computes it
- * alone, the same operations in the same order, so the bits are the same. */
+/* Buffers of one frame filtered 2 x 2 (native.boxes; native.box at n = 2 is one item):
+ * each pixel's coverage of the two masks (and of both) counted once, then every item with
+ * box_range's operations in its order, the sub-pixels summed row-major and divided by 4
+ * as multiplied by 0.25 (both exact: the same correctly rounded value). */
 typedef struct {
     int64_t b, h, w, nitems;
     const uint8_t *masks[2];     /* (B, 2h, 2w) each, or NULL where no item uses it */
@@ -147,7 +107,7 @@ typedef struct {
 /* One item over pixels [0, m) of a chunk, its channels C, masked (MASKED) and with the
  * uniform pixels' first sub-pixel (UNI) constants, so that each loop has no branch and
  * the compiler vectorizes it over the pixels: every case computed, then selected (the
- * values of box2_range's branches). r0, r1: the chunk's first sub-pixel rows; wt: the
+ * values of box_range's branches). r0, r1: the chunk's first sub-pixel rows; wt: the
  * item's mask's four sub-pixel weights per pixel; uni: the uniform flags. */
 #if defined(__GNUC__) && !defined(__clang__)
 /* GCC if-converts the selects only without trapping math (no value changes: it may then
