@@ -25,15 +25,11 @@ def encode_exr(channels: dict[str, np.ndarray]) -> bytes:
 
 
 def encode_png(rgb: np.ndarray, exposure: float = 0.0) -> bytes:
-    """sRGB PNG preview bytes of linear radiance (H, W, 3)."""
-    from PIL import Image  # noqa: PLC0415
+    """The bytes :func:`torchrefract.output.images.write_png` writes: the sRGB PNG preview
+    of linear radiance (H, W, 3)."""
+    from torchrefract.output.images import png_bytes  # noqa: PLC0415
 
-    from torchrefract.output.images import PNG_LEVEL, linear_to_srgb8  # noqa: PLC0415
-
-    buf = io.BytesIO()
-    Image.fromarray(linear_to_srgb8(rgb, exposure)).save(buf, format="PNG",
-                                                         compress_level=PNG_LEVEL)
-    return buf.getvalue()
+    return png_bytes(rgb, exposure)
 
 
 def channel_layout(result, i: int = 0) -> dict:

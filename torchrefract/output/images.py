@@ -6,6 +6,8 @@ EXR files hold linear float32 radiance, never tonemapped. Writes are atomic
 
 from __future__ import annotations
 
+import io
+
 from pathlib import Path
 
 import numpy as np
@@ -130,11 +132,16 @@ PIL's default level its encoding weighed on a dataset's pace for files little sm
 (docs/datasets.md, section 4)."""
 
 
-def write_png(path: str | Path, rgb: np.ndarray, exposure: float = 0.0) -> None:
-    """Write an sRGB PNG preview of linear radiance (H, W, 3), atomically."""
+def png_bytes(rgb: np.ndarray, exposure: float = 0.0) -> bytes:
+    """The sRGB PNG preview of linear radiance (H, W, 3), as bytes (PNG_LEVEL)."""
     from PIL import Image  # noqa: PLC0415
 
-    path = Path(path)
-    with atomic_path(path, suffix=path.suffix) as tmp:
-        Image.fromarray(linear_to_srgb8(rgb, exposure)).save(tmp, format="PNG",
-                                                              compress_level=PNG_LEVEL)
+    buf = io.BytesIO()
+    Image.fromarray(linear_to_srgb8(rgb, exposure)).save(buf, format="PNG",
+                                                         compress_level=PNG_LEVEL)
+    return buf.getvalue()
+
+
+def write_png(path: str | Path, rgb: np.ndarray, exposure: float = 0.0) -> None:
+    """Write an sRGB PNG preview of linear radiance (H, W, 3), atomically."""
+    write_bytes(path, png_bytes(rgb, exposure))
