@@ -106,25 +106,7 @@ static void march_rays_on(const Job *base, Rays *r, int m, int steps, int refine
     jm.batch = r->batch; jm.p1 = r->p; jm.t = r->t;
     jm.s_out = r->s; jm.bary_out = r->bary; jm.normal_out = r->normal; jm.pos_out = r->pos;
     jm.found = r->found; jm.tri = r->tri; jm.layer = r->layer;
-#ifdef HAVE_AVX2_PATH
-    if (jm.simd && m > 1) {
-        /* a part block (the rays a bounce keeps) in lanes too: the empty lanes copies of
-         * ray 0, searched alongside and dropped (each lane's values are its ray's alone) */
-        for (int i = m; i < BLOCK; i++) {
-            for (int k = 0; k < 3; k++) {
-                r->c0[3 * i + k] = r->c0[k];
-                r->ct[3 * i + k] = r->ct[k];
-            }
-            r->smax[i] = r->smax[0];
-            r->batch[i] = r->batch[0];
-        }
-        search_block_avx2(&jm, 0, lo, hi);
-    } else {
-        search_block(&jm, 0, m, lo, hi);
-    }
-#else
-    search_block(&jm, 0, m, lo, hi);
-#endif
+    search_rays(&jm, 0, m, lo, hi);
     exit_block(&jm, 0, m, lo, hi);
 }
 

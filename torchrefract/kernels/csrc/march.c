@@ -7,12 +7,7 @@ static void march_range(const void *job, int64_t begin, int64_t end) {
     float lo[BLOCK], hi[BLOCK];
     for (int64_t r = begin; r < end; r += BLOCK) {
         int m = end - r < BLOCK ? (int)(end - r) : BLOCK;
-#ifdef HAVE_AVX2_PATH
-        if (j->simd && m == BLOCK) search_block_avx2(j, r, lo, hi);
-        else search_block(j, r, m, lo, hi);
-#else
-        search_block(j, r, m, lo, hi);
-#endif
+        search_rays(j, r, m, lo, hi);
         exit_block(j, r, m, lo, hi);
     }
 }

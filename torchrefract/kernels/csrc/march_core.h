@@ -220,10 +220,11 @@ static void exit_values(const Job *j, int64_t r, int64_t tri, float hit_s,
 #include <immintrin.h>
 #define HAVE_AVX2_PATH 1
 
-/* search_block with AVX2, 8 rays per vector and two vectors per pass (BLOCK = 16 rays,
- * a full block only): the same operations lane by lane (IEEE add, multiply, divide,
- * floor, compare: the same values as the scalar code, which stays the path for partial
- * blocks and CPUs without AVX2). Plane indices are 32-bit (the caller checks the size). */
+/* search_block with AVX2, 8 rays per vector and two vectors per pass (BLOCK = 16 rays; a
+ * part block's empty lanes copies of its first ray, dropped): the same operations lane by
+ * lane (IEEE add, multiply, divide, floor, compare: the same values as the scalar code,
+ * which stays the path for one ray and CPUs without AVX2). Plane indices are 32-bit (the
+ * caller checks the size). */
 typedef struct { __m256 c0x, c0y, c0z, ctx, cty, ctz, sx, sy; __m256i base, pbase; } Lanes;
 
 /* The planes of the triangles ``t`` (8 lanes; rows pbase + t, row pbase where t < 0) at
@@ -321,13 +322,14 @@ crossed8(const Job *j, const Lanes *L, __m256 s) {
                         beyond);
 }
 
-/* The lanes of rays [r0, r0 + 8); their s_max in ``smax``. */
-__attribute__((target("avx2"))) static void lanes8(const Job *j, int64_t r0, Lanes *L,
-                                                   __m256 *smax) {
+/* The lanes of rays [r0, r0 + 8), those from r0 + valid on copies of ray ``first`` (a part
+ * block's empty lanes: computed alongside, dropped); their s_max in ``smax``. */
+__attribute__((target("avx2"))) static void lanes8(const Job *j, int64_t r0, int valid,
+                                                   int64_t first, Lanes *L, __m256 *smax) {
     float tmp[9][8];
     int bi[8], pb[8];
     for (int i = 0; i < 8; i++) {
-        int64_t r = r0 + i, b = j->batch[r];
+        int64_t r = i < valid ? r0 + i : first, b = j->batch[r];
         for (int k = 0; k < 3; k++) {
             tmp[k][i] = j->c0[3 * r + k];
             tmp[3 + k][i] = j->ct[3 * r + k];
@@ -352,11 +354,12 @@ __attribute__((target("avx2"))) static void lanes8(const Job *j, int64_t r0, Lan
 }
 
 __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int64_t r0,
-                                                              float *lo_out, float *hi_out) {
+                                                              int m, float *lo_out,
+                                                              float *hi_out) {
     Lanes L[2];
     __m256 smax[2], lo[2], hi[2], last[2], done[2];
     for (int v = 0; v < 2; v++) {
-        lanes8(j, r0 + 8 * v, &L[v], &smax[v]);
+        lanes8(j, r0 + 8 * v, m - 8 * v, r0, &L[v], &smax[v]);
         lo[v] = _mm256_setzero_ps();
         hi[v] = smax[v];
         last[v] = _mm256_setzero_ps();
@@ -394,6 +397,18 @@ __attribute__((target("avx2"))) static void search_block_avx2(const Job *j, int6
     }
 }
 #endif
+
+/* The search of rays [r0, r0 + m), m <= BLOCK: in AVX2 lanes where the job asks for it
+ * (``simd``, set where the CPU has AVX2) and there is more than one ray, else scalar. */
+static void search_rays(const Job *j, int64_t r0, int m, float *lo, float *hi) {
+#ifdef HAVE_AVX2_PATH
+    if (j->simd && m > 1) {
+        search_block_avx2(j, r0, m, lo, hi);
+        return;
+    }
+#endif
+    search_block(j, r0, m, lo, hi);
+}
 
 /* The exit candidates of ray r bracketed by [lo, hi], in march._march's order of
  * ``tries``: their parameters ss and layers (1: front); returns how many. */
@@ -538,7 +553,7 @@ __attribute__((target("avx2,fma"))) static void first_try8(const Job *j, int64_t
                                                            FirstTry *f) {
     Lanes L;
     __m256 smax, cx, cy, cz, inside;
-    lanes8(j, r0, &L, &smax);
+    lanes8(j, r0, 8, r0, &L, &smax);
     __m256i flat = pixel8(j, &L, _mm256_loadu_ps(hi), &cx, &cy, &cz, &inside);
     int fl[8], in = _mm256_movemask_ps(inside);
     int64_t cand[8];
