@@ -191,12 +191,54 @@ def front_roughness(g: GBuffer, materials: MaterialBatch) -> torch.Tensor:
                                   g.front.uv.reshape(-1, 2)).view(b, h, w)
 
 
+def pixel_passes(g: GBuffer, radiance: torch.Tensor, method_passes: dict[str, torch.Tensor],
+                 materials: MaterialBatch, uniform: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    """A render pass's (sub-)pixel buffers as pixels: the radiance (B, H/n, W/n, 3), the
+    front coverage (B, H/n, W/n, 1) and the passes, geometry, material (what a model
+    trained on the data may regress, per object pixel) and the method's, in that order.
+    ``uniform``: a supersampled plan's pixels that hold their values at their first
+    sub-pixel. ``method_passes`` is emptied (each buffer let go once filtered)."""
+    n = g.supersample
+    cache: BoxCache = {}  # the masks' box averages, computed once for all passes
+    requests = geometry_requests(g)
+    rough = front_roughness(g, materials)[..., None]
+    materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))
+    order = [*requests, "roughness", "ior", *method_passes]
+    # the front coverage as 0 / 1 where a pass is taken per sub-pixel (one sample, or a map)
+    fm = g.front.mask[..., None].to(torch.float32) if n == 1 or rough.shape[1] != 1 else None
+    if n == 1:  # the layers are zero where empty, and so are the method's passes off the
+        # object (methods.base.Shaded): only the thickness needs its mask
+        done = {k: x for k, (x, _, _) in requests.items()}
+        done.update(filter_passes(g, {"thickness": requests["thickness"]}, None, cache))
+        done.update(method_passes)
+        done.update((name, fm * v) for name, v in materials_px)
+        pixel_radiance, coverage = radiance, fm
+    else:
+        for name, v in materials_px:
+            if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
+                requests[name] = (fm * v, "front", False)
+        requests.update((k, (v, "front", True)) for k, v in method_passes.items())
+        requests["radiance"] = (radiance, None, True)
+        requests["coverage"] = (None, "front", False)
+        done = filter_passes(g, requests, uniform, cache)
+        del requests
+        pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
+        covered = None
+        for name, v in materials_px:
+            if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
+                if covered is None:  # sub-pixels is that value
+                    covered = (coverage > 0).to(v.dtype)
+                done[name] = covered * v
+    method_passes.clear()
+    return pixel_radiance, coverage, {k: done[k] for k in order}
+
+
 def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan,
                  t_start: float) -> RenderResult:
     """The method's shading of a built G-buffer and the passes, on the tensors' device
     (``timings["shading"]``: from ``t_start``)."""
     method = entry.name
-    n = g.supersample
     extra = render_hook.requested(scenes)
     extra_passes: dict[str, torch.Tensor] = {}
     with collect() as stage_times, render_hook.scope(extra) as rec:
@@ -235,43 +277,11 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
         torch.cuda.synchronize(radiance.device)
     t3 = time.perf_counter()
 
-    cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     # a supersampled plan's pixels shaded once hold their values at their first
     # sub-pixel: plan_box averages them as if copied to every sub-pixel
     uniform = plan.uniform if isinstance(plan, adaptive.Plan) else None
-    requests = geometry_requests(g)
-    # Material passes (per object pixel): what a model trained on the data may regress.
-    rough = front_roughness(g, materials)[..., None]
-    materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))
-    order = [*requests, "roughness", "ior", *method_passes]
-    # the front coverage as 0 / 1 where a pass is taken per sub-pixel (one sample, or a map)
-    fm = g.front.mask[..., None].to(torch.float32) if n == 1 or rough.shape[1] != 1 else None
-    if n == 1:  # the layers are zero where empty, and so are the method's passes off the
-        # object (methods.base.Shaded): only the thickness needs its mask
-        done = {k: x for k, (x, _, _) in requests.items()}
-        done.update(filter_passes(g, {"thickness": requests["thickness"]}, None, cache))
-        done.update(method_passes)
-        done.update((name, fm * v) for name, v in materials_px)
-        pixel_radiance, coverage = radiance, fm
-    else:
-        for name, v in materials_px:
-            if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
-                requests[name] = (fm * v, "front", False)
-        requests.update((k, (v, "front", True)) for k, v in method_passes.items())
-        requests["radiance"] = (radiance, None, True)
-        requests["coverage"] = (None, "front", False)
-        method_passes.clear()
-        done = filter_passes(g, requests, uniform, cache)
-        del requests
-        pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
-        covered = None
-        for name, v in materials_px:
-            if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
-                if covered is None:  # sub-pixels is that value
-                    covered = (coverage > 0).to(v.dtype)
-                done[name] = covered * v
-    passes = {k: done[k] for k in order}
-    del done
+    pixel_radiance, coverage, passes = pixel_passes(g, radiance, method_passes, materials,
+                                                    uniform)
     passes.update(extra_passes)  # already per pixel
     return RenderResult(
         radiance=pixel_radiance.float(),
@@ -354,4 +364,4 @@ def _summed_timings(results: list[RenderResult]) -> dict[str, float]:
 
 __all__ = ["MASKS", "BoxCache", "RenderResult", "all_finite", "box", "filter_passes",
            "finish_pass", "front_roughness", "geometry_requests", "mask_box", "masked_box",
-           "merge", "plan_box"]
+           "merge", "pixel_passes", "plan_box"]
