@@ -4,8 +4,8 @@ rule and the options it covers, within 1e-4 relative on 99.9% of the object pixe
 of FLIP, with the same passes; with internal bounces within the tensor code's own float32
 conditioning (as ``rousiers``' fused bounces, tests/test_fused.py). The LEAN moments of the
 back layer by the kernel match ``moments.lean_mips``' level 0. Where the kernel does not
-cover the options (``spread: paper``, ``env_lookup: mip``, ``cone_rays: plane``) or a
-gradient is wanted, the tensor code runs."""
+cover the options (``spread: paper``, ``env_lookup: mip``) or a gradient is wanted, the
+tensor code runs."""
 
 from __future__ import annotations
 
@@ -30,20 +30,24 @@ pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="the native kernels do not build here")
 
 
-def _check_same(a: tr.RenderResult, b: tr.RenderResult, what) -> None:
-    """The image within 1e-4 relative on 99.9% of the object pixels (and 1e-2 on all), FLIP
-    within 0.002, the background within 1e-4; the passes alike."""
+def _check_same(a: tr.RenderResult, b: tr.RenderResult, what, beyond: float = 1e-3) -> None:
+    """The image within 1e-4 relative on 99.9% (1 - ``beyond``) of the object pixels (and
+    1e-2 on all), FLIP within 0.002, the background within 1e-4; the passes alike (the
+    lobe's on all object pixels but a share ``beyond`` - 1e-3)."""
     assert b.timings.get("fused", 0) > 0, what
     for m in _compare(a, b):
-        assert m["beyond"] <= 1e-3 and m["max_rel"] < 1e-2, (what, m)
+        assert m["beyond"] <= beyond and m["max_rel"] < 1e-2, (what, m)
         assert m["flip"] <= 0.002, (what, m)
         assert m["background"] <= 1e-4, (what, m)
     for k in ("exit_found", "tir"):
         assert torch.equal(a.passes[k], b.passes[k]), (what, k)
     # lobe_sigma: as rousiers' (test_fused), the bounding rays' nearly parallel chords
     # amplify their rounding
+    obj = a.coverage > 0
     for k, rtol in (("lobe_sigma", 2e-3), ("footprint", 1e-4)):
-        assert torch.allclose(a.passes[k], b.passes[k], rtol=rtol, atol=1e-6), (what, k)
+        close = torch.isclose(a.passes[k], b.passes[k], rtol=rtol, atol=1e-6)[..., 0]
+        assert torch.all(close[~obj]), (what, k)
+        assert float((~close[obj]).float().mean()) <= beyond - 1e-3, (what, k)
 
 
 @pytest.mark.parametrize("method", ["lean", "gsr"])
@@ -57,7 +61,8 @@ def test_fused_lean_matches_the_tensor_code_on_the_suite(path, method):
 
 VARIANTS = {"taps1": {"ewa_taps": 1}, "taps8": {"ewa_taps": 8},
             "one_lobe": {"roughness_lobes": 1}, "k2": {"subdivisions": 2},
-            "k8": {"subdivisions": 8}, "k1": {"subdivisions": 1}}
+            "k8": {"subdivisions": 8}, "k1": {"subdivisions": 1},
+            "plane": {"cone_rays": "plane"}}
 SCENES = ("vgroove_back_a01", "sawtooth_back_a015", "globe_jump", "globe_gradient",
           "wingnut_a01", "sphere_a03", "slab_light")
 
@@ -66,12 +71,17 @@ SCENES = ("vgroove_back_a01", "sawtooth_back_a015", "globe_jump", "globe_gradien
 @pytest.mark.parametrize("name", SCENES)
 def test_fused_lean_options(name, variant):
     """The options the kernel covers besides the defaults (roughness maps on the globes,
-    facets splitting ``gsr``'s lobes on the v-groove and sawtooth, a sphere light)."""
+    facets splitting ``gsr``'s lobes on the v-groove and sawtooth, a sphere light; the
+    plane cone)."""
     opts = VARIANTS[variant]
+    # the plane cone's exits are not marched but met on a plane, whose footprint sets the
+    # level ``gsr``'s subdivisions are read at: their split (moments.separation) amplifies the
+    # rounding there (globe_gradient: 2 of 1280 object pixels 2e-3 off, lobe_sigma 1%)
+    beyond = 3e-3 if variant == "plane" else 1e-3
     for method in ("gsr",) if "subdivisions" in opts else ("lean", "gsr"):
         s = _small(SUITE[0].parent / f"{name}.yaml", 48, method=method, method_options=opts)
         _check_same(tr.render(s, settings=TENSOR), tr.render(s, settings=FUSED),
-                    (method, opts))
+                    (method, opts), beyond)
 
 
 def test_fused_lean_index_matched_and_absorbing():
@@ -144,8 +154,7 @@ def test_lean_moments_kernel_is_lean_mips_level_0(name):
         assert torch.allclose(ref[..., :compact], got, rtol=1e-5, atol=1e-6), compact
 
 
-@pytest.mark.parametrize("options", [{"spread": "paper"}, {"env_lookup": "mip"},
-                                     {"cone_rays": "plane"}])
+@pytest.mark.parametrize("options", [{"spread": "paper"}, {"env_lookup": "mip"}])
 def test_uncovered_options_run_the_tensor_code(options):
     s = _small(SUITE[0].parent / "sphere_a03.yaml", 32, method="gsr", method_options=options)
     out = tr.render(s, settings=FUSED)

@@ -78,8 +78,10 @@ def why_not(scenes: list[Scene], entry, options) -> str | None:
         return "more than 64 lights"
     if any(sc.passes for sc in scenes):
         return "extra passes (matte, flow)"
-    if entry.name == "rousiers" and (options.cone_rays != "march" or options.spread != "rays"):
-        return "rousiers options other than cone_rays: march, spread: rays"
+    if entry.name == "rousiers" and options.spread != "rays":
+        return "rousiers options other than spread: rays"
+    if entry.name == "rousiers" and options.cone_rays != "march":
+        return "cone_rays: plane (it reads the back layer's normals, a strip holds its own only)"
     if entry.name == "prefiltered" and options.bounces.enabled:
         return "prefiltered with internal bounces"
     return None

@@ -200,7 +200,9 @@ class _RousJob(ctypes.Structure):
                 ("two_ln4", ctypes.c_float), ("lobe_sigma", _p), ("footprint", _p),
                 ("bo", _Bounces), ("diffuse_var", ctypes.c_float),
                 ("levels", ctypes.c_int), ("mips", ctypes.c_int),
-                ("level_alpha", _p), ("cover", _p), ("cover_hw", _p)]
+                ("level_alpha", _p), ("cover", _p), ("cover_hw", _p),
+                ("plane", ctypes.c_int), ("back_normal", _p), ("back_mask", _p),
+                ("h", ctypes.c_int64), ("w", ctypes.c_int64)]
 
 
 class _BackgroundJob(ctypes.Structure):

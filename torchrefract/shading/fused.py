@@ -6,8 +6,8 @@ The tensor code stays the reference and the differentiable path. A fused kernel 
 it gives the same image: the native kernels are built (:mod:`.native`), the settings ask
 for it (``RenderSettings(fused=True)``, the default), no input wants a gradient, every
 tensor is on the CPU, and the kernel covers the scene's features. Today: at most 64 sphere
-lights; ``rousiers`` with its default cone and spread (``cone_rays: march``, ``spread:
-rays``), roughness maps and internal bounces; ``specular`` (internal bounces included)
+lights; ``rousiers`` with its default spread (``spread: rays``; either ``cone_rays``),
+roughness maps and internal bounces; ``specular`` (internal bounces included)
 and ``prefiltered``. Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images.
 """
@@ -182,8 +182,7 @@ def rousiers(g, lighting, materials, options, radiance: torch.Tensor, diffuse_va
     """``render_rousiers``' radiance and passes, as :func:`specular`, internal bounces and
     roughness maps included (``diffuse_var``: rousiers.options.DIFFUSE_VAR; ``coverage``:
     rousiers.cone.coverage_mips where the batch has a map)."""
-    if (lighting.light_pos.shape[1] > 64 or options.cone_rays != "march"
-            or options.spread != "rays"):
+    if lighting.light_pos.shape[1] > 64 or options.spread != "rays":
         return None
     made = _frame(g, lighting, materials, options, radiance, sg_env=True)
     if made is None:
@@ -210,10 +209,14 @@ def rous_job(g, options, frame, keep: _Keep, passes: dict, diffuse_var: float
     b, h, w = g.shape
     sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
+    plane = options.cone_rays == "plane"
     return native._RousJob(
         f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
         two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
-        bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var)
+        bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var,
+        plane=int(plane), h=h, w=w,
+        back_normal=keep.ptr(g.back.normal) if plane else None,
+        back_mask=keep.ptr(g.back.mask, torch.uint8) if plane else None)
 
 
 def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:

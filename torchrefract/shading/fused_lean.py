@@ -10,7 +10,7 @@ finish (index-matched objects, lights, absorption, internal bounces).
 
 It runs where :mod:`.fused`'s kernels run (the native kernels are built, the settings ask
 for it, no input wants a gradient, CPU float32) and the options are covered: ``spread:
-rays``, ``env_lookup: sg``, ``cone_rays: march``, at most 64 sphere lights; any ``tir``,
+rays``, ``env_lookup: sg``, at most 64 sphere lights; any ``tir``, ``cone_rays``,
 ``ewa_taps``, ``roughness_lobes``, subdivisions (1-8), roughness maps and internal bounces.
 Elsewhere :func:`lean` returns ``None`` and the tensor code runs; tests/test_fused_lean.py
 holds the two to the same images.
@@ -73,7 +73,7 @@ def _ready() -> bool:
 
 def covered(options, lighting, spread: str) -> bool:
     """Whether the kernel covers these options (module docstring)."""
-    return (spread == "rays" and options.env_lookup == "sg" and options.cone_rays == "march"
+    return (spread == "rays" and options.env_lookup == "sg"
             and lighting.light_pos.shape[1] <= 64)
 
 

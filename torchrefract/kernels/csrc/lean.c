@@ -539,9 +539,12 @@ static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Bloc
     cross3(e2, t_c, e1r);
     normalize3(e1r);
     int cnt = 0;
+    float n4[4][3];
+    uint8_t ok4[4];
+    bounding_normals(&lj->r, k, i, b, n4, ok4);
     for (int q = 0; q < 4; q++) {
-        if (!k->cone[q].found[i]) continue;
-        const float *nq = k->cone[q].normal + 3 * i, *dq = k->dirs[i][q];
+        if (!ok4[q]) continue;
+        const float *nq = n4[q], *dq = k->dirs[i][q];
         float mq[3] = {-nq[0], -nq[1], -nq[2]}, nk[3], t_k[3], dk[3];
         face_forward(mq, dq, nk);
         refract(dq, nk, ior, t_k);

@@ -1,9 +1,10 @@
 /* The steps of the fused shading of ``rousiers`` (methods/rousiers/, de Rousiers et al. 2012) for its
- * default cone and spread (``cone_rays: march``, ``spread: rays``), every ``tir`` rule,
- * uniform roughness, with or without internal bounces: per object pixel, in registers,
+ * default spread (``spread: rays``), either ``cone_rays``, every ``tir`` rule, uniform
+ * roughness or a map, with or without internal bounces: per object pixel, in registers,
  *   1. the front lobes (lobes.front_lobes; the SG table, eqs. 8-9),
  *   2. the cone: the axis and its four bounding rays (eq. 12) marched to their exits
- *      (march_core.h), their screen footprint (cone.trace_cone),
+ *      (march_core.h; ``plane``: met on the axis exit's tangent plane), their screen
+ *      footprint (cone.trace_cone),
  *   3. the exit lobe (exit.exit_interface, exit.exit_lobe) widened by the bounding rays
  *      refracted out at their own exits (cone.geometric_variance),
  *   4. the environment from the SG pyramid around the reflected and the exit lobe (sec.
@@ -41,6 +42,13 @@ typedef struct {
     const float *level_alpha;
     const float *const *cover;
     const int64_t *cover_hw;
+    /* ``cone_rays: plane`` (1; 0: ``march``): the bounding rays met on the tangent plane at
+     * the axis' exit, their normals the back layer's at their exits' pixels (the frame's
+     * (B*H*W, 3) normals and mask, h x w a view) */
+    int plane;
+    const float *back_normal;
+    const uint8_t *back_mask;
+    int64_t h, w;
 } RousJob;
 
 enum { CONSERVE = 0, CLAMP = 1, REFLECT = 2, SPLIT = 3 };  /* exit_rule.TIR_RULES, + split */
@@ -227,6 +235,55 @@ static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, in
             k->dirs[i][q][c] = dq[c];
         }
         set_ray(j, &k->cone[q], i, b, p1, dq, c_p1, cq);
+    }
+}
+
+/* cone._on_tangent_plane (``cone_rays: plane``) for a block's m marched axes: the four
+ * bounding rays from p1 met on the tangent plane at the axis' exit (its normal, or p_t1
+ * where no exit was found), found where they run towards it and the axis found its exit;
+ * their normals are read by bounding_normals. */
+static void on_tangent_plane(Block *k, int m) {
+    for (int i = 0; i < m; i++) {
+        int found = k->axis.found[i];
+        const float *p1 = k->axis.p + 3 * i, *pos = k->axis.pos + 3 * i;
+        const float *pn = found ? k->axis.normal + 3 * i : k->axis.t + 3 * i;
+        float rel[3] = {pos[0] - p1[0], pos[1] - p1[1], pos[2] - p1[2]};
+        float num = dot3(rel, pn);
+        for (int q = 0; q < 4; q++) {
+            const float *dq = k->dirs[i][q];
+            float den = dot3(dq, pn), s = num / (den > 1e-6f ? den : 1e-6f);
+            for (int c = 0; c < 3; c++) k->cone[q].pos[3 * i + c] = p1[c] + s * dq[c];
+            k->cone[q].found[i] = den > 1e-6f && found;
+        }
+    }
+}
+
+/* cone.bounding_normals for pixel i (view b): the bounding rays' exit normals n4 and which
+ * were found, ok4: their marches' (``cone_rays: march``), or for ``plane`` the back
+ * layer's at the pixel of each exit (the axis exit's where one was not found). */
+static void bounding_normals(const RousJob *rj, const Block *k, int i, int64_t b,
+                             float n4[4][3], uint8_t ok4[4]) {
+    if (!rj->plane) {
+        for (int q = 0; q < 4; q++) {
+            ok4[q] = k->cone[q].found[i];
+            for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
+        }
+        return;
+    }
+    const float *pp = rj->f.proj + 16 * b;
+    float xy_c[2], xy[2];
+    project1(k->axis.pos + 3 * i, pp, xy_c);
+    for (int q = 0; q < 4; q++) {
+        int found = k->cone[q].found[i];
+        if (found) project1(k->cone[q].pos + 3 * i, pp, xy);
+        else { xy[0] = xy_c[0]; xy[1] = xy_c[1]; }
+        /* floor, clamped to the frame (NaN: the first row / column) */
+        float fx = clampf(floorf(xy[0]), 0.0f, (float)(rj->w - 1));
+        float fy = clampf(floorf(xy[1]), 0.0f, (float)(rj->h - 1));
+        int64_t flat = (b * rj->h + (fy == fy ? (int64_t)fy : 0)) * rj->w +
+                       (fx == fx ? (int64_t)fx : 0);
+        ok4[q] = found && rj->back_mask[flat];
+        for (int c = 0; c < 3; c++) n4[q][c] = rj->back_normal[3 * flat + c];
     }
 }
 
@@ -458,10 +515,7 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
     uint8_t ok4[4];
     for (int c = 0; c < 3; c++) exact_n[c] = found ? k->axis.normal[3 * i + c] : p_t1[c];
-    for (int q = 0; q < 4; q++) {
-        ok4[q] = k->cone[q].found[i];
-        for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
-    }
+    bounding_normals(rj, k, i, b, n4, ok4);
     /* the exit interface: the exact exit normal, inward */
     ExitGeo *e = k->ex + i;
     *e = (ExitGeo){.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
@@ -623,7 +677,9 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
     if (prepare)  /* the front reflections' lookups, asked for before the marches */
         block_taps(j, r0, m, k.axis_r, k.k_r, k.tap_r);
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
-    for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
+    if (rj->plane) on_tangent_plane(&k, m);
+    else
+        for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
     if (prepare) {  /* every exit of the block first, then its lookups asked for */
         for (int i = 0; i < m; i++) prepare_exit(rj, &k, i, j->batch[r0 + i]);
