@@ -541,7 +541,7 @@ static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Bloc
     int cnt = 0;
     float n4[4][3];
     uint8_t ok4[4];
-    bounding_normals(&lj->r, k, i, b, n4, ok4);
+    bounding_normals(&lj->r, k, i, n4, ok4);
     for (int q = 0; q < 4; q++) {
         if (!ok4[q]) continue;
         const float *nq = n4[q], *dq = k->dirs[i][q];

@@ -196,6 +196,7 @@ typedef struct {
     float c_xy[BLOCK][2], minor[BLOCK], major[BLOCK];
     float lobe_p[BLOCK][3], lobe_k[BLOCK], lobe_w[BLOCK];  /* the exit lobe (levels 0) */
     SgTap tap_r[BLOCK], tap_t[BLOCK];  /* the reflected and the exit lobe's lookups */
+    int64_t plane_px[BLOCK][4];        /* ``cone_rays: plane``: the bounding exits' pixels */
 } Block;
 
 /* Step 1 for pixel i (lobes.front_lobes, cone.trace_cone): the front lobes (eqs. 8-9), the
@@ -241,49 +242,49 @@ static void front_and_cone(const Frame *j, const SgAxes *ax, Block *k, int i, in
 /* cone._on_tangent_plane (``cone_rays: plane``) for a block's m marched axes: the four
  * bounding rays from p1 met on the tangent plane at the axis' exit (its normal, or p_t1
  * where no exit was found), found where they run towards it and the axis found its exit;
- * their normals are read by bounding_normals. */
-static void on_tangent_plane(Block *k, int m) {
+ * the back layer's pixel of each exit (the axis exit's where one was not found), whose
+ * normal bounding_normals reads, asked for now. */
+static void on_tangent_plane(const RousJob *rj, Block *k, int m) {
     for (int i = 0; i < m; i++) {
         int found = k->axis.found[i];
+        int64_t b = k->axis.batch[i];
         const float *p1 = k->axis.p + 3 * i, *pos = k->axis.pos + 3 * i;
         const float *pn = found ? k->axis.normal + 3 * i : k->axis.t + 3 * i;
+        const float *pp = rj->f.proj + 16 * b;
         float rel[3] = {pos[0] - p1[0], pos[1] - p1[1], pos[2] - p1[2]};
-        float num = dot3(rel, pn);
+        float num = dot3(rel, pn), xy_c[2], xy[2];
+        project1(pos, pp, xy_c);
         for (int q = 0; q < 4; q++) {
             const float *dq = k->dirs[i][q];
             float den = dot3(dq, pn), s = num / (den > 1e-6f ? den : 1e-6f);
-            for (int c = 0; c < 3; c++) k->cone[q].pos[3 * i + c] = p1[c] + s * dq[c];
-            k->cone[q].found[i] = den > 1e-6f && found;
+            float *qp = k->cone[q].pos + 3 * i;
+            for (int c = 0; c < 3; c++) qp[c] = p1[c] + s * dq[c];
+            int ok = den > 1e-6f && found;
+            k->cone[q].found[i] = ok;
+            if (ok) project1(qp, pp, xy);
+            else { xy[0] = xy_c[0]; xy[1] = xy_c[1]; }
+            /* floor, clamped to the frame (NaN: the first row / column) */
+            float fx = clampf(floorf(xy[0]), 0.0f, (float)(rj->w - 1));
+            float fy = clampf(floorf(xy[1]), 0.0f, (float)(rj->h - 1));
+            int64_t flat = (b * rj->h + (fy == fy ? (int64_t)fy : 0)) * rj->w +
+                           (fx == fx ? (int64_t)fx : 0);
+            k->plane_px[i][q] = flat;
+            __builtin_prefetch(rj->back_normal + 3 * flat);
+            __builtin_prefetch(rj->back_mask + flat);
         }
     }
 }
 
-/* cone.bounding_normals for pixel i (view b): the bounding rays' exit normals n4 and which
- * were found, ok4: their marches' (``cone_rays: march``), or for ``plane`` the back
- * layer's at the pixel of each exit (the axis exit's where one was not found). */
-static void bounding_normals(const RousJob *rj, const Block *k, int i, int64_t b,
-                             float n4[4][3], uint8_t ok4[4]) {
-    if (!rj->plane) {
-        for (int q = 0; q < 4; q++) {
-            ok4[q] = k->cone[q].found[i];
-            for (int c = 0; c < 3; c++) n4[q][c] = k->cone[q].normal[3 * i + c];
-        }
-        return;
-    }
-    const float *pp = rj->f.proj + 16 * b;
-    float xy_c[2], xy[2];
-    project1(k->axis.pos + 3 * i, pp, xy_c);
+/* cone.bounding_normals for pixel i: the bounding rays' exit normals n4 and which were
+ * found, ok4: their marches' (``cone_rays: march``), or for ``plane`` the back layer's at
+ * the pixels on_tangent_plane found. */
+static void bounding_normals(const RousJob *rj, const Block *k, int i, float n4[4][3],
+                             uint8_t ok4[4]) {
     for (int q = 0; q < 4; q++) {
-        int found = k->cone[q].found[i];
-        if (found) project1(k->cone[q].pos + 3 * i, pp, xy);
-        else { xy[0] = xy_c[0]; xy[1] = xy_c[1]; }
-        /* floor, clamped to the frame (NaN: the first row / column) */
-        float fx = clampf(floorf(xy[0]), 0.0f, (float)(rj->w - 1));
-        float fy = clampf(floorf(xy[1]), 0.0f, (float)(rj->h - 1));
-        int64_t flat = (b * rj->h + (fy == fy ? (int64_t)fy : 0)) * rj->w +
-                       (fx == fx ? (int64_t)fx : 0);
-        ok4[q] = found && rj->back_mask[flat];
-        for (int c = 0; c < 3; c++) n4[q][c] = rj->back_normal[3 * flat + c];
+        int64_t flat = rj->plane ? k->plane_px[i][q] : 0;
+        const float *n = rj->plane ? rj->back_normal + 3 * flat : k->cone[q].normal + 3 * i;
+        ok4[q] = k->cone[q].found[i] && (!rj->plane || rj->back_mask[flat]);
+        for (int c = 0; c < 3; c++) n4[q][c] = n[c];
     }
 }
 
@@ -515,7 +516,7 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
     uint8_t ok4[4];
     for (int c = 0; c < 3; c++) exact_n[c] = found ? k->axis.normal[3 * i + c] : p_t1[c];
-    bounding_normals(rj, k, i, b, n4, ok4);
+    bounding_normals(rj, k, i, n4, ok4);
     /* the exit interface: the exact exit normal, inward */
     ExitGeo *e = k->ex + i;
     *e = (ExitGeo){.p_t1 = p_t1, .k_t1 = k_t1, .found = found};
@@ -677,7 +678,7 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
     if (prepare)  /* the front reflections' lookups, asked for before the marches */
         block_taps(j, r0, m, k.axis_r, k.k_r, k.tap_r);
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
-    if (rj->plane) on_tangent_plane(&k, m);
+    if (rj->plane) on_tangent_plane(rj, &k, m);
     else
         for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
