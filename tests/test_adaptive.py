@@ -126,9 +126,9 @@ def _lattice_inputs(s: tr.Scene):
 
 
 def test_uniform_kernel_equals_tensor_code():
-    """csrc/lattice.c's uniform pixels of a supersampled G-buffer are adaptive's tensor
-    code's, pixel for pixel: folds, a roughness map (per-sub-pixel alpha), per-view alpha,
-    n = 2 and 3, odd sizes."""
+    """csrc/lattice.c's uniform pixels of a supersampled G-buffer and its sub-pixels to
+    shade are adaptive's tensor code's, pixel for pixel: folds, a roughness map
+    (per-sub-pixel alpha), per-view alpha, a region, n = 2 and 3, odd sizes."""
     assert native.available()
     tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
     seen = set()
@@ -136,11 +136,17 @@ def test_uniform_kernel_equals_tensor_code():
                           ("globe_gradient", 30, 3), ("wingnut_a01", 40, 2)):
         s = _scene(name, size, n=n)
         g, args = _lattice_inputs(s)
+        region = torch.zeros_like(g.front.mask)
+        region[:, : region.shape[1] // 2] = True  # the top half's sub-pixels
         for alpha in (args[-1], torch.full((1, 1, 1), s.material.roughness)):
-            a = native.uniform(*args[:5], alpha, n, *tols)
-            b = adaptive._uniform_torch(g, alpha, n, *tols)
-            assert a is not None and torch.equal(a, b), (name, n, alpha.shape)
-            seen.update(a.unique().tolist())
+            for reg in (None, region):
+                made = native.uniform(*args[:5], alpha, n, *tols, region=reg)
+                assert made is not None
+                a, shade = made
+                b = adaptive._uniform_torch(g, alpha, n, *tols)
+                assert torch.equal(a, b), (name, n, alpha.shape)
+                assert torch.equal(shade, adaptive._shade_torch(g.front.mask, b, reg)), name
+                seen.update(a.unique().tolist())
     assert seen == {False, True}
 
 

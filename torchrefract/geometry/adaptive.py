@@ -109,6 +109,21 @@ def _uniform_torch(g: GBuffer, alpha: torch.Tensor, n: int, smooth_alpha: float,
     return uniform
 
 
+def _shade_torch(front_mask: torch.Tensor, uniform: torch.Tensor,
+                 region: torch.Tensor | None) -> torch.Tensor:
+    """The tensor code of csrc/lattice.c's sub-pixels to shade (:func:`plan`): (B, H, W)
+    covered (and in ``region``), but a uniform pixel at its first sub-pixel only."""
+    b, h, w = front_mask.shape
+    n = h // uniform.shape[1]
+    shade = front_mask.clone() if region is None else front_mask & region
+    sub = shade.view(b, h // n, n, w // n, n)
+    for i in range(n):
+        for k in range(n):
+            if i or k:
+                sub[:, :, i, :, k] &= ~uniform
+    return shade
+
+
 def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
          normal_tol: float = NORMAL_TOL, depth_tol: float = DEPTH_TOL,
          smooth_alpha: float = SMOOTH_ALPHA, region: torch.Tensor | None = None
@@ -128,22 +143,19 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
         The G-buffer with ``shade`` set (the sub-pixels to shade), and the plan.
     """
     n = g.supersample
-    uniform = native.uniform(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
-                             g.back.depth, alpha, n, smooth_alpha, normal_tol, depth_tol)
-    if uniform is None:
+    made = native.uniform(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
+                          g.back.depth, alpha, n, smooth_alpha, normal_tol, depth_tol, region)
+    if made is None:
         uniform = _uniform_torch(g, alpha, n, smooth_alpha, normal_tol, depth_tol)
+        shade = _shade_torch(g.front.mask, uniform, region)
+    else:
+        uniform, shade = made
     _, h, w = g.shape
     if not native.center_samples(g, uniform, center_dirs.contiguous()):
         pb, py, px = uniform.nonzero(as_tuple=True)  # the uniform pixels
         sel = (pb * h + py * n) * w + px * n  # their first sub-pixels, flat
         tris = torch.stack([t[uniform] for t in _subs(g.front.tri, n)], 1)
         _center_samples(g, sel, tris, center_dirs[uniform])
-    # a uniform pixel is shaded at its first sub-pixel only (one op over the sub-pixels)
-    b = uniform.shape[0]
-    later = torch.ones(n, n, dtype=torch.bool)
-    later[0, 0] = False
-    drop = (uniform[:, :, None, :, None] & later[:, None, :]).reshape(b, h, w)
-    shade = g.front.mask & ~drop if region is None else g.front.mask & region & ~drop
     if region is not None:  # a pixel outside is neither shaded nor waited on
         uniform = uniform & region[:, ::n, ::n]
     return replace(g, shade=shade), Plan(uniform=uniform, n=n)

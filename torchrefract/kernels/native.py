@@ -266,7 +266,7 @@ class _UniformJob(ctypes.Structure):
                 ("front_normal", _p), ("back_normal", _p), ("back_depth", _p), ("alpha", _p),
                 ("per_pixel", ctypes.c_int), ("smooth_alpha", ctypes.c_float),
                 ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
-                ("uniform", _p)]
+                ("uniform", _p), ("region", _p), ("shade", _p)]
 
 
 class _RaysJob(ctypes.Structure):
@@ -793,22 +793,30 @@ def _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, a
 
 def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
             back_normal: torch.Tensor, back_depth: torch.Tensor, alpha: torch.Tensor, n: int,
-            smooth_alpha: float, normal_tol: float, depth_tol: float
-            ) -> torch.Tensor | None:
+            smooth_alpha: float, normal_tol: float, depth_tol: float,
+            region: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """``adaptive.plan``'s (B, H/n, W/n) bool uniform pixels of the (B, H, W) sub-pixel
-    layers (csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not
-    a float32 / bool CPU tensor. ``alpha``: (B, H, W) or (B, 1, 1)."""
+    layers and its (B, H, W) bool sub-pixels to shade (``region``: (B, H, W) bool or None;
+    csrc/lattice.c), or ``None`` where the kernel is unavailable or an input is not a
+    float32 / bool CPU tensor. ``alpha``: (B, H, W) or (B, 1, 1)."""
     b, fh, fw = front_mask.shape
-    if alpha.numel() not in (b, b * fh * fw) or fh % n or fw % n:
+    if (alpha.numel() not in (b, b * fh * fw) or fh % n or fw % n
+            or (region is not None and (region.shape != front_mask.shape
+                                        or region.dtype != torch.bool))):
         return None
     made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
     if made is None:
         return None
+    fields = made[1]
     out = torch.empty(b, fh // n, fw // n, dtype=torch.bool)
+    shade = torch.empty(b, fh, fw, dtype=torch.bool)
+    region = None if region is None else region.contiguous()  # held until the call returns
     job = _UniformJob(b=b, h=fh // n, w=fw // n, n=n, smooth_alpha=smooth_alpha,
                       normal_tol=normal_tol, depth_tol=depth_tol, uniform=out.data_ptr(),
-                      **made[1])
-    return out if _call("uniform", job) else None
+                      region=None if region is None else region.data_ptr(),
+                      shade=shade.data_ptr(), **fields)
+    return (out, shade) if _call("uniform", job) else None
 
 
 def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,

@@ -233,7 +233,9 @@ int torchrefract_lattice_fill(LatticeJob *job, int threads) {
  * those whose sub-pixels all agree with the first on both masks, both normals (within
  * normal_tol of 1 - cos) and the back depth (within depth_tol of it), all at least
  * smooth_alpha rough. The tensor code's float32 operations and order (optics.dot's sums,
- * tolerances rounded to float as torch compares a float32 tensor with a Python number). */
+ * tolerances rounded to float as torch compares a float32 tensor with a Python number).
+ * Also the sub-pixels to shade (adaptive._shade_torch): covered (and in the region), but
+ * for a uniform pixel's sub-pixels after its first. */
 typedef struct {
     int64_t b, h, w, n;                         /* pixels (B, h, w); layers (B, nh, nw) */
     const uint8_t *front_mask, *back_mask;
@@ -242,6 +244,8 @@ typedef struct {
     int per_pixel;
     float smooth_alpha, normal_tol, depth_tol;
     uint8_t *uniform;                           /* out (B, h, w) */
+    const uint8_t *region;                      /* (B, nh, nw) or NULL: everywhere */
+    uint8_t *shade;                             /* out (B, nh, nw) */
 } UniformJob;
 
 static void uniform_range(const void *job, int64_t begin, int64_t end) {
@@ -266,6 +270,12 @@ static void uniform_range(const void *job, int64_t begin, int64_t end) {
                 u &= (j->per_pixel ? j->alpha[s] : j->alpha[bi]) >= j->smooth_alpha;
             }
         j->uniform[p] = (uint8_t)u;
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t k = 0; k < n; k++) {
+                int64_t s = s0 + i * nw + k;
+                j->shade[s] = (uint8_t)(j->front_mask[s] && (!j->region || j->region[s]) &&
+                                        !(u && (i || k)));
+            }
     }
 }
 
