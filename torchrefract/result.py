@@ -173,7 +173,7 @@ def filter_passes(g: GBuffer, requests: dict[str, tuple], uniform: torch.Tensor 
 def geometry_requests(g: GBuffer) -> dict[str, tuple]:
     """The geometry passes' :func:`filter_passes` requests: each layer's depth and normal
     over its own coverage, the thickness between them over both."""
-    thick = (g.back.dist - g.front.dist).clamp(min=0.0)
+    thick = (g.back.dist - g.front.dist).clamp_(min=0.0)  # (in place: no second buffer)
     return {"depth_front": (g.front.depth[..., None], "front", False),
             "depth_back": (g.back.depth[..., None], "back", False),
             "normal_front": (g.front.normal, "front", False),
