@@ -25,7 +25,9 @@ class RousiersOptions:
     """Exit rule (:mod:`.exit`): ``conserve``, ``clamp`` (the paper's) or ``reflect``."""
     cone_rays: str = option("march", choices=("march", "plane"))
     """Footprint rays: ``march`` (the paper: march the four bounding rays) or ``plane``
-    (intersect them with the exit point's tangent plane: 5x fewer march steps)."""
+    (intersect them with the exit point's tangent plane: 5x fewer march steps; less
+    accurate where the exit magnifies, near the critical angle at high IOR:
+    docs/decisions.md, "Marched cone rays by default")."""
     spread: str = option("rays", choices=("paper", "paper+front", "rays"))
     """How the exit lobe gets its width beyond the exit roughness (:mod:`.exit`):
     ``paper`` (footprint NDF convolved with the BTDF, eq. 10), ``paper+front`` (that, plus
