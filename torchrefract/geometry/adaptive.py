@@ -113,14 +113,9 @@ def _shade_torch(front_mask: torch.Tensor, uniform: torch.Tensor,
                  region: torch.Tensor | None) -> torch.Tensor:
     """The tensor code of csrc/lattice.c's sub-pixels to shade (:func:`plan`): (B, H, W)
     covered (and in ``region``), but a uniform pixel at its first sub-pixel only."""
-    b, h, w = front_mask.shape
-    n = h // uniform.shape[1]
     shade = front_mask.clone() if region is None else front_mask & region
-    sub = shade.view(b, h // n, n, w // n, n)
-    for i in range(n):
-        for k in range(n):
-            if i or k:
-                sub[:, :, i, :, k] &= ~uniform
+    for v in _subs(shade, front_mask.shape[1] // uniform.shape[1])[1:]:
+        v &= ~uniform  # (strided views: in place)
     return shade
 
 

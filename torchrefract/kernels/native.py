@@ -808,14 +808,13 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
     made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
     if made is None:
         return None
-    fields = made[1]
     out = torch.empty(b, fh // n, fw // n, dtype=torch.bool)
     shade = torch.empty(b, fh, fw, dtype=torch.bool)
     region = None if region is None else region.contiguous()  # held until the call returns
     job = _UniformJob(b=b, h=fh // n, w=fw // n, n=n, smooth_alpha=smooth_alpha,
                       normal_tol=normal_tol, depth_tol=depth_tol, uniform=out.data_ptr(),
                       region=None if region is None else region.data_ptr(),
-                      shade=shade.data_ptr(), **fields)
+                      shade=shade.data_ptr(), **made[1])
     return (out, shade) if _call("uniform", job) else None
 
 
