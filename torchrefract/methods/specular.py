@@ -85,8 +85,10 @@ class SpecularOptions:
 
     tir: str = option("conserve", choices=TIR_RULES)
     """Exit rule (module docstring): ``conserve``, ``clamp`` (the papers') or ``reflect``."""
-    march_steps: int = option(64, minimum=1, maximum=4096, integer=True)
-    """Coarse samples along the refracted ray (over the bounding sphere's chord)."""
+    march_steps: int = option(24, minimum=1, maximum=4096, integer=True)
+    """Coarse samples along the refracted ray (over the bounding sphere's chord); as
+    ``rousiers``' central ray (64 gave the same accuracy and flicker out of sample:
+    docs/decisions.md, "`specular`'s `march_steps` = 24")."""
     refine_steps: int = option(10, minimum=0, maximum=64, integer=True)
     """Bisection iterations after the coarse search."""
     bounces: BounceSettings = nested(BounceSettings)
