@@ -141,3 +141,41 @@ def test_filter_passes_at_once_equals_one_at_a_time(monkeypatch, n):
         assert torch.equal(at_once[k], alone[k]), k
     both = (front & back)[..., None].float()
     assert torch.equal(alone["g"], _box(both, n))  # the coverage of both layers
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_one_sample_passes_kernel_equals_the_tensor_code(monkeypatch, per_pixel):
+    """result._one_sample: csrc/box.c's one sweep (coverage, thickness over both layers,
+    roughness and IOR over the front) gives the tensor code's bits: per-view roughness or a
+    map's per pixel, layers where one is empty, negative and NaN thickness, several views."""
+    from types import SimpleNamespace
+
+    from torchrefract import result
+
+    if not native.available():
+        pytest.skip("no C compiler for the native kernels")
+    g = torch.Generator().manual_seed(3 + per_pixel)
+    b, h, w = 3, 17, 11
+    front = torch.rand(b, h, w, generator=g) > 0.3
+    back = front & (torch.rand(b, h, w, generator=g) > 0.2)
+    fd = torch.rand(b, h, w, generator=g) * 3 * front
+    bd = (fd + torch.randn(b, h, w, generator=g)) * back  # some back before the front
+    bd[0, 0, 0], front[0, 0, 0], back[0, 0, 0] = float("nan"), True, True
+    layer = SimpleNamespace  # depth and normal pass through untouched
+    buf = SimpleNamespace(
+        front=layer(mask=front, dist=fd, depth=fd * 0.9, normal=torch.randn(b, h, w, 3, generator=g)),
+        back=layer(mask=back, dist=bd, depth=bd * 0.9, normal=torch.randn(b, h, w, 3, generator=g)),
+        supersample=1)
+    rough = (torch.rand(b, h, w, 1, generator=g) if per_pixel
+             else torch.tensor([0.1, 0.3, 0.05])[:, None, None, None])
+    materials = SimpleNamespace(ior=torch.tensor([1.5, 1.33, 2.4]))
+    assert native.one_sample_passes(front, back, fd, bd, rough, materials.ior) is not None
+    fm, fast = result._one_sample(buf, rough, materials)
+    monkeypatch.setattr(native, "one_sample_passes", lambda *a: None)
+    fm_t, slow = result._one_sample(buf, rough.clone(), materials)
+    assert torch.equal(fm, fm_t) and list(fast) == list(slow)
+    for k in fast:
+        assert fast[k].shape == slow[k].shape and torch.equal(fast[k], slow[k]) or (
+            fast[k].isnan().equal(slow[k].isnan())
+            and torch.equal(fast[k].nan_to_num(), slow[k].nan_to_num())), k
+    assert fast["thickness"].isnan().any()  # the NaN case was exercised

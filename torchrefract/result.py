@@ -170,15 +170,36 @@ def filter_passes(g: GBuffer, requests: dict[str, tuple], uniform: torch.Tensor 
     return done
 
 
-def geometry_requests(g: GBuffer) -> dict[str, tuple]:
+def geometry_requests(g: GBuffer, thick: torch.Tensor | None = None) -> dict[str, tuple]:
     """The geometry passes' :func:`filter_passes` requests: each layer's depth and normal
-    over its own coverage, the thickness between them over both."""
-    thick = (g.back.dist - g.front.dist).clamp_(min=0.0)  # (in place: no second buffer)
+    over its own coverage, the thickness between them over both (``thick``: given)."""
+    if thick is None:
+        thick = (g.back.dist - g.front.dist).clamp_(min=0.0)[..., None]  # (in place)
     return {"depth_front": (g.front.depth[..., None], "front", False),
             "depth_back": (g.back.depth[..., None], "back", False),
             "normal_front": (g.front.normal, "front", False),
             "normal_back": (g.back.normal, "back", False),
-            "thickness": (thick[..., None], "both", False)}
+            "thickness": (thick, "both", False)}
+
+
+def _one_sample(g: GBuffer, rough: torch.Tensor, materials: MaterialBatch
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """At one sample per pixel: the front coverage as 0 / 1 and the geometry and material
+    passes (the layers are zero where empty; the thickness is masked by both layers, the
+    material by the front's), by csrc/box.c's one sweep or the tensor code (same bits)."""
+    ior = materials.ior
+    made = native.one_sample_passes(g.front.mask, g.back.mask, g.front.dist, g.back.dist,
+                                    rough, ior)
+    if made is not None:
+        fm, thick, rough_px, ior_px = made
+        done = {k: x for k, (x, _, _) in geometry_requests(g, thick).items()}
+    else:
+        fm = g.front.mask[..., None].to(torch.float32)
+        requests = geometry_requests(g)
+        done = {k: x for k, (x, _, _) in requests.items()}
+        done.update(filter_passes(g, {"thickness": requests["thickness"]}, None))
+        rough_px, ior_px = fm * rough, fm * ior[:, None, None, None]
+    return fm, {**done, "roughness": rough_px, "ior": ior_px}
 
 
 def front_roughness(g: GBuffer, materials: MaterialBatch) -> torch.Tensor:
@@ -200,36 +221,35 @@ def pixel_passes(g: GBuffer, radiance: torch.Tensor, method_passes: dict[str, to
     ``uniform``: a supersampled plan's pixels that hold their values at their first
     sub-pixel. ``method_passes`` is emptied (each buffer let go once filtered)."""
     n = g.supersample
+    rough = front_roughness(g, materials)[..., None]
+    if n == 1:  # the layers are zero where empty, and so are the method's passes off the
+        # object (methods.base.Shaded)
+        coverage, done = _one_sample(g, rough, materials)
+        order = [*done, *method_passes]
+        done.update(method_passes)
+        method_passes.clear()
+        return radiance, coverage, {k: done[k] for k in order}
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     requests = geometry_requests(g)
-    rough = front_roughness(g, materials)[..., None]
     materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))
     order = [*requests, "roughness", "ior", *method_passes]
-    # the front coverage as 0 / 1 where a pass is taken per sub-pixel (one sample, or a map)
-    fm = g.front.mask[..., None].to(torch.float32) if n == 1 or rough.shape[1] != 1 else None
-    if n == 1:  # the layers are zero where empty, and so are the method's passes off the
-        # object (methods.base.Shaded): only the thickness needs its mask
-        done = {k: x for k, (x, _, _) in requests.items()}
-        done.update(filter_passes(g, {"thickness": requests["thickness"]}, None, cache))
-        done.update(method_passes)
-        done.update((name, fm * v) for name, v in materials_px)
-        pixel_radiance, coverage = radiance, fm
-    else:
-        for name, v in materials_px:
-            if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
-                requests[name] = (fm * v, "front", False)
-        requests.update((k, (v, "front", True)) for k, v in method_passes.items())
-        requests["radiance"] = (radiance, None, True)
-        requests["coverage"] = (None, "front", False)
-        done = filter_passes(g, requests, uniform, cache)
-        del requests
-        pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
-        covered = None
-        for name, v in materials_px:
-            if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
-                if covered is None:  # sub-pixels is that value
-                    covered = (coverage > 0).to(v.dtype)
-                done[name] = covered * v
+    # the front coverage as 0 / 1 where a pass is taken per sub-pixel (a map)
+    fm = g.front.mask[..., None].to(torch.float32) if rough.shape[1] != 1 else None
+    for name, v in materials_px:
+        if v.shape[1] != 1:  # a map: the mean over the pixel's covered sub-pixels
+            requests[name] = (fm * v, "front", False)
+    requests.update((k, (v, "front", True)) for k, v in method_passes.items())
+    requests["radiance"] = (radiance, None, True)
+    requests["coverage"] = (None, "front", False)
+    done = filter_passes(g, requests, uniform, cache)
+    del requests
+    pixel_radiance, coverage = done.pop("radiance"), done.pop("coverage")
+    covered = None
+    for name, v in materials_px:
+        if v.shape[1] == 1:  # one value per view: the mean over a pixel's covered
+            if covered is None:  # sub-pixels is that value
+                covered = (coverage > 0).to(v.dtype)
+            done[name] = covered * v
     method_passes.clear()
     return pixel_radiance, coverage, {k: done[k] for k in order}
 

@@ -258,6 +258,15 @@ class _BoxJob(ctypes.Structure):
                 ("uniform", _p), ("out", _p)]
 
 
+class _OneSampleJob(ctypes.Structure):
+    """ctypes mirror of ``OneSampleJob`` in csrc/box.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("hw", ctypes.c_int64), ("front_mask", _p),
+                ("back_mask", _p), ("front_dist", _p), ("back_dist", _p), ("rough", _p),
+                ("per_pixel", ctypes.c_int), ("ior", _p), ("coverage", _p),
+                ("thickness", _p), ("roughness", _p), ("ior_out", _p)]
+
+
 class _UniformJob(ctypes.Structure):
     """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
 
@@ -318,7 +327,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
-            "boxes": _BoxesJob,
+            "boxes": _BoxesJob, "one_sample": _OneSampleJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
@@ -846,6 +855,34 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
                   mask=None if m is None else m.data_ptr(),
                   uniform=None if u is None else u.data_ptr(), out=out.data_ptr())
     return out if _call("box", job) else None
+
+
+def one_sample_passes(front_mask: torch.Tensor, back_mask: torch.Tensor,
+                      front_dist: torch.Tensor, back_dist: torch.Tensor,
+                      rough: torch.Tensor, ior: torch.Tensor
+                      ) -> tuple[torch.Tensor, ...] | None:
+    """``result.pixel_passes``' buffers at one sample per pixel in one sweep (csrc/box.c's
+    ``one_sample``, the tensor code's bits): the front coverage as 0 / 1, the thickness
+    where both layers are covered, the roughness and the IOR times the coverage, each
+    (B, H, W, 1). Masks and distances (B, H, W); ``rough`` (B, H, W, 1) or (B, 1, 1, 1);
+    ``ior`` (B,). ``None`` where the kernel is unavailable, a gradient is wanted, or an
+    input does not fit."""
+    b, h, w = front_mask.shape
+    per_pixel = rough.shape[1] != 1
+    if (not available() or any(x.requires_grad for x in (front_dist, back_dist, rough, ior))
+            or rough.numel() != (b * h * w if per_pixel else b) or ior.numel() != b):
+        return None
+    keep = _inputs((front_dist, back_dist, rough, ior), (), (front_mask, back_mask))
+    if keep is None:
+        return None
+    fd, bd, r, i, fm, bm = keep
+    out = torch.empty(4, b, h, w, 1)
+    job = _OneSampleJob(n=b * h * w, hw=h * w, front_mask=fm.data_ptr(), back_mask=bm.data_ptr(),
+                        front_dist=fd.data_ptr(), back_dist=bd.data_ptr(), rough=r.data_ptr(),
+                        per_pixel=int(per_pixel), ior=i.data_ptr(),
+                        coverage=out[0].data_ptr(), thickness=out[1].data_ptr(),
+                        roughness=out[2].data_ptr(), ior_out=out[3].data_ptr())
+    return tuple(out.unbind(0)) if _call("one_sample", job) else None
 
 
 def boxes(items: list[tuple[torch.Tensor | None, int, bool]], masks: tuple, uniform

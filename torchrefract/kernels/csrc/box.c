@@ -212,3 +212,41 @@ int torchrefract_box(const BoxJob *job, int threads) {
 }
 
 int64_t torchrefract_box_job_size(void) { return (int64_t)sizeof(BoxJob); }
+
+/* result.pixel_passes at one sample per pixel, in one sweep instead of six tensor ops:
+ * the front coverage as 0 / 1, the thickness (back minus front distance clamped at 0, as
+ * torch's clamp: NaN stays; 0 where a layer is empty: masked_box at n = 1), and the
+ * roughness and IOR times the coverage. The tensor code's float32 operations: the same
+ * bits. */
+typedef struct {
+    int64_t n, hw;                      /* pixels (B*H*W), per view */
+    const uint8_t *front_mask, *back_mask;
+    const float *front_dist, *back_dist;
+    const float *rough;                 /* (B*H*W,), or (B,): per_pixel 0 */
+    int per_pixel;
+    const float *ior;                   /* (B,) */
+    float *coverage, *thickness, *roughness, *ior_out;  /* out, (B*H*W,) each */
+} OneSampleJob;
+
+static void one_sample_range(const void *job, int64_t begin, int64_t end) {
+    const OneSampleJob *j = (const OneSampleJob *)job;
+    for (int64_t b = begin / j->hw, p = begin; p < end; b++) {
+        int64_t stop = (b + 1) * j->hw < end ? (b + 1) * j->hw : end;
+        const float ior = j->ior[b], rough_b = j->per_pixel ? 0.0f : j->rough[b];
+        for (; p < stop; p++) {
+            float fm = j->front_mask[p] ? 1.0f : 0.0f;
+            float d = j->back_dist[p] - j->front_dist[p];
+            float t = d < 0.0f ? 0.0f : d;
+            j->coverage[p] = fm;
+            j->thickness[p] = j->front_mask[p] && j->back_mask[p] ? t : 0.0f;
+            j->roughness[p] = fm * (j->per_pixel ? j->rough[p] : rough_b);
+            j->ior_out[p] = fm * ior;
+        }
+    }
+}
+
+int torchrefract_one_sample(const OneSampleJob *job, int threads) {
+    return tr_parallel_for(one_sample_range, job, job->n, 16384, threads);
+}
+
+int64_t torchrefract_one_sample_job_size(void) { return (int64_t)sizeof(OneSampleJob); }
