@@ -94,3 +94,28 @@ def test_sample_mips_levels_and_interpolation():
             for l in (3.0, 3.5, 4.0)]
     lo, hi = sorted([vals[0].item(), vals[2].item()])
     assert lo - 1e-12 <= vals[1].item() <= hi + 1e-12
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1, 1), (2, 5, 7, 1), (2, 33, 17, 4), (1, 9, 1, 9),
+                                   (3, 64, 48, 2)])
+def test_box_mips_kernel_equals_the_tensor_code(monkeypatch, shape):
+    """build_box_mips: csrc/box.c's one call gives avg_pool2d's sums' bits (ceil mode at odd
+    sizes, the sign of zero) divided by 4^level, for every level count asked."""
+    from torchrefract.kernels import native
+    from torchrefract.optics.ndf import build_box_mips
+
+    if not native.available():
+        pytest.skip("no C compiler for the native kernels")
+    g = torch.Generator().manual_seed(sum(shape))
+    x = torch.randn(*shape, generator=g) * 3
+    x[x.abs() < 0.3] = -0.0
+    for levels in (1, 2, 3, 16):
+        assert native.box_mips(x, levels) is not None
+        fast = build_box_mips(x, levels)
+        with monkeypatch.context() as m:
+            m.setattr(native, "box_mips", lambda *a: None)
+            slow = build_box_mips(x, levels)
+        assert len(fast) == len(slow) and fast[0] is x
+        for a, b in zip(fast, slow):
+            assert a.shape == b.shape and torch.equal(a, b)
+            assert torch.equal(torch.signbit(a), torch.signbit(b))

@@ -267,6 +267,13 @@ class _OneSampleJob(ctypes.Structure):
                 ("thickness", _p), ("roughness", _p), ("ior_out", _p)]
 
 
+class _MipsJob(ctypes.Structure):
+    """ctypes mirror of ``MipsJob`` in csrc/box.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("c", ctypes.c_int64), ("nlevels", ctypes.c_int64),
+                ("hw", _p), ("out", _p), ("level", ctypes.c_int64)]
+
+
 class _UniformJob(ctypes.Structure):
     """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
 
@@ -327,7 +334,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
-            "boxes": _BoxesJob, "one_sample": _OneSampleJob,
+            "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
@@ -855,6 +862,30 @@ def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,
                   mask=None if m is None else m.data_ptr(),
                   uniform=None if u is None else u.data_ptr(), out=out.data_ptr())
     return out if _call("box", job) else None
+
+
+def box_mips(x: torch.Tensor, max_levels: int) -> tuple[torch.Tensor, ...] | None:
+    """``optics.ndf.build_box_mips`` of ``x`` (B, H, W, C) float32 in one call (csrc/box.c's
+    ``mips``, the same bits): level 0 is ``x`` itself; ``None`` where the kernel is
+    unavailable, a gradient is wanted, or ``x`` is not a float32 CPU tensor."""
+    if not available() or x.dim() != 4 or x.requires_grad or max_levels < 1:
+        return None
+    keep = _inputs((x,), ())
+    if keep is None:
+        return None
+    b, h, w, c = x.shape
+    sizes = [(h, w)]
+    while len(sizes) < max_levels and (h > 1 or w > 1):
+        h, w = -(-h // 2), -(-w // 2)
+        sizes.append((h, w))
+    outs = [keep[0], *[torch.empty(b, hh, ww, c) for hh, ww in sizes[1:]]]
+    if len(outs) == 1:
+        return (x,)
+    hw = torch.tensor(sizes, dtype=torch.int64)
+    ptrs = (ctypes.c_void_p * len(outs))(*[o.data_ptr() for o in outs])
+    job = _MipsJob(b=b, c=c, nlevels=len(outs), hw=hw.data_ptr(),
+                   out=ctypes.cast(ptrs, ctypes.c_void_p), level=0)
+    return (x, *outs[1:]) if _call("mips", job) else None
 
 
 def one_sample_passes(front_mask: torch.Tensor, back_mask: torch.Tensor,

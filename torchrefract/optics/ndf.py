@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from torchrefract.kernels import native
 from torchrefract.stages import timed
 
 KAPPA_MAX = 1e6  # exponent used for a perfectly flat footprint (|n| = 1)
@@ -182,7 +183,11 @@ def _gather_bilinear(img: torch.Tensor, batch: torch.Tensor, grid: torch.Tensor)
 @timed("mips")
 def build_box_mips(x: torch.Tensor, max_levels: int = 16) -> tuple[torch.Tensor, ...]:
     """Box-filtered mips of any per-pixel quantity (B, H, W, C): level l averages 2^l x 2^l
-    pixels (empty pixels count as 0, e.g. for coverage ratios of roughness levels)."""
+    pixels (empty pixels count as 0, e.g. for coverage ratios of roughness levels). The
+    native kernel where it runs (csrc/box.c, the same bits), else the tensor code."""
+    done = native.box_mips(x, max_levels)
+    if done is not None:
+        return done
     out = [x]
     acc = x
     level = 0

@@ -250,3 +250,72 @@ int torchrefract_one_sample(const OneSampleJob *job, int threads) {
 }
 
 int64_t torchrefract_one_sample_job_size(void) { return (int64_t)sizeof(OneSampleJob); }
+
+/* optics.ndf.build_box_mips in one call: level l + 1 is the 2 x 2 sums of level l's
+ * (ceil mode: an odd size's last row or column sums what it has), as avg_pool2d with
+ * divisor_override 1 adds them (from 0, row by row: ((0 + x00) + x01) + x10) + x11), and
+ * level l is handed out divided by 4^l (exact: a power of two). The levels' buffers hold
+ * the sums until the next level is made from them. */
+typedef struct {
+    int64_t b, c, nlevels;
+    const int64_t *hw;          /* (nlevels, 2) each level's rows and columns */
+    float *const *out;          /* (nlevels,) each (B, h_l, w_l, c); out[0] is level 0, read */
+    int64_t level;              /* the level being made (set per pass) */
+} MipsJob;
+
+static void mips_range(const void *job, int64_t begin, int64_t end) {
+    const MipsJob *j = (const MipsJob *)job;
+    const int64_t l = j->level, c = j->c;
+    const int64_t ph = j->hw[2 * (l - 1)], pw = j->hw[2 * (l - 1) + 1];
+    const int64_t h = j->hw[2 * l], w = j->hw[2 * l + 1];
+    const float *src = j->out[l - 1];
+    float *dst = j->out[l];
+    for (int64_t row = begin; row < end; row++) {  /* (view, y) of level l */
+        int64_t bi = row / h, y = row - bi * h;
+        const float *r0 = src + (bi * ph + 2 * y) * pw * c;
+        const float *r1 = 2 * y + 1 < ph ? r0 + pw * c : NULL;
+        float *o = dst + row * w * c;
+        for (int64_t x = 0; x < w; x++) {
+            int right = 2 * x + 1 < pw;
+            const float *a = r0 + 2 * x * c;
+            for (int64_t k = 0; k < c; k++) {
+                float s = 0.0f + a[k];
+                if (right) s += a[c + k];
+                if (r1) {
+                    s += r1[2 * x * c + k];
+                    if (right) s += r1[(2 * x + 1) * c + k];
+                }
+                o[x * c + k] = s;
+            }
+        }
+    }
+}
+
+static void scale_range(const void *job, int64_t begin, int64_t end) {
+    const MipsJob *j = (const MipsJob *)job;
+    float *x = j->out[j->level], d = 1.0f;
+    for (int64_t i = 0; i < j->level; i++) d *= 4.0f;
+    for (int64_t i = begin; i < end; i++) x[i] = x[i] / d;
+}
+
+int torchrefract_mips(MipsJob *job, int threads) {
+    for (int64_t l = 1; l < job->nlevels; l++) {
+        job->level = l;
+        int rc = tr_parallel_for_grain(mips_range, job, job->b * job->hw[2 * l], 4, threads, 1);
+        if (rc == 0 && l > 1) {  /* level l - 1's sums are used: divide them now */
+            job->level = l - 1;
+            rc = tr_parallel_for(scale_range, job, job->b * job->hw[2 * (l - 1)] *
+                                 job->hw[2 * (l - 1) + 1] * job->c, 65536, threads);
+        }
+        if (rc != 0) return -1;
+    }
+    if (job->nlevels > 1) {
+        int64_t l = job->nlevels - 1;
+        job->level = l;
+        return tr_parallel_for(scale_range, job, job->b * job->hw[2 * l] * job->hw[2 * l + 1] *
+                               job->c, 65536, threads);
+    }
+    return 0;
+}
+
+int64_t torchrefract_mips_job_size(void) { return (int64_t)sizeof(MipsJob); }
