@@ -136,6 +136,17 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("rousiers ib auto rays4 1x1 adaptive b8", "rousiers",
      {"internal_bounces": "auto", "bounce_rays": 4, SPP: 1, ADAPTIVE: True}, 8, False),
     ("specular ib2 1x1 b8", "specular", {"internal_bounces": 2, SPP: 1}, 8, False),
+    # the same with bounces (the cheapest images past the two-interface floor)
+    ("specular ib1 1x1 adaptive b8", "specular", {"internal_bounces": 1, SPP: 1, ADAPTIVE: True},
+     8, False),
+    ("specular ib2 1x1 adaptive b8", "specular", {"internal_bounces": 2, SPP: 1, ADAPTIVE: True},
+     8, False),
+    ("rousiers ib1 1x1 adaptive b8", "rousiers", {"internal_bounces": 1, SPP: 1, ADAPTIVE: True},
+     8, False),
+    ("rousiers ib2 rays4 1x1 adaptive b8", "rousiers",
+     {"internal_bounces": 2, "bounce_rays": 4, SPP: 1, ADAPTIVE: True}, 8, False),
+    ("rousiers ib auto rays4 adaptive b8", "rousiers",
+     {"internal_bounces": "auto", "bounce_rays": 4, ADAPTIVE: True}, 8, False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],
