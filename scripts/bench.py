@@ -36,7 +36,10 @@ A method may carry options after a colon: ``rousiers:cone_rays=plane,march_steps
 trailing ``+adaptive`` renders that row with ``RenderSettings(adaptive=True)`` (adaptive
 sampling, the library's default: at one sample per pixel, the 2x2 lattice and the pixels
 between it only where not smooth); a row without it shades every pixel
-(``adaptive=False``), as the bench's rows always have.
+(``adaptive=False``), as the bench's rows always have. ``spp=N`` among the options is not
+the method's: the row's images have N x N samples per pixel (the camera's grid; default 1,
+as Mitsuba's rows stay at theirs), e.g. ``rousiers:spp=2+adaptive`` against
+``rousiers+adaptive`` for what supersampling costs.
 
 Mitsuba rows (``--mitsuba``, the default where Mitsuba 3 imports; ``--no-mitsuba`` to leave
 them out): after our rows, in this (the parent) process, for each size and ``--views`` of the
@@ -125,15 +128,16 @@ def orbit(cam: tr.Camera, deg: float) -> tr.Camera:
     return dataclasses.replace(cam, eye=tuple((target + r).tolist()))
 
 
-def bench_scenes(base: tr.Scene, size: int, batch: int, views: str = "distinct"
-                 ) -> list[tr.Scene]:
-    """The ``batch`` scenes of a row: ``base`` at ``size`` x ``size``, one sample per pixel,
-    each item's map turned 10 degrees further and (``distinct``) its camera 3 degrees
-    further around the target (the Mitsuba rows render these same scenes)."""
+def bench_scenes(base: tr.Scene, size: int, batch: int, views: str = "distinct",
+                 spp: int = 1) -> list[tr.Scene]:
+    """The ``batch`` scenes of a row: ``base`` at ``size`` x ``size``, ``spp`` x ``spp``
+    samples per pixel, each item's map turned 10 degrees further and (``distinct``) its
+    camera 3 degrees further around the target (the Mitsuba rows render these same scenes,
+    at their own spp)."""
     cam = base.camera
     scene = base.replace(camera=tr.Camera(eye=cam.eye, target=cam.target, up=cam.up,
                                           yfov_deg=cam.yfov_deg, width=size, height=size,
-                                          samples_per_pixel=1))
+                                          samples_per_pixel=spp))
     # Vary each batch item so the batch is not one image repeated: the map's rotation, and
     # (``distinct``) the camera.
     return [scene.replace(envmap=tr.EnvMap(path=scene.envmap.path, scale=scene.envmap.scale,
@@ -150,8 +154,12 @@ class OursRow:
                  views: str = "distinct", settings: tr.RenderSettings | None = None):
         self.spec, self.size, self.batch, self.views = method, size, batch, views
         self.method, self.options = parse_method_spec(method)
+        self.spp = self.options.pop("spp", 1)  # the camera's, not a method option
+        if not isinstance(self.spp, int) or not 1 <= self.spp <= 16:
+            raise ValueError(f"bench row {method!r}: spp={self.spp} is not a whole number of "
+                             f"samples per pixel side from 1 to 16")
         self.scenes = bench_scenes(base.replace(method_options=self.options), size, batch,
-                                   views)
+                                   views, self.spp)
         self.adaptive = method.endswith(ADAPTIVE_SUFFIX)
         settings = dataclasses.replace(settings or tr.RenderSettings(), adaptive=self.adaptive)
         self.settings = settings
@@ -185,7 +193,7 @@ class OursRow:
         s = self.settings
         return {
             "method": self.method, "options": self.options, "adaptive": self.adaptive,
-            "size": self.size,
+            "spp": self.spp, "size": self.size,
             "batch": self.batch, "views": self.views, "repeats": n,
             "ms_per_frame": 1000 * statistics.median(self.totals) / self.batch,
             "ms_per_frame_stage": {k: 1000 * statistics.median(v) / self.batch
@@ -437,9 +445,9 @@ def print_versus(versus: list[dict]) -> None:
         return f"{'-':>{width}}" if v is None else f"{v:>{width}{fmt}}"
 
     for c in versus:
-        name = c["method"] + (":" + ",".join(f"{k}={v}" for k, v in c["options"].items())
-                              if c["options"] else "") + (ADAPTIVE_SUFFIX if c.get("adaptive")
-                                                          else "")
+        opts = {**c["options"], **({"spp": c["spp"]} if c.get("spp", 1) != 1 else {})}
+        name = c["method"] + (":" + ",".join(f"{k}={v}" for k, v in opts.items())
+                              if opts else "") + (ADAPTIVE_SUFFIX if c.get("adaptive") else "")
         print(f"{name[:28]:<28}{c['views']:>9}{c['size']:>6}{c['batch']:>6}"
               f"{c['ms_per_frame']:>8.1f}{cell(c['mitsuba_1spp_ms_per_frame'], 9, '.1f')}"
               f"{cell(c['mitsuba_1spp_ratio'], 7, '.2f')}"
@@ -452,7 +460,8 @@ def compare_rows(rows: list[dict], mitsuba: list[dict]) -> list[dict]:
     their ratio (Mitsuba / ours: above 1, ours is faster)."""
     out = []
     for r in rows:
-        c = {k: r.get(k) for k in ("method", "options", "adaptive", "views", "size", "batch")}
+        c = {k: r.get(k) for k in ("method", "options", "adaptive", "spp", "views", "size",
+                                   "batch")}
         c["ms_per_frame"] = r["ms_per_frame"]
         for spp, denoise in MITSUBA_ROWS:
             key = f"mitsuba_{spp}spp{'_oidn' if denoise else ''}"

@@ -128,3 +128,28 @@ def test_bench_distinct_views_orbit_the_target():
     assert math.isclose(abs(ang), 30.0, rel_tol=1e-9)
     assert all(math.isclose(x, y, abs_tol=1e-12) for x, y in zip(bench.orbit(cam, 0.0).eye,
                                                                   cam.eye))
+
+
+def test_bench_spp_rows_render_the_supersampled_grid(tmp_path):
+    """``spp=N`` in a row's options is the camera's N x N grid, not a method option: the
+    row's scenes have it, the JSON records it, the method's options do not; a bad value is
+    refused naming the row."""
+    import importlib.util
+
+    import torchrefract as tr
+    spec = importlib.util.spec_from_file_location("bench", ROOT / "scripts" / "bench.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    base = tr.load_scene(str(ROOT / "configs" / "demo.yaml"))
+    row = bench.OursRow(base, "rousiers:spp=2,march_steps=12+adaptive", 16, 2)
+    assert row.spp == 2 and row.options == {"march_steps": 12} and row.adaptive
+    assert all(s.camera.samples_per_pixel == 2 and s.method_options == {"march_steps": 12}
+               for s in row.scenes)
+    row.warm()
+    row.once()
+    r = row.result()
+    assert r["spp"] == 2 and r["options"] == {"march_steps": 12} and r["ms_per_frame"] > 0
+    plain = bench.OursRow(base, "rousiers", 16, 1)
+    assert plain.spp == 1 and plain.scenes[0].camera.samples_per_pixel == 1
+    with pytest.raises(ValueError, match="rousiers:spp=x"):
+        bench.OursRow(base, "rousiers:spp=x", 16, 1)
