@@ -225,10 +225,9 @@ def pixel_passes(g: GBuffer, radiance: torch.Tensor, method_passes: dict[str, to
     if n == 1:  # the layers are zero where empty, and so are the method's passes off the
         # object (methods.base.Shaded)
         coverage, done = _one_sample(g, rough, materials)
-        order = [*done, *method_passes]
-        done.update(method_passes)
+        passes = {**done, **method_passes}
         method_passes.clear()
-        return radiance, coverage, {k: done[k] for k in order}
+        return radiance, coverage, passes
     cache: BoxCache = {}  # the masks' box averages, computed once for all passes
     requests = geometry_requests(g)
     materials_px = (("roughness", rough), ("ior", materials.ior[:, None, None, None]))

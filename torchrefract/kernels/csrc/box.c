@@ -254,8 +254,8 @@ int64_t torchrefract_one_sample_job_size(void) { return (int64_t)sizeof(OneSampl
 /* optics.ndf.build_box_mips in one call: level l + 1 is the 2 x 2 sums of level l's
  * (ceil mode: an odd size's last row or column sums what it has), as avg_pool2d with
  * divisor_override 1 adds them (from 0, row by row: ((0 + x00) + x01) + x10) + x11), and
- * level l is handed out divided by 4^l (exact: a power of two). The levels' buffers hold
- * the sums until the next level is made from them. */
+ * level l is handed out divided by 4^l (exact: a power of two), once every level's sums
+ * are made. */
 typedef struct {
     int64_t b, c, nlevels;
     const int64_t *hw;          /* (nlevels, 2) each level's rows and columns */
@@ -299,21 +299,16 @@ static void scale_range(const void *job, int64_t begin, int64_t end) {
 }
 
 int torchrefract_mips(MipsJob *job, int threads) {
-    for (int64_t l = 1; l < job->nlevels; l++) {
+    for (int64_t l = 1; l < job->nlevels; l++) {  /* the sums, each from the last */
         job->level = l;
-        int rc = tr_parallel_for_grain(mips_range, job, job->b * job->hw[2 * l], 4, threads, 1);
-        if (rc == 0 && l > 1) {  /* level l - 1's sums are used: divide them now */
-            job->level = l - 1;
-            rc = tr_parallel_for(scale_range, job, job->b * job->hw[2 * (l - 1)] *
-                                 job->hw[2 * (l - 1) + 1] * job->c, 65536, threads);
-        }
-        if (rc != 0) return -1;
+        if (tr_parallel_for_grain(mips_range, job, job->b * job->hw[2 * l], 4, threads, 1))
+            return -1;
     }
-    if (job->nlevels > 1) {
-        int64_t l = job->nlevels - 1;
+    for (int64_t l = 1; l < job->nlevels; l++) {  /* then each level divided by 4^l */
         job->level = l;
-        return tr_parallel_for(scale_range, job, job->b * job->hw[2 * l] * job->hw[2 * l + 1] *
-                               job->c, 65536, threads);
+        if (tr_parallel_for(scale_range, job, job->b * job->hw[2 * l] * job->hw[2 * l + 1] *
+                            job->c, 65536, threads))
+            return -1;
     }
     return 0;
 }
