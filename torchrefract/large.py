@@ -39,7 +39,7 @@ import torch
 from torchrefract import tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry.camera import views_pixel_rays
-from torchrefract.geometry.gbuffer import GBuffer, Layer, MeshBatch, _layer, view_frame
+from torchrefract.geometry.gbuffer import GBuffer, Layer, MeshBatch, _layer, view_frames
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import native_layers
 from torchrefract.kernels import native
@@ -213,7 +213,7 @@ def _render_view(scene: Scene, entry, options, budget: int, rows: int):
     materials = MaterialBatch.from_scenes([scene])
     t1 = time.perf_counter()
     batch = MeshBatch.from_meshes([mesh])
-    eye, fwd, proj = (x[None] for x in view_frame(cam, n))  # one view, as build_gbuffer's
+    eye, fwd, proj = view_frames([cam], n)  # one view, as build_gbuffer's
     marched = marched_layers(mesh, cam, batch, eye, fwd, proj, both, rows)
     t2 = time.perf_counter()
     # the strip's shading is the fused kernels', which need next to nothing per shaded

@@ -19,11 +19,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchrefract.geometry.camera import projection_params, views_pixel_rays
+from torchrefract.geometry.camera import packed_camera, views_pixel_rays
 from torchrefract.geometry.mesh import MeshData
 from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
@@ -345,16 +344,13 @@ def _layer_tensor(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor,
     )
 
 
-def view_frame(cam: Camera, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A view's eye (3,) and unit forward (3,), float32, and its packed camera (16,)
-    (:func:`~torchrefract.geometry.camera.projection_params`) for its n x n sub-pixel grid:
-    what the layers and the marches take of a camera."""
-    eye = torch.tensor(cam.eye, dtype=torch.float32)
-    f = np.asarray(cam.target, np.float64) - np.asarray(cam.eye, np.float64)
-    fwd = torch.from_numpy(f / np.linalg.norm(f)).float()
-    p = projection_params(cam)
-    p[14:16] *= n
-    return eye, fwd, p
+def view_frames(cams: list[Camera], n: int
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Views' eyes (B, 3) and unit forwards (B, 3), float32, and their packed cameras
+    (B, 16) (:func:`~torchrefract.geometry.camera.projection_params`) for their n x n
+    sub-pixel grids: what the layers and the marches take of a camera."""
+    p = torch.tensor([packed_camera(c, n) for c in cams], dtype=torch.float32)
+    return p[:, 0:3].contiguous(), p[:, 9:12].contiguous(), p
 
 
 def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
@@ -392,11 +388,9 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
                                             n, [int(batch.face_offset[b]) for b, _, _ in views])
     dirs_t = views_pixel_rays([cam for _, _, cam in views], n)
-    eyes, fwd, proj = zip(*(view_frame(cam, n) for _, _, cam in views))
-    eye_t, fwd_t = torch.stack(eyes), torch.stack(fwd)
+    eye_t, fwd_t, proj_t = view_frames([cam for _, _, cam in views], n)
     front = _layer(front_ids, eye_t, dirs_t, fwd_t, batch, back=False)
     back_layer = _layer(back_ids, eye_t, dirs_t, fwd_t, batch, back=True)
-    proj_t = torch.stack(proj)
     if len(views) < len(meshes):  # copy the distinct views to their batch items
         inv = torch.tensor(inverse, dtype=torch.int64)
 

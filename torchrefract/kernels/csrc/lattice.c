@@ -248,27 +248,37 @@ typedef struct {
     uint8_t *shade;                             /* out (B, nh, nw) */
 } UniformJob;
 
+/* One pixel's test (uniform_range): u starts as its first sub-pixel's coverage and each
+ * term can only clear it, so an empty first sub-pixel (most of a frame) and the first
+ * failed term end the test (the same result as every term ANDed). */
+static int uniform_pixel(const UniformJob *j, int64_t bi, int64_t s0, int64_t nw) {
+    int64_t n = j->n;
+    if (!j->front_mask[s0]) return 0;
+    float tol = j->depth_tol * fabsf(j->back_depth[s0]);
+    const float *fn0 = j->front_normal + 3 * s0, *bn0 = j->back_normal + 3 * s0;
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t k = 0; k < n; k++) {
+            int64_t s = s0 + i * nw + k;
+            if (i || k) {
+                if (j->front_mask[s] != j->front_mask[s0] || j->back_mask[s] != j->back_mask[s0])
+                    return 0;
+                if (!(1.0f - dot3(j->front_normal + 3 * s, fn0) <= j->normal_tol) ||
+                    !(1.0f - dot3(j->back_normal + 3 * s, bn0) <= j->normal_tol) ||
+                    !(fabsf(j->back_depth[s] - j->back_depth[s0]) <= tol))
+                    return 0;
+            }
+            if (!((j->per_pixel ? j->alpha[s] : j->alpha[bi]) >= j->smooth_alpha)) return 0;
+        }
+    return 1;
+}
+
 static void uniform_range(const void *job, int64_t begin, int64_t end) {
     const UniformJob *j = (const UniformJob *)job;
     int64_t n = j->n, nw = j->w * n, hw = j->h * j->w;
+    int64_t bi = begin / hw, y = (begin / j->w) % j->h, x = begin % j->w;
     for (int64_t p = begin; p < end; p++) {
-        int64_t bi = p / hw, y = (p / j->w) % j->h, x = p % j->w;
         int64_t s0 = (bi * j->h * n + y * n) * nw + x * n;
-        int u = j->front_mask[s0];
-        float tol = j->depth_tol * fabsf(j->back_depth[s0]);
-        const float *fn0 = j->front_normal + 3 * s0, *bn0 = j->back_normal + 3 * s0;
-        for (int64_t i = 0; i < n; i++)
-            for (int64_t k = 0; k < n; k++) {
-                int64_t s = s0 + i * nw + k;
-                if (i || k) {
-                    u &= j->front_mask[s] == j->front_mask[s0];
-                    u &= j->back_mask[s] == j->back_mask[s0];
-                    u &= 1.0f - dot3(j->front_normal + 3 * s, fn0) <= j->normal_tol;
-                    u &= 1.0f - dot3(j->back_normal + 3 * s, bn0) <= j->normal_tol;
-                    u &= fabsf(j->back_depth[s] - j->back_depth[s0]) <= tol;
-                }
-                u &= (j->per_pixel ? j->alpha[s] : j->alpha[bi]) >= j->smooth_alpha;
-            }
+        int u = uniform_pixel(j, bi, s0, nw);
         j->uniform[p] = (uint8_t)u;
         for (int64_t i = 0; i < n; i++)
             for (int64_t k = 0; k < n; k++) {
@@ -276,6 +286,13 @@ static void uniform_range(const void *job, int64_t begin, int64_t end) {
                 j->shade[s] = (uint8_t)(j->front_mask[s] && (!j->region || j->region[s]) &&
                                         !(u && (i || k)));
             }
+        if (++x == j->w) {  /* the next pixel's row and view, without divisions */
+            x = 0;
+            if (++y == j->h) {
+                y = 0;
+                bi++;
+            }
+        }
     }
 }
 
