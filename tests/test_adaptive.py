@@ -491,3 +491,102 @@ def test_ior_one_stays_close_to_the_bare_environment():
     full = tr.render(s, settings=UNIFORM)  # the method's own: the environment itself
     flf = flip_map(full.radiance[0].numpy(), bare.numpy())[m.numpy()]
     assert float(flf.mean()) < 1e-3, float(flf.mean())
+
+
+def _accuracy_script():
+    import importlib.util
+    path = Path(__file__).resolve().parent.parent / "scripts" / "adaptive_accuracy.py"
+    spec = importlib.util.spec_from_file_location("adaptive_accuracy_script", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_sparse_design_edges_from_pixel_centers():
+    """scripts/adaptive_accuracy.py's edge pixels (``--sparse``): the slab's silhouette
+    (object pixels beside background) and the background ring around it are edges, most of
+    its flat interior and the far background are not; a smooth sphere is edge everywhere
+    on the object (sub-pixels there can differ by the environment's detail)."""
+    edge_pixels = _accuracy_script().edge_pixels
+    r = tr.render(_scene("slab_a02", 48, 1))
+    cov = r.coverage[0] > 0
+    e = edge_pixels(r)
+    grown = torch.nn.functional.max_pool2d(cov[None, None].float(), 3, 1, 1)[0, 0] > 0
+    shrunk = -torch.nn.functional.max_pool2d(-cov[None, None].float(), 3, 1, 1)[0, 0] > 0
+    ring = grown & ~shrunk
+    assert ring.any() and bool(e[ring].all())
+    assert not bool(e[~grown].any())
+    assert float(e[shrunk].float().mean()) < 0.3
+    r0 = tr.render(_scene("sphere_a0", 32, 1))
+    assert bool(edge_pixels(r0)[r0.coverage[0] > 0].all())
+
+
+def test_refine_takes_uniform_pixels_where_the_radiance_spreads():
+    """adaptive.refine: around one bright pixel the uniform pixels of its 3x3 neighbourhood
+    are shaded at their other sub-pixels (a non-uniform one is already), at the first sub-
+    pixel too where the lattice interpolated the center sample; a flat image refines
+    nothing."""
+    n, h, w = 2, 6, 6
+    uniform = torch.ones(1, h, w, dtype=torch.bool)
+    uniform[0, 2, 3] = False
+    plan = adaptive.Plan(uniform=uniform, n=n)
+    flat = torch.ones(1, h * n, w * n, 3)
+    assert adaptive.refine(plan, flat) is None
+    bright = flat.clone()
+    bright[0, 2 * n, 2 * n] = 10.0  # pixel (2, 2)'s first sub-pixel: the pixel's value
+    more, rest = adaptive.refine(plan, bright)
+    want = torch.zeros(1, h, w, dtype=torch.bool)
+    want[0, 1:4, 1:4] = True
+    want[0, 2, 3] = False
+    assert torch.equal(more, want)
+    assert torch.equal(rest[:, 1::n, 1::n], want) and torch.equal(rest[:, ::n, 1::n], want)
+    assert not rest[:, ::n, ::n].any()  # no lattice: the center samples were shaded
+    status = torch.ones(1, h, w, dtype=torch.uint8)
+    status[0, 1, 1] = 3  # interpolated from its lattice neighbours
+    lat = adaptive.Lattice(levels=(adaptive.Level(1, status, torch.zeros(1, h, w), sub=n),))
+    _, rest = adaptive.refine(dataclasses.replace(plan, lattice=lat), bright)
+    first = torch.zeros(1, h, w, dtype=torch.bool)
+    first[0, 1, 1] = True
+    assert torch.equal(rest[:, ::n, ::n], first)
+    assert adaptive.refine(plan, bright, rtol=100.0) is None
+
+
+def test_refined_render_is_closer_to_uniform(monkeypatch):
+    """Where the G-buffer is smooth but the refraction is not (a lumpy blob of IOR 2.33 at
+    alpha 0.03 with 2 bounces, a held-out validation scene), the pixels whose radiance
+    spreads are shaded at every sub-pixel: the adaptive image moves towards the uniform
+    2x2 one, and the fused kernels and the tensor code still agree."""
+    s = tr.load_scene(SUITE.parent / "validation" / "v031_blob_lumpy_01a6.yaml")
+    s = s.replace(camera=dataclasses.replace(s.camera, width=32, height=32),
+                  method_options={"internal_bounces": 2})
+    assert s.camera.samples_per_pixel == 2
+    u = tr.render(s, settings=UNIFORM).radiance[0].numpy()
+    refined = tr.render(s, settings=ADAPTIVE)
+    obj = (refined.coverage[0] > 0).numpy()
+    monkeypatch.setattr(adaptive, "REFINE_RTOL", float("inf"))
+    plain = tr.render(s, settings=ADAPTIVE).radiance[0].numpy()
+    monkeypatch.undo()
+    near = flip_map(refined.radiance[0].numpy(), u)[obj].mean()
+    assert near < 0.5 * flip_map(plain, u)[obj].mean()
+    t = tr.render(s, settings=RenderSettings(adaptive=True, fused=False)).radiance[0].numpy()
+    assert flip_map(refined.radiance[0].numpy(), t)[obj].mean() < 0.002
+
+
+def test_refine_kernel_equals_tensor_code():
+    """csrc/lattice.c's ``refine`` decides as adaptive._refine_torch: random radiances over
+    partly uniform pixels, odd sizes, a NaN and an infinity (whose neighbourhoods refine
+    nothing), three tolerances."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    g = torch.Generator().manual_seed(5)
+    for trial in range(12):
+        b, h, w, n = 2, 5 + trial % 3, 7 + trial % 2, 2
+        uniform = torch.rand(b, h, w, generator=g) > 0.3
+        radiance = torch.rand(b, h * n, w * n, 3, generator=g) ** 4 * 3
+        radiance[0, 2, 2, 1] = float("nan")
+        radiance[1, 4, 0, 0] = float("inf")
+        for rtol in (0.2, 0.8, 1.6):
+            made = native.refine(uniform, radiance, rtol)
+            want = adaptive._refine_torch(uniform, radiance[:, ::n, ::n], rtol)
+            assert torch.equal(made, want)
+            assert not made[0, 1, 1] and not made[1, 2, 0]  # next to the NaN, the inf

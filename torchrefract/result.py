@@ -253,6 +253,20 @@ def pixel_passes(g: GBuffer, radiance: torch.Tensor, method_passes: dict[str, to
     return pixel_radiance, coverage, {k: done[k] for k in order}
 
 
+def _refine(entry, g, plan, radiance: torch.Tensor, passes: dict, args: tuple):
+    """A supersampled plan's uniform pixels whose neighbourhood's radiances spread
+    (:func:`torchrefract.geometry.adaptive.refine`) shaded at their other sub-pixels over
+    the image so far: the plan without them, the radiance and the passes."""
+    made = adaptive.refine(plan, radiance)
+    if made is None:
+        return plan, radiance, passes
+    more, rest = made
+    again = tiles.shade(entry, dataclasses.replace(g, shade=rest, canvas=radiance.view(-1, 3)),
+                        *args)
+    radiance, passes = adaptive.merge(radiance, passes, again, rest)
+    return dataclasses.replace(plan, uniform=plan.uniform & ~more), radiance, passes
+
+
 def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan,
                  t_start: float) -> RenderResult:
     """The method's shading of a built G-buffer and the passes, on the tensors' device
@@ -277,6 +291,10 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
                     options, state, budget)
                 radiance, method_passes = adaptive.merge(radiance, method_passes, again,
                                                          rest, soft)
+        if isinstance(plan, adaptive.Plan) and rec is None:  # pixels shaded once after all
+            plan, radiance, method_passes = _refine(entry, g, plan, radiance, method_passes,
+                                                    (lighting, materials, options, state,
+                                                     budget))
         # never let NaN/Inf out, and never hide that it happened; a finite sum (one
         # reduction) proves every value finite, a non-finite one (or an overflow) is checked
         if not all_finite(radiance):

@@ -19,8 +19,9 @@ of the shading (n = 2). The center samples get the lattice below too: a uniform 
 between uniform lattice pixels waits on their center samples.
 The back layer, which the marches read, stays the n x n one; the center sample lies on
 the sub-pixel triangle its ray hits (the most inside of the pixel's). What the G-buffer cannot show
-(a TIR boundary, a sharp feature of the environment seen through a smooth pixel) is not
-detected: there one sample stands for the pixel.
+(a TIR boundary, a sharp feature of the environment seen through a smooth pixel) shows in
+the radiance: after the first pass a pixel shaded once whose neighbourhood's radiances
+spread by more than ``REFINE_RTOL`` is shaded at its other sub-pixels too (:func:`refine`).
 
 At one sample per pixel (:func:`lattice`, :func:`fill`, csrc/lattice.c) the same idea runs
 the other way: the object pixels of the 2x2 lattice (even row and column) are shaded
@@ -74,6 +75,12 @@ detailed view (the bunny at 256x256, 0.35 waiting)."""
 COARSE_SHARE = 0.5
 """The share of a view's even object pixels that must be able to wait on the pixels of
 stride 4 for that coarser level to be planned (0: wherever any can; see FINE_SHARE)."""
+REFINE_RTOL = 1.6
+"""With n x n samples: a pixel shaded once whose 3x3 neighbourhood of such pixels'
+radiances spreads (max - min in a channel) by more than this times their mean luminance
+(+ 1e-3) is shaded at every sub-pixel after all (:func:`refine`): the TIR boundaries and
+sharp environment detail that the G-buffer does not show. Fit on the validation set's fit
+half (docs/decisions.md, "Adaptive 2x2 refined where the radiance spreads")."""
 
 
 @dataclass(frozen=True)
@@ -154,6 +161,65 @@ def plan(g: GBuffer, center_dirs: torch.Tensor, alpha: torch.Tensor,
     if region is not None:  # a pixel outside is neither shaded nor waited on
         uniform = uniform & region[:, ::n, ::n]
     return replace(g, shade=shade), Plan(uniform=uniform, n=n)
+
+
+def refine(plan: Plan, radiance: torch.Tensor, rtol: float | None = None
+           ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """After a supersampled plan's passes: its uniform pixels whose 3x3 neighbourhood of
+    uniform pixels' radiances (their center samples, at their first sub-pixels) spreads by
+    more than ``rtol`` (default REFINE_RTOL; module docstring), to be shaded at every
+    sub-pixel (csrc/lattice.c's ``refine``, else :func:`_refine_torch`: the same
+    decisions). Returns their (B, H/n, W/n) mask and the (B, H, W) sub-pixels still to
+    shade (those after the first; the first too where the lattice interpolated the center
+    sample), or None where there are none.
+
+    Args:
+        radiance: (B, H, W, 3), the passes' (sub-)pixel radiance.
+    """
+    rtol = REFINE_RTOL if rtol is None else rtol
+    more = native.refine(plan.uniform, radiance, rtol)
+    if more is None:
+        more = _refine_torch(plan.uniform, radiance.detach()[:, ::plan.n, ::plan.n], rtol)
+    if not bool(more.any()):
+        return None
+    n = plan.n
+    rest = torch.zeros(radiance.shape[:3], dtype=torch.bool, device=radiance.device)
+    for v in _subs(rest, n)[1:]:
+        v |= more  # (strided views: in place)
+    if plan.lattice is not None:  # center samples the lattice interpolated: shaded now
+        fine = plan.lattice.levels[-1].status
+        interpolated = (fine == 3) | (fine == 5)
+        if len(plan.lattice.levels) > 1:
+            coarse = plan.lattice.levels[0].status
+            interpolated[:, ::2, ::2] |= (coarse == 3) | (coarse == 5)
+        rest[:, ::n, ::n] |= more & interpolated
+    return more, rest
+
+
+def _refine_torch(uniform: torch.Tensor, first: torch.Tensor, rtol: float) -> torch.Tensor:
+    """csrc/lattice.c's ``refine`` in tensor code: ``uniform`` (B, h, w) and each pixel's
+    first sub-pixel's radiance ``first`` (B, h, w, 3); the neighbours in row-major order."""
+    b, h, w, _ = first.shape
+    u = torch.nn.functional.pad(uniform, (1, 1, 1, 1))
+    v = torch.nn.functional.pad(first.permute(0, 3, 1, 2), (1, 1, 1, 1)).permute(0, 2, 3, 1)
+    hi = torch.full_like(first, float("-inf"))
+    lo = torch.full_like(first, float("inf"))
+    total = torch.zeros(b, h, w, dtype=first.dtype, device=first.device)
+    count = torch.zeros(b, h, w, dtype=first.dtype, device=first.device)
+    bad = torch.zeros(b, h, w, dtype=torch.bool, device=first.device)
+    for dy in range(3):
+        for dx in range(3):
+            on = u[:, dy:dy + h, dx:dx + w]
+            q = v[:, dy:dy + h, dx:dx + w]
+            hi = torch.where(on[..., None], torch.maximum(hi, q), hi)
+            lo = torch.where(on[..., None], torch.minimum(lo, q), lo)
+            total = torch.where(on, total + ((q[..., 0] + q[..., 1]) + q[..., 2]) / 3.0, total)
+            count = count + on.to(first.dtype)
+            bad |= on & ~torch.isfinite(q).all(-1)
+    d = hi - lo
+    spread = torch.maximum(torch.maximum(d[..., 0], d[..., 1]), d[..., 2])
+    mean = total / count.clamp(min=1.0) + 1e-3
+    return uniform & ~bad & (spread > rtol * mean)
 
 
 def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.Tensor
@@ -530,6 +596,6 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
     return mean + weight[:, None] * (shaded - mean)
 
 
-__all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL", "SMOOTH_ALPHA",
-           "Lattice", "Level", "Plan", "fill", "fill_rtol", "lattice", "merge", "plan",
-           "waiting"]
+__all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL",
+           "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level", "Plan", "fill", "fill_rtol",
+           "lattice", "merge", "plan", "refine", "waiting"]

@@ -274,6 +274,14 @@ class _MipsJob(ctypes.Structure):
                 ("hw", _p), ("out", _p), ("level", ctypes.c_int64)]
 
 
+class _RefineJob(ctypes.Structure):
+    """ctypes mirror of ``RefineJob`` in csrc/lattice.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64), ("uniform", _p), ("radiance", _p),
+                ("rtol", ctypes.c_float), ("more", _p)]
+
+
 class _UniformJob(ctypes.Structure):
     """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
 
@@ -333,7 +341,8 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "spread": _SpreadJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
-            "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "box": _BoxJob,
+            "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
+            "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob,
             "relight_reads": _RelightJob}
@@ -832,6 +841,24 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
                       region=None if region is None else region.data_ptr(),
                       shade=shade.data_ptr(), **made[1])
     return (out, shade) if _call("uniform", job) else None
+
+
+def refine(uniform: torch.Tensor, radiance: torch.Tensor, rtol: float) -> torch.Tensor | None:
+    """``adaptive.refine``'s (B, H/n, W/n) bool pixels of ``uniform`` to shade at every
+    sub-pixel, from the (B, H, W, 3) ``radiance`` (csrc/lattice.c, the same decisions as
+    the tensor code), or ``None`` where the kernel is unavailable, a gradient is wanted or
+    an input is not a float32 / bool CPU tensor."""
+    b, h, w = uniform.shape
+    if not available() or radiance.requires_grad or radiance.shape[1] % h or (
+            radiance.shape[1] // h != radiance.shape[2] // w):
+        return None
+    keep = _inputs((radiance,), (), (uniform,))
+    if keep is None:
+        return None
+    out = torch.empty(b, h, w, dtype=torch.bool)
+    job = _RefineJob(b=b, h=h, w=w, n=radiance.shape[1] // h, uniform=keep[1].data_ptr(),
+                     radiance=keep[0].data_ptr(), rtol=rtol, more=out.data_ptr())
+    return out if _call("refine", job) else None
 
 
 def box(x: torch.Tensor, n: int, mask: torch.Tensor | None = None,

@@ -302,6 +302,64 @@ int torchrefract_uniform(const UniformJob *job, int threads) {
 
 int64_t torchrefract_uniform_job_size(void) { return (int64_t)sizeof(UniformJob); }
 
+/* adaptive.refine's pixels shaded once to be shaded at every sub-pixel after all: a
+ * uniform pixel whose 3x3 neighbourhood of uniform pixels' radiances (each at its first
+ * sub-pixel: its center sample) spreads, max - min in a channel, by more than rtol times
+ * its mean luminance + 1e-3 (the luminances (r + g) + b over 3, summed in row-major
+ * order, over their count); a non-finite value among them refines nothing. The tensor code's float32
+ * operations in its order (adaptive._refine_torch). */
+typedef struct {
+    int64_t b, h, w, n;         /* pixels (B, h, w); radiance (B, n h, n w, 3) */
+    const uint8_t *uniform;     /* (B, h, w) */
+    const float *radiance;
+    float rtol;
+    uint8_t *more;              /* out (B, h, w) */
+} RefineJob;
+
+static int refine_pixel(const RefineJob *j, int64_t bi, int64_t y, int64_t x) {
+    int64_t n = j->n, nw = j->w * n;
+    float hi[3] = {0.0f, 0.0f, 0.0f}, lo[3] = {0.0f, 0.0f, 0.0f}, sum = 0.0f;
+    int count = 0, nan = 0;
+    for (int64_t dy = -1; dy <= 1; dy++)
+        for (int64_t dx = -1; dx <= 1; dx++) {
+            int64_t yy = y + dy, xx = x + dx;
+            if (yy < 0 || yy >= j->h || xx < 0 || xx >= j->w) continue;
+            if (!j->uniform[(bi * j->h + yy) * j->w + xx]) continue;
+            const float *v = j->radiance + 3 * ((bi * j->h * n + yy * n) * nw + xx * n);
+            for (int c = 0; c < 3; c++) {
+                nan |= !isfinite(v[c]);
+                hi[c] = count && hi[c] > v[c] ? hi[c] : v[c];
+                lo[c] = count && lo[c] < v[c] ? lo[c] : v[c];
+            }
+            sum = sum + ((v[0] + v[1]) + v[2]) / 3.0f;
+            count++;
+        }
+    float spread = tmax(tmax(hi[0] - lo[0], hi[1] - lo[1]), hi[2] - lo[2]);
+    float mean = sum / (float)count + 1e-3f;
+    return !nan && spread > j->rtol * mean;
+}
+
+static void refine_range(const void *job, int64_t begin, int64_t end) {
+    const RefineJob *j = (const RefineJob *)job;
+    int64_t hw = j->h * j->w, bi = begin / hw, y = (begin / j->w) % j->h, x = begin % j->w;
+    for (int64_t p = begin; p < end; p++) {
+        j->more[p] = (uint8_t)(j->uniform[p] && refine_pixel(j, bi, y, x));
+        if (++x == j->w) {
+            x = 0;
+            if (++y == j->h) {
+                y = 0;
+                bi++;
+            }
+        }
+    }
+}
+
+int torchrefract_refine(const RefineJob *job, int threads) {
+    return tr_parallel_for(refine_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+int64_t torchrefract_refine_job_size(void) { return (int64_t)sizeof(RefineJob); }
+
 /* One level of a plan for the driver below: its pixels (B, h, w) at ``stride`` in the
  * frame, the plan's status (filled in place) and gap. */
 typedef struct {
