@@ -61,20 +61,24 @@ typedef struct {
     int64_t bi, y, x;
 } Pos;
 
-static inline Pos pos_start(const LatticeJob *j, int64_t p) {
-    Pos q = {p / (j->h * j->w), (p / j->w) % j->h, p % j->w};
+static inline Pos pos_at(int64_t p, int64_t h, int64_t w) {
+    Pos q = {p / (h * w), (p / w) % h, p % w};
     return q;
 }
 
-static inline void pos_next(const LatticeJob *j, Pos *q) {
-    if (++q->x == j->w) {
+static inline void pos_step(Pos *q, int64_t h, int64_t w) {
+    if (++q->x == w) {
         q->x = 0;
-        if (++q->y == j->h) {
+        if (++q->y == h) {
             q->y = 0;
             q->bi++;
         }
     }
 }
+
+static inline Pos pos_start(const LatticeJob *j, int64_t p) { return pos_at(p, j->h, j->w); }
+
+static inline void pos_next(const LatticeJob *j, Pos *q) { pos_step(q, j->h, j->w); }
 
 /* The mean of the neighbours' values (k = 2 or 4) of channel c of a (B*H*W, ch) array. */
 static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, int k,
@@ -274,11 +278,11 @@ static int uniform_pixel(const UniformJob *j, int64_t bi, int64_t s0, int64_t nw
 
 static void uniform_range(const void *job, int64_t begin, int64_t end) {
     const UniformJob *j = (const UniformJob *)job;
-    int64_t n = j->n, nw = j->w * n, hw = j->h * j->w;
-    int64_t bi = begin / hw, y = (begin / j->w) % j->h, x = begin % j->w;
-    for (int64_t p = begin; p < end; p++) {
-        int64_t s0 = (bi * j->h * n + y * n) * nw + x * n;
-        int u = uniform_pixel(j, bi, s0, nw);
+    int64_t n = j->n, nw = j->w * n;
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
+        int64_t s0 = (at.bi * j->h * n + at.y * n) * nw + at.x * n;
+        int u = uniform_pixel(j, at.bi, s0, nw);
         j->uniform[p] = (uint8_t)u;
         for (int64_t i = 0; i < n; i++)
             for (int64_t k = 0; k < n; k++) {
@@ -286,13 +290,6 @@ static void uniform_range(const void *job, int64_t begin, int64_t end) {
                 j->shade[s] = (uint8_t)(j->front_mask[s] && (!j->region || j->region[s]) &&
                                         !(u && (i || k)));
             }
-        if (++x == j->w) {  /* the next pixel's row and view, without divisions */
-            x = 0;
-            if (++y == j->h) {
-                y = 0;
-                bi++;
-            }
-        }
     }
 }
 
@@ -341,17 +338,9 @@ static int refine_pixel(const RefineJob *j, int64_t bi, int64_t y, int64_t x) {
 
 static void refine_range(const void *job, int64_t begin, int64_t end) {
     const RefineJob *j = (const RefineJob *)job;
-    int64_t hw = j->h * j->w, bi = begin / hw, y = (begin / j->w) % j->h, x = begin % j->w;
-    for (int64_t p = begin; p < end; p++) {
-        j->more[p] = (uint8_t)(j->uniform[p] && refine_pixel(j, bi, y, x));
-        if (++x == j->w) {
-            x = 0;
-            if (++y == j->h) {
-                y = 0;
-                bi++;
-            }
-        }
-    }
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w))
+        j->more[p] = (uint8_t)(j->uniform[p] && refine_pixel(j, at.bi, at.y, at.x));
 }
 
 int torchrefract_refine(const RefineJob *job, int threads) {
