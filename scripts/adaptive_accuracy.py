@@ -94,6 +94,30 @@ def sparse_scores(s: tr.Scene, supersampled: torch.Tensor, truth: dict) -> dict:
             "edge_share": float((edge & obj).sum()) / max(int(obj.sum()), 1)}
 
 
+def report(rows: list[dict], variants: list[str], sparse: bool) -> None:
+    """Per variant: the means, the worst scene and (``sparse``) the design's figures."""
+    for name in variants:
+        rs = [r for r in rows if r["variant"] == name]
+        if not rs:
+            continue
+        d = [r["flip_adaptive"] - r["flip_full"] for r in rs]
+        worst = max(rs, key=lambda r: r["flip_adaptive"] - r["flip_full"])
+        print(f"{name}: {len(rs)} scenes, FLIP vs truth {statistics.mean(r['flip_full'] for r in rs):.4f}"
+              f" -> {statistics.mean(r['flip_adaptive'] for r in rs):.4f} (mean change "
+              f"{statistics.mean(d):+.4f}, worst {max(d):+.4f} {worst['scene']}), vs full "
+              f"{statistics.mean(r['flip_vs_full'] for r in rs):.4f} (max "
+              f"{max(r['flip_vs_full'] for r in rs):.4f}), shaded "
+              f"{statistics.mean(r['shaded'] for r in rs):.2f} of the object pixels, time "
+              f"{statistics.median(r['ms_adaptive'] / r['ms_full'] for r in rs):.2f} of the full "
+              "render's (median)")
+        if sparse:
+            for key in ("flip_sparse", "flip_one"):
+                d = [r[key] - r["flip_full"] for r in rs]
+                print(f"  {key[5:]}: mean change {statistics.mean(d):+.4f}, worst {max(d):+.4f},"
+                      f" {sum(x > 0.005 for x in d)} scenes beyond +0.005")
+            print(f"  edge share: median {statistics.median(r['edge_share'] for r in rs):.2f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", default="heldout", choices=("heldout", "fit", "suite"))
@@ -158,26 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         "" if args.spp == 1 else f"_spp{args.spp}") + ("_sparse" if args.sparse else "") + (
         "" if args.refine_rtol is None else f"_refine{args.refine_rtol:g}")
     (args.out / f"adaptive_{args.split}{tag}.json").write_text(json.dumps(rows, indent=1))
-    for name in args.variants:
-        rs = [r for r in rows if r["variant"] == name]
-        if not rs:
-            continue
-        d = [r["flip_adaptive"] - r["flip_full"] for r in rs]
-        worst = max(rs, key=lambda r: r["flip_adaptive"] - r["flip_full"])
-        print(f"{name}: {len(rs)} scenes, FLIP vs truth {statistics.mean(r['flip_full'] for r in rs):.4f}"
-              f" -> {statistics.mean(r['flip_adaptive'] for r in rs):.4f} (mean change "
-              f"{statistics.mean(d):+.4f}, worst {max(d):+.4f} {worst['scene']}), vs full "
-              f"{statistics.mean(r['flip_vs_full'] for r in rs):.4f} (max "
-              f"{max(r['flip_vs_full'] for r in rs):.4f}), shaded "
-              f"{statistics.mean(r['shaded'] for r in rs):.2f} of the object pixels, time "
-              f"{statistics.median(r['ms_adaptive'] / r['ms_full'] for r in rs):.2f} of the full "
-              "render's (median)")
-        if args.sparse:
-            for key in ("flip_sparse", "flip_one"):
-                d = [r[key] - r["flip_full"] for r in rs]
-                print(f"  {key[5:]}: mean change {statistics.mean(d):+.4f}, worst {max(d):+.4f},"
-                      f" {sum(x > 0.005 for x in d)} scenes beyond +0.005")
-            print(f"  edge share: median {statistics.median(r['edge_share'] for r in rs):.2f}")
+    report(rows, args.variants, args.sparse)
     print(f"saved {args.out / f'adaptive_{args.split}{tag}.json'}")
     return 0
 
