@@ -47,6 +47,8 @@ def _camera_frame_cached(cam: Camera) -> tuple[tuple[float, float, float], ...]:
     f = _unit(tuple(float(t) - e for t, e in zip(cam.target, eye)))
     r = _unit(_cross(f, tuple(float(x) for x in cam.up)))
     return eye, r, _cross(r, f), f
+
+
 def screen_scale(cam: Camera) -> tuple[float, float]:
     """t = tan(yfov / 2) and the aspect a = width / height (module docstring's ray)."""
     return math.tan(math.radians(cam.yfov_deg) / 2.0), cam.width / cam.height

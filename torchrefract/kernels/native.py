@@ -850,7 +850,7 @@ def refine(uniform: torch.Tensor, radiance: torch.Tensor, rtol: float) -> torch.
     an input is not a float32 / bool CPU tensor."""
     b, h, w = uniform.shape
     if not available() or radiance.requires_grad or radiance.shape[1] % h or (
-            radiance.shape[1] // h != radiance.shape[2] // w):
+            radiance.shape[2] % w or radiance.shape[1] // h != radiance.shape[2] // w):
         return None
     keep = _inputs((radiance,), (), (uniform,))
     if keep is None:

@@ -55,8 +55,9 @@ static inline int64_t frame_at(const LatticeJob *j, int64_t p, int64_t bi, int64
     return (bi * j->fh + y * j->stride) * j->fw + x * j->stride;
 }
 
-/* A level's pixel p and its view, row and column, walked in order from ``begin`` without a
- * division per pixel (the ranges' loops: pos_start, then pos_next per pixel). */
+/* A pixel p of a (B, h, w) grid (a level's, the plan's) and its view, row and column,
+ * walked in order from ``begin`` without a division per pixel (the ranges' loops: pos_at,
+ * then pos_step per pixel). */
 typedef struct {
     int64_t bi, y, x;
 } Pos;
@@ -75,10 +76,6 @@ static inline void pos_step(Pos *q, int64_t h, int64_t w) {
         }
     }
 }
-
-static inline Pos pos_start(const LatticeJob *j, int64_t p) { return pos_at(p, j->h, j->w); }
-
-static inline void pos_next(const LatticeJob *j, Pos *q) { pos_step(q, j->h, j->w); }
 
 /* The mean of the neighbours' values (k = 2 or 4) of channel c of a (B*H*W, ch) array. */
 static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, int k,
@@ -133,9 +130,9 @@ static void add_counts(const LatticeJob *j, int64_t bi, int64_t objects, int64_t
 
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
-    Pos at = pos_start(j, begin);
+    Pos at = pos_at(begin, j->h, j->w);
     int64_t view = at.bi, objects = 0, waiting = 0;
-    for (int64_t p = begin; p < end; p++, pos_next(j, &at)) {
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (at.bi != view) {
             add_counts(j, view, objects, waiting);
             view = at.bi;
@@ -186,8 +183,8 @@ int torchrefract_lattice_plan(LatticeJob *job, int threads) {
 
 static void fill_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
-    Pos at = pos_start(j, begin);
-    for (int64_t p = begin; p < end; p++, pos_next(j, &at)) {
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (j->status[p] != 2) continue;
         int64_t lnb[4], nb[4];  /* the level's neighbours, and theirs in the frame */
         int k = lattice_neighbours(j, p, &at, lnb, nb);
@@ -303,8 +300,8 @@ int64_t torchrefract_uniform_job_size(void) { return (int64_t)sizeof(UniformJob)
  * uniform pixel whose 3x3 neighbourhood of uniform pixels' radiances (each at its first
  * sub-pixel: its center sample) spreads, max - min in a channel, by more than rtol times
  * its mean luminance + 1e-3 (the luminances (r + g) + b over 3, summed in row-major
- * order, over their count); a non-finite value among them refines nothing. The tensor code's float32
- * operations in its order (adaptive._refine_torch). */
+ * order, over their count); a non-finite value among them refines nothing. The tensor
+ * code's float32 operations in its order (adaptive._refine_torch). */
 typedef struct {
     int64_t b, h, w, n;         /* pixels (B, h, w); radiance (B, n h, n w, 3) */
     const uint8_t *uniform;     /* (B, h, w) */
@@ -408,8 +405,8 @@ static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f,
         return -1;
     }
     int64_t *batch = idx + rest, r = 0, s = 0;
-    Pos at = pos_start(lj, 0);
-    for (int64_t p = 0; p < n; p++, pos_next(lj, &at)) {
+    Pos at = pos_at(0, lj->h, lj->w);
+    for (int64_t p = 0; p < n; p++, pos_step(&at, lj->h, lj->w)) {
         if (lj->status[p] < 4) continue;
         int64_t fp = frame_at(lj, p, at.bi, at.y, at.x);
         idx[r] = fp;
