@@ -45,8 +45,11 @@ def test_on_by_default(monkeypatch):
 
 
 def test_smooth_glass_is_sampled_uniformly():
-    """Below SMOOTH_ALPHA every sub-pixel is shaded: the image is the uniform one."""
-    s = _scene("sphere_a0", 32, method="rousiers", method_options={"internal_bounces": 2})
+    """Below SMOOTH_ALPHA every sub-pixel is shaded: the image is the uniform one (the n x n
+    plan: ``cone_rays: plane`` reads the frame around a sample, so it is not sparse,
+    tests/test_subsamples.py)."""
+    s = _scene("sphere_a0", 32, method="rousiers",
+               method_options={"internal_bounces": 2, "cone_rays": "plane"})
     a, b = tr.render(s, settings=UNIFORM), tr.render(s, settings=ADAPTIVE)
     assert torch.equal(a.radiance, b.radiance)
 
@@ -555,10 +558,11 @@ def test_refined_render_is_closer_to_uniform(monkeypatch):
     """Where the G-buffer is smooth but the refraction is not (a lumpy blob of IOR 2.33 at
     alpha 0.03 with 2 bounces, a held-out validation scene), the pixels whose radiance
     spreads are shaded at every sub-pixel: the adaptive image moves towards the uniform
-    2x2 one, and the fused kernels and the tensor code still agree."""
+    2x2 one, and the fused kernels and the tensor code still agree (the n x n plan:
+    ``cone_rays: plane``)."""
     s = tr.load_scene(SUITE.parent / "validation" / "v031_blob_lumpy_01a6.yaml")
     s = s.replace(camera=dataclasses.replace(s.camera, width=32, height=32),
-                  method_options={"internal_bounces": 2})
+                  method_options={"internal_bounces": 2, "cone_rays": "plane"})
     assert s.camera.samples_per_pixel == 2
     u = tr.render(s, settings=UNIFORM).radiance[0].numpy()
     refined = tr.render(s, settings=ADAPTIVE)

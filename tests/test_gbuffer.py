@@ -452,9 +452,9 @@ def test_repeated_views_are_built_once_and_equal_separate_builds(mesh_paths, mon
         calls.append((id(mesh), cam, back))
         return real_pass(mesh, cam, n, back=back)
 
-    def counting_native(ms, cs, n, offsets):
+    def counting_native(ms, cs, n, offsets, **kw):
         calls.extend((id(m), c, back) for m, c in zip(ms, cs) for back in (False, True))
-        return real_native(ms, cs, n, offsets)
+        return real_native(ms, cs, n, offsets, **kw)
 
     monkeypatch.setattr(raster, "visibility_pass", counting)
     monkeypatch.setattr(raster, "native_layers", counting_native)

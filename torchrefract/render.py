@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from torchrefract import large, tiles
+from torchrefract import large, sparse, tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import views_pixel_rays
@@ -184,11 +184,16 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
     lighting = Lighting.from_scenes(scenes)
     t1 = time.perf_counter()
-    g = build_gbuffer(meshes, [s.camera for s in scenes])
     materials = MaterialBatch.from_scenes(scenes)
+    sparse_pass = sparse.applies(scenes, entry, options, materials)
+    g = build_gbuffer(meshes, sparse.one_sample(scenes) if sparse_pass else
+                      [s.camera for s in scenes])
     region = _subpixel_region(regions, g) if entry.shades_object_index else None
     plan = None
-    if current().adaptive and entry.shades_object_index:
+    pending = None
+    if sparse_pass:  # the one-sample pass, then the pixels whose samples can differ
+        g, plan, pending = sparse.first_pass(g, meshes, scenes, materials, region)
+    elif current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
             alpha = front_roughness(g, materials)
             g, plan = adaptive.plan(g, views_pixel_rays([s.camera for s in scenes]),
@@ -208,8 +213,11 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     with on_device(device):
         result = finish_pass(scenes, entry, g, lighting, materials, options, state, budget,
                               plan, t2)
-    result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1,
-                           "total": time.perf_counter() - t0})
+        if pending is not None:
+            result = sparse.supersample(result, pending, scenes, entry, lighting, materials,
+                                        options, state, budget)
+    result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1 + result.timings.get(
+        "gbuffer", 0.0), "total": time.perf_counter() - t0})
     return result if want == device else to_device(result, want)
 
 

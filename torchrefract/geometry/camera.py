@@ -122,6 +122,27 @@ def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Te
     return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
 
 
+def subpixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int,
+                  rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """The rays of :func:`pixel_rays` at chosen sub-pixels of views of one size: ``rows``,
+    ``cols`` (B, M) int64 coordinates on each view's n x n sub-pixel grid -> (B, M, 3)
+    float32, by :func:`pixel_rays_rows`' float64 operations (sparse supersampling's
+    samples, :mod:`torchrefract.geometry.subsamples`)."""
+    n = supersample
+    h, w = cams[0].height * n, cams[0].width * n
+    frames = []
+    for cam in cams:
+        _, r, u, f = _camera_frame_cached(cam)
+        t, a = screen_scale(cam)
+        frames.append([*f, *r, *u, t, a])
+    fr = torch.tensor(frames, dtype=torch.float64)[:, None]  # (B, 1, 11)
+    f, r, u, t, a = fr[..., 0:3], fr[..., 3:6], fr[..., 6:9], fr[..., 9], fr[..., 10]
+    x = (2.0 * (cols.double() + 0.5) / w - 1.0) * t * a  # (B, M)
+    y = (1.0 - 2.0 * (rows.double() + 0.5) / h) * t
+    d = (f + x[..., None] * r) + y[..., None] * u
+    return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
+
+
 def projection_params(cam: Camera) -> torch.Tensor:
     """Packed camera for batched projection: (16,) float32.
 

@@ -46,6 +46,7 @@ class MeshBatch:
         tri_across: (F, 3) int64 the face across the edge opposite each corner (batch
             indices, -1 where none; ``MeshData.across``).
         sphere_center: (B, 3), sphere_radius: (B,) each mesh's ``MeshData.face_sphere``.
+        face_normals: (F, 3) unit geometric normals (``MeshData.face_normals``).
     """
 
     tri_vertices: torch.Tensor
@@ -57,10 +58,11 @@ class MeshBatch:
     tri_across: torch.Tensor
     sphere_center: torch.Tensor
     sphere_radius: torch.Tensor
+    face_normals: torch.Tensor
 
     @staticmethod
     def from_meshes(meshes: list[MeshData]) -> "MeshBatch":
-        tv, tn, tu, nb, ac = [], [], [], [], []
+        tv, tn, tu, nb, ac, fn = [], [], [], [], [], []
         first: dict[int, int] = {}  # id(mesh) -> its first face in the concatenation
         offset = 0
         for m in meshes:
@@ -70,6 +72,7 @@ class MeshBatch:
             tv.append(m.tri_vertices)  # (F_i, 3, 3), kept with the mesh
             tn.append(m.tri_normals)
             tu.append(m.tri_uvs)
+            fn.append(m.face_normals)
             nb.append(torch.where(m.neighbors >= 0, m.neighbors + offset, m.neighbors)
                       if offset else m.neighbors)
             ac.append(torch.where(m.across >= 0, m.across + offset, m.across)
@@ -87,7 +90,7 @@ class MeshBatch:
 
         return MeshBatch(joined(tv), joined(tn), joined(tu), offsets, counts_t, joined(nb),
                          joined(ac), torch.stack([c for c, _ in spheres]),
-                         torch.stack([r for _, r in spheres]))
+                         torch.stack([r for _, r in spheres]), joined(fn))
 
 
 @dataclass(frozen=True)
@@ -353,6 +356,37 @@ def view_frames(cams: list[Camera], n: int
     return p[:, 0:3].contiguous(), p[:, 9:12].contiguous(), p
 
 
+def _distinct_views(meshes: list[MeshData], cameras: list[Camera]
+                    ) -> tuple[list[tuple[int, MeshData, Camera]], list[int]]:
+    """Each distinct view (mesh object, camera) once, as (its first batch item, mesh,
+    camera), and the distinct view of every batch item."""
+    slot: dict[tuple[int, Camera], int] = {}
+    views: list[tuple[int, MeshData, Camera]] = []
+    inverse = []
+    for b, (m, c) in enumerate(zip(meshes, cameras)):
+        if (id(m), c) not in slot:
+            slot[id(m), c] = len(views)
+            views.append((b, m, c))
+        inverse.append(slot[id(m), c])
+    return views, inverse
+
+
+def layer_ids(meshes: list[MeshData], cameras: list[Camera], batch: MeshBatch, n: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both layers' rasterized ids (B, n H, n W) int32 of B views on their n x n sub-pixel
+    grids, global in ``batch`` (the views' MeshBatch), -1 where no face is seen; each
+    distinct view drawn once. Not yet the exact layers' (:func:`build_gbuffer` repairs
+    them where the exact ray misses)."""
+    views, inverse = _distinct_views(meshes, cameras)
+    front, back = visibility_layers([m for _, m, _ in views], [c for _, _, c in views], n,
+                                    [int(batch.face_offset[b]) for b, _, _ in views],
+                                    dtype=torch.int32)
+    if len(views) < len(meshes):
+        inv = torch.tensor(inverse, dtype=torch.int64)
+        front, back = front.index_select(0, inv), back.index_select(0, inv)
+    return front, back
+
+
 def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     """Rasterize both layers' ids of each view (``RenderSettings.rasterizer``: the native
     rasterizer, or the OpenGL passes) and build the exact G-buffer.
@@ -374,16 +408,7 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
                              f"samples_per_pixel; got {c0} and {c}")
     n = c0.samples_per_pixel
     batch = MeshBatch.from_meshes(meshes)
-    # Each distinct view (mesh object, camera) once, at its first batch item; ``inverse``:
-    # the distinct view of every batch item.
-    slot: dict[tuple[int, Camera], int] = {}
-    views: list[tuple[int, MeshData, Camera]] = []
-    inverse = []
-    for b, (m, c) in enumerate(zip(meshes, cameras)):
-        if (id(m), c) not in slot:
-            slot[id(m), c] = len(views)
-            views.append((b, m, c))
-        inverse.append(slot[id(m), c])
+    views, inverse = _distinct_views(meshes, cameras)
     # both layers' ids of every distinct view, global (the MeshBatch's face indices)
     front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
                                             n, [int(batch.face_offset[b]) for b, _, _ in views])

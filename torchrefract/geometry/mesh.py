@@ -69,6 +69,14 @@ class MeshData:
         return self.normals.index_select(0, self.faces.reshape(-1)).view(-1, 3, 3)
 
     @functools.cached_property
+    def face_normals(self) -> torch.Tensor:
+        """(F, 3) float32 unit geometric normals (the corners' winding), computed once per
+        mesh: sparse supersampling's test of a fold inside a pixel."""
+        tv = self.tri_vertices.double()
+        n = torch.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0], dim=-1)
+        return (n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)).float()
+
+    @functools.cached_property
     def tri_uvs(self) -> torch.Tensor:
         """(F, 3, 2) float32 corner UVs (zeros without UVs), gathered once per mesh."""
         if self.uvs is None:

@@ -414,8 +414,8 @@ def use_native() -> bool:
 
 
 def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
-                  id_offsets: list[int], rows: tuple[int, int] | None = None
-                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
+                  id_offsets: list[int], rows: tuple[int, int] | None = None,
+                  dtype: torch.dtype = torch.int64) -> tuple[torch.Tensor, torch.Tensor] | None:
     """:func:`visibility_layers` by the native rasterizer (``native.raster_ids``; the same
     arguments and result; ``rows``: only the rows [r0, r1) of the frame), or ``None``
     where it is unavailable. Each distinct mesh object is passed once; the planes are
@@ -441,11 +441,12 @@ def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: in
     c0 = cameras[0]
     return native.raster_ids(verts[0] if len(verts) == 1 else torch.cat(verts),
                              faces[0] if len(faces) == 1 else torch.cat(faces), views, mvp,
-                             c0.height * supersample, c0.width * supersample, rows)
+                             c0.height * supersample, c0.width * supersample, rows, dtype)
 
 
 def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
-                      id_offsets: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+                      id_offsets: list[int], dtype: torch.dtype = torch.int64
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """Front and back ids of B views, drawn by the rasterizer the current settings pick
     (:func:`use_native`; the OpenGL passes, :func:`visibility_pass`, otherwise).
 
@@ -455,10 +456,11 @@ def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample
         id_offsets: (B,) added to each view's face indices (the batch's global ids).
 
     Returns:
-        front, back: (B, n H, n W) int64 global ids, -1 where no face is seen.
+        front, back: (B, n H, n W) global ids of ``dtype`` (int64, or int32: 4 bytes a
+        sub-pixel), -1 where no face is seen.
     """
     if use_native():
-        out = native_layers(meshes, cameras, supersample, id_offsets)
+        out = native_layers(meshes, cameras, supersample, id_offsets, dtype=dtype)
         if out is not None:
             return out
         if settings.current().rasterizer == "native":
@@ -469,4 +471,4 @@ def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample
         for back, out in ((False, fronts), (True, backs)):
             ids = visibility_pass(mesh, cam, supersample, back=back)
             out.append(torch.where(ids >= 0, ids + int(off), ids))
-    return torch.stack(fronts), torch.stack(backs)
+    return torch.stack(fronts).to(dtype), torch.stack(backs).to(dtype)

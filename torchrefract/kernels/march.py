@@ -146,14 +146,15 @@ def camera_planes(g: GBuffer, both: bool = False) -> Marched:
             raise ValueError("march: this strip's frame holds no front layer (a march "
                              "between the layers needs it)")
         return g.marched
-    key = ("camera_planes", both) + tuple(
-        (t.data_ptr(), t._version) for t in (g.back.tri, g.front.tri, g.eye, g.proj,
-                                            g.meshes.tri_vertices))
-    kept = g.derived.get(key)
-    if kept is not None:  # computed for this G-buffer already (another tile or pass)
-        return kept
+    inputs = tuple((t.data_ptr(), t._version) for t in (g.back.tri, g.front.tri, g.eye,
+                                                        g.proj, g.meshes.tri_vertices))
+    # both layers serve a march of the back layer alone too
+    for b in (True,) if both else (False, True):
+        kept = g.derived.get(("camera_planes", b) + inputs)
+        if kept is not None:  # computed for this G-buffer already (another tile or pass)
+            return kept
     out = _camera_planes(g, both)
-    g.derived[key] = out
+    g.derived[("camera_planes", both) + inputs] = out
     return out
 
 

@@ -218,7 +218,7 @@ class _RasterJob(ctypes.Structure):
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
                 ("vertices", _p), ("faces", _p), ("views", _p), ("mvp", _p),
                 ("front", _p), ("back", _p), ("row0", ctypes.c_int64),
-                ("rows", ctypes.c_int64)]
+                ("rows", ctypes.c_int64), ("ids32", ctypes.c_int)]
 
 
 class _TriPlanesJob(ctypes.Structure):
@@ -282,6 +282,18 @@ class _RefineJob(ctypes.Structure):
                 ("rtol", ctypes.c_float), ("more", _p)]
 
 
+class _EdgesJob(ctypes.Structure):
+    """ctypes mirror of ``EdgesJob`` in csrc/lattice.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64), ("front_mask", _p), ("back_mask", _p),
+                ("front_normal", _p), ("back_normal", _p), ("back_depth", _p),
+                ("front_ids", _p), ("back_ids", _p), ("face_normal", _p), ("alpha", _p),
+                ("per_pixel", ctypes.c_int), ("smooth_alpha", ctypes.c_float),
+                ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
+                ("face_tol", ctypes.c_float), ("edge", _p)]
+
+
 class _UniformJob(ctypes.Structure):
     """ctypes mirror of ``UniformJob`` in csrc/lattice.c."""
 
@@ -342,6 +354,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
+            "edges": _EdgesJob,
             "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob,
@@ -648,8 +661,8 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
 
 
 def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
-               mvp: torch.Tensor, h: int, w: int, rows: tuple[int, int] | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor] | None:
+               mvp: torch.Tensor, h: int, w: int, rows: tuple[int, int] | None = None,
+               dtype: torch.dtype = torch.int64) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Both visibility layers of B views (csrc/raster.c): per pixel center, the nearest
     front-facing and the nearest back-facing triangle, as ``raster.visibility_pass`` draws
     them with OpenGL; ``None`` where the kernel is unavailable or an input is of another
@@ -666,8 +679,8 @@ def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
             frame's rows there); None: all.
 
     Returns:
-        front, back: (B, h, w) int64 id offset + face index, -1 where no face is seen
-        ((B, r1 - r0, w) with ``rows``).
+        front, back: (B, h, w) id offset + face index, -1 where no face is seen
+        ((B, r1 - r0, w) with ``rows``), of ``dtype`` (int64, or int32: ids below 2^31).
     """
     if not available():
         return None
@@ -681,11 +694,15 @@ def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
     r0, r1 = (0, h) if rows is None else rows
     if not 0 <= r0 < r1 <= h:
         raise ValueError(f"raster_ids: rows {rows} are not a range of the frame's {h}")
-    front = torch.empty(b, r1 - r0, w, dtype=torch.int64)
-    back = torch.empty(b, r1 - r0, w, dtype=torch.int64)
+    if dtype not in (torch.int64, torch.int32) or (
+            dtype == torch.int32 and b and int(views[:, 4].max() + views[:, 3].max()) >= 2**31):
+        return None
+    front = torch.empty(b, r1 - r0, w, dtype=dtype)
+    back = torch.empty(b, r1 - r0, w, dtype=dtype)
     job = _RasterJob(b=b, h=h, w=w, vertices=vertices.data_ptr(), faces=faces.data_ptr(),
                      views=views.data_ptr(), mvp=mvp.data_ptr(), front=front.data_ptr(),
-                     back=back.data_ptr(), row0=r0, rows=r1 - r0)
+                     back=back.data_ptr(), row0=r0, rows=r1 - r0,
+                     ids32=int(dtype == torch.int32))
     if b and not _call("raster", job):
         return None
     return front, back
@@ -841,6 +858,34 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
                       region=None if region is None else region.data_ptr(),
                       shade=shade.data_ptr(), **made[1])
     return (out, shade) if _call("uniform", job) else None
+
+
+def edges(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
+          back_normal: torch.Tensor, back_depth: torch.Tensor,
+          ids: tuple[torch.Tensor, torch.Tensor], face_normals: torch.Tensor,
+          alpha: torch.Tensor, normal_tol: float, depth_tol: float, smooth_alpha: float,
+          face_tol: float) -> torch.Tensor | None:
+    """``subsamples.edges``' (B, H, W) bool pixels of the one-sample layers (B, H, W), both
+    layers' rasterized int32 ids on the n x n grid (B, n H, n W) and the faces' normals
+    (F, 3) (csrc/lattice.c, the same decisions as the tensor code), or ``None`` where the
+    kernel is unavailable or an input is not of its dtype on the CPU. ``alpha``: (B, H, W)
+    or (B, 1, 1)."""
+    b, h, w = front_mask.shape
+    fh, fw = ids[0].shape[1:]
+    if alpha.numel() not in (b, b * h * w) or fh % h or fw % w or fh // h != fw // w:
+        return None
+    made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
+    fn = _inputs((face_normals,), ())
+    if made is None or fn is None or any(x.dtype != torch.int32 or x.device.type != "cpu"
+                                         for x in ids):
+        return None
+    keep = [x.contiguous() for x in ids]
+    out = torch.empty(b, h, w, dtype=torch.bool)
+    job = _EdgesJob(b=b, h=h, w=w, n=fh // h, front_ids=keep[0].data_ptr(),
+                    back_ids=keep[1].data_ptr(), face_normal=fn[0].data_ptr(),
+                    smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
+                    face_tol=face_tol, edge=out.data_ptr(), **made[1])
+    return out if _call("edges", job) else None
 
 
 def refine(uniform: torch.Tensor, radiance: torch.Tensor, rtol: float) -> torch.Tensor | None:

@@ -104,6 +104,9 @@ class Prefiltered(Method):
     Options = PrefilteredOptions
     excluded_options = tuple(option_keys(BounceSettings))  # one ray: no internal reflections
 
+    def shades_samples(self, options, materials) -> bool:
+        return True  # each sample's paths, marched through g.marched
+
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_prefiltered(g, lighting, materials, options))
 

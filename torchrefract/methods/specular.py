@@ -206,6 +206,9 @@ class Specular(Method):
     Options = SpecularOptions
     excluded_options = ("bounce_rays",)  # its lobes are rays: nothing for four rays to split
 
+    def shades_samples(self, options, materials) -> bool:
+        return True  # each sample's paths, marched through g.marched
+
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_specular(g, lighting, materials, options))
 

@@ -470,3 +470,78 @@ int torchrefract_lattice_shade(LatticeShadeJob *J, int threads) {
 int64_t torchrefract_lattice_shade_job_size(void) { return (int64_t)sizeof(LatticeShadeJob); }
 int64_t torchrefract_lattice_plan_job_size(void) { return (int64_t)sizeof(LatticeJob); }
 int64_t torchrefract_lattice_fill_job_size(void) { return (int64_t)sizeof(LatticeJob); }
+
+/* subsamples.edges: the pixels of a one-sample G-buffer (B, h, w) whose n x n samples can
+ * differ: the rasterized coverage of their sub-pixels (ids on the (B, n h, n w) grid)
+ * differs among them or from the center's, in either layer, or a sub-pixel's triangle
+ * turns from the first's by more than face_tol (1 - cos of their face normals); the front
+ * or back normal differs from a covered neighbour's (3x3) by more than normal_tol in
+ * 1 - cos, or the back depth by more than depth_tol relative; the front is smoother than
+ * smooth_alpha. The tensor code's float32 operations (subsamples._edges_torch: optics.dot's
+ * order). */
+typedef struct {
+    int64_t b, h, w, n;
+    const uint8_t *front_mask, *back_mask;      /* (B, h, w) */
+    const float *front_normal, *back_normal, *back_depth;
+    const int32_t *front_ids, *back_ids;        /* (B, n h, n w), -1: none */
+    const float *face_normal;                   /* (F, 3) per global id */
+    const float *alpha;                         /* (B, h, w), or (B,): per_pixel 0 */
+    int per_pixel;
+    float smooth_alpha, normal_tol, depth_tol, face_tol;
+    uint8_t *edge;                              /* out (B, h, w) */
+} EdgesJob;
+
+/* Whether the sub-pixels from s0 (rows nw apart) are not all covered as ``center``, or
+ * one's triangle turns from the first's by more than face_tol. */
+static int sub_pixels_differ(const EdgesJob *j, const int32_t *ids, int64_t s0, int64_t nw,
+                             int center) {
+    int32_t first = ids[s0];
+    const float *f0 = j->face_normal + 3 * (int64_t)(first < 0 ? 0 : first);
+    for (int64_t i = 0; i < j->n; i++)
+        for (int64_t k = 0; k < j->n; k++) {
+            int32_t id = ids[s0 + i * nw + k];
+            if ((id >= 0) != center) return 1;
+            if (id != first && 1.0f - dot3(j->face_normal + 3 * (int64_t)id, f0) > j->face_tol)
+                return 1;
+        }
+    return 0;
+}
+
+static int edge_pixel(const EdgesJob *j, int64_t bi, int64_t y, int64_t x, int64_t p) {
+    int64_t n = j->n, nw = j->w * n, s0 = (bi * j->h * n + y * n) * nw + x * n;
+    int fm = j->front_mask[p], bm = j->back_mask[p];
+    if (sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
+        sub_pixels_differ(j, j->back_ids, s0, nw, bm))
+        return 1;
+    if (fm && (j->per_pixel ? j->alpha[p] : j->alpha[bi]) < j->smooth_alpha) return 1;
+    if (!fm && !bm) return 0;
+    const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
+    float d = j->back_depth[p], tol = j->depth_tol * fabsf(d);
+    for (int64_t dy = -1; dy <= 1; dy++)
+        for (int64_t dx = -1; dx <= 1; dx++) {
+            int64_t yy = y + dy, xx = x + dx;
+            if ((!dy && !dx) || yy < 0 || yy >= j->h || xx < 0 || xx >= j->w) continue;
+            int64_t q = (bi * j->h + yy) * j->w + xx;
+            if (fm && j->front_mask[q] &&
+                1.0f - dot3(j->front_normal + 3 * q, fn) > j->normal_tol)
+                return 1;
+            if (bm && j->back_mask[q] &&
+                (1.0f - dot3(j->back_normal + 3 * q, bn) > j->normal_tol ||
+                 fabsf(j->back_depth[q] - d) > tol))
+                return 1;
+        }
+    return 0;
+}
+
+static void edges_range(const void *job, int64_t begin, int64_t end) {
+    const EdgesJob *j = (const EdgesJob *)job;
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w))
+        j->edge[p] = (uint8_t)edge_pixel(j, at.bi, at.y, at.x, p);
+}
+
+int torchrefract_edges(const EdgesJob *job, int threads) {
+    return tr_parallel_for(edges_range, job, job->b * job->h * job->w, 4096, threads);
+}
+
+int64_t torchrefract_edges_job_size(void) { return (int64_t)sizeof(EdgesJob); }

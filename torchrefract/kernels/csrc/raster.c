@@ -48,10 +48,11 @@ typedef struct {
     const int64_t *views;   /* (B, 5): vertex offset, vertex count, face offset, face
                              * count, id offset (added to the face index written) */
     const double *mvp;      /* (B, 16) row-major P V */
-    int64_t *front, *back;  /* out (B, rows, W) face id + id offset, -1 where none */
+    void *front, *back;     /* out (B, rows, W) face id + id offset, -1 where none */
     int64_t row0, rows;     /* the frame's rows drawn: [row0, row0 + rows) of the H (rows 0:
                              * all H); a pixel's ids do not depend on the rows drawn with
                              * it, so a frame drawn in strips is the frame drawn whole */
+    int ids32;              /* 1: the outputs are int32 (ids < 2^31), else int64 */
 } RasterJob;
 
 #define SUB_BITS 8                     /* window positions in 1/256 pixel */
@@ -320,8 +321,7 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     bd.r1 = row0 + (band + 1) * rows / run->bands;
     bd.w = w;
     int64_t npix = (bd.r1 - bd.r0) * w;
-    int64_t *out[2] = {j->front + (view * rows + bd.r0 - row0) * w,
-                       j->back + (view * rows + bd.r0 - row0) * w};
+    int64_t at = (view * rows + bd.r0 - row0) * w;  /* this band's first output pixel */
     const int64_t *vw = j->views + 5 * view;
     int64_t voff = vw[0], vn = vw[1], foff = vw[2], fn = vw[3], id_off = vw[4];
     if ((uint64_t)fn > ID_MASK || !reserve((void **)&sc->key, &sc->key_n, 2 * npix, 8) ||
@@ -359,11 +359,15 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
             raster_tri(&bd, &sv[i0].p, &sv[i1].p, &sv[i2].p, (uint64_t)f);
         }
     }
-    for (int l = 0; l < 2; l++)  /* keys to ids: the face + id offset, -1 where none */
+    for (int l = 0; l < 2; l++) {  /* keys to ids: the face + id offset, -1 where none */
+        void *out = l ? j->back : j->front;
         for (int64_t p = 0; p < npix; p++) {
             uint64_t k = bd.key[l][p];
-            out[l][p] = k == EMPTY ? -1 : (int64_t)(k & ID_MASK) + id_off;
+            int64_t id = k == EMPTY ? -1 : (int64_t)(k & ID_MASK) + id_off;
+            if (j->ids32) ((int32_t *)out)[at + p] = (int32_t)id;
+            else ((int64_t *)out)[at + p] = id;
         }
+    }
 }
 
 static void raster_range(const void *job, int64_t begin, int64_t end) {

@@ -40,6 +40,12 @@ class Rousiers(Method):
     name = "rousiers"
     Options = RousiersOptions
 
+    def shades_samples(self, options, materials) -> bool:
+        # the NDF mips (spread: paper), the back normals at the exits (cone_rays: plane)
+        # and the coverage mips (roughness maps) are read over the frame
+        return (options.spread == "rays" and options.cone_rays == "march"
+                and not materials.has_maps)
+
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_rousiers(g, lighting, materials, options))
 

@@ -1,0 +1,209 @@
+"""Sparse supersampling (torchrefract.geometry.subsamples, torchrefract.sparse): with n x n
+samples per pixel, the one-sample render with the pixels whose samples can differ replaced
+by their samples' box filter, shaded from a G-buffer of those samples alone."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchrefract as tr
+from torchrefract import sparse, tiles
+from torchrefract.geometry import subsamples
+from torchrefract.geometry.camera import subpixel_rays, views_pixel_rays
+from torchrefract.geometry.gbuffer import build_gbuffer, layer_ids
+from torchrefract.geometry.mesh import load_mesh
+from torchrefract.geometry.raster import visibility_layers
+from torchrefract.kernels import native
+from torchrefract.methods import registry
+from torchrefract.optics.materials import MaterialBatch
+from torchrefract.result import front_roughness
+from torchrefract.settings import RenderSettings
+from torchrefract.truth.metrics import flip_map
+
+SUITE = Path(__file__).resolve().parent.parent / "configs" / "suite"
+UNIFORM = RenderSettings(adaptive=False)
+
+
+def _scene(name: str, size: int = 48, n: int = 2, **changes) -> tr.Scene:
+    s = tr.load_scene(SUITE / f"{name}.yaml")
+    return s.replace(camera=dataclasses.replace(s.camera, width=size, height=size,
+                                                samples_per_pixel=n), **changes)
+
+
+def _one_sample(scenes: list[tr.Scene]):
+    """The one-sample G-buffer (marching the n x n ids), the n x n ids and the front
+    roughness of ``scenes``."""
+    meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
+    g = build_gbuffer(meshes, sparse.one_sample(scenes))
+    n = scenes[0].camera.samples_per_pixel
+    ids = layer_ids(meshes, [s.camera for s in scenes], g.meshes, n)
+    g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
+    return g, ids, front_roughness(g, MaterialBatch.from_scenes(scenes))
+
+
+def test_subpixel_rays_are_the_pixel_rays():
+    cams = [tr.Camera(width=7, height=5, samples_per_pixel=3),
+            tr.Camera(width=7, height=5, eye=(1.0, 2.0, 3.0), yfov_deg=20.0)]
+    full = views_pixel_rays(cams, 3)
+    gen = torch.Generator().manual_seed(0)
+    rows, cols = torch.randint(0, 15, (2, 40), generator=gen), torch.randint(0, 21, (2, 40),
+                                                                             generator=gen)
+    got = subpixel_rays(cams, 3, rows, cols)
+    assert torch.equal(got, torch.stack([full[b][rows[b], cols[b]] for b in range(2)]))
+
+
+def test_int32_ids_are_the_int64_ones():
+    s = _scene("wingnut_a01", 40)
+    m = [load_mesh(s.mesh, s.transform)]
+    a = visibility_layers(m, [s.camera], 2, [5])
+    b = visibility_layers(m, [s.camera], 2, [5], dtype=torch.int32)
+    assert b[0].dtype == torch.int32 and (a[0] >= 0).any()
+    assert all(torch.equal(x, y.long()) for x, y in zip(a, b))
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+@pytest.mark.parametrize("name", ["bunny_a01", "globe_gradient", "vgroove_back_a01",
+                                  "sphere_a0"])
+def test_edges_kernel_makes_the_tensor_codes_decisions(name):
+    """csrc/lattice.c's ``edges`` against the tensor code, per-view roughness and a map's
+    (globe_gradient), at 2x2 and 3x3, over two views."""
+    for n in (2, 3):
+        s = _scene(name, 40, n)
+        views = [s, s.replace(camera=dataclasses.replace(s.camera, eye=(0.3, 0.4, 3.5)))]
+        g, ids, alpha = _one_sample(views)
+        got = subsamples.edges(g, ids, alpha)
+        want = subsamples._edges_torch(g, ids, alpha, subsamples.NORMAL_TOL,
+                                       subsamples.DEPTH_TOL, 0.02, subsamples.FACE_TOL)
+        assert torch.equal(got, want) and got.any() and not got.all(), (name, n)
+
+
+def test_every_pixel_of_partial_coverage_is_picked():
+    """The n x n render's coverage is fractional exactly where a silhouette crosses a
+    pixel's samples: each such pixel is picked."""
+    s = _scene("slab_a02", 48)
+    g, ids, alpha = _one_sample([s])
+    picked = subsamples.edges(g, ids, alpha)
+    cov = tr.render(s, settings=UNIFORM).coverage
+    partial = (cov > 0) & (cov < 1)
+    assert partial.any() and bool(picked[partial].all())
+    assert float(picked[g.front.mask].float().mean()) < 0.5  # the interior mostly not
+
+
+@pytest.mark.parametrize("name", ["bunny_a01", "vgroove_back_a01", "sphere_a03"])
+def test_samples_are_the_supersampled_gbuffer(name):
+    """Every pixel picked: the samples' layers are the n x n G-buffer's and the ids they
+    march through its layers' ids, bit for bit but where a sample's ray meets a shared
+    edge (the edge repair takes the first of equal hits, its candidates in another order:
+    the same point, the other triangle)."""
+    s = _scene(name, 40)
+    g, ids, _ = _one_sample([s])
+    full = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
+    got = subsamples.gather(g, ids, [s.camera], torch.ones(1, 40, 40, dtype=torch.bool))
+    p = got.pixels[0]
+    assert torch.equal(p, torch.arange(1600))
+    ties = 0
+    for lay, want in ((got.g.front, full.front), (got.g.back, full.back)):
+        for f in ("mask", "tri", "dist", "depth", "normal", "uv"):
+            x = getattr(lay, f).view(1, 40, 40, 2, 2, -1).permute(0, 1, 3, 2, 4, 5)
+            x, y = x.reshape(getattr(want, f).shape), getattr(want, f)
+            if f == "tri":
+                ties += int((x != y).sum())
+            else:
+                assert torch.allclose(x.float(), y.float(), rtol=0, atol=1e-5), f
+                assert f != "mask" or torch.equal(x, y)
+    assert ties <= 4, ties
+    marched = [got.g.marched.back, got.g.marched.front]
+    tri = [full.back.tri.reshape(-1), full.front.tri.reshape(-1)]
+    assert sum(int((a != b).sum()) for a, b in zip(marched, tri)) == ties
+
+
+def test_no_pixel_picked_gives_no_samples():
+    s = _scene("slab_a02", 16)
+    g, ids, _ = _one_sample([s])
+    assert subsamples.gather(g, ids, [s.camera], torch.zeros(1, 16, 16, dtype=torch.bool)) \
+        is None
+
+
+@pytest.mark.parametrize("method", ["rousiers", "specular"])
+def test_smooth_glass_is_the_uniform_render_on_the_object(method):
+    """Below SMOOTH_ALPHA every object pixel is picked: there the image is the uniform
+    n x n render's, bit for bit; a pixel where no sample sees the object is its center's
+    environment lookup (close to the n x n mean)."""
+    s = _scene("sphere_a0", 32, method=method, method_options={"internal_bounces": 2})
+    a, b = tr.render(s, settings=UNIFORM), tr.render(s)
+    obj = a.coverage[0] > 0
+    assert torch.equal(a.coverage, b.coverage)
+    assert torch.equal(a.radiance[0][obj], b.radiance[0][obj])
+    assert float(flip_map(a.radiance[0].numpy(), b.radiance[0].numpy())[~obj.numpy()].mean()) \
+        < 0.03  # (0.018 at 32 px, a pixel spanning many texels; 0.002-0.01 at 256 px)
+
+
+@pytest.mark.parametrize("name", ["bunny_a01", "vgroove_back_a01", "slab_light"])
+def test_sparse_render_is_close_to_the_uniform_one(name):
+    """The default 2x2 render: the uniform one's coverage exactly, its image closer to the
+    uniform one's than the one-sample image is, every pass present and finite."""
+    s = _scene(name, 64, method="rousiers")
+    a, b = tr.render(s, settings=UNIFORM), tr.render(s)
+    one = tr.render(_scene(name, 64, 1, method="rousiers"))
+    assert torch.equal(a.coverage, b.coverage)
+    obj = (a.coverage[0] > 0).numpy()
+    near = float(flip_map(a.radiance[0].numpy(), b.radiance[0].numpy())[obj].mean())
+    assert near < 0.05 and near < 0.6 * float(
+        flip_map(a.radiance[0].numpy(), one.radiance[0].numpy())[obj].mean())
+    assert set(a.passes) == set(b.passes)
+    assert all(bool(torch.isfinite(v).all()) for v in b.passes.values())
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+def test_sparse_fused_matches_the_tensor_code():
+    """The samples' G-buffer shaded by the fused kernel and by the tensor code: as
+    tests/test_fused.py holds them on full frames."""
+    s = _scene("bunny_a01", 48, method="rousiers")
+    a = tr.render(s, settings=RenderSettings(fused=False))
+    b = tr.render(s, settings=RenderSettings(fused=True))
+    obj = a.coverage[0] > 0
+    rel = ((a.radiance - b.radiance).abs() / a.radiance.abs().clamp(min=1e-3)).amax(-1)[0]
+    assert float((rel[obj] > 1e-4).float().mean()) <= 1e-3
+    flip = flip_map(b.radiance[0].numpy(), a.radiance[0].numpy())
+    assert float(flip[obj.numpy()].mean()) <= 0.002
+
+
+def test_which_passes_are_sparse():
+    """Methods that shade their samples alone, at n x n, adaptive, on the CPU; the others
+    and the n x n plan keep the full sub-pixel G-buffer."""
+    entry = registry.get("rousiers")
+    opts = entry.parse({})
+    s = _scene("slab_a02", 16, method="rousiers")
+    mat = MaterialBatch.from_scenes([s])
+    assert sparse.applies([s], entry, opts, mat)
+    assert not sparse.applies([_scene("slab_a02", 16, 1)], entry, opts, mat)
+    plane = entry.parse({"cone_rays": "plane"})
+    assert not sparse.applies([s], entry, plane, mat)
+    lean = registry.get("lean")
+    assert not sparse.applies([s], lean, lean.parse({}), mat)
+
+
+def test_sparse_passes_in_tiles_give_the_untiled_pixels(monkeypatch):
+    """Both passes (the one-sample frame's, the samples') cut into tiles of 64 samples:
+    the image and every pass are the untiled render's, bit for bit."""
+    s = _scene("torus_a01", 64, method="rousiers", method_options={"internal_bounces": 1})
+    whole = tr.render(s)
+    cuts = []
+    real = tiles.split
+
+    def small(idx, size):
+        parts = real(idx, 64)
+        cuts.append(len(parts))
+        return parts
+
+    monkeypatch.setattr(tiles, "tile_size", lambda *a: 64)
+    monkeypatch.setattr(tiles, "split", small)
+    tiled = tr.render(s)
+    assert len(cuts) >= 2 and min(cuts) >= 2, cuts
+    assert torch.equal(whole.radiance, tiled.radiance)
+    assert torch.equal(whole.coverage, tiled.coverage)
+    assert all(torch.equal(whole.passes[k], tiled.passes[k]) for k in whole.passes)

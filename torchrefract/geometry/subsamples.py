@@ -1,0 +1,201 @@
+"""Sparse supersampling (issue #28, "model no more than a scene needs"). With n x n samples
+per pixel and adaptive shading (the default), a method that shades its samples alone
+(``Method.shades_samples``) renders the one-sample image (the G-buffer through the pixel
+centers, shaded with :func:`~torchrefract.geometry.adaptive.lattice`) and replaces the
+pixels whose samples can differ by the box filter of their n x n sub-pixel samples,
+shaded from a G-buffer of those samples alone (:func:`gather`). No frame-sized buffer is
+made at the sub-pixels but the rasterized ids (4 bytes a sub-pixel and layer), which both
+passes march through (:func:`marched`), as the n x n render does.
+
+A pixel is supersampled (:func:`edges`, csrc/lattice.c) where
+- the rasterized coverage of its sub-pixels differs among them or from its center's, in
+  either layer: a silhouette or a layer's edge inside it (the n x n render's own test);
+  or its sub-pixels see triangles whose faces turn by more than ``FACE_TOL``: a fold
+  inside it;
+- its center's front or back shading normal differs from a neighbour's (3x3, both
+  covered) by more than ``NORMAL_TOL`` (1 - cos), or its back depth by more than
+  ``DEPTH_TOL`` relative: a fold or a step (the n x n plan's tolerances inside a pixel,
+  scaled to neighbours a pixel apart);
+- its roughness is below ``adaptive.SMOOTH_ALPHA`` (a sharp refraction resolves the
+  environment's detail inside the pixel);
+and after the one-sample pass, where the radiances of its 3x3 neighbourhood of pixels
+not picked so far spread by more than ``adaptive.REFINE_RTOL`` (:func:`adaptive.refine`'s
+test: a TIR boundary, a sharp feature of the environment).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from torchrefract.geometry import adaptive
+from torchrefract.geometry.camera import subpixel_rays
+from torchrefract.geometry.gbuffer import GBuffer, _layer, view_frames
+from torchrefract.kernels import native
+from torchrefract.kernels.march import Marched, plane_table
+from torchrefract.optics.smooth import dot
+from torchrefract.scene.model import Camera
+
+
+NORMAL_TOL = 4 * adaptive.NORMAL_TOL
+"""1 - cos between neighbouring pixel centers' normals above which a pixel is picked: the
+n x n plan's tolerance between a pixel's sub-pixels (at most ~0.7 pixel apart), scaled to
+centers twice as far (up to ~1.4 pixel: a smooth normal field turns twice the angle, and
+1 - cos grows with its square)."""
+DEPTH_TOL = 2 * adaptive.DEPTH_TOL
+"""The relative step of the back depth between neighbouring pixel centers above which a
+pixel is picked: the plan's, scaled the same way (a smooth slope changes twice as much)."""
+
+FACE_TOL = 4 * adaptive.NORMAL_TOL
+"""1 - cos between the face normals of two triangles seen inside one pixel (its
+sub-pixels' rasterized ids) above which it is picked: a fold finer than the pixel
+(grooves, creases), which neighbouring centers may not see. Above what adjacent faces of
+a smooth mesh turn (~16 degrees)."""
+
+
+@dataclass(frozen=True)
+class Samples:
+    """The sub-pixel samples of the picked pixels.
+
+    Attributes:
+        g: their G-buffer, (B, n K, n) for K pixels a view at most: pixel slot k of view b
+            holds its n x n sub-pixels at rows [n k, n k + n), so that the box filter over
+            n x n blocks gives (B, K, 1) pixels; slots past a view's pixels are empty.
+        pixels: (B, K) int64 the pixel of each slot (y W + x in its view), -1 past a view's.
+    """
+
+    g: GBuffer
+    pixels: torch.Tensor
+
+
+def _changes(x: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, H, W) bool: the pixels whose n x n sub-pixels of ``x`` (B, n H, n W) bool are not
+    all alike."""
+    b, hh, ww = x.shape
+    blocks = x.view(b, hh // n, n, ww // n, n)
+    return blocks.any(4).any(2) != blocks.all(4).all(2)
+
+
+def _edges_torch(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tensor,
+                 normal_tol: float, depth_tol: float, smooth_alpha: float,
+                 face_tol: float) -> torch.Tensor:
+    """The tensor code of :func:`edges` (csrc/lattice.c's ``edges``: the same decisions)."""
+    b, h, w = g.shape
+    n = ids[0].shape[1] // h
+    out = torch.zeros(b, h, w, dtype=torch.bool)
+    fn = g.meshes.face_normals
+    for x, center in ((ids[0], g.front.mask), (ids[1], g.back.mask)):
+        sub = x >= 0
+        blocks = sub.view(b, h, n, w, n)
+        out |= _changes(sub, n) | (blocks[:, :, 0, :, 0] != center)
+        tri = x.long().view(b, h, n, w, n)
+        first = tri[:, :, :1, :, :1]
+        turn = 1.0 - dot(fn[tri.clamp(min=0)], fn[first.clamp(min=0)]) > face_tol
+        out |= (turn & (tri != first) & (tri >= 0) & (first >= 0)).any(4).any(2)
+    fm, bm = g.front.mask, g.back.mask
+    nf, nb, db = g.front.normal, g.back.normal, g.back.depth
+
+    def shifted(x: torch.Tensor, dy: int, dx: int, fill) -> torch.Tensor:
+        """x at (y + dy, x + dx), ``fill`` outside the frame."""
+        pad = (0, 0) * (x.dim() - 3)
+        p = F.pad(x, (*pad, 1, 1, 1, 1), value=fill) if x.dim() == 3 else \
+            F.pad(x.movedim(-1, 1), (1, 1, 1, 1), value=fill).movedim(1, -1)
+        return p[:, 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            qf, qb = shifted(fm, dy, dx, False) & fm, shifted(bm, dy, dx, False) & bm
+            out |= qf & (1.0 - dot(shifted(nf, dy, dx, 0.0), nf) > normal_tol)
+            out |= qb & (1.0 - dot(shifted(nb, dy, dx, 0.0), nb) > normal_tol)
+            out |= qb & ((shifted(db, dy, dx, 0.0) - db).abs() > depth_tol * db.abs())
+    out |= fm & (alpha.expand(b, h, w) < smooth_alpha)
+    return out
+
+
+def edges(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tensor,
+          region: torch.Tensor | None = None) -> torch.Tensor:
+    """The pixels whose samples can differ, by their G-buffer (module docstring): (B, H, W)
+    bool for the one-sample G-buffer ``g`` (B, H, W), both layers' rasterized ids on the
+    n x n sub-pixel grid ``ids`` (B, n H, n W) and the front roughness ``alpha`` (B, H, W)
+    or (B, 1, 1); within ``region`` (B, H, W) where given."""
+    tols = (NORMAL_TOL, DEPTH_TOL, adaptive.SMOOTH_ALPHA, FACE_TOL)
+    out = native.edges(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
+                       g.back.depth, ids, g.meshes.face_normals, alpha, *tols)
+    if out is None:
+        out = _edges_torch(g, ids, alpha.detach(), *tols)
+    return out if region is None else out & region
+
+
+def refined(g: GBuffer, picked: torch.Tensor, radiance: torch.Tensor,
+            region: torch.Tensor | None = None, rtol: float | None = None) -> torch.Tensor:
+    """``picked`` and the object pixels not picked (within ``region``) whose 3x3
+    neighbourhood of such pixels' one-sample radiances (B, H, W, 3) spreads
+    (:func:`adaptive.refine`'s test)."""
+    rest = g.front.mask & ~picked
+    if region is not None:
+        rest &= region
+    plan = adaptive.Plan(uniform=rest, n=1)
+    made = adaptive.refine(plan, radiance, rtol)
+    return picked if made is None else picked | made[0]
+
+
+def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Camera],
+           picked: torch.Tensor) -> Samples | None:
+    """The G-buffer of the picked pixels' n x n sub-pixel samples (:class:`Samples`): the
+    exact layers of the rasterized ids ``ids`` (B, n H, n W) int32 there (written in
+    place: the samples' exact ids where they are), marching through ``g.marched``
+    (:func:`marched` of ``ids``); None where no pixel is picked. ``cameras``: the views'
+    at n x n."""
+    b, h, w = picked.shape
+    n = ids[0].shape[1] // h
+    flat = picked.reshape(b, -1).nonzero()  # (N, 2): view, pixel, in order
+    if flat.shape[0] == 0:
+        return None
+    counts = torch.bincount(flat[:, 0], minlength=b)
+    k = int(counts.max())
+    starts = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(flat.shape[0]) - starts[flat[:, 0]]
+    pixels = torch.full((b, k), -1, dtype=torch.int64)
+    pixels[flat[:, 0], slot] = flat[:, 1]
+    p = pixels.clamp(min=0)
+    sub = torch.arange(n)
+    rows = ((n * (p // w))[:, :, None, None] + sub[:, None]).expand(b, k, n, n)  # (B, K, n, n)
+    cols = ((n * (p % w))[:, :, None, None] + sub).expand(b, k, n, n)
+    at = (rows * (n * w) + cols).reshape(b, -1)
+    empty = (pixels < 0)[:, :, None, None].expand(b, k, n, n).reshape(b, -1)
+    dirs = subpixel_rays(cameras, n, rows.reshape(b, -1), cols.reshape(b, -1))
+    dirs = dirs.view(b, n * k, n, 3)
+    # the cameras as the one-sample frame's: what a sample projects is in its pixels
+    # (the ``footprint`` pass); the march reads proj's scale only
+    eye, fwd, proj = view_frames(cameras, 1)
+    layers = [_layer(torch.where(empty, -1, x.reshape(b, -1).gather(1, at)).view(b, n * k, n)
+                     .long(), eye, dirs, fwd, g.meshes, back=i == 1)
+              for i, x in enumerate(ids)]
+    # the marched ids: the samples' exact (repaired) ones where they are
+    flat = (torch.arange(b)[:, None] * ids[0][0].numel() + at)[~empty]
+    for x, lay in zip(ids, layers):
+        x.view(-1)[flat] = lay.tri.reshape(b, -1)[~empty]
+    return Samples(g=GBuffer(front=layers[0], back=layers[1], ray_dir=dirs, eye=eye, proj=proj,
+                             meshes=g.meshes, supersample=n, marched=g.marched),
+                   pixels=pixels)
+
+
+def marched(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor]) -> Marched:
+    """The layers both passes march (``GBuffer.marched``): the rasterized ids on the
+    n x n grid ``ids`` (B, n H, n W) int32, held, not copied (:func:`gather` writes the
+    samples' exact ids into them), with the one-sample G-buffer ``g``'s triangle planes.
+    The n x n render's marched layers, but for its edge repair where no sample is taken
+    (rare: rays within ~1/256 pixel of an edge): a march through the one-sample frame's
+    ids would find other exits where a method's result depends on the layers' resolution
+    (internal bounces' TIR regions), and the picked pixels' neighbours would not match."""
+    table, base = plane_table(g.meshes, g.eye, g.proj)
+    _, h, w = ids[0].shape
+    return Marched(back=ids[1].view(-1), front=ids[0].view(-1), table=table, base=base,
+                   h=h, w=w)
+
+
+__all__ = ["Samples", "edges", "gather", "marched", "refined"]

@@ -1,0 +1,105 @@
+"""A render pass at n x n samples per pixel by sparse supersampling
+(:mod:`torchrefract.geometry.subsamples`): the one-sample pass, then the picked pixels'
+sub-pixel samples shaded (:func:`torchrefract.result.finish_pass` over their G-buffer) and
+their box-filtered pixels written over the one-sample image and passes."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import torch
+
+from torchrefract.geometry import adaptive, subsamples
+from torchrefract.geometry.gbuffer import GBuffer, layer_ids
+from torchrefract.matte import render_hook
+from torchrefract.result import RenderResult, finish_pass, front_roughness
+from torchrefract.settings import current
+
+
+def applies(scenes, entry, options, materials) -> bool:
+    """Whether a pass of ``scenes`` (one resolution, method and options) is rendered by
+    sparse supersampling: n x n samples per pixel, adaptive shading on, a method that
+    shades its samples alone (``Method.shades_samples``), no matte passes asked for (they
+    record every sample of one G-buffer), on the CPU (elsewhere adaptive.plan's n x n
+    G-buffer)."""
+    return (scenes[0].camera.samples_per_pixel > 1 and current().adaptive
+            and current().torch_device().type == "cpu"
+            and entry.shades_object_index and entry.shades_samples(options, materials)
+            and not render_hook.requested(scenes))
+
+
+def one_sample(scenes) -> list:
+    """The scenes' cameras at one sample per pixel."""
+    return [dataclasses.replace(s.camera, samples_per_pixel=1) for s in scenes]
+
+
+@dataclass(frozen=True)
+class Pending:
+    """What the samples' pass needs of the first: the one-sample G-buffer ``g`` (marching
+    the n x n ids), both layers' rasterized ids at n x n ``ids``, the pixels ``picked`` by
+    their G-buffer and the ``region`` (B, H, W) or None."""
+
+    g: GBuffer
+    ids: tuple[torch.Tensor, torch.Tensor]
+    picked: torch.Tensor
+    region: torch.Tensor | None
+
+
+def first_pass(g: GBuffer, meshes, scenes, materials, region: torch.Tensor | None
+               ) -> tuple[GBuffer, adaptive.Lattice | None, Pending]:
+    """For the one-sample G-buffer ``g`` of ``scenes`` (n x n cameras): the G-buffer and
+    lattice of the first pass (adaptive.lattice over the pixels not picked: a picked
+    pixel is its samples' box filter) and what :func:`supersample` needs."""
+    ids = layer_ids(meshes, [s.camera for s in scenes], g.meshes,
+                    scenes[0].camera.samples_per_pixel)
+    alpha = front_roughness(g, materials)
+    picked = subsamples.edges(g, ids, alpha, region)
+    g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
+    first, lattice = adaptive.lattice(g, alpha, region=~picked if region is None else
+                                      region & ~picked)
+    return first, lattice, Pending(g, ids, picked, region)
+
+
+def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting, materials,
+                options, state, budget: int) -> RenderResult:
+    """``result`` (the first pass, on the CPU) with the pixels ``pending`` picked by their
+    G-buffer, and those its radiance picks (``subsamples.refined``), replaced by their
+    n x n samples' box filter. The result's tensors are written in place (they are its
+    own)."""
+    t0 = time.perf_counter()
+    g = pending.g
+    picked = subsamples.refined(g, pending.picked, result.radiance, pending.region)
+    samples = subsamples.gather(g, pending.ids, [s.camera for s in scenes], picked)
+    if samples is None:
+        return result
+    t1 = time.perf_counter()
+    part = finish_pass(scenes, entry, samples.g, lighting, materials, options, state, budget,
+                       None, t1)
+    _put(result, part, samples.pixels)
+    timings = dict(result.timings)
+    for k, v in part.timings.items():
+        timings[k] = timings.get(k, 0.0) + v
+    timings["gbuffer"] = timings.get("gbuffer", 0.0) + (t1 - t0)
+    return dataclasses.replace(result, timings=timings)
+
+
+def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> None:
+    """Write ``part``'s pixels (B, K, 1, ...) over ``result``'s (B, H, W, ...) at
+    ``pixels`` (B, K; -1: none), in place."""
+    b, h, w = result.coverage.shape
+    ok = (pixels >= 0).reshape(-1)
+    dst = (torch.arange(b)[:, None] * (h * w) + pixels).reshape(-1)[ok]
+
+    def put(full: torch.Tensor, piece: torch.Tensor) -> None:
+        c = full.shape[3] if full.dim() == 4 else 1
+        full.view(-1, c).index_copy_(0, dst, piece.reshape(-1, c)[ok].to(full.dtype))
+
+    put(result.radiance, part.radiance)
+    put(result.coverage, part.coverage)
+    for name, v in result.passes.items():
+        put(v, part.passes[name])
+
+
+__all__ = ["Pending", "applies", "first_pass", "one_sample", "supersample"]
