@@ -203,7 +203,8 @@ def refine(plan: Plan, radiance: torch.Tensor, rtol: float | None = None
 
 def _refine_torch(uniform: torch.Tensor, first: torch.Tensor, rtol: float) -> torch.Tensor:
     """csrc/lattice.c's ``refine`` in tensor code: ``uniform`` (B, h, w) and each pixel's
-    first sub-pixel's radiance ``first`` (B, h, w, 3); the neighbours in row-major order."""
+    first sub-pixel's radiance ``first`` (B, h, w, 3); the luminances summed down each
+    column of the neighbourhood, the columns left to right (the kernel slides them)."""
     b, h, w, _ = first.shape
     u = torch.nn.functional.pad(uniform, (1, 1, 1, 1))
     v = torch.nn.functional.pad(first.permute(0, 3, 1, 2), (1, 1, 1, 1)).permute(0, 2, 3, 1)
@@ -212,15 +213,18 @@ def _refine_torch(uniform: torch.Tensor, first: torch.Tensor, rtol: float) -> to
     total = torch.zeros(b, h, w, dtype=first.dtype, device=first.device)
     count = torch.zeros(b, h, w, dtype=first.dtype, device=first.device)
     bad = torch.zeros(b, h, w, dtype=torch.bool, device=first.device)
-    for dy in range(3):
-        for dx in range(3):
+    for dx in range(3):
+        column = torch.zeros_like(total)
+        for dy in range(3):
             on = u[:, dy:dy + h, dx:dx + w]
             q = v[:, dy:dy + h, dx:dx + w]
             hi = torch.where(on[..., None], torch.maximum(hi, q), hi)
             lo = torch.where(on[..., None], torch.minimum(lo, q), lo)
-            total = torch.where(on, total + ((q[..., 0] + q[..., 1]) + q[..., 2]) / 3.0, total)
+            column = torch.where(on, column + ((q[..., 0] + q[..., 1]) + q[..., 2]) / 3.0,
+                                 column)
             count = count + on.to(first.dtype)
             bad |= on & ~torch.isfinite(q).all(-1)
+        total = total + column
     d = hi - lo
     spread = torch.maximum(torch.maximum(d[..., 0], d[..., 1]), d[..., 2])
     mean = total / count.clamp(min=1.0) + 1e-3

@@ -10,7 +10,7 @@ passes march through (:func:`marched`), as the n x n render does.
 A pixel is supersampled (:func:`edges`, csrc/lattice.c) where
 - the rasterized coverage of its sub-pixels differs among them or from its center's, in
   either layer: a silhouette or a layer's edge inside it (the n x n render's own test);
-  or its sub-pixels see triangles whose faces turn by more than ``FACE_TOL``: a fold
+  or its sub-pixels see triangles that fold against each other (``FACE_TOL``): a crease
   inside it;
 - its center's front or back shading normal differs from a neighbour's (3x3, both
   covered) by more than ``NORMAL_TOL`` (1 - cos), or its back depth by more than
@@ -50,9 +50,10 @@ pixel is picked: the plan's, scaled the same way (a smooth slope changes twice a
 
 FACE_TOL = 4 * adaptive.NORMAL_TOL
 """1 - cos between the face normals of two triangles seen inside one pixel (its
-sub-pixels' rasterized ids) above which it is picked: a fold finer than the pixel
-(grooves, creases), which neighbouring centers may not see. Above what adjacent faces of
-a smooth mesh turn (~16 degrees)."""
+sub-pixels' rasterized ids) above which it is picked where they fold (:func:`_folds`): a
+crease finer than the pixel (grooves), which neighbouring centers may not see. Triangles
+whose shading normals meet at a common corner are a smooth surface however their faces
+turn (a coarse mesh's neighbours)."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,18 @@ def _changes(x: torch.Tensor, n: int) -> torch.Tensor:
     return blocks.any(4).any(2) != blocks.all(4).all(2)
 
 
+def _folds(meshes, a: torch.Tensor, b: torch.Tensor, normal_tol: float, face_tol: float
+           ) -> torch.Tensor:
+    """(N,) bool: triangles ``a`` fold against triangles ``b`` (N,) (global ids): no
+    corner of one lies where one of the other's does with a shading normal within
+    ``normal_tol`` of it (there the interpolated normals meet: a smooth mesh's neighbours,
+    however its faces turn), and their faces turn by more than ``face_tol``."""
+    tv, tn, fn = meshes.tri_vertices, meshes.tri_normals, meshes.face_normals
+    same = (tv[a][:, :, None] == tv[b][:, None]).all(-1)  # (N, 3, 3) corner pairs
+    smooth = 1.0 - dot(tn[a][:, :, None], tn[b][:, None]) <= normal_tol
+    return ~(same & smooth).any(-1).any(-1) & (1.0 - dot(fn[b], fn[a]) > face_tol)
+
+
 def _edges_torch(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tensor,
                  normal_tol: float, depth_tol: float, smooth_alpha: float,
                  face_tol: float) -> torch.Tensor:
@@ -85,15 +98,16 @@ def _edges_torch(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torc
     b, h, w = g.shape
     n = ids[0].shape[1] // h
     out = torch.zeros(b, h, w, dtype=torch.bool)
-    fn = g.meshes.face_normals
     for x, center in ((ids[0], g.front.mask), (ids[1], g.back.mask)):
         sub = x >= 0
         blocks = sub.view(b, h, n, w, n)
         out |= _changes(sub, n) | (blocks[:, :, 0, :, 0] != center)
         tri = x.long().view(b, h, n, w, n)
-        first = tri[:, :, :1, :, :1]
-        turn = 1.0 - dot(fn[tri.clamp(min=0)], fn[first.clamp(min=0)]) > face_tol
-        out |= (turn & (tri != first) & (tri >= 0) & (first >= 0)).any(4).any(2)
+        first = tri[:, :, :1, :, :1].expand_as(tri)
+        other = (tri != first) & (tri >= 0) & (first >= 0)
+        fold = torch.zeros_like(other)
+        fold[other] = _folds(g.meshes, first[other], tri[other], normal_tol, face_tol)
+        out |= fold.any(4).any(2)
     fm, bm = g.front.mask, g.back.mask
     nf, nb, db = g.front.normal, g.back.normal, g.back.depth
 
@@ -124,7 +138,7 @@ def edges(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tenso
     or (B, 1, 1); within ``region`` (B, H, W) where given."""
     tols = (NORMAL_TOL, DEPTH_TOL, adaptive.SMOOTH_ALPHA, FACE_TOL)
     out = native.edges(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
-                       g.back.depth, ids, g.meshes.face_normals, alpha, *tols)
+                       g.back.depth, ids, g.meshes, alpha, *tols)
     if out is None:
         out = _edges_torch(g, ids, alpha.detach(), *tols)
     return out if region is None else out & region

@@ -288,10 +288,11 @@ class _EdgesJob(ctypes.Structure):
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
                 ("n", ctypes.c_int64), ("front_mask", _p), ("back_mask", _p),
                 ("front_normal", _p), ("back_normal", _p), ("back_depth", _p),
-                ("front_ids", _p), ("back_ids", _p), ("face_normal", _p), ("alpha", _p),
+                ("front_ids", _p), ("back_ids", _p), ("face_normal", _p), ("tv", _p),
+                ("tn", _p), ("alpha", _p),
                 ("per_pixel", ctypes.c_int), ("smooth_alpha", ctypes.c_float),
                 ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
-                ("face_tol", ctypes.c_float), ("edge", _p)]
+                ("face_tol", ctypes.c_float), ("pairs", _p), ("edge", _p)]
 
 
 class _UniformJob(ctypes.Structure):
@@ -862,27 +863,29 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
 
 def edges(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
           back_normal: torch.Tensor, back_depth: torch.Tensor,
-          ids: tuple[torch.Tensor, torch.Tensor], face_normals: torch.Tensor,
-          alpha: torch.Tensor, normal_tol: float, depth_tol: float, smooth_alpha: float,
-          face_tol: float) -> torch.Tensor | None:
+          ids: tuple[torch.Tensor, torch.Tensor], meshes, alpha: torch.Tensor,
+          normal_tol: float, depth_tol: float, smooth_alpha: float, face_tol: float
+          ) -> torch.Tensor | None:
     """``subsamples.edges``' (B, H, W) bool pixels of the one-sample layers (B, H, W), both
-    layers' rasterized int32 ids on the n x n grid (B, n H, n W) and the faces' normals
-    (F, 3) (csrc/lattice.c, the same decisions as the tensor code), or ``None`` where the
-    kernel is unavailable or an input is not of its dtype on the CPU. ``alpha``: (B, H, W)
-    or (B, 1, 1)."""
+    layers' rasterized int32 ids on the n x n grid (B, n H, n W) and the batch's triangles
+    (``meshes``: a MeshBatch) (csrc/lattice.c, the same decisions as the tensor code), or
+    ``None`` where the kernel is unavailable or an input is not of its dtype on the CPU.
+    ``alpha``: (B, H, W) or (B, 1, 1)."""
     b, h, w = front_mask.shape
     fh, fw = ids[0].shape[1:]
     if alpha.numel() not in (b, b * h * w) or fh % h or fw % w or fh // h != fw // w:
         return None
     made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
-    fn = _inputs((face_normals,), ())
+    fn = _inputs((meshes.face_normals, meshes.tri_vertices, meshes.tri_normals), ())
     if made is None or fn is None or any(x.dtype != torch.int32 or x.device.type != "cpu"
                                          for x in ids):
         return None
     keep = [x.contiguous() for x in ids]
     out = torch.empty(b, h, w, dtype=torch.bool)
-    job = _EdgesJob(b=b, h=h, w=w, n=fh // h, front_ids=keep[0].data_ptr(),
+    pairs = torch.empty(b, h, w, dtype=torch.uint8)
+    job = _EdgesJob(b=b, h=h, w=w, n=fh // h, front_ids=keep[0].data_ptr(), pairs=pairs.data_ptr(),
                     back_ids=keep[1].data_ptr(), face_normal=fn[0].data_ptr(),
+                    tv=fn[1].data_ptr(), tn=fn[2].data_ptr(),
                     smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
                     face_tol=face_tol, edge=out.data_ptr(), **made[1])
     return out if _call("edges", job) else None

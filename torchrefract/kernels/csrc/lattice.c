@@ -299,9 +299,10 @@ int64_t torchrefract_uniform_job_size(void) { return (int64_t)sizeof(UniformJob)
 /* adaptive.refine's pixels shaded once to be shaded at every sub-pixel after all: a
  * uniform pixel whose 3x3 neighbourhood of uniform pixels' radiances (each at its first
  * sub-pixel: its center sample) spreads, max - min in a channel, by more than rtol times
- * its mean luminance + 1e-3 (the luminances (r + g) + b over 3, summed in row-major
- * order, over their count); a non-finite value among them refines nothing. The tensor
- * code's float32 operations in its order (adaptive._refine_torch). */
+ * its mean luminance + 1e-3 (the luminances (r + g) + b over 3, summed down each column,
+ * the columns' sums left to right, over their count); a non-finite value among them
+ * refines nothing. The tensor code's float32 operations in its order
+ * (adaptive._refine_torch). */
 typedef struct {
     int64_t b, h, w, n;         /* pixels (B, h, w); radiance (B, n h, n w, 3) */
     const uint8_t *uniform;     /* (B, h, w) */
@@ -310,34 +311,68 @@ typedef struct {
     uint8_t *more;              /* out (B, h, w) */
 } RefineJob;
 
-static int refine_pixel(const RefineJob *j, int64_t bi, int64_t y, int64_t x) {
+/* A column of a pixel's 3x3 neighbourhood: its uniform pixels' channel maxima and minima,
+ * their luminances summed top to bottom, their count, a non-finite value among them. */
+typedef struct {
+    float hi[3], lo[3], sum;
+    int count, nan;
+} Column;
+
+static void column_at(const RefineJob *j, int64_t bi, int64_t y, int64_t x, Column *c) {
     int64_t n = j->n, nw = j->w * n;
-    float hi[3] = {0.0f, 0.0f, 0.0f}, lo[3] = {0.0f, 0.0f, 0.0f}, sum = 0.0f;
-    int count = 0, nan = 0;
-    for (int64_t dy = -1; dy <= 1; dy++)
-        for (int64_t dx = -1; dx <= 1; dx++) {
-            int64_t yy = y + dy, xx = x + dx;
-            if (yy < 0 || yy >= j->h || xx < 0 || xx >= j->w) continue;
-            if (!j->uniform[(bi * j->h + yy) * j->w + xx]) continue;
-            const float *v = j->radiance + 3 * ((bi * j->h * n + yy * n) * nw + xx * n);
-            for (int c = 0; c < 3; c++) {
-                nan |= !isfinite(v[c]);
-                hi[c] = count && hi[c] > v[c] ? hi[c] : v[c];
-                lo[c] = count && lo[c] < v[c] ? lo[c] : v[c];
-            }
-            sum = sum + ((v[0] + v[1]) + v[2]) / 3.0f;
-            count++;
+    c->sum = 0.0f;
+    c->count = c->nan = 0;
+    if (x < 0 || x >= j->w) return;
+    for (int64_t yy = y - 1; yy <= y + 1; yy++) {
+        if (yy < 0 || yy >= j->h || !j->uniform[(bi * j->h + yy) * j->w + x]) continue;
+        const float *v = j->radiance + 3 * ((bi * j->h * n + yy * n) * nw + x * n);
+        for (int k = 0; k < 3; k++) {
+            c->nan |= !isfinite(v[k]);
+            c->hi[k] = c->count && c->hi[k] > v[k] ? c->hi[k] : v[k];
+            c->lo[k] = c->count && c->lo[k] < v[k] ? c->lo[k] : v[k];
         }
+        c->sum = c->sum + ((v[0] + v[1]) + v[2]) / 3.0f;
+        c->count++;
+    }
+}
+
+/* The test of the pixel whose neighbourhood's columns are c[0..2] (left to right): the
+ * column sums added left to right. */
+static int refine_columns(const RefineJob *j, const Column *c) {
+    float hi[3], lo[3], sum = (c[0].sum + c[1].sum) + c[2].sum;
+    int count = 0, nan = 0;
+    for (int i = 0; i < 3; i++) {
+        if (!c[i].count) continue;
+        for (int k = 0; k < 3; k++) {
+            hi[k] = count && hi[k] > c[i].hi[k] ? hi[k] : c[i].hi[k];
+            lo[k] = count && lo[k] < c[i].lo[k] ? lo[k] : c[i].lo[k];
+        }
+        count += c[i].count;
+        nan |= c[i].nan;
+    }
     float spread = tmax(tmax(hi[0] - lo[0], hi[1] - lo[1]), hi[2] - lo[2]);
     float mean = sum / (float)count + 1e-3f;
     return !nan && spread > j->rtol * mean;
 }
 
+/* Along a row the columns slide: one new column per pixel. */
 static void refine_range(const void *job, int64_t begin, int64_t end) {
     const RefineJob *j = (const RefineJob *)job;
     Pos at = pos_at(begin, j->h, j->w);
-    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w))
-        j->more[p] = (uint8_t)(j->uniform[p] && refine_pixel(j, at.bi, at.y, at.x));
+    Column c[3];
+    int fresh = 1;
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
+        if (at.x == 0) fresh = 1;
+        if (fresh) {
+            for (int i = 0; i < 3; i++) column_at(j, at.bi, at.y, at.x - 1 + i, &c[i]);
+            fresh = 0;
+        } else {
+            c[0] = c[1];
+            c[1] = c[2];
+            column_at(j, at.bi, at.y, at.x + 1, &c[2]);
+        }
+        j->more[p] = (uint8_t)(j->uniform[p] && refine_columns(j, c));
+    }
 }
 
 int torchrefract_refine(const RefineJob *job, int threads) {
@@ -474,74 +509,120 @@ int64_t torchrefract_lattice_fill_job_size(void) { return (int64_t)sizeof(Lattic
 /* subsamples.edges: the pixels of a one-sample G-buffer (B, h, w) whose n x n samples can
  * differ: the rasterized coverage of their sub-pixels (ids on the (B, n h, n w) grid)
  * differs among them or from the center's, in either layer, or a sub-pixel's triangle
- * turns from the first's by more than face_tol (1 - cos of their face normals); the front
- * or back normal differs from a covered neighbour's (3x3) by more than normal_tol in
- * 1 - cos, or the back depth by more than depth_tol relative; the front is smoother than
- * smooth_alpha. The tensor code's float32 operations (subsamples._edges_torch: optics.dot's
- * order). */
+ * folds against the first's (subsamples._folds: no corner in common with the same shading
+ * normal, and faces turning by more than face_tol); the front or back normal differs from
+ * a covered neighbour's (3x3) by more than normal_tol in 1 - cos, or the back depth by
+ * more than depth_tol relative; the front is smoother than smooth_alpha. The tensor code's
+ * float32 operations (subsamples._edges_torch: optics.dot's order). */
 typedef struct {
     int64_t b, h, w, n;
     const uint8_t *front_mask, *back_mask;      /* (B, h, w) */
     const float *front_normal, *back_normal, *back_depth;
     const int32_t *front_ids, *back_ids;        /* (B, n h, n w), -1: none */
     const float *face_normal;                   /* (F, 3) per global id */
+    const float *tv, *tn;                       /* (F, 3, 3) corners, their shading normals */
     const float *alpha;                         /* (B, h, w), or (B,): per_pixel 0 */
     int per_pixel;
     float smooth_alpha, normal_tol, depth_tol, face_tol;
+    uint8_t *pairs;                             /* scratch (B, h, w): pairs_range's flags */
     uint8_t *edge;                              /* out (B, h, w) */
 } EdgesJob;
 
+/* Whether triangles a and b fold against each other: no corner of a lies where one of b's
+ * does with a shading normal within normal_tol of it (the interpolated normals meet
+ * there: a smooth mesh's neighbours), and their faces turn by more than face_tol. */
+static int folds(const EdgesJob *j, int64_t a, int64_t b) {
+    if (!(1.0f - dot3(j->face_normal + 3 * b, j->face_normal + 3 * a) > j->face_tol)) return 0;
+    for (int p = 0; p < 3; p++)
+        for (int q = 0; q < 3; q++) {
+            const float *va = j->tv + 9 * a + 3 * p, *vb = j->tv + 9 * b + 3 * q;
+            if (va[0] == vb[0] && va[1] == vb[1] && va[2] == vb[2] &&
+                1.0f - dot3(j->tn + 9 * a + 3 * p, j->tn + 9 * b + 3 * q) <= j->normal_tol)
+                return 0;
+        }
+    return 1;
+}
+
 /* Whether the sub-pixels from s0 (rows nw apart) are not all covered as ``center``, or
- * one's triangle turns from the first's by more than face_tol. */
-static int sub_pixels_differ(const EdgesJob *j, const int32_t *ids, int64_t s0, int64_t nw,
-                             int center) {
+ * one's triangle folds against the first's. */
+static inline int sub_pixels_differ(const EdgesJob *j, const int32_t *ids, int64_t s0,
+                                    int64_t nw, int center) {
     int32_t first = ids[s0];
-    const float *f0 = j->face_normal + 3 * (int64_t)(first < 0 ? 0 : first);
+    if (j->n == 2 && ids[s0 + 1] == first && ids[s0 + nw] == first && ids[s0 + nw + 1] == first)
+        return (first >= 0) != center;  /* one triangle (or none): the common case */
     for (int64_t i = 0; i < j->n; i++)
         for (int64_t k = 0; k < j->n; k++) {
             int32_t id = ids[s0 + i * nw + k];
             if ((id >= 0) != center) return 1;
-            if (id != first && 1.0f - dot3(j->face_normal + 3 * (int64_t)id, f0) > j->face_tol)
-                return 1;
+            if (id != first && folds(j, first, id)) return 1;
         }
     return 0;
 }
 
-static int edge_pixel(const EdgesJob *j, int64_t bi, int64_t y, int64_t x, int64_t p) {
-    int64_t n = j->n, nw = j->w * n, s0 = (bi * j->h * n + y * n) * nw + x * n;
-    int fm = j->front_mask[p], bm = j->back_mask[p];
-    if (sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
-        sub_pixels_differ(j, j->back_ids, s0, nw, bm))
-        return 1;
-    if (fm && (j->per_pixel ? j->alpha[p] : j->alpha[bi]) < j->smooth_alpha) return 1;
-    if (!fm && !bm) return 0;
-    const float *fn = j->front_normal + 3 * p, *bn = j->back_normal + 3 * p;
-    float d = j->back_depth[p], tol = j->depth_tol * fabsf(d);
-    for (int64_t dy = -1; dy <= 1; dy++)
-        for (int64_t dx = -1; dx <= 1; dx++) {
-            int64_t yy = y + dy, xx = x + dx;
-            if ((!dy && !dx) || yy < 0 || yy >= j->h || xx < 0 || xx >= j->w) continue;
-            int64_t q = (bi * j->h + yy) * j->w + xx;
-            if (fm && j->front_mask[q] &&
-                1.0f - dot3(j->front_normal + 3 * q, fn) > j->normal_tol)
-                return 1;
-            if (bm && j->back_mask[q] &&
-                (1.0f - dot3(j->back_normal + 3 * q, bn) > j->normal_tol ||
-                 fabsf(j->back_depth[q] - d) > tol))
-                return 1;
-        }
-    return 0;
+/* The pairs of neighbouring pixels are tested once (the tests are symmetric but for the
+ * depth tolerance, relative to each end's own depth): a first sweep writes per pixel p
+ * PAIR_OWN (its own tests, or one of its forward pairs flags p) and, per forward
+ * neighbour q (east, south, south-east, south-west), whether that pair flags q; a second
+ * sweep gathers each pixel's flag from itself and its backward neighbours. */
+enum { PAIR_OWN = 1, PAIR_E = 16, PAIR_S = 32, PAIR_SE = 64, PAIR_SW = 128 };
+
+/* The flags of the pair (p, q) for p and for q (bits 1 and 2). */
+static int pair_flags(const EdgesJob *j, int64_t p, int64_t q) {
+    int out = 0;
+    if (j->front_mask[p] && j->front_mask[q] &&
+        1.0f - dot3(j->front_normal + 3 * q, j->front_normal + 3 * p) > j->normal_tol)
+        out = 3;
+    if (out != 3 && j->back_mask[p] && j->back_mask[q]) {
+        if (1.0f - dot3(j->back_normal + 3 * q, j->back_normal + 3 * p) > j->normal_tol)
+            return 3;
+        float dp = j->back_depth[p], dq = j->back_depth[q], step = fabsf(dq - dp);
+        out |= (step > j->depth_tol * fabsf(dp)) | (step > j->depth_tol * fabsf(dq)) << 1;
+    }
+    return out;
 }
 
-static void edges_range(const void *job, int64_t begin, int64_t end) {
+static void pairs_range(const void *job, int64_t begin, int64_t end) {
     const EdgesJob *j = (const EdgesJob *)job;
+    static const int64_t dys[4] = {0, 1, 1, 1}, dxs[4] = {1, 0, 1, -1};
     Pos at = pos_at(begin, j->h, j->w);
-    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w))
-        j->edge[p] = (uint8_t)edge_pixel(j, at.bi, at.y, at.x, p);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
+        int64_t n = j->n, nw = j->w * n, s0 = (at.bi * j->h * n + at.y * n) * nw + at.x * n;
+        int fm = j->front_mask[p], bm = j->back_mask[p];
+        int bits = sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
+                   sub_pixels_differ(j, j->back_ids, s0, nw, bm) ||
+                   (fm && (j->per_pixel ? j->alpha[p] : j->alpha[at.bi]) < j->smooth_alpha);
+        if (fm || bm)
+            for (int k = 0; k < 4; k++) {
+                int64_t yy = at.y + dys[k], xx = at.x + dxs[k];
+                if (yy >= j->h || xx < 0 || xx >= j->w) continue;
+                int f = pair_flags(j, p, p + dys[k] * j->w + dxs[k]);
+                bits |= (f & 1) | (f >> 1) << (4 + k);
+            }
+        j->pairs[p] = (uint8_t)bits;
+    }
+}
+
+static void gather_range(const void *job, int64_t begin, int64_t end) {
+    const EdgesJob *j = (const EdgesJob *)job;
+    const uint8_t *s = j->pairs;
+    int64_t w = j->w;
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
+        int e = s[p] & PAIR_OWN;
+        if (at.x > 0) e |= s[p - 1] & PAIR_E;
+        if (at.y > 0) {
+            e |= s[p - w] & PAIR_S;
+            if (at.x > 0) e |= s[p - w - 1] & PAIR_SE;
+            if (at.x < w - 1) e |= s[p - w + 1] & PAIR_SW;
+        }
+        j->edge[p] = (uint8_t)(e != 0);
+    }
 }
 
 int torchrefract_edges(const EdgesJob *job, int threads) {
-    return tr_parallel_for(edges_range, job, job->b * job->h * job->w, 4096, threads);
+    int64_t n = job->b * job->h * job->w;
+    int rc = tr_parallel_for(pairs_range, job, n, 4096, threads);
+    return rc != 0 ? rc : tr_parallel_for(gather_range, job, n, 16384, threads);
 }
 
 int64_t torchrefract_edges_job_size(void) { return (int64_t)sizeof(EdgesJob); }
