@@ -14,7 +14,7 @@ import torchrefract as tr
 from torchrefract import sparse, tiles
 from torchrefract.geometry import subsamples
 from torchrefract.geometry.camera import subpixel_rays, views_pixel_rays
-from torchrefract.geometry.gbuffer import build_gbuffer, layer_ids
+from torchrefract.geometry.gbuffer import build_gbuffer, build_sparse
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
@@ -37,10 +37,8 @@ def _scene(name: str, size: int = 48, n: int = 2, **changes) -> tr.Scene:
 def _one_sample(scenes: list[tr.Scene]):
     """The one-sample G-buffer (marching the n x n ids), the n x n ids and the front
     roughness of ``scenes``."""
-    meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
-    g = build_gbuffer(meshes, sparse.one_sample(scenes))
-    n = scenes[0].camera.samples_per_pixel
-    ids = layer_ids(meshes, [s.camera for s in scenes], g.meshes, n)
+    g, ids = build_sparse([load_mesh(s.mesh, s.transform) for s in scenes],
+                          [s.camera for s in scenes])
     g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
     return g, ids, front_roughness(g, MaterialBatch.from_scenes(scenes))
 
@@ -54,6 +52,25 @@ def test_subpixel_rays_are_the_pixel_rays():
                                                                              generator=gen)
     got = subpixel_rays(cams, 3, rows, cols)
     assert torch.equal(got, torch.stack([full[b][rows[b], cols[b]] for b in range(2)]))
+
+
+def test_sparse_gbuffer_is_the_one_sample_one():
+    """build_sparse: the one-sample G-buffer, bit for bit, and the n x n ids (views
+    repeated in the batch drawn once)."""
+    s = _scene("wingnut_a01", 40)
+    other = s.replace(camera=dataclasses.replace(s.camera, eye=(0.3, 0.4, 3.5)))
+    meshes = [load_mesh(s.mesh, s.transform)] * 3
+    cams = [s.camera, other.camera, s.camera]
+    g, ids = build_sparse(meshes, cams)
+    one = build_gbuffer(meshes, [dataclasses.replace(c, samples_per_pixel=1) for c in cams])
+    for lay in ("front", "back"):
+        for f in ("mask", "tri", "dist", "normal"):
+            assert torch.equal(getattr(getattr(g, lay), f), getattr(getattr(one, lay), f))
+    full = build_gbuffer(meshes, cams)
+    assert g.supersample == 1 and ids[0].shape == full.front.tri.shape
+    covered = full.front.mask  # the ids there, but where the edge repair changed one
+    assert float((ids[0][covered] != full.front.tri[covered]).float().mean()) < 0.01
+    assert torch.equal(ids[0][2], ids[0][0])
 
 
 def test_int32_ids_are_the_int64_ones():

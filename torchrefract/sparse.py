@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrefract.geometry import adaptive, subsamples
-from torchrefract.geometry.gbuffer import GBuffer, layer_ids
+from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.matte import render_hook
 from torchrefract.result import RenderResult, finish_pass, front_roughness
 from torchrefract.settings import current
@@ -30,11 +30,6 @@ def applies(scenes, entry, options, materials) -> bool:
             and not render_hook.requested(scenes))
 
 
-def one_sample(scenes) -> list:
-    """The scenes' cameras at one sample per pixel."""
-    return [dataclasses.replace(s.camera, samples_per_pixel=1) for s in scenes]
-
-
 @dataclass(frozen=True)
 class Pending:
     """What the samples' pass needs of the first: the one-sample G-buffer ``g`` (marching
@@ -47,13 +42,13 @@ class Pending:
     region: torch.Tensor | None
 
 
-def first_pass(g: GBuffer, meshes, scenes, materials, region: torch.Tensor | None
+def first_pass(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], materials,
+               region: torch.Tensor | None
                ) -> tuple[GBuffer, adaptive.Lattice | None, Pending]:
-    """For the one-sample G-buffer ``g`` of ``scenes`` (n x n cameras): the G-buffer and
-    lattice of the first pass (adaptive.lattice over the pixels not picked: a picked
-    pixel is its samples' box filter) and what :func:`supersample` needs."""
-    ids = layer_ids(meshes, [s.camera for s in scenes], g.meshes,
-                    scenes[0].camera.samples_per_pixel)
+    """For the one-sample G-buffer ``g`` and the ids at n x n ``ids``
+    (``gbuffer.build_sparse``): the G-buffer and lattice of the first pass
+    (adaptive.lattice over the pixels not picked: a picked pixel is its samples' box
+    filter) and what :func:`supersample` needs."""
     alpha = front_roughness(g, materials)
     picked = subsamples.edges(g, ids, alpha, region)
     g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
@@ -102,4 +97,4 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> None
         put(v, part.passes[name])
 
 
-__all__ = ["Pending", "applies", "first_pass", "one_sample", "supersample"]
+__all__ = ["Pending", "applies", "first_pass", "supersample"]

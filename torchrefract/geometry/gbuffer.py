@@ -17,7 +17,7 @@ copied to each of their batch items.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 import torch.nn.functional as F
@@ -371,22 +371,6 @@ def _distinct_views(meshes: list[MeshData], cameras: list[Camera]
     return views, inverse
 
 
-def layer_ids(meshes: list[MeshData], cameras: list[Camera], batch: MeshBatch, n: int
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both layers' rasterized ids (B, n H, n W) int32 of B views on their n x n sub-pixel
-    grids, global in ``batch`` (the views' MeshBatch), -1 where no face is seen; each
-    distinct view drawn once. Not yet the exact layers' (:func:`build_gbuffer` repairs
-    them where the exact ray misses)."""
-    views, inverse = _distinct_views(meshes, cameras)
-    front, back = visibility_layers([m for _, m, _ in views], [c for _, _, c in views], n,
-                                    [int(batch.face_offset[b]) for b, _, _ in views],
-                                    dtype=torch.int32)
-    if len(views) < len(meshes):
-        inv = torch.tensor(inverse, dtype=torch.int64)
-        front, back = front.index_select(0, inv), back.index_select(0, inv)
-    return front, back
-
-
 def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     """Rasterize both layers' ids of each view (``RenderSettings.rasterizer``: the native
     rasterizer, or the OpenGL passes) and build the exact G-buffer.
@@ -398,6 +382,24 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     Returns:
         GBuffer with (H, W) = samples_per_pixel * (height, width).
     """
+    return _build(meshes, cameras, sparse=False)[0]
+
+
+def build_sparse(meshes: list[MeshData], cameras: list[Camera]
+                 ) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor]]:
+    """Sparse supersampling's G-buffers (:mod:`torchrefract.geometry.subsamples`): the
+    exact one-sample G-buffer of cameras taking n x n samples, and both layers' rasterized
+    ids on their n x n sub-pixel grids (B, n H, n W) int32, -1 where no face is seen (not
+    repaired: the samples' layers are). Two rasterizations: the pixel centers' triangles
+    found among the sub-pixels' instead cost more (a smooth sphere's sub-pixels see two or
+    more triangles in half its pixels, each a float32 hit; 2.5 against 0.6 ms a frame at
+    256x256), and a dense mesh's center may see none of them."""
+    return _build(meshes, cameras, sparse=True)
+
+
+def _build(meshes: list[MeshData], cameras: list[Camera], sparse: bool
+           ) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor] | None]:
+    """:func:`build_gbuffer` (``sparse`` False; no ids) or :func:`build_sparse`."""
     if len(meshes) != len(cameras) or not meshes:
         raise ValueError("build_gbuffer needs one camera per mesh and at least one view")
     c0 = cameras[0]
@@ -409,11 +411,16 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     n = c0.samples_per_pixel
     batch = MeshBatch.from_meshes(meshes)
     views, inverse = _distinct_views(meshes, cameras)
+    drawn, cams = [m for _, m, _ in views], [c for _, _, c in views]
     # both layers' ids of every distinct view, global (the MeshBatch's face indices)
-    front_ids, back_ids = visibility_layers([m for _, m, _ in views], [c for _, _, c in views],
-                                            n, [int(batch.face_offset[b]) for b, _, _ in views])
-    dirs_t = views_pixel_rays([cam for _, _, cam in views], n)
-    eye_t, fwd_t, proj_t = view_frames([cam for _, _, cam in views], n)
+    offsets = [int(batch.face_offset[b]) for b, _, _ in views]
+    sub = None
+    if sparse:
+        sub = visibility_layers(drawn, cams, n, offsets, dtype=torch.int32)
+        cams, n = [replace(c, samples_per_pixel=1) for c in cams], 1
+    front_ids, back_ids = visibility_layers(drawn, cams, n, offsets)
+    dirs_t = views_pixel_rays(cams, n)
+    eye_t, fwd_t, proj_t = view_frames(cams, n)
     front = _layer(front_ids, eye_t, dirs_t, fwd_t, batch, back=False)
     back_layer = _layer(back_ids, eye_t, dirs_t, fwd_t, batch, back=True)
     if len(views) < len(meshes):  # copy the distinct views to their batch items
@@ -425,5 +432,6 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
         front, back_layer = (Layer(**{f.name: expand(getattr(lay, f.name)) for f in fields(Layer)})
                              for lay in (front, back_layer))
         dirs_t, eye_t, proj_t = expand(dirs_t), expand(eye_t), expand(proj_t)
+        sub = None if sub is None else tuple(expand(x) for x in sub)
     return GBuffer(front=front, back=back_layer, ray_dir=dirs_t, eye=eye_t, proj=proj_t,
-                   meshes=batch, supersample=n)
+                   meshes=batch, supersample=n), sub
