@@ -147,6 +147,11 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
      {"internal_bounces": 2, "bounce_rays": 4, SPP: 1, ADAPTIVE: True}, 8, False),
     ("rousiers ib auto rays4 adaptive b8", "rousiers",
      {"internal_bounces": "auto", "bounce_rays": 4, ADAPTIVE: True}, 8, False),
+    # the scenes' 2x2 by sparse supersampling (geometry/subsamples.py)
+    ("specular adaptive b8", "specular", {ADAPTIVE: True}, 8, False),
+    ("rousiers adaptive b8", "rousiers", {ADAPTIVE: True}, 8, False),
+    ("rousiers ib2 adaptive b8", "rousiers", {"internal_bounces": 2, ADAPTIVE: True}, 8,
+     False),
     *[(f"mitsuba {spp}spp{' oidn' if dn else ''}", "reference",
        {"spp": spp, "seed": 11, "denoise": dn}, 1, (spp, dn) == (4, True))
       for dn in (False, True) for spp in (1, 4, 16, 64, 256)],

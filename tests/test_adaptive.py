@@ -496,34 +496,6 @@ def test_ior_one_stays_close_to_the_bare_environment():
     assert float(flf.mean()) < 1e-3, float(flf.mean())
 
 
-def _accuracy_script():
-    import importlib.util
-    path = Path(__file__).resolve().parent.parent / "scripts" / "adaptive_accuracy.py"
-    spec = importlib.util.spec_from_file_location("adaptive_accuracy_script", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_sparse_design_edges_from_pixel_centers():
-    """scripts/adaptive_accuracy.py's edge pixels (``--sparse``): the slab's silhouette
-    (object pixels beside background) and the background ring around it are edges, most of
-    its flat interior and the far background are not; a smooth sphere is edge everywhere
-    on the object (sub-pixels there can differ by the environment's detail)."""
-    edge_pixels = _accuracy_script().edge_pixels
-    r = tr.render(_scene("slab_a02", 48, 1))
-    cov = r.coverage[0] > 0
-    e = edge_pixels(r)
-    grown = torch.nn.functional.max_pool2d(cov[None, None].float(), 3, 1, 1)[0, 0] > 0
-    shrunk = -torch.nn.functional.max_pool2d(-cov[None, None].float(), 3, 1, 1)[0, 0] > 0
-    ring = grown & ~shrunk
-    assert ring.any() and bool(e[ring].all())
-    assert not bool(e[~grown].any())
-    assert float(e[shrunk].float().mean()) < 0.3
-    r0 = tr.render(_scene("sphere_a0", 32, 1))
-    assert bool(edge_pixels(r0)[r0.coverage[0] > 0].all())
-
-
 def test_refine_takes_uniform_pixels_where_the_radiance_spreads():
     """adaptive.refine: around one bright pixel the uniform pixels of its 3x3 neighbourhood
     are shaded at their other sub-pixels (a non-uniform one is already), at the first sub-

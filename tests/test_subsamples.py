@@ -224,3 +224,21 @@ def test_sparse_passes_in_tiles_give_the_untiled_pixels(monkeypatch):
     assert torch.equal(whole.radiance, tiled.radiance)
     assert torch.equal(whole.coverage, tiled.coverage)
     assert all(torch.equal(whole.passes[k], tiled.passes[k]) for k in whole.passes)
+
+
+def test_samples_written_over_the_image_keep_gradients():
+    """sparse._put: the samples' pixels replace the image's at their pixels (in place
+    where no gradient flows), and a gradient flows to the pixels not replaced."""
+    rad = torch.zeros(1, 2, 2, 3, requires_grad=True)
+    image = tr.RenderResult(radiance=rad * 2.0, coverage=torch.zeros(1, 2, 2),
+                            passes={"x": torch.zeros(1, 2, 2, 1)}, scenes=())
+    part = tr.RenderResult(radiance=torch.ones(1, 2, 1, 3), coverage=torch.ones(1, 2, 1),
+                           passes={"x": torch.ones(1, 2, 1, 1)}, scenes=())
+    out = sparse._put(image, part, torch.tensor([[3, -1]]))
+    assert out.radiance[0, 1, 1].tolist() == [1.0] * 3 and float(out.coverage[0, 1, 1]) == 1.0
+    assert float(out.radiance.detach().sum()) == 3.0 and float(out.passes["x"].sum()) == 1.0
+    out.radiance.sum().backward()
+    assert rad.grad[0, 0, 0].tolist() == [2.0] * 3 and rad.grad[0, 1, 1].tolist() == [0.0] * 3
+    plain = tr.RenderResult(radiance=torch.zeros(1, 2, 2, 3), coverage=torch.zeros(1, 2, 2),
+                            passes={}, scenes=())
+    assert sparse._put(plain, part, torch.tensor([[0, -1]])).radiance is plain.radiance

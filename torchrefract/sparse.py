@@ -61,8 +61,8 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
                 options, state, budget: int) -> RenderResult:
     """``result`` (the first pass, on the CPU) with the pixels ``pending`` picked by their
     G-buffer, and those its radiance picks (``subsamples.refined``), replaced by their
-    n x n samples' box filter. The result's tensors are written in place (they are its
-    own)."""
+    n x n samples' box filter (written over the result's own tensors where no gradient
+    flows)."""
     t0 = time.perf_counter()
     g = pending.g
     picked = subsamples.refined(g, pending.picked, result.radiance, pending.region)
@@ -72,7 +72,7 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
     t1 = time.perf_counter()
     part = finish_pass(scenes, entry, samples.g, lighting, materials, options, state, budget,
                        None, t1)
-    _put(result, part, samples.pixels)
+    result = _put(result, part, samples.pixels)
     timings = dict(result.timings)
     for k, v in part.timings.items():
         timings[k] = timings.get(k, 0.0) + v
@@ -80,21 +80,25 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
     return dataclasses.replace(result, timings=timings)
 
 
-def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> None:
-    """Write ``part``'s pixels (B, K, 1, ...) over ``result``'s (B, H, W, ...) at
-    ``pixels`` (B, K; -1: none), in place."""
+def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> RenderResult:
+    """``result`` with ``part``'s pixels (B, K, 1, ...) written over its (B, H, W, ...) at
+    ``pixels`` (B, K; -1: none): in place, or into copies where a gradient flows."""
     b, h, w = result.coverage.shape
     ok = (pixels >= 0).reshape(-1)
     dst = (torch.arange(b)[:, None] * (h * w) + pixels).reshape(-1)[ok]
 
-    def put(full: torch.Tensor, piece: torch.Tensor) -> None:
+    def put(full: torch.Tensor, piece: torch.Tensor) -> torch.Tensor:
         c = full.shape[3] if full.dim() == 4 else 1
-        full.view(-1, c).index_copy_(0, dst, piece.reshape(-1, c)[ok].to(full.dtype))
+        src = piece.reshape(-1, c)[ok].to(full.dtype)
+        if full.requires_grad or src.requires_grad:
+            return full.reshape(-1, c).index_copy(0, dst, src).view(full.shape)
+        full.view(-1, c).index_copy_(0, dst, src)
+        return full
 
-    put(result.radiance, part.radiance)
-    put(result.coverage, part.coverage)
-    for name, v in result.passes.items():
-        put(v, part.passes[name])
+    return dataclasses.replace(
+        result, radiance=put(result.radiance, part.radiance),
+        coverage=put(result.coverage, part.coverage),
+        passes={k: put(v, part.passes[k]) for k, v in result.passes.items()})
 
 
 __all__ = ["Pending", "applies", "first_pass", "supersample"]

@@ -390,10 +390,9 @@ def build_sparse(meshes: list[MeshData], cameras: list[Camera]
     """Sparse supersampling's G-buffers (:mod:`torchrefract.geometry.subsamples`): the
     exact one-sample G-buffer of cameras taking n x n samples, and both layers' rasterized
     ids on their n x n sub-pixel grids (B, n H, n W) int32, -1 where no face is seen (not
-    repaired: the samples' layers are). Two rasterizations: the pixel centers' triangles
-    found among the sub-pixels' instead cost more (a smooth sphere's sub-pixels see two or
-    more triangles in half its pixels, each a float32 hit; 2.5 against 0.6 ms a frame at
-    256x256), and a dense mesh's center may see none of them."""
+    repaired: the samples' layers are). Two rasterizations: finding the pixel centers'
+    triangles among the sub-pixels' instead cost more, and a dense mesh's center may see
+    none of them (docs/benchmarks.md, sixteenth sitting)."""
     return _build(meshes, cameras, sparse=True)
 
 
