@@ -355,7 +355,8 @@ static int refine_columns(const RefineJob *j, const Column *c) {
     return !nan && spread > j->rtol * mean;
 }
 
-/* Along a row the columns slide: one new column per pixel. */
+/* Along a row the columns slide: one new column per pixel (a pixel not uniform, most of a
+ * frame's background, skips its own and starts the window afresh after it). */
 static void refine_range(const void *job, int64_t begin, int64_t end) {
     const RefineJob *j = (const RefineJob *)job;
     Pos at = pos_at(begin, j->h, j->w);
@@ -363,6 +364,11 @@ static void refine_range(const void *job, int64_t begin, int64_t end) {
     int fresh = 1;
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (at.x == 0) fresh = 1;
+        if (!j->uniform[p]) {
+            j->more[p] = 0;
+            fresh = 1;
+            continue;
+        }
         if (fresh) {
             for (int i = 0; i < 3; i++) column_at(j, at.bi, at.y, at.x - 1 + i, &c[i]);
             fresh = 0;
@@ -371,7 +377,7 @@ static void refine_range(const void *job, int64_t begin, int64_t end) {
             c[1] = c[2];
             column_at(j, at.bi, at.y, at.x + 1, &c[2]);
         }
-        j->more[p] = (uint8_t)(j->uniform[p] && refine_columns(j, c));
+        j->more[p] = (uint8_t)refine_columns(j, c);
     }
 }
 
