@@ -181,10 +181,7 @@ def refine(plan: Plan, radiance: torch.Tensor, rtol: float | None = None
     Args:
         radiance: (B, H, W, 3), the passes' (sub-)pixel radiance.
     """
-    rtol = REFINE_RTOL if rtol is None else rtol
-    more = native.refine(plan.uniform, radiance, rtol)
-    if more is None:
-        more = _refine_torch(plan.uniform, radiance.detach()[:, ::plan.n, ::plan.n], rtol)
+    more = spread(plan.uniform, radiance, rtol)
     if not bool(more.any()):
         return None
     n = plan.n
@@ -199,6 +196,20 @@ def refine(plan: Plan, radiance: torch.Tensor, rtol: float | None = None
             interpolated[:, ::2, ::2] |= (coarse == 3) | (coarse == 5)
         rest[:, ::n, ::n] |= more & interpolated
     return more, rest
+
+
+def spread(uniform: torch.Tensor, radiance: torch.Tensor, rtol: float | None = None
+           ) -> torch.Tensor:
+    """:func:`refine`'s test: the pixels of ``uniform`` (B, H/n, W/n) whose 3x3
+    neighbourhood of uniform pixels' radiances (at their first sub-pixels of ``radiance``,
+    (B, H, W, 3)) spreads by more than ``rtol`` (default REFINE_RTOL) times their mean
+    luminance; csrc/lattice.c's ``refine``, else :func:`_refine_torch` (the same decisions)."""
+    rtol = REFINE_RTOL if rtol is None else rtol
+    more = native.refine(uniform, radiance, rtol)
+    if more is None:
+        n = radiance.shape[1] // uniform.shape[1]
+        more = _refine_torch(uniform, radiance.detach()[:, ::n, ::n], rtol)
+    return more
 
 
 def _refine_torch(uniform: torch.Tensor, first: torch.Tensor, rtol: float) -> torch.Tensor:
@@ -607,4 +618,4 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
 
 __all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL",
            "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level", "Plan", "fill", "fill_rtol",
-           "lattice", "merge", "plan", "refine", "waiting"]
+           "lattice", "merge", "plan", "refine", "spread", "waiting"]

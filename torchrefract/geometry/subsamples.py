@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import subpixel_rays
-from torchrefract.geometry.gbuffer import GBuffer, _layer, view_frames
+from torchrefract.geometry.gbuffer import GBuffer, _layer
 from torchrefract.kernels import native
 from torchrefract.kernels.march import Marched, plane_table
 from torchrefract.optics.smooth import dot
@@ -148,13 +148,11 @@ def refined(g: GBuffer, picked: torch.Tensor, radiance: torch.Tensor,
             region: torch.Tensor | None = None, rtol: float | None = None) -> torch.Tensor:
     """``picked`` and the object pixels not picked (within ``region``) whose 3x3
     neighbourhood of such pixels' one-sample radiances (B, H, W, 3) spreads
-    (:func:`adaptive.refine`'s test)."""
+    (:func:`adaptive.spread`: the n x n plan's refinement test)."""
     rest = g.front.mask & ~picked
     if region is not None:
         rest &= region
-    plan = adaptive.Plan(uniform=rest, n=1)
-    made = adaptive.refine(plan, radiance, rtol)
-    return picked if made is None else picked | made[0]
+    return picked | adaptive.spread(rest, radiance, rtol)
 
 
 def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Camera],
@@ -183,9 +181,10 @@ def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Cam
     empty = (pixels < 0)[:, :, None, None].expand(b, k, n, n).reshape(b, -1)
     dirs = subpixel_rays(cameras, n, rows.reshape(b, -1), cols.reshape(b, -1))
     dirs = dirs.view(b, n * k, n, 3)
-    # the cameras as the one-sample frame's: what a sample projects is in its pixels
+    # the cameras as the one-sample frame's (g's): what a sample projects is in its pixels
     # (the ``footprint`` pass); the march reads proj's scale only
-    eye, fwd, proj = view_frames(cameras, 1)
+    eye, proj = g.eye, g.proj
+    fwd = proj[:, 9:12].contiguous()
     layers = [_layer(torch.where(empty, -1, x.reshape(b, -1).gather(1, at)).view(b, n * k, n)
                      .long(), eye, dirs, fwd, g.meshes, back=i == 1)
               for i, x in enumerate(ids)]
