@@ -109,16 +109,25 @@ def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Te
     strip of a frame too large to hold whole (:mod:`torchrefract.large`). Not kept."""
     n = supersample
     h, w = cam.height * n, cam.width * n
-    eye, r, u, f = camera_frame(cam)
+    _, r, u, f = (torch.tensor(v, dtype=torch.float64) for v in _camera_frame_cached(cam))
     t, a = screen_scale(cam)
     # x depends on the column only, y on the row only: (f + x r) per column and y u per row,
     # added once over the image (each element's operations and order unchanged)
     # pixel indices as float64 (exact integers; kornia's create_meshgrid gave the same, and
     # its import cost every process memory: docs/decisions.md, "Peak memory")
-    x = (2.0 * (torch.arange(w, dtype=torch.float64) + 0.5) / w - 1.0) * t * a  # (w,)
-    y = (1.0 - 2.0 * (torch.arange(r0, r1, dtype=torch.float64) + 0.5) / h) * t  # (r1 - r0,)
-    fx = torch.from_numpy(f) + x[:, None] * torch.from_numpy(r)  # (w, 3)
-    d = fx[None] + (y[:, None] * torch.from_numpy(u))[:, None]  # (r1 - r0, w, 3)
+    cols = torch.arange(w, dtype=torch.float64)[None, :, None]  # (1, w, 1)
+    rows = torch.arange(r0, r1, dtype=torch.float64)[:, None, None]  # (r1 - r0, 1, 1)
+    return _unit_rays(f, r, u, cols, rows, w, h, t, a)  # (r1 - r0, w, 3)
+
+
+def _unit_rays(f: torch.Tensor, r: torch.Tensor, u: torch.Tensor, cols: torch.Tensor,
+               rows: torch.Tensor, w: int, h: int, t, a) -> torch.Tensor:
+    """The module docstring's ray through (sub-)pixel columns ``cols`` and rows ``rows``
+    (float64, broadcast with the frame's f, r, u (..., 3) and its t, a) of a w x h grid,
+    normalized and rounded to float32: ``(f + x r) + y u``, each in float64."""
+    x = (2.0 * (cols + 0.5) / w - 1.0) * t * a
+    y = (1.0 - 2.0 * (rows + 0.5) / h) * t
+    d = (f + x * r) + y * u
     return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
 
 
@@ -129,18 +138,14 @@ def subpixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int,
     float32, by :func:`pixel_rays_rows`' float64 operations (sparse supersampling's
     samples, :mod:`torchrefract.geometry.subsamples`)."""
     n = supersample
-    h, w = cams[0].height * n, cams[0].width * n
     frames = []
     for cam in cams:
         _, r, u, f = _camera_frame_cached(cam)
-        t, a = screen_scale(cam)
-        frames.append([*f, *r, *u, t, a])
+        frames.append([*f, *r, *u, *screen_scale(cam)])
     fr = torch.tensor(frames, dtype=torch.float64)[:, None]  # (B, 1, 11)
-    f, r, u, t, a = fr[..., 0:3], fr[..., 3:6], fr[..., 6:9], fr[..., 9], fr[..., 10]
-    x = (2.0 * (cols.double() + 0.5) / w - 1.0) * t * a  # (B, M)
-    y = (1.0 - 2.0 * (rows.double() + 0.5) / h) * t
-    d = (f + x[..., None] * r) + y[..., None] * u
-    return (d / d.norm(dim=-1, keepdim=True)).to(torch.float32)
+    return _unit_rays(fr[..., 0:3], fr[..., 3:6], fr[..., 6:9], cols.double()[..., None],
+                      rows.double()[..., None], cams[0].width * n, cams[0].height * n,
+                      fr[..., 9:10], fr[..., 10:11])
 
 
 def projection_params(cam: Camera) -> torch.Tensor:
