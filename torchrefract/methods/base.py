@@ -60,6 +60,11 @@ class Method:
     """``shade`` reads the object (sub-)pixels ``g.object_index()`` names, so adaptive
     supersampling (:mod:`torchrefract.geometry.adaptive`) may name fewer; a method that
     renders the scene its own way (``reference``) sets False and is sampled uniformly."""
+    devices: tuple[str, ...] = ("cpu", "cuda")
+    """Device types ``shade`` runs on (``RenderSettings.device``). A method whose shading
+    is not torch code on the G-buffer's device (Mitsuba's ``reference``) lists ``cpu``
+    alone: it shades on the CPU and :func:`torchrefract.render` moves its result."""
+
     def shades_samples(self, options: Any, materials: Any) -> bool:
         """Whether ``shade``, with these options and materials, reads the G-buffer only at
         the (sub-)pixels it shades and the frame around them only through the marched
@@ -67,11 +72,6 @@ class Method:
         supersampled render shades only the pixels whose samples can differ
         (:mod:`torchrefract.geometry.subsamples`). Default False."""
         return False
-
-    devices: tuple[str, ...] = ("cpu", "cuda")
-    """Device types ``shade`` runs on (``RenderSettings.device``). A method whose shading
-    is not torch code on the G-buffer's device (Mitsuba's ``reference``) lists ``cpu``
-    alone: it shades on the CPU and :func:`torchrefract.render` moves its result."""
 
     def parse(self, options: dict | None, source: str | None = None) -> Any:
         """``method_options`` checked and turned into ``Options`` (ConfigError otherwise)."""
