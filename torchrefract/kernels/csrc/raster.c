@@ -167,6 +167,67 @@ static inline int64_t edge_at(const SPt *p, const SPt *q, int64_t px, int64_t py
     return dx * (py - p->y) - dy * (px - p->x) - (tl ? 0 : 1);
 }
 
+/* A center's key: the depth (the complement of 1/w's bits, q > 0: they grow with q)
+ * above the face id, or EMPTY's bits where an edge function is negative (outside). */
+static inline uint64_t center_key(int64_t w0, int64_t w1, int64_t w2, double q, uint64_t id) {
+    uint64_t qbits;
+    memcpy(&qbits, &q, 8);
+    uint64_t out = (uint64_t)((w0 | w1 | w2) >> 63);  /* all ones: outside */
+    return ((~qbits >> ID_BITS) << ID_BITS | id) | out;
+}
+
+static inline uint64_t keep_less(uint64_t cur, uint64_t k) { return k < cur ? k : cur; }
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+#define TR_RASTER4 1
+#ifndef RASTER4_FROM
+#define RASTER4_FROM 3   /* the narrowest box drawn in lanes (fastest here) */
+#endif
+
+/* center_key and keep_less for the row's nx centers in groups of four lanes, the same
+ * integer and double operations; a last group past the box but inside the band's row
+ * (``room`` keys from key) leaves the keys past it as they are, else it is done one by
+ * one. */
+static void raster_row4(uint64_t *key, int64_t nx, int64_t room, int64_t e0, int64_t e1,
+                        int64_t e2, int64_t sx0, int64_t sx1, int64_t sx2, double qrow,
+                        double qstep, uint64_t id) {
+    __m256i w0 = _mm256_setr_epi64x(e0, e0 + sx0, e0 + 2 * sx0, e0 + 3 * sx0);
+    __m256i w1 = _mm256_setr_epi64x(e1, e1 + sx1, e1 + 2 * sx1, e1 + 3 * sx1);
+    __m256i w2 = _mm256_setr_epi64x(e2, e2 + sx2, e2 + 2 * sx2, e2 + 3 * sx2);
+    __m256i s0 = _mm256_set1_epi64x(4 * sx0), s1 = _mm256_set1_epi64x(4 * sx1),
+            s2 = _mm256_set1_epi64x(4 * sx2);
+    __m256d xs = _mm256_setr_pd(0.0, 1.0, 2.0, 3.0), four = _mm256_set1_pd(4.0);
+    __m256d qr = _mm256_set1_pd(qrow), qs = _mm256_set1_pd(qstep);
+    __m256i ids = _mm256_set1_epi64x((int64_t)id), zero = _mm256_setzero_si256();
+    __m256i ones = _mm256_set1_epi64x(-1), sign = _mm256_set1_epi64x(INT64_MIN);
+    __m256i lane = _mm256_setr_epi64x(0, 1, 2, 3);
+    for (int64_t x = 0; x < nx; x += 4) {
+        __m256i qbits = _mm256_castpd_si256(_mm256_add_pd(qr, _mm256_mul_pd(xs, qs)));
+        __m256i k = _mm256_slli_epi64(_mm256_srli_epi64(_mm256_xor_si256(qbits, ones), ID_BITS),
+                                      ID_BITS);
+        __m256i out = _mm256_cmpgt_epi64(zero, _mm256_or_si256(_mm256_or_si256(w0, w1), w2));
+        k = _mm256_or_si256(_mm256_or_si256(k, ids), out);
+        if (x + 4 > room) {  /* the row's end: the rest one by one */
+            for (; x < nx; x++)
+                key[x] = keep_less(key[x], center_key(e0 + x * sx0, e1 + x * sx1, e2 + x * sx2,
+                                                       qrow + (double)x * qstep, id));
+            return;
+        }
+        /* a group past the box (its last) keeps those keys: the lanes inside only */
+        __m256i in = _mm256_cmpgt_epi64(_mm256_set1_epi64x(nx - x), lane);
+        __m256i cur = _mm256_loadu_si256((const __m256i *)(key + x));
+        __m256i less = _mm256_and_si256(in, _mm256_cmpgt_epi64(_mm256_xor_si256(cur, sign),
+                                        _mm256_xor_si256(k, sign)));  /* k < cur, unsigned */
+        _mm256_storeu_si256((__m256i *)(key + x), _mm256_blendv_epi8(cur, k, less));
+        w0 = _mm256_add_epi64(w0, s0);
+        w1 = _mm256_add_epi64(w1, s1);
+        w2 = _mm256_add_epi64(w2, s2);
+        xs = _mm256_add_pd(xs, four);
+    }
+}
+#endif
+
 /* Rasterize the snapped triangle (a, b, c), face ``id`` (< 2^ID_BITS), into the band. */
 static void raster_tri(const Band *bd, const SPt *a, const SPt *b, const SPt *c, uint64_t id) {
     /* the centers X = x SUB + HALF in [min, max]: x in [ceil((min - HALF) / SUB),
@@ -205,32 +266,37 @@ static void raster_tri(const Band *bd, const SPt *a, const SPt *b, const SPt *c,
     double qx = (qb * cy - qc * by) * inv, qy = (qc * bx - qb * cx) * inv;
     double qstep = qx * (double)SUB;
     double q_left = a->q + qx * (double)(px - a->x);
-    /* Branch-free (small triangles make the tests unpredictable), the box as one loop
-     * (one exit per triangle, not per row: at a row's end the edge functions, 1/w and
-     * the row move on by selects): the key, or EMPTY where the center is outside, kept
-     * where less; the rows are this band's own. */
-    int64_t nx = x1 - x0 + 1, n = nx * (y1 - y0 + 1);
-    int64_t w0 = e0, w1 = e1, w2 = e2, x = 0;
+    /* 1/w at a center: its row's value plus x steps (not summed pixel by pixel), so
+     * that the lanes below compute it alike. Boxes narrower than a lane group: branch-free
+     * (small triangles make the tests unpredictable), the box as one loop (one exit per
+     * triangle, not per row: at a row's end the edge functions, 1/w and the row move on by
+     * selects); wider ones row by row, four centers at a time where built for AVX2. The
+     * key, or EMPTY where the center is outside, kept where less; the rows are this
+     * band's own. */
+    int64_t nx = x1 - x0 + 1, ny = y1 - y0 + 1;
     double qrow = q_left + qy * (double)(y0 * SUB + HALF - a->y), qys = qy * (double)SUB;
-    double q = qrow;
     uint64_t *key = bd->key[layer] + (y0 - bd->r0) * bd->w + x0;
+#ifdef TR_RASTER4
+    if (nx >= RASTER4_FROM) {
+        for (int64_t r = 0; r < ny; r++, key += bd->w) {
+            raster_row4(key, nx, bd->w - x0, e0, e1, e2, sx0, sx1, sx2, qrow, qstep, id);
+            e0 += sy0;
+            e1 += sy1;
+            e2 += sy2;
+            qrow += qys;
+        }
+        return;
+    }
+#endif
+    int64_t n = nx * ny, x = 0;
     for (int64_t i = 0; i < n; i++) {
-        uint64_t qbits;
-        memcpy(&qbits, &q, 8);  /* q > 0: its bits grow with q, their complement with
-                                 * the depth */
-        uint64_t out = (uint64_t)((w0 | w1 | w2) >> 63);  /* all ones: outside */
-        uint64_t k = ((~qbits >> ID_BITS) << ID_BITS | id) | out;
-        uint64_t cur = key[x];
-        key[x] = k < cur ? k : cur;
+        key[x] = keep_less(key[x], center_key(e0 + x * sx0, e1 + x * sx1, e2 + x * sx2,
+                                               qrow + (double)x * qstep, id));
         int wrap = x == nx - 1;
         e0 = wrap ? e0 + sy0 : e0;
         e1 = wrap ? e1 + sy1 : e1;
         e2 = wrap ? e2 + sy2 : e2;
         qrow = wrap ? qrow + qys : qrow;
-        w0 = wrap ? e0 : w0 + sx0;
-        w1 = wrap ? e1 : w1 + sx1;
-        w2 = wrap ? e2 : w2 + sx2;
-        q = wrap ? qrow : q + qstep;
         key = wrap ? key + bd->w : key;
         x = wrap ? 0 : x + 1;
     }
