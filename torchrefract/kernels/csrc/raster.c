@@ -376,6 +376,20 @@ static int reserve(void **buf, int64_t *have, int64_t want, size_t size) {
     return *buf != NULL;
 }
 
+/* A band's keys to ids: the face + id offset, -1 where none (loops the compiler puts
+ * in lanes: the output's type decided once, outside). */
+static void keys_to_ids32(const uint64_t *restrict key, int64_t n, int64_t id_off,
+                          int32_t *restrict out) {
+    for (int64_t p = 0; p < n; p++)
+        out[p] = key[p] == EMPTY ? -1 : (int32_t)((int64_t)(key[p] & ID_MASK) + id_off);
+}
+
+static void keys_to_ids64(const uint64_t *restrict key, int64_t n, int64_t id_off,
+                          int64_t *restrict out) {
+    for (int64_t p = 0; p < n; p++)
+        out[p] = key[p] == EMPTY ? -1 : (int64_t)(key[p] & ID_MASK) + id_off;
+}
+
 /* One (view, row band) work item. */
 static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     const RasterJob *j = run->job;
@@ -427,12 +441,8 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     }
     for (int l = 0; l < 2; l++) {  /* keys to ids: the face + id offset, -1 where none */
         void *out = l ? j->back : j->front;
-        for (int64_t p = 0; p < npix; p++) {
-            uint64_t k = bd.key[l][p];
-            int64_t id = k == EMPTY ? -1 : (int64_t)(k & ID_MASK) + id_off;
-            if (j->ids32) ((int32_t *)out)[at + p] = (int32_t)id;
-            else ((int64_t *)out)[at + p] = id;
-        }
+        if (j->ids32) keys_to_ids32(bd.key[l], npix, id_off, (int32_t *)out + at);
+        else keys_to_ids64(bd.key[l], npix, id_off, (int64_t *)out + at);
     }
 }
 
