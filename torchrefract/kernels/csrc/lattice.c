@@ -587,24 +587,111 @@ static int pair_flags(const EdgesJob *j, int64_t p, int64_t q) {
     return out;
 }
 
+/* A pixel's own tests: its sub-pixels (either layer) and its roughness. */
+static inline int own_flags(const EdgesJob *j, int64_t p, const Pos *at) {
+    int64_t n = j->n, nw = j->w * n, s0 = (at->bi * j->h * n + at->y * n) * nw + at->x * n;
+    int fm = j->front_mask[p], bm = j->back_mask[p];
+    return sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
+           sub_pixels_differ(j, j->back_ids, s0, nw, bm) ||
+           (fm && (j->per_pixel ? j->alpha[p] : j->alpha[at->bi]) < j->smooth_alpha);
+}
+
+static const int64_t PAIR_DY[4] = {0, 1, 1, 1}, PAIR_DX[4] = {1, 0, 1, -1};
+
+/* pairs_range's flags of one pixel. */
+static int pixel_pairs(const EdgesJob *j, int64_t p, const Pos *at) {
+    int bits = own_flags(j, p, at);
+    if (j->front_mask[p] || j->back_mask[p])
+        for (int k = 0; k < 4; k++) {
+            int64_t yy = at->y + PAIR_DY[k], xx = at->x + PAIR_DX[k];
+            if (yy >= j->h || xx < 0 || xx >= j->w) continue;
+            int f = pair_flags(j, p, p + PAIR_DY[k] * j->w + PAIR_DX[k]);
+            bits |= (f & 1) | (f >> 1) << (4 + k);
+        }
+    return bits;
+}
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+#define TR_EDGES8 1
+
+/* x, y and z of the 8 3-vectors from v (AoS) in lanes: blends and one permutation each. */
+static inline void xyz8(const float *v, __m256 *x, __m256 *y, __m256 *z) {
+    __m256 a = _mm256_loadu_ps(v), b = _mm256_loadu_ps(v + 8), c = _mm256_loadu_ps(v + 16);
+    *x = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x92), c, 0x24),
+                                  _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5));
+    *y = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x24), c, 0x49),
+                                  _mm256_setr_epi32(1, 4, 7, 2, 5, 0, 3, 6));
+    *z = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x49), c, 0x92),
+                                  _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
+}
+
+/* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 pixels' normals from p and q. */
+static inline __m256 one_minus_dot8(const float *np, const float *nq) {
+    __m256 px, py, pz, qx, qy, qz;
+    xyz8(np, &px, &py, &pz);
+    xyz8(nq, &qx, &qy, &qz);
+    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(qx, px), _mm256_mul_ps(qy, py)),
+                             _mm256_mul_ps(qz, pz));
+    return _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
+}
+
+/* 8 bytes of a mask (0 or 1) as lanes of all ones or zeros. */
+static inline __m256i mask8(const uint8_t *m) {
+    __m256i v = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)m));
+    return _mm256_cmpgt_epi32(v, _mm256_setzero_si256());
+}
+
+/* pixel_pairs of the 8 pixels from p (one row, none on the frame's border nor its last
+ * row: every pair inside), the pairs' tests in lanes with pair_flags' operations. */
+static void pixel_pairs8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
+    __m256i fm = mask8(j->front_mask + p), bm = mask8(j->back_mask + p);
+    __m256 tol = _mm256_set1_ps(j->normal_tol), dtol = _mm256_set1_ps(j->depth_tol);
+    __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    __m256 dp = _mm256_loadu_ps(j->back_depth + p);
+    __m256i bits = _mm256_setzero_si256(), one = _mm256_set1_epi32(1);
+    for (int k = 0; k < 4; k++) {
+        int64_t q = p + PAIR_DY[k] * j->w + PAIR_DX[k];
+        __m256i both_f = _mm256_and_si256(fm, mask8(j->front_mask + q));
+        __m256i both_b = _mm256_and_si256(bm, mask8(j->back_mask + q));
+        __m256i f = _mm256_and_si256(both_f, _mm256_castps_si256(_mm256_cmp_ps(
+            one_minus_dot8(j->front_normal + 3 * p, j->front_normal + 3 * q), tol, _CMP_GT_OQ)));
+        __m256i b = _mm256_castps_si256(_mm256_cmp_ps(
+            one_minus_dot8(j->back_normal + 3 * p, j->back_normal + 3 * q), tol, _CMP_GT_OQ));
+        __m256 dq = _mm256_loadu_ps(j->back_depth + q);
+        __m256 step = _mm256_and_ps(_mm256_sub_ps(dq, dp), absm);
+        __m256i d1 = _mm256_castps_si256(_mm256_cmp_ps(
+            step, _mm256_mul_ps(dtol, _mm256_and_ps(dp, absm)), _CMP_GT_OQ));
+        __m256i d2 = _mm256_castps_si256(_mm256_cmp_ps(
+            step, _mm256_mul_ps(dtol, _mm256_and_ps(dq, absm)), _CMP_GT_OQ));
+        __m256i both = _mm256_or_si256(f, _mm256_and_si256(both_b, b));  /* flags p and q */
+        __m256i for_p = _mm256_or_si256(both, _mm256_and_si256(both_b, d1));
+        __m256i for_q = _mm256_or_si256(both, _mm256_and_si256(both_b, d2));
+        bits = _mm256_or_si256(bits, _mm256_and_si256(for_p, one));
+        bits = _mm256_or_si256(bits, _mm256_and_si256(for_q, _mm256_set1_epi32(16 << k)));
+    }
+    int32_t b8[8];
+    _mm256_storeu_si256((__m256i *)b8, bits);
+    for (int i = 0; i < 8; i++, pos_step(&at, j->h, j->w))
+        out[i] = (uint8_t)(b8[i] | own_flags(j, p + i, &at));
+}
+#endif
+
 static void pairs_range(const void *job, int64_t begin, int64_t end) {
     const EdgesJob *j = (const EdgesJob *)job;
-    static const int64_t dys[4] = {0, 1, 1, 1}, dxs[4] = {1, 0, 1, -1};
     Pos at = pos_at(begin, j->h, j->w);
-    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
-        int64_t n = j->n, nw = j->w * n, s0 = (at.bi * j->h * n + at.y * n) * nw + at.x * n;
-        int fm = j->front_mask[p], bm = j->back_mask[p];
-        int bits = sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
-                   sub_pixels_differ(j, j->back_ids, s0, nw, bm) ||
-                   (fm && (j->per_pixel ? j->alpha[p] : j->alpha[at.bi]) < j->smooth_alpha);
-        if (fm || bm)
-            for (int k = 0; k < 4; k++) {
-                int64_t yy = at.y + dys[k], xx = at.x + dxs[k];
-                if (yy >= j->h || xx < 0 || xx >= j->w) continue;
-                int f = pair_flags(j, p, p + dys[k] * j->w + dxs[k]);
-                bits |= (f & 1) | (f >> 1) << (4 + k);
-            }
-        j->pairs[p] = (uint8_t)bits;
+    for (int64_t p = begin; p < end;) {
+#ifdef TR_EDGES8
+        if (at.x >= 1 && at.x + 9 <= j->w && at.y + 1 < j->h && p + 8 <= end) {
+            pixel_pairs8(j, p, at, j->pairs + p);
+            for (int i = 0; i < 8; i++) pos_step(&at, j->h, j->w);
+            p += 8;
+            continue;
+        }
+#endif
+        j->pairs[p] = (uint8_t)pixel_pairs(j, p, &at);
+        pos_step(&at, j->h, j->w);
+        p++;
     }
 }
 
