@@ -21,7 +21,7 @@ from torchrefract.kernels import native
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.result import front_roughness
-from torchrefract.settings import RenderSettings
+from torchrefract.settings import RenderSettings, using
 from torchrefract.truth.metrics import flip_map
 
 SUITE = Path(__file__).resolve().parent.parent / "configs" / "suite"
@@ -50,8 +50,10 @@ def test_subpixel_rays_are_the_pixel_rays():
     gen = torch.Generator().manual_seed(0)
     rows, cols = torch.randint(0, 15, (2, 40), generator=gen), torch.randint(0, 21, (2, 40),
                                                                              generator=gen)
-    got = subpixel_rays(cams, 3, rows, cols)
-    assert torch.equal(got, torch.stack([full[b][rows[b], cols[b]] for b in range(2)]))
+    want = torch.stack([full[b][rows[b], cols[b]] for b in range(2)])
+    assert torch.equal(subpixel_rays(cams, 3, rows, cols), want)  # the kernel's
+    with using(RenderSettings(native=False)):  # the tensor code's
+        assert torch.equal(subpixel_rays(cams, 3, rows, cols), want)
 
 
 def test_sparse_gbuffer_is_the_one_sample_one():

@@ -84,12 +84,12 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
     """``result`` with ``part``'s pixels (B, K, 1, ...) written over its (B, H, W, ...) at
     ``pixels`` (B, K; -1: none): in place, or into copies where a gradient flows."""
     b, h, w = result.coverage.shape
-    ok = (pixels >= 0).reshape(-1)
-    dst = (torch.arange(b)[:, None] * (h * w) + pixels).reshape(-1)[ok]
+    ok = (pixels >= 0).reshape(-1).nonzero()[:, 0]  # the slots holding a pixel, once
+    dst = (torch.arange(b)[:, None] * (h * w) + pixels).reshape(-1).index_select(0, ok)
 
     def put(full: torch.Tensor, piece: torch.Tensor) -> torch.Tensor:
         c = full.shape[3] if full.dim() == 4 else 1
-        src = piece.reshape(-1, c)[ok].to(full.dtype)
+        src = piece.reshape(-1, c).index_select(0, ok).to(full.dtype)
         if full.requires_grad or src.requires_grad:
             return full.reshape(-1, c).index_copy(0, dst, src).view(full.shape)
         full.view(-1, c).index_copy_(0, dst, src)

@@ -136,16 +136,20 @@ def subpixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int,
     """The rays of :func:`pixel_rays` at chosen sub-pixels of views of one size: ``rows``,
     ``cols`` (B, M) int64 coordinates on each view's n x n sub-pixel grid -> (B, M, 3)
     float32, by :func:`pixel_rays_rows`' float64 operations (sparse supersampling's
-    samples, :mod:`torchrefract.geometry.subsamples`)."""
+    samples, :mod:`torchrefract.geometry.subsamples`): the native kernel where it runs."""
     n = supersample
     frames = []
     for cam in cams:
         _, r, u, f = _camera_frame_cached(cam)
         frames.append([*f, *r, *u, *screen_scale(cam)])
-    fr = torch.tensor(frames, dtype=torch.float64)[:, None]  # (B, 1, 11)
+    fr = torch.tensor(frames, dtype=torch.float64)
+    h, w = cams[0].height * n, cams[0].width * n
+    out = native.rays_at(fr, h, w, rows, cols)  # csrc/gbuffer.c, the same bits
+    if out is not None:
+        return out
+    fr = fr[:, None]  # (B, 1, 11)
     return _unit_rays(fr[..., 0:3], fr[..., 3:6], fr[..., 6:9], cols.double()[..., None],
-                      rows.double()[..., None], cams[0].width * n, cams[0].height * n,
-                      fr[..., 9:10], fr[..., 10:11])
+                      rows.double()[..., None], w, h, fr[..., 9:10], fr[..., 10:11])
 
 
 def projection_params(cam: Camera) -> torch.Tensor:

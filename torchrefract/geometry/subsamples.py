@@ -175,23 +175,23 @@ def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Cam
     pixels[flat[:, 0], slot] = flat[:, 1]
     p = pixels.clamp(min=0)
     sub = torch.arange(n)
-    rows = ((n * (p // w))[:, :, None, None] + sub[:, None]).expand(b, k, n, n)  # (B, K, n, n)
-    cols = ((n * (p % w))[:, :, None, None] + sub).expand(b, k, n, n)
-    at = (rows * (n * w) + cols).reshape(b, -1)
+    rows = ((n * (p // w))[:, :, None, None] + sub[:, None]).expand(b, k, n, n).reshape(b, -1)
+    cols = ((n * (p % w))[:, :, None, None] + sub).expand(b, k, n, n).reshape(b, -1)
+    at = rows * (n * w) + cols  # (B, K n n): the samples on the n x n grid
     empty = (pixels < 0)[:, :, None, None].expand(b, k, n, n).reshape(b, -1)
-    dirs = subpixel_rays(cameras, n, rows.reshape(b, -1), cols.reshape(b, -1))
-    dirs = dirs.view(b, n * k, n, 3)
+    taken = (~empty).view(-1).nonzero()[:, 0]  # the samples of picked pixels, flat
+    dirs = subpixel_rays(cameras, n, rows, cols).view(b, n * k, n, 3)
     # the cameras as the one-sample frame's (g's): what a sample projects is in its pixels
     # (the ``footprint`` pass); the march reads proj's scale only
     eye, proj = g.eye, g.proj
     fwd = proj[:, 9:12].contiguous()
-    layers = [_layer(torch.where(empty, -1, x.reshape(b, -1).gather(1, at)).view(b, n * k, n)
+    layers = [_layer(x.reshape(b, -1).gather(1, at).masked_fill_(empty, -1).view(b, n * k, n)
                      .long(), eye, dirs, fwd, g.meshes, back=i == 1)
               for i, x in enumerate(ids)]
     # the marched ids: the samples' exact (repaired) ones where they are
-    flat = (torch.arange(b)[:, None] * ids[0][0].numel() + at)[~empty]
+    flat = (torch.arange(b)[:, None] * ids[0][0].numel() + at).view(-1).index_select(0, taken)
     for x, lay in zip(ids, layers):
-        x.view(-1)[flat] = lay.tri.reshape(b, -1)[~empty]
+        x.view(-1).index_copy_(0, flat, lay.tri.view(-1).index_select(0, taken).to(x.dtype))
     return Samples(g=GBuffer(front=layers[0], back=layers[1], ray_dir=dirs, eye=eye, proj=proj,
                              meshes=g.meshes, supersample=n, marched=g.marched),
                    pixels=pixels)

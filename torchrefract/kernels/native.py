@@ -313,6 +313,13 @@ class _RaysJob(ctypes.Structure):
                 ("r0", ctypes.c_int64), ("rows", ctypes.c_int64), ("frame", _p), ("out", _p)]
 
 
+class _RaysAtJob(ctypes.Structure):
+    """ctypes mirror of ``RaysAtJob`` in csrc/gbuffer.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("m", ctypes.c_int64), ("h", ctypes.c_int64),
+                ("w", ctypes.c_int64), ("frame", _p), ("rows", _p), ("cols", _p), ("out", _p)]
+
+
 class _CenterJob(ctypes.Structure):
     """ctypes mirror of ``CenterJob`` in csrc/gbuffer.c."""
 
@@ -358,7 +365,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "edges": _EdgesJob,
             "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
-            "center_samples": _CenterJob, "pixel_rays": _RaysJob,
+            "center_samples": _CenterJob, "pixel_rays": _RaysJob, "rays_at": _RaysAtJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -1056,6 +1063,23 @@ def pixel_rays(frames: torch.Tensor, h: int, w: int, r0: int = 0, r1: int | None
     job = _RaysJob(b=fr.shape[0], h=h, w=w, r0=r0, rows=r1 - r0, frame=fr.data_ptr(),
                    out=out.data_ptr())
     return out if _call("pixel_rays", job) else None
+
+
+def rays_at(frames: torch.Tensor, h: int, w: int, rows: torch.Tensor, cols: torch.Tensor
+            ) -> torch.Tensor | None:
+    """``camera.subpixel_rays`` (csrc/gbuffer.c, the same bits): ``frames`` (B, 11) as
+    :func:`pixel_rays`' for an (h, w) grid, ``rows`` and ``cols`` (B, M) int64 -> the
+    (B, M, 3) float32 rays through those (sub-)pixels, or ``None`` where the kernel is
+    unavailable."""
+    if not available() or rows.dtype != torch.int64 or cols.dtype != torch.int64:
+        return None
+    fr = frames.to(torch.float64).contiguous()
+    rows, cols = rows.contiguous(), cols.contiguous()
+    b, m = rows.shape
+    out = torch.empty(b, m, 3)
+    job = _RaysAtJob(b=b, m=m, h=h, w=w, frame=fr.data_ptr(), rows=rows.data_ptr(),
+                     cols=cols.data_ptr(), out=out.data_ptr())
+    return out if _call("rays_at", job) else None
 
 
 def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:

@@ -505,3 +505,33 @@ int torchrefract_pixel_rays(const RaysJob *job, int threads) {
 }
 
 int64_t torchrefract_pixel_rays_job_size(void) { return (int64_t)sizeof(RaysJob); }
+
+/* camera.subpixel_rays: rays_range's ray (its scalar operations) through chosen
+ * (sub-)pixels of a (h, w) grid, ``rows`` and ``cols`` (B, m) per view (sparse
+ * supersampling's samples). */
+typedef struct {
+    int64_t b, m, h, w;
+    const double *frame;        /* (B, 11), as RaysJob's */
+    const int64_t *rows, *cols; /* (B, m) */
+    float *out;                 /* (B, m, 3) */
+} RaysAtJob;
+
+static void rays_at_range(const void *job, int64_t begin, int64_t end) {
+    const RaysAtJob *j = (const RaysAtJob *)job;
+    for (int64_t i = begin; i < end; i++) {
+        const double *fr = j->frame + 11 * (i / j->m), *f = fr, *r = fr + 3, *u = fr + 6;
+        double t = fr[9], a = fr[10];
+        double yy = (1.0 - (2.0 * ((double)j->rows[i] + 0.5)) / (double)j->h) * t;
+        double x = ((2.0 * ((double)j->cols[i] + 0.5)) / (double)j->w - 1.0) * t * a;
+        double d[3];
+        for (int c = 0; c < 3; c++) d[c] = (f[c] + x * r[c]) + yy * u[c];
+        double nrm = sqrt(fma(d[2], d[2], fma(d[1], d[1], d[0] * d[0])));
+        for (int c = 0; c < 3; c++) j->out[3 * i + c] = (float)(d[c] / nrm);
+    }
+}
+
+int torchrefract_rays_at(const RaysAtJob *job, int threads) {
+    return tr_parallel_for(rays_at_range, job, job->b * job->m, 4096, threads);
+}
+
+int64_t torchrefract_rays_at_job_size(void) { return (int64_t)sizeof(RaysAtJob); }

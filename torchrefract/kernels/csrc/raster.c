@@ -32,8 +32,9 @@
  *
  * Threads: one work item per (view, row band); a band projects its view's vertices into
  * its thread's scratch and rasterizes every triangle overlapping its rows into its own
- * keys, then writes its own rows of the outputs (no locks). Plain C (threads: common.h);
- * built and loaded by native.py.
+ * keys, then writes its own rows of the outputs (no locks). Plain C (threads: common.h),
+ * a triangle's wider boxes in AVX2 lanes where built for it (the same integer and double
+ * operations as the scalar loop); built and loaded by native.py.
  */
 
 #include <stdlib.h>
