@@ -244,3 +244,32 @@ def test_samples_written_over_the_image_keep_gradients():
     plain = tr.RenderResult(radiance=torch.zeros(1, 2, 2, 3), coverage=torch.zeros(1, 2, 2),
                             passes={}, scenes=())
     assert sparse._put(plain, part, torch.tensor([[0, -1]])).radiance is plain.radiance
+
+
+def test_samples_written_by_the_kernel_are_the_index_copies():
+    """sparse._put's one native call (csrc/box.c ``put_rows``) writes what the tensor
+    code's index copies write, in place, for every buffer."""
+    gen = torch.Generator().manual_seed(3)
+
+    def image():
+        g = torch.Generator().manual_seed(1)
+        return tr.RenderResult(radiance=torch.rand(2, 5, 6, 3, generator=g),
+                               coverage=torch.rand(2, 5, 6, generator=g),
+                               passes={"x": torch.rand(2, 5, 6, 1, generator=g),
+                                       "n": torch.rand(2, 5, 6, 3, generator=g)}, scenes=())
+
+    part = tr.RenderResult(radiance=torch.rand(2, 4, 1, 3, generator=gen),
+                           coverage=torch.rand(2, 4, 1, generator=gen),
+                           passes={"x": torch.rand(2, 4, 1, 1, generator=gen),
+                                   "n": torch.rand(2, 4, 1, 3, generator=gen)}, scenes=())
+    pixels = torch.tensor([[0, 7, 29, -1], [3, 4, -1, -1]])
+    got = image()
+    radiance = got.radiance
+    out = sparse._put(got, part, pixels)
+    assert out.radiance is radiance  # in place
+    with using(RenderSettings(native=False)):
+        want = sparse._put(image(), part, pixels)
+    for a, b in ((out.radiance, want.radiance), (out.coverage, want.coverage),
+                 *((out.passes[k], want.passes[k]) for k in ("x", "n"))):
+        assert torch.equal(a, b)
+    assert torch.equal(out.radiance[1, 0, 4], part.radiance[1, 1, 0])

@@ -13,6 +13,7 @@ import torch
 
 from torchrefract.geometry import adaptive, subsamples
 from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.kernels import native
 from torchrefract.matte import render_hook
 from torchrefract.result import RenderResult, finish_pass, front_roughness
 from torchrefract.settings import current
@@ -82,10 +83,23 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
 
 def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> RenderResult:
     """``result`` with ``part``'s pixels (B, K, 1, ...) written over its (B, H, W, ...) at
-    ``pixels`` (B, K; -1: none): in place, or into copies where a gradient flows."""
+    ``pixels`` (B, K; -1: none): in place (csrc/box.c's ``put_rows``, all buffers in one
+    call, else index copies), or into copies where a gradient flows."""
     b, h, w = result.coverage.shape
+    names = list(result.passes)
+    fulls = [result.radiance, result.coverage, *(result.passes[k] for k in names)]
+    pieces = [part.radiance, part.coverage, *(part.passes[k] for k in names)]
+
+    def rows(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(x.shape[0] * x.shape[1] * (x.shape[2] if x.dim() > 2 else 1), -1)
+
+    into = torch.arange(b)[:, None] * (h * w) + pixels
+    if all(f.is_contiguous() for f in fulls) and native.put_rows(  # (views: written in place)
+            torch.where(pixels >= 0, into, -1).reshape(-1),
+            [(rows(f), rows(x)) for f, x in zip(fulls, pieces)]):
+        return result
     ok = (pixels >= 0).reshape(-1).nonzero()[:, 0]  # the slots holding a pixel, once
-    dst = (torch.arange(b)[:, None] * (h * w) + pixels).reshape(-1).index_select(0, ok)
+    dst = into.reshape(-1).index_select(0, ok)
 
     def put(full: torch.Tensor, piece: torch.Tensor) -> torch.Tensor:
         c = full.shape[3] if full.dim() == 4 else 1
@@ -95,10 +109,9 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
         full.view(-1, c).index_copy_(0, dst, src)
         return full
 
-    return dataclasses.replace(
-        result, radiance=put(result.radiance, part.radiance),
-        coverage=put(result.coverage, part.coverage),
-        passes={k: put(v, part.passes[k]) for k, v in result.passes.items()})
+    put_all = [put(f, x) for f, x in zip(fulls, pieces)]
+    return dataclasses.replace(result, radiance=put_all[0], coverage=put_all[1],
+                               passes=dict(zip(names, put_all[2:])))
 
 
 __all__ = ["Pending", "applies", "first_pass", "supersample"]

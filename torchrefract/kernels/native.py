@@ -320,6 +320,13 @@ class _RaysAtJob(ctypes.Structure):
                 ("w", ctypes.c_int64), ("frame", _p), ("rows", _p), ("cols", _p), ("out", _p)]
 
 
+class _PutRowsJob(ctypes.Structure):
+    """ctypes mirror of ``PutRowsJob`` in csrc/box.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("nbuf", ctypes.c_int64), ("dst", _p), ("out", _p),
+                ("src", _p), ("ch", _p)]
+
+
 class _CenterJob(ctypes.Structure):
     """ctypes mirror of ``CenterJob`` in csrc/gbuffer.c."""
 
@@ -366,6 +373,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob, "rays_at": _RaysAtJob,
+            "put_rows": _PutRowsJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -996,6 +1004,33 @@ def one_sample_passes(front_mask: torch.Tensor, back_mask: torch.Tensor,
                         coverage=out[0].data_ptr(), thickness=out[1].data_ptr(),
                         roughness=out[2].data_ptr(), ior_out=out[3].data_ptr())
     return tuple(out.unbind(0)) if _call("one_sample", job) else None
+
+
+def put_rows(dst: torch.Tensor, pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> bool:
+    """For each ``(out, src)`` of ``pairs``, ``out``'s rows ``dst[s]`` := ``src``'s row s
+    where ``dst[s] >= 0`` (csrc/box.c's ``put_rows``, in place): ``out`` (R, C) and ``src``
+    (N, C) float32 contiguous CPU tensors, ``dst`` (N,) int64. ``False`` (nothing written)
+    where the kernel does not run: unavailable, a gradient wanted, or a tensor that does
+    not fit."""
+    n = dst.numel()
+    if not available() or dst.dtype != torch.int64 or not dst.is_contiguous() or not all(
+            o.dtype == torch.float32 and x.dtype == torch.float32 and o.dim() == 2
+            and x.shape == (n, o.shape[1]) and o.is_contiguous() and x.is_contiguous()
+            and o.device.type == "cpu" and x.device.type == "cpu"
+            and not (o.requires_grad or x.requires_grad) for o, x in pairs):
+        return False
+    if n == 0 or not pairs:
+        return True
+    if int(dst.max()) >= min(o.shape[0] for o, _ in pairs):
+        raise IndexError(f"put_rows: a row {int(dst.max())} past the buffers' "
+                         f"{min(o.shape[0] for o, _ in pairs)}")
+    outs = (ctypes.c_void_p * len(pairs))(*[o.data_ptr() for o, _ in pairs])
+    srcs = (ctypes.c_void_p * len(pairs))(*[x.data_ptr() for _, x in pairs])
+    ch = torch.tensor([o.shape[1] for o, _ in pairs], dtype=torch.int64)
+    job = _PutRowsJob(n=n, nbuf=len(pairs), dst=dst.data_ptr(),
+                      out=ctypes.cast(outs, ctypes.c_void_p),
+                      src=ctypes.cast(srcs, ctypes.c_void_p), ch=ch.data_ptr())
+    return _call("put_rows", job)
 
 
 def boxes(items: list[tuple[torch.Tensor | None, int, bool]], masks: tuple, uniform

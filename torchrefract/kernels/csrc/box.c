@@ -314,3 +314,35 @@ int torchrefract_mips(MipsJob *job, int threads) {
 }
 
 int64_t torchrefract_mips_job_size(void) { return (int64_t)sizeof(MipsJob); }
+
+/* sparse._put: rows of several buffers written over others at chosen rows, in one pass
+ * (torch's index_select and index_copy_ per buffer, single-threaded, took most of the
+ * samples' write-back): slot s of each source goes to row dst[s] of its destination
+ * (dst[s] < 0: none), ``ch[k]`` floats a row; the same values as the copies. */
+typedef struct {
+    int64_t n, nbuf;            /* slots; buffers */
+    const int64_t *dst;         /* (n,) destination row per slot, -1: none */
+    float *const *out;          /* (nbuf,) each (rows, ch[k]) */
+    const float *const *src;    /* (nbuf,) each (n, ch[k]) */
+    const int64_t *ch;          /* (nbuf,) */
+} PutRowsJob;
+
+static void put_rows_range(const void *job, int64_t begin, int64_t end) {
+    const PutRowsJob *j = (const PutRowsJob *)job;
+    for (int64_t k = 0; k < j->nbuf; k++) {
+        int64_t c = j->ch[k];
+        float *o = j->out[k];
+        const float *x = j->src[k];
+        for (int64_t s = begin; s < end; s++) {
+            int64_t d = j->dst[s];
+            if (d < 0) continue;
+            for (int64_t q = 0; q < c; q++) o[d * c + q] = x[s * c + q];
+        }
+    }
+}
+
+int torchrefract_put_rows(const PutRowsJob *job, int threads) {
+    return tr_parallel_for(put_rows_range, job, job->n, 8192, threads);
+}
+
+int64_t torchrefract_put_rows_job_size(void) { return (int64_t)sizeof(PutRowsJob); }
