@@ -455,17 +455,36 @@ typedef struct {
     float *out;                 /* (B, rows, w, 3) */
 } RaysJob;
 
+/* The unit ray of the frame ``fr`` at column offset x (the row's y u given: yu), rounded
+ * to float32 into o: the scalar form of the operations above. */
+static inline void unit_ray(const double *fr, double x, const double *yu, float *o) {
+    double d[3];
+    for (int c = 0; c < 3; c++) d[c] = (fr[c] + x * fr[3 + c]) + yu[c];
+    double nrm = sqrt(fma(d[2], d[2], fma(d[1], d[1], d[0] * d[0])));
+    for (int c = 0; c < 3; c++) o[c] = (float)(d[c] / nrm);
+}
+
+/* x of column ``col`` of a w-wide grid, y of row ``row`` of an h-high one (frame ``fr``). */
+static inline double col_x(const double *fr, double col, int64_t w) {
+    return ((2.0 * (col + 0.5)) / (double)w - 1.0) * fr[9] * fr[10];
+}
+
+static inline double row_y(const double *fr, double row, int64_t h) {
+    return (1.0 - (2.0 * (row + 0.5)) / (double)h) * fr[9];
+}
+
 static void rays_range(const void *job, int64_t begin, int64_t end) {
     const RaysJob *j = (const RaysJob *)job;
     for (int64_t row = begin; row < end; row++) {
         int64_t b = row / j->rows, y = j->r0 + row - b * j->rows;
-        const double *fr = j->frame + 11 * b, *f = fr, *r = fr + 3, *u = fr + 6;
-        double t = fr[9], a = fr[10];
-        double yy = (1.0 - (2.0 * ((double)y + 0.5)) / (double)j->h) * t;
-        double yu[3] = {yy * u[0], yy * u[1], yy * u[2]};
+        const double *fr = j->frame + 11 * b;
+        double yy = row_y(fr, (double)y, j->h);
+        double yu[3] = {yy * fr[6], yy * fr[7], yy * fr[8]};
         float *o = j->out + row * j->w * 3;
         int64_t col = 0;
 #ifdef LAYER_LANES
+        const double *f = fr, *r = fr + 3;
+        double t = fr[9], a = fr[10];
         /* 4 columns at a time: the same IEEE operations (fma, sqrt, division and the
          * conversion are each correctly rounded in the lanes as in the scalar code) */
         for (; col + 4 <= j->w; col += 4, o += 12) {
@@ -490,13 +509,7 @@ static void rays_range(const void *job, int64_t begin, int64_t end) {
                 for (int c = 0; c < 3; c++) o[3 * k + c] = lanes[c][k];
         }
 #endif
-        for (; col < j->w; col++, o += 3) {
-            double x = ((2.0 * ((double)col + 0.5)) / (double)j->w - 1.0) * t * a;
-            double d[3];
-            for (int c = 0; c < 3; c++) d[c] = (f[c] + x * r[c]) + yu[c];
-            double nrm = sqrt(fma(d[2], d[2], fma(d[1], d[1], d[0] * d[0])));
-            for (int c = 0; c < 3; c++) o[c] = (float)(d[c] / nrm);
-        }
+        for (; col < j->w; col++, o += 3) unit_ray(fr, col_x(fr, (double)col, j->w), yu, o);
     }
 }
 
@@ -506,7 +519,7 @@ int torchrefract_pixel_rays(const RaysJob *job, int threads) {
 
 int64_t torchrefract_pixel_rays_job_size(void) { return (int64_t)sizeof(RaysJob); }
 
-/* camera.subpixel_rays: rays_range's ray (its scalar operations) through chosen
+/* camera.subpixel_rays: rays_range's ray (unit_ray) through chosen
  * (sub-)pixels of a (h, w) grid, ``rows`` and ``cols`` (B, m) per view (sparse
  * supersampling's samples). */
 typedef struct {
@@ -519,14 +532,10 @@ typedef struct {
 static void rays_at_range(const void *job, int64_t begin, int64_t end) {
     const RaysAtJob *j = (const RaysAtJob *)job;
     for (int64_t i = begin; i < end; i++) {
-        const double *fr = j->frame + 11 * (i / j->m), *f = fr, *r = fr + 3, *u = fr + 6;
-        double t = fr[9], a = fr[10];
-        double yy = (1.0 - (2.0 * ((double)j->rows[i] + 0.5)) / (double)j->h) * t;
-        double x = ((2.0 * ((double)j->cols[i] + 0.5)) / (double)j->w - 1.0) * t * a;
-        double d[3];
-        for (int c = 0; c < 3; c++) d[c] = (f[c] + x * r[c]) + yy * u[c];
-        double nrm = sqrt(fma(d[2], d[2], fma(d[1], d[1], d[0] * d[0])));
-        for (int c = 0; c < 3; c++) j->out[3 * i + c] = (float)(d[c] / nrm);
+        const double *fr = j->frame + 11 * (i / j->m);
+        double yy = row_y(fr, (double)j->rows[i], j->h);
+        double yu[3] = {yy * fr[6], yy * fr[7], yy * fr[8]};
+        unit_ray(fr, col_x(fr, (double)j->cols[i], j->w), yu, j->out + 3 * i);
     }
 }
 
