@@ -339,7 +339,8 @@ static void column_at(const RefineJob *j, int64_t bi, int64_t y, int64_t x, Colu
 /* The test of the pixel whose neighbourhood's columns are c[0..2] (left to right): the
  * column sums added left to right. */
 static int refine_columns(const RefineJob *j, const Column *c) {
-    float hi[3], lo[3], sum = (c[0].sum + c[1].sum) + c[2].sum;
+    float hi[3] = {0.0f, 0.0f, 0.0f}, lo[3] = {0.0f, 0.0f, 0.0f};  /* set by the first column */
+    float sum = (c[0].sum + c[1].sum) + c[2].sum;
     int count = 0, nan = 0;
     for (int i = 0; i < 3; i++) {
         if (!c[i].count) continue;
@@ -611,26 +612,14 @@ static int pixel_pairs(const EdgesJob *j, int64_t p, const Pos *at) {
     return bits;
 }
 
-#if defined(__AVX2__)
-#include <immintrin.h>
+#ifdef TR_HAVE_ENV8  /* AVX2 lanes (lighting.h) */
 #define TR_EDGES8 1
-
-/* x, y and z of the 8 3-vectors from v (AoS) in lanes: blends and one permutation each. */
-static inline void xyz8(const float *v, __m256 *x, __m256 *y, __m256 *z) {
-    __m256 a = _mm256_loadu_ps(v), b = _mm256_loadu_ps(v + 8), c = _mm256_loadu_ps(v + 16);
-    *x = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x92), c, 0x24),
-                                  _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5));
-    *y = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x24), c, 0x49),
-                                  _mm256_setr_epi32(1, 4, 7, 2, 5, 0, 3, 6));
-    *z = _mm256_permutevar8x32_ps(_mm256_blend_ps(_mm256_blend_ps(a, b, 0x49), c, 0x92),
-                                  _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
-}
 
 /* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 pixels' normals from p and q. */
 static inline __m256 one_minus_dot8(const float *np, const float *nq) {
     __m256 px, py, pz, qx, qy, qz;
-    xyz8(np, &px, &py, &pz);
-    xyz8(nq, &qx, &qy, &qz);
+    tr_load_xyz8(np, &px, &py, &pz);
+    tr_load_xyz8(nq, &qx, &qy, &qz);
     __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(qx, px), _mm256_mul_ps(qy, py)),
                              _mm256_mul_ps(qz, pz));
     return _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
