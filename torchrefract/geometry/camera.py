@@ -92,16 +92,20 @@ def views_pixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int =
     if any((c.width, c.height) != (c0.width, c0.height) for c in cams):
         raise ValueError("views_pixel_rays needs cameras of one width and height; got "
                          f"{sorted({(c.width, c.height) for c in cams})}")
+    r0, r1 = (0, c0.height * n) if rows is None else rows
+    out = native.pixel_rays(_ray_frames(cams), c0.height * n, c0.width * n, r0, r1)
+    if out is not None:
+        return out
+    return torch.stack([pixel_rays_rows(cam, n, r0, r1) for cam in cams])
+
+
+def _ray_frames(cams: list[Camera] | tuple[Camera, ...]) -> torch.Tensor:
+    """(B, 11) float64 per view: forward, right, up, t and a (the ray kernels' frames)."""
     frames = []
     for cam in cams:
         _, r, u, f = _camera_frame_cached(cam)
         frames.append([*f, *r, *u, *screen_scale(cam)])
-    r0, r1 = (0, c0.height * n) if rows is None else rows
-    out = native.pixel_rays(torch.tensor(frames, dtype=torch.float64), c0.height * n,
-                            c0.width * n, r0, r1)
-    if out is not None:
-        return out
-    return torch.stack([pixel_rays_rows(cam, n, r0, r1) for cam in cams])
+    return torch.tensor(frames, dtype=torch.float64)
 
 
 def pixel_rays_rows(cam: Camera, supersample: int, r0: int, r1: int) -> torch.Tensor:
@@ -138,11 +142,7 @@ def subpixel_rays(cams: list[Camera] | tuple[Camera, ...], supersample: int,
     float32, by :func:`pixel_rays_rows`' float64 operations (sparse supersampling's
     samples, :mod:`torchrefract.geometry.subsamples`): the native kernel where it runs."""
     n = supersample
-    frames = []
-    for cam in cams:
-        _, r, u, f = _camera_frame_cached(cam)
-        frames.append([*f, *r, *u, *screen_scale(cam)])
-    fr = torch.tensor(frames, dtype=torch.float64)
+    fr = _ray_frames(cams)
     h, w = cams[0].height * n, cams[0].width * n
     out = native.rays_at(fr, h, w, rows, cols)  # csrc/gbuffer.c, the same bits
     if out is not None:
