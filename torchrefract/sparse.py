@@ -90,8 +90,8 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
     fulls = [result.radiance, result.coverage, *(result.passes[k] for k in names)]
     pieces = [part.radiance, part.coverage, *(part.passes[k] for k in names)]
 
-    def rows(x: torch.Tensor) -> torch.Tensor:
-        return x.reshape(x.shape[0] * x.shape[1] * (x.shape[2] if x.dim() > 2 else 1), -1)
+    def rows(x: torch.Tensor) -> torch.Tensor:  # (B, H, W[, C]) -> (B H W, C or 1)
+        return x.reshape(-1, x.shape[3] if x.dim() == 4 else 1)
 
     into = torch.arange(b)[:, None] * (h * w) + pixels
     if all(f.is_contiguous() for f in fulls) and native.put_rows(  # (views: written in place)
@@ -102,11 +102,10 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
     dst = into.reshape(-1).index_select(0, ok)
 
     def put(full: torch.Tensor, piece: torch.Tensor) -> torch.Tensor:
-        c = full.shape[3] if full.dim() == 4 else 1
-        src = piece.reshape(-1, c).index_select(0, ok).to(full.dtype)
+        src = rows(piece).index_select(0, ok).to(full.dtype)
         if full.requires_grad or src.requires_grad:
-            return full.reshape(-1, c).index_copy(0, dst, src).view(full.shape)
-        full.view(-1, c).index_copy_(0, dst, src)
+            return rows(full).index_copy(0, dst, src).view(full.shape)
+        full.view(-1, src.shape[1]).index_copy_(0, dst, src)  # (in place: a view)
         return full
 
     put_all = [put(f, x) for f, x in zip(fulls, pieces)]
