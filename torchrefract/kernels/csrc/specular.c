@@ -90,15 +90,44 @@ static float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b, floa
     return var + (alpha > 0.0f ? 1.0f / k_r : 0.0f);
 }
 
+/* A marched ray's two interfaces (paths.trace_paths): the entry's cosine, Fresnel term and
+ * mirror direction ``refl``; the exit's view-facing normal, cosine, Fresnel term, refracted
+ * ray ``t_ref`` and the direction the transmitted light is looked up along (``look``: the
+ * exit's refracted ray, with internal bounces (``bounce``) always, else the ``tir:
+ * reflect`` mirror under TIR; the entry's refracted ray where no exit was found). */
+typedef struct {
+    float cos1, f1, refl[3], n2[3], cos2, f2, t2[3], t_ref[3], look[3];
+    int tir2;
+} Exit;
+
+static void exit_of(const Frame *j, const Rays *rays, int i, const float *d, const float *n1,
+                    int64_t b, int bounce, Exit *e) {
+    const float *t1 = rays->t + 3 * i;
+    float eta = j->ior[b];
+    int ok = rays->found[i];
+    e->cos1 = -dot3(d, n1);
+    e->f1 = fresnel(e->cos1, 1.0f / eta);
+    face_forward(rays->normal + 3 * i, t1, e->n2);
+    e->cos2 = -dot3(t1, e->n2);
+    e->f2 = fresnel(e->cos2, eta);
+    e->tir2 = refract(t1, e->n2, eta, e->t2) && ok;
+    for (int c = 0; c < 3; c++) e->t_ref[c] = e->t2[c];
+    if (j->tir_mode == 2 && e->tir2) reflect(t1, e->n2, e->t2);
+    reflect(d, n1, e->refl);
+    for (int c = 0; c < 3; c++) e->look[c] = ok ? (bounce ? e->t_ref[c] : e->t2[c]) : t1[c];
+}
+
 /* The first exit with internal bounces (render_specular's _interface at k = 0): what the
  * exit lets out (its energies: the paths' e_t2, e_r2 where the batch is rough, Fresnel
  * elsewhere) along the refracted ray, and the mirror ray that goes on with the rest. ``out``:
  * the table's axes of the exit interface. */
 static void first_exit(const SpecJob *sj, const SgAxes *out, Paths *ps, int i, int64_t b,
-                       const Rays *rays, const float *t1, const float *n2, const float *t_ref,
-                       const float *p2, float cos2, float f2, float e_t1, float e_t2,
-                       float e_r2, float var1, float path) {
+                       const Rays *rays, const float *t1, const Exit *ex, const EnvTap *tap,
+                       const float *p2, float e_t1, float e_t2, float e_r2, float var1,
+                       float path) {
     const Frame *j = &sj->f;
+    const float *n2 = ex->n2;
+    float cos2 = ex->cos2, f2 = ex->f2;
     int ok = rays->found[i];
     float alpha = roughness_on(j, b, rays->bary + 3 * i, ok ? rays->tri[i] : -1);
     float e_t = 1.0f - f2, e_r = f2, var = 0.0f, w1[3], w_next[3], r[3], l_out[3];
@@ -109,7 +138,8 @@ static void first_exit(const SpecJob *sj, const SgAxes *out, Paths *ps, int i, i
     }
     float w_out = ok ? e_t : (j->rough ? escape(j, b, alpha) : 1.0f);
     float refl = ok ? e_r : 0.0f;
-    incident(&j->lights, b, p2, ok ? t_ref : t1, l_out);
+    if (tap) incident_at(&j->lights, b, p2, ex->look, tap, l_out);  /* look: t_ref or t1 */
+    else incident(&j->lights, b, p2, ex->look, l_out);
     for (int c = 0; c < 3; c++) {
         w1[c] = e_t1 * expf(-j->absorption[3 * b + c] * path);
         ps->acc[i][c] = w1[c] * w_out * l_out[c];
@@ -168,11 +198,12 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
 }
 
 /* Step 3 for ray i of a marched block (paths.trace_paths, render_specular, and
- * render_prefiltered with ``blur``): the exit refraction, the energies and the exit rule,
- * the absorption, the two lookups; the pixel and its passes written. */
+ * render_prefiltered with ``blur``): the energies and the exit rule, the absorption, the
+ * two lookups (``taps``: the reflected and the transmitted light's, asked for by the block;
+ * NULL with ``blur``); the pixel and its passes written. */
 static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, int i,
-                        const float *d, const float *n1, int tir1, int64_t px, int64_t b,
-                        SpecBlock *sb) {
+                        const float *d, const Exit *ex, const EnvTap *taps, int tir1,
+                        int64_t px, int64_t b, SpecBlock *sb) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
     float eta = j->ior[b];
@@ -189,21 +220,11 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         sg_axes(&j->table, 1.0f / eta, alpha2, own + 1);
         ax = own;
     }
-    float cos1 = -dot3(d, n1), f1 = fresnel(cos1, 1.0f / eta);
-    float n2[3], t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1, t_ref[3];
-    int bounce = sj->bo.limit > 0;
-    face_forward(rays->normal + 3 * i, t1, n2);
-    float cos2 = -dot3(t1, n2), f2 = fresnel(cos2, eta);
-    int tir2 = refract(t1, n2, eta, t2) && ok;
-    for (int c = 0; c < 3; c++) t_ref[c] = t2[c];
-    if (j->tir_mode == 2 && tir2) reflect(t1, n2, t2);
-    float refl[3];
-    reflect(d, n1, refl);
-    EnvTap tap_r, tap_t;  /* both taps' texels asked for now, read after the energies */
-    if (!sj->blur) {
-        tap_r = env_prefetch(&j->lights, b, refl);
-        tap_t = env_prefetch(&j->lights, b, ok ? t2 : t1);
-    }
+    float cos1 = ex->cos1, f1 = ex->f1, cos2 = ex->cos2, f2 = ex->f2;
+    const float *refl = ex->refl;
+    float t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
+    int bounce = sj->bo.limit > 0, tir2 = ex->tir2;
+    for (int c = 0; c < 3; c++) t2[c] = ex->look[c];
     if (j->rough) {
         interface_energies(&j->table, ax, j->dist[b], cos1, f1, &e_t1, &e_r1);
     } else {
@@ -216,8 +237,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     if (ok) {
         for (int c = 0; c < 3; c++) p2[c] = rays->pos[3 * i + c];
         path = rays->s[i];
-    } else {  /* no exit: leave along the refracted ray, with weight 1 */
-        for (int c = 0; c < 3; c++) { t2[c] = t1[c]; p2[c] = p1[c]; }
+    } else {  /* no exit: leave along the refracted ray (``look``), with weight 1 */
+        for (int c = 0; c < 3; c++) p2[c] = p1[c];
         w2 = 1.0f;
         float th = j->back_dist[px] - j->front_dist[px];
         path = th > 0.0f ? th : 0.0f;
@@ -229,11 +250,11 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         float k_t = var_t > 0.0f ? 1.0f / var_t : INFINITY;
         float k_r = var_r > 0.0f ? 1.0f / var_r : INFINITY;
         incident_sg(&j->lights, &j->env, b, p1, refl, k_r, l_refl);
-        incident_sg(&j->lights, &j->env, b, p2, t2, k_t, l_trans);
+        if (!bounce) incident_sg(&j->lights, &j->env, b, p2, t2, k_t, l_trans);
         sj->blur_sigma[px] = 1.0f / sqrtf(k_t);
     } else {
-        incident_at(&j->lights, b, p1, refl, &tap_r, l_refl);
-        incident_at(&j->lights, b, p2, t2, &tap_t, l_trans);
+        incident_at(&j->lights, b, p1, refl, taps, l_refl);
+        if (!bounce) incident_at(&j->lights, b, p2, t2, taps + 1, l_trans);
     }
     int64_t l;
     int hidden = j->lights.nl > 0 &&
@@ -241,8 +262,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
         sb->hidden[i] = (uint8_t)hidden;
         for (int c = 0; c < 3; c++) sb->front[i][c] = e_r1 * l_refl[c];
-        first_exit(sj, ax + 1, &sb->paths, i, b, rays, t1, n2, t_ref, p2, cos2, f2, e_t1, e_t2,
-                   e_r2, var1, path);
+        first_exit(sj, ax + 1, &sb->paths, i, b, rays, t1, ex, taps ? taps + 1 : NULL, p2, e_t1,
+                   e_t2, e_r2, var1, path);
     } else if (!hidden) {
         for (int c = 0; c < 3; c++) {
             float att = expf(-j->absorption[3 * b + c] * path);
@@ -251,6 +272,27 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     }
     j->exit_found[px] = ok ? 1.0f : 0.0f;
     j->tir[px] = (tir1 || tir2) ? 1.0f : 0.0f;
+}
+
+/* The env taps of a block's reflected and transmitted directions, eight at a time
+ * (env_taps8: the map coordinates in AVX2 lanes where built for it, the same bits). */
+static void block_taps_of(const Frame *j, const Exit *ex, int64_t r0, int m,
+                          EnvTap (*taps)[2]) {
+    for (int i0 = 0; i0 < m; i0 += 8) {
+        int n = m - i0 < 8 ? m - i0 : 8;
+        float dirs[2][8][3];
+        EnvTap t[2][8];
+        for (int i = 0; i < n; i++)
+            for (int c = 0; c < 3; c++) {
+                dirs[0][i][c] = ex[i0 + i].refl[c];
+                dirs[1][i][c] = ex[i0 + i].look[c];
+            }
+        for (int k = 0; k < 2; k++) env_taps8(&j->lights, n, j->batch + r0 + i0, dirs[k][0], t[k]);
+        for (int i = 0; i < n; i++) {
+            taps[i0 + i][0] = t[0][i];
+            taps[i0 + i][1] = t[1][i];
+        }
+    }
 }
 
 /* One block of pixels: 1. the entry refraction (paths.trace_paths), 2. the march to the
@@ -275,12 +317,17 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         set_ray(j, &rays, i, b, p1, t1, c0, ct);
     }
     march_rays(j, &rays, m, j->march.steps, j->march.refine);
+    Exit ex[BLOCK];
+    EnvTap taps[BLOCK][2];  /* the block's lookups asked for at once, read after the energies */
+    for (int i = 0; i < m; i++)
+        exit_of(j, &rays, i, d + 3 * i, n1 + 3 * i, j->batch[r0 + i], sj->bo.limit > 0, ex + i);
+    if (!sj->blur) block_taps_of(j, ex, r0, m, taps);
     SpecBlock sb;
     sb.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, n1 + 3 * i, tir1[i], j->idx[r0 + i],
-                    b, &sb);
+        shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, ex + i, sj->blur ? NULL : taps[i],
+                    tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
         finish_block(j, &sj->bo, sj, inside_specular, 0, axes, 2, &sb.paths,
