@@ -419,70 +419,130 @@ typedef struct {
     const int64_t *pass_ch;
 } LatticeShadeJob;
 
-/* One level's pass after its fill. Returns 0, or -1 (memory, or the kernel failed). */
-static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f, int threads) {
-    /* the buffers a status-5 pixel blends: the radiance, then the method's passes */
-    int nbuf = J->npass + 1;
-    float *buf[nbuf];
-    int64_t ch[nbuf], n = lj->b * lj->h * lj->w, rest = 0, soft = 0;
-    int64_t chans = 0;
-    buf[0] = J->radiance;
-    ch[0] = 3;
-    for (int q = 1; q < nbuf; q++) {
-        buf[q] = J->pass[q - 1];
-        ch[q] = J->pass_ch[q - 1];
-    }
-    for (int q = 0; q < nbuf; q++) chans += ch[q];
-    for (int64_t p = 0; p < n; p++) {
-        rest += lj->status[p] >= 4;
-        soft += lj->status[p] == 5;
-    }
-    if (rest == 0) return 0;
-    int64_t *idx = (int64_t *)malloc(sizeof(int64_t) * (size_t)rest * 2);
-    int64_t *sidx = (int64_t *)malloc(sizeof(int64_t) * (size_t)(soft ? soft : 1));
-    float *sw = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1));
-    float *mean = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1) * (size_t)chans);
-    if (!idx || !sidx || !sw || !mean) {
-        free(idx); free(sidx); free(sw); free(mean);
-        return -1;
-    }
-    int64_t *batch = idx + rest, r = 0, s = 0;
-    Pos at = pos_at(0, lj->h, lj->w);
-    for (int64_t p = 0; p < n; p++, pos_step(&at, lj->h, lj->w)) {
-        if (lj->status[p] < 4) continue;
-        int64_t fp = frame_at(lj, p, at.bi, at.y, at.x);
-        idx[r] = fp;
-        batch[r++] = at.bi;
-        if (lj->status[p] == 5) {  /* its means, read before the pass overwrites them */
-            float *m = mean + s * chans;
-            for (int q = 0; q < nbuf; m += ch[q], q++)
-                for (int64_t c = 0; c < ch[q]; c++) m[c] = buf[q][fp * ch[q] + c];
-            sidx[s] = fp;
-            sw[s++] = lj->weight[p];
+/* A level's pixels left to shade (status 4 and 5), listed in frame order in parallel: the
+ * level is cut into SCAN_CHUNKS fixed runs, counted, then each run writes its entries at
+ * its offset, so the list is the serial scan's whatever the threads. */
+#define SCAN_CHUNKS 64
+
+typedef struct {
+    const LatticeJob *lj;           /* its radiance and passes: the buffers a status-5 pixel
+                                     * blends, buffer 0 the radiance (scan_buf) */
+    int nbuf;
+    int64_t chans, chunk;
+    int64_t rest_at[SCAN_CHUNKS + 1], soft_at[SCAN_CHUNKS + 1];  /* counts, then offsets */
+    int64_t *idx, *batch, *sidx;    /* the pass's pixels and views; the status-5 pixels */
+    float *sw, *mean;               /* their blend weights and means (``chans`` each) */
+} LevelScan;
+
+static inline float *scan_buf(const LatticeJob *lj, int k) {
+    return k == 0 ? lj->radiance : lj->pass[k - 1];
+}
+
+static inline int64_t scan_ch(const LatticeJob *lj, int k) {
+    return k == 0 ? 3 : lj->pass_ch[k - 1];
+}
+
+static void count_range(const void *job, int64_t begin, int64_t end) {
+    LevelScan *s = (LevelScan *)job;
+    int64_t n = s->lj->b * s->lj->h * s->lj->w;
+    for (int64_t c = begin; c < end; c++) {
+        int64_t p1 = (c + 1) * s->chunk < n ? (c + 1) * s->chunk : n, r = 0, q = 0;
+        for (int64_t p = c * s->chunk; p < p1; p++) {
+            r += s->lj->status[p] >= 4;
+            q += s->lj->status[p] == 5;
         }
-        /* the passes as a fresh pass has them (adaptive.merge takes the second pass's
-         * values at every pixel it shades); the radiance is the image so far */
-        for (int q = 1; q < nbuf; q++)
-            for (int64_t c = 0; c < ch[q]; c++) buf[q][fp * ch[q] + c] = 0.0f;
+        s->rest_at[c + 1] = r;
+        s->soft_at[c + 1] = q;
     }
-    int64_t n0 = f->n;
-    const int64_t *idx0 = f->idx, *batch0 = f->batch;
-    f->n = rest;
-    f->idx = idx;
-    f->batch = batch;
-    int rc = J->run(J->job, threads);
-    f->n = n0;
-    f->idx = idx0;
-    f->batch = batch0;
-    for (int64_t i = 0; rc == 0 && i < soft; i++) {
-        float w = sw[i], *m = mean + i * chans;
-        for (int q = 0; q < nbuf; m += ch[q], q++)
-            for (int64_t c = 0; c < ch[q]; c++) {
-                float *x = buf[q] + sidx[i] * ch[q] + c;
+}
+
+/* A run's entries: its pixels and views, a status-5 pixel's means (read before the pass
+ * overwrites them) and weight; the passes of every listed pixel zeroed, as a fresh pass
+ * has them (adaptive.merge takes the second pass's values at every pixel it shades; the
+ * radiance is the image so far). */
+static void collect_range(const void *job, int64_t begin, int64_t end) {
+    const LevelScan *s = (const LevelScan *)job;
+    const LatticeJob *lj = s->lj;
+    int64_t n = lj->b * lj->h * lj->w;
+    for (int64_t c = begin; c < end; c++) {
+        int64_t p0 = c * s->chunk, p1 = p0 + s->chunk < n ? p0 + s->chunk : n;
+        int64_t r = s->rest_at[c], q = s->soft_at[c];
+        Pos at = pos_at(p0, lj->h, lj->w);
+        for (int64_t p = p0; p < p1; p++, pos_step(&at, lj->h, lj->w)) {
+            if (lj->status[p] < 4) continue;
+            int64_t fp = frame_at(lj, p, at.bi, at.y, at.x);
+            s->idx[r] = fp;
+            s->batch[r++] = at.bi;
+            if (lj->status[p] == 5) {
+                float *m = s->mean + q * s->chans;
+                for (int k = 0; k < s->nbuf; m += scan_ch(lj, k), k++)
+                    for (int64_t ci = 0, ch = scan_ch(lj, k); ci < ch; ci++)
+                        m[ci] = scan_buf(lj, k)[fp * ch + ci];
+                s->sidx[q] = fp;
+                s->sw[q++] = lj->weight[p];
+            }
+            for (int k = 1; k < s->nbuf; k++)
+                for (int64_t ci = 0, ch = scan_ch(lj, k); ci < ch; ci++)
+                    scan_buf(lj, k)[fp * ch + ci] = 0.0f;
+        }
+    }
+}
+
+/* The status-5 pixels blended with their means: mean + weight (shaded - mean). */
+static void blend_range(const void *job, int64_t begin, int64_t end) {
+    const LevelScan *s = (const LevelScan *)job;
+    for (int64_t i = begin; i < end; i++) {
+        float w = s->sw[i];
+        const float *m = s->mean + i * s->chans;
+        for (int k = 0; k < s->nbuf; m += scan_ch(s->lj, k), k++)
+            for (int64_t c = 0, ch = scan_ch(s->lj, k); c < ch; c++) {
+                float *x = scan_buf(s->lj, k) + s->sidx[i] * ch + c;
                 *x = m[c] + w * (*x - m[c]);
             }
     }
-    free(idx); free(sidx); free(sw); free(mean);
+}
+
+/* One level's pass after its fill. Returns 0, or -1 (memory, or the kernel failed). */
+static int shade_level(const LatticeShadeJob *J, const LatticeJob *lj, Frame *f, int threads) {
+    LevelScan s;
+    int64_t n = lj->b * lj->h * lj->w;
+    s.lj = lj;
+    s.nbuf = lj->npass + 1;
+    s.chans = 0;
+    for (int k = 0; k < s.nbuf; k++) s.chans += scan_ch(lj, k);
+    s.chunk = (n + SCAN_CHUNKS - 1) / SCAN_CHUNKS;
+    if (s.chunk < 1) s.chunk = 1;
+    int64_t chunks = (n + s.chunk - 1) / s.chunk;
+    s.rest_at[0] = s.soft_at[0] = 0;
+    if (tr_parallel_for_grain(count_range, &s, chunks, 2, threads, 1) != 0) return -1;
+    for (int64_t c = 0; c < chunks; c++) {
+        s.rest_at[c + 1] += s.rest_at[c];
+        s.soft_at[c + 1] += s.soft_at[c];
+    }
+    int64_t rest = s.rest_at[chunks], soft = s.soft_at[chunks];
+    if (rest == 0) return 0;
+    s.idx = (int64_t *)malloc(sizeof(int64_t) * (size_t)rest * 2);
+    s.sidx = (int64_t *)malloc(sizeof(int64_t) * (size_t)(soft ? soft : 1));
+    s.sw = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1));
+    s.mean = (float *)malloc(sizeof(float) * (size_t)(soft ? soft : 1) * (size_t)s.chans);
+    int rc = -1;
+    if (s.idx && s.sidx && s.sw && s.mean) {
+        s.batch = s.idx + rest;
+        rc = tr_parallel_for_grain(collect_range, &s, chunks, 2, threads, 1);
+    }
+    if (rc == 0) {
+        int64_t n0 = f->n;
+        const int64_t *idx0 = f->idx, *batch0 = f->batch;
+        f->n = rest;
+        f->idx = s.idx;
+        f->batch = s.batch;
+        rc = J->run(J->job, threads);
+        f->n = n0;
+        f->idx = idx0;
+        f->batch = batch0;
+    }
+    if (rc == 0) rc = tr_parallel_for(blend_range, &s, soft, 4096, threads);
+    free(s.idx); free(s.sidx); free(s.sw); free(s.mean);
     return rc;
 }
 
@@ -494,7 +554,8 @@ int torchrefract_lattice_shade(LatticeShadeJob *J, int threads) {
     for (int i = 0; i < J->nlevels; i++) {
         const ShadeLevel *L = J->levels + i;
         int64_t n = J->b * L->h * L->w;
-        float *weight = (float *)calloc((size_t)(n ? n : 1), sizeof(float));
+        /* written by the fill, read by the pass, at status 5 only */
+        float *weight = (float *)malloc((size_t)(n ? n : 1) * sizeof(float));
         if (!weight) return -1;
         LatticeJob lj = {.b = J->b, .h = L->h, .w = L->w, .rtol = L->rtol,
                          .radiance = J->radiance, .status = L->status, .gap = L->gap,
