@@ -181,48 +181,73 @@ int torchrefract_lattice_plan(LatticeJob *job, int threads) {
     return tr_parallel_for(plan_range, job, job->b * job->h * job->w, 4096, threads);
 }
 
+/* The frame offsets of a waiting pixel's lattice neighbours, by its class (lattice_neighbours'
+ * order): 0 odd column of an even row (left, right), 1 odd row, even column (up, down),
+ * 2 odd row and column (the four diagonal ones), from the pixel's own frame index. */
+static void neighbour_offsets(const LatticeJob *j, int64_t off[3][4]) {
+    int64_t s = j->stride <= 1 ? 1 : j->stride, row = s * (j->stride <= 1 ? j->w : j->fw);
+    int64_t o[3][4] = {{-s, s, 0, 0}, {-row, row, 0, 0},
+                       {-row - s, -row + s, row - s, row + s}};
+    for (int c = 0; c < 3; c++)
+        for (int i = 0; i < 4; i++) off[c][i] = o[c][i];
+}
+
+/* One waiting pixel p (frame index fp) of the fill, its k lattice neighbours at the frame
+ * offsets ``off`` (k a constant where inlined: the neighbours' indices stay in registers). */
+static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j, int64_t p,
+                                                             int64_t fp, const int64_t *off,
+                                                             int k) {
+    int64_t nb[4];
+    const float *v[4];
+    for (int i = 0; i < k; i++) {
+        nb[i] = fp + off[i];
+        v[i] = j->radiance + 3 * nb[i];
+    }
+    float mean[3], rel = 0.0f;
+    for (int c = 0; c < 3; c++) mean[c] = lattice_mean(j->radiance, 3, nb, k, c);
+    float lum = ((mean[0] + mean[1]) + mean[2]) / 3.0f + 1e-3f;
+    int finite = 1;
+    for (int c = 0; c < 3; c++) {
+        float lo = v[0][c], hi = v[0][c];
+        for (int i = 1; i < k; i++) {
+            lo = v[i][c] < lo ? v[i][c] : lo;
+            hi = v[i][c] > hi ? v[i][c] : hi;
+        }
+        float r = (hi - lo) / lum;
+        finite &= isfinite(r);
+        rel = r > rel ? r : rel;
+    }
+    float t = tmax(j->gap[p], rel / j->rtol);
+    if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
+        for (int c = 0; c < 3; c++) j->radiance[3 * fp + c] = mean[c];
+        for (int q = 0; q < j->npass; q++) {
+            float *x = j->pass[q];
+            int64_t ch = j->pass_ch[q];
+            for (int64_t c = 0; c < ch; c++) x[fp * ch + c] = lattice_mean(x, ch, nb, k, c);
+        }
+        if (t <= j->blend_from) {
+            j->status[p] = 3;
+        } else {
+            float u = (t - j->blend_from) / (1.0f - j->blend_from);
+            j->weight[p] = u * u * (3.0f - 2.0f * u);
+            j->status[p] = 5;
+        }
+    } else {
+        j->status[p] = 4;
+    }
+}
+
 static void fill_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
+    int64_t off[3][4];
+    neighbour_offsets(j, off);
     Pos at = pos_at(begin, j->h, j->w);
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
-        if (j->status[p] != 2) continue;
-        int64_t lnb[4], nb[4];  /* the level's neighbours, and theirs in the frame */
-        int k = lattice_neighbours(j, p, &at, lnb, nb);
+        if (j->status[p] != 2) continue;  /* (the plan lets a pixel wait on all its k) */
         int64_t fp = frame_at(j, p, at.bi, at.y, at.x);
-        const float *v[4];
-        for (int i = 0; i < k; i++) v[i] = j->radiance + 3 * nb[i];
-        float mean[3], rel = 0.0f;
-        for (int c = 0; c < 3; c++) mean[c] = lattice_mean(j->radiance, 3, nb, k, c);
-        float lum = ((mean[0] + mean[1]) + mean[2]) / 3.0f + 1e-3f;
-        int finite = 1;
-        for (int c = 0; c < 3; c++) {
-            float lo = v[0][c], hi = v[0][c];
-            for (int i = 1; i < k; i++) {
-                lo = v[i][c] < lo ? v[i][c] : lo;
-                hi = v[i][c] > hi ? v[i][c] : hi;
-            }
-            float r = (hi - lo) / lum;
-            finite &= isfinite(r);
-            rel = r > rel ? r : rel;
-        }
-        float t = tmax(j->gap[p], rel / j->rtol);
-        if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
-            for (int c = 0; c < 3; c++) j->radiance[3 * fp + c] = mean[c];
-            for (int q = 0; q < j->npass; q++) {
-                float *x = j->pass[q];
-                int64_t ch = j->pass_ch[q];
-                for (int64_t c = 0; c < ch; c++) x[fp * ch + c] = lattice_mean(x, ch, nb, k, c);
-            }
-            if (t <= j->blend_from) {
-                j->status[p] = 3;
-            } else {
-                float u = (t - j->blend_from) / (1.0f - j->blend_from);
-                j->weight[p] = u * u * (3.0f - 2.0f * u);
-                j->status[p] = 5;
-            }
-        } else {
-            j->status[p] = 4;
-        }
+        int oy = (int)(at.y & 1), ox = (int)(at.x & 1);
+        if (oy && ox) fill_pixel(j, p, fp, off[2], 4);
+        else fill_pixel(j, p, fp, off[oy], 2);
     }
 }
 
