@@ -84,34 +84,6 @@ static inline float lattice_mean(const float *x, int64_t ch, const int64_t *nb, 
     return k == 4 ? ((s + x[nb[2] * ch + c]) + x[nb[3] * ch + c]) * 0.25f : s * 0.5f;
 }
 
-/* The flat indices of pixel p's (at ``at``) lattice neighbours (2 or 4; 0 where p is a
- * lattice pixel or a neighbour leaves the frame), and their frame indices ``fnb``. */
-static int lattice_neighbours(const LatticeJob *j, int64_t p, const Pos *at, int64_t *nb,
-                              int64_t *fnb) {
-    int64_t x = at->x, y = at->y, bi = at->bi;
-    int oy = (int)(y & 1), ox = (int)(x & 1);
-    if (!oy && !ox) return 0;
-    if ((ox && x + 1 >= j->w) || (oy && y + 1 >= j->h)) return 0;
-    if (oy && ox) {
-        nb[0] = p - j->w - 1; nb[1] = p - j->w + 1; nb[2] = p + j->w - 1; nb[3] = p + j->w + 1;
-        fnb[0] = frame_at(j, nb[0], bi, y - 1, x - 1);
-        fnb[1] = frame_at(j, nb[1], bi, y - 1, x + 1);
-        fnb[2] = frame_at(j, nb[2], bi, y + 1, x - 1);
-        fnb[3] = frame_at(j, nb[3], bi, y + 1, x + 1);
-        return 4;
-    }
-    if (ox) {
-        nb[0] = p - 1; nb[1] = p + 1;
-        fnb[0] = frame_at(j, nb[0], bi, y, x - 1);
-        fnb[1] = frame_at(j, nb[1], bi, y, x + 1);
-    } else {
-        nb[0] = p - j->w; nb[1] = p + j->w;
-        fnb[0] = frame_at(j, nb[0], bi, y - 1, x);
-        fnb[1] = frame_at(j, nb[1], bi, y + 1, x);
-    }
-    return 2;
-}
-
 /* The roughness at the frame's pixel fp (per view: view bi's). */
 static inline float alpha_of(const LatticeJob *j, int64_t bi, int64_t fp) {
     return j->per_pixel ? j->alpha[fp] : j->alpha[bi];
@@ -128,8 +100,67 @@ static void add_counts(const LatticeJob *j, int64_t bi, int64_t objects, int64_t
     __atomic_fetch_add(j->counts + 2 * bi + 1, waiting, __ATOMIC_RELAXED);
 }
 
+/* The level's and the frame's offsets of a pixel's lattice neighbours by its class: 0 odd
+ * column of an even row (left, right), 1 odd row, even column (up, down), 2 odd row and
+ * column (the four diagonal ones: up-left, up-right, down-left, down-right). */
+static void neighbour_offsets(const LatticeJob *j, int64_t level[3][4], int64_t frame[3][4]) {
+    int64_t s = j->stride <= 1 ? 1 : j->stride, row = s * (j->stride <= 1 ? j->w : j->fw);
+    int64_t w = j->w;
+    int64_t lo[3][4] = {{-1, 1, 0, 0}, {-w, w, 0, 0}, {-w - 1, -w + 1, w - 1, w + 1}};
+    int64_t fo[3][4] = {{-s, s, 0, 0}, {-row, row, 0, 0},
+                        {-row - s, -row + s, row - s, row + s}};
+    for (int c = 0; c < 3; c++)
+        for (int i = 0; i < 4; i++) {
+            level[c][i] = lo[c][i];
+            frame[c][i] = fo[c][i];
+        }
+}
+
+/* A pixel's class (neighbour_offsets), or -1: a lattice pixel, or one whose neighbours
+ * leave the frame (it waits on none). */
+static inline int neighbour_class(const LatticeJob *j, const Pos *at) {
+    int oy = (int)(at->y & 1), ox = (int)(at->x & 1);
+    if (!oy && !ox) return -1;
+    if ((ox && at->x + 1 >= j->w) || (oy && at->y + 1 >= j->h)) return -1;
+    return oy && ox ? 2 : oy;
+}
+
+/* The plan of object pixel p (frame index fp) with k neighbours at the offsets ``lo``
+ * (level) and ``fo`` (frame); k a constant where inlined, so the neighbours' indices stay
+ * in registers. Returns whether it waits. */
+static inline __attribute__((always_inline)) int plan_pixel(const LatticeJob *j, int64_t p,
+                                                            int64_t fp, int64_t bi,
+                                                            const int64_t *lo,
+                                                            const int64_t *fo, int k) {
+    const float *fn = j->front_normal + 3 * fp, *bn = j->back_normal + 3 * fp;
+    int back = j->back_mask[fp];
+    float bd = j->back_depth[fp], tol = j->depth_tol * fabsf(bd);
+    float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
+    /* the gap: each test's measure over its tolerance, the largest (a per-view
+     * roughness is the neighbours' too) */
+    float gap = j->alpha_min * inv_tol(alpha_of(j, bi, fp));
+    int wait = k > 0 && (!j->uniform || j->uniform[p]);
+    for (int i = 0; i < k && wait; i++) {
+        int64_t q = fp + fo[i];
+        wait = j->front_mask[q] && j->back_mask[q] == back &&
+               (!j->uniform || j->uniform[p + lo[i]]);
+        if (j->per_pixel) gap = tmax(gap, j->alpha_min * inv_tol(alpha_of(j, bi, q)));
+        gap = tmax(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
+        if (back) {
+            gap = tmax(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
+            gap = tmax(gap, fabsf(j->back_depth[q] - bd) * inv_d);
+        }
+    }
+    wait = wait && gap <= 1.0f;
+    j->status[p] = wait ? 2 : 1;
+    j->gap[p] = wait ? gap : 0.0f;
+    return wait;
+}
+
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
+    int64_t lo[3][4], fo[3][4];
+    neighbour_offsets(j, lo, fo);
     Pos at = pos_at(begin, j->h, j->w);
     int64_t view = at.bi, objects = 0, waiting = 0;
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
@@ -144,32 +175,11 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
             j->gap[p] = 0.0f;
             continue;
         }
-        int64_t nb[4], fnb[4];
-        int k = lattice_neighbours(j, p, &at, nb, fnb);
-        const float *fn = j->front_normal + 3 * fp, *bn = j->back_normal + 3 * fp;
-        int back = j->back_mask[fp];
-        float bd = j->back_depth[fp], tol = j->depth_tol * fabsf(bd);
-        float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
-        /* the gap: each test's measure over its tolerance, the largest (a per-view
-         * roughness is the neighbours' too) */
-        float gap = j->alpha_min * inv_tol(alpha_of(j, at.bi, fp));
-        int wait = k > 0 && (!j->uniform || j->uniform[p]);
-        for (int i = 0; i < k && wait; i++) {
-            int64_t q = fnb[i];
-            wait = j->front_mask[q] && j->back_mask[q] == back &&
-                   (!j->uniform || j->uniform[nb[i]]);
-            if (j->per_pixel) gap = tmax(gap, j->alpha_min * inv_tol(alpha_of(j, at.bi, q)));
-            gap = tmax(gap, (1.0f - dot3(j->front_normal + 3 * q, fn)) * inv_n);
-            if (back) {
-                gap = tmax(gap, (1.0f - dot3(j->back_normal + 3 * q, bn)) * inv_n);
-                gap = tmax(gap, fabsf(j->back_depth[q] - bd) * inv_d);
-            }
-        }
-        wait = wait && gap <= 1.0f;
-        j->status[p] = wait ? 2 : 1;
-        j->gap[p] = wait ? gap : 0.0f;
+        int c = neighbour_class(j, &at);
+        if (c == 2) waiting += plan_pixel(j, p, fp, at.bi, lo[2], fo[2], 4);
+        else if (c >= 0) waiting += plan_pixel(j, p, fp, at.bi, lo[c], fo[c], 2);
+        else plan_pixel(j, p, fp, at.bi, lo[0], fo[0], 0);
         objects++;
-        waiting += wait;
     }
     add_counts(j, view, objects, waiting);
 }
@@ -179,17 +189,6 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
  * the first pass, and the second pass shades waiting pixels only, all rough. */
 int torchrefract_lattice_plan(LatticeJob *job, int threads) {
     return tr_parallel_for(plan_range, job, job->b * job->h * job->w, 4096, threads);
-}
-
-/* The frame offsets of a waiting pixel's lattice neighbours, by its class (lattice_neighbours'
- * order): 0 odd column of an even row (left, right), 1 odd row, even column (up, down),
- * 2 odd row and column (the four diagonal ones), from the pixel's own frame index. */
-static void neighbour_offsets(const LatticeJob *j, int64_t off[3][4]) {
-    int64_t s = j->stride <= 1 ? 1 : j->stride, row = s * (j->stride <= 1 ? j->w : j->fw);
-    int64_t o[3][4] = {{-s, s, 0, 0}, {-row, row, 0, 0},
-                       {-row - s, -row + s, row - s, row + s}};
-    for (int c = 0; c < 3; c++)
-        for (int i = 0; i < 4; i++) off[c][i] = o[c][i];
 }
 
 /* One waiting pixel p (frame index fp) of the fill, its k lattice neighbours at the frame
@@ -239,8 +238,8 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
 
 static void fill_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
-    int64_t off[3][4];
-    neighbour_offsets(j, off);
+    int64_t lo[3][4], off[3][4];
+    neighbour_offsets(j, lo, off);
     Pos at = pos_at(begin, j->h, j->w);
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (j->status[p] != 2) continue;  /* (the plan lets a pixel wait on all its k) */
