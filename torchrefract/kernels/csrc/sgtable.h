@@ -154,13 +154,19 @@ static void sg_slices(const SgTable *t, int64_t d, SgAxes *a, float *buf) {
 
 /* sgfit.interface_energies: (1 - F, F) plus the roughness's change of the table's
  * energies, at incident cosine c on the interface ``a`` (distribution d, Fresnel f). */
-static void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, float c,
-                               float f, float *e_t, float *e_r) {
+static void interface_energies_at(const SgTable *t, const SgAxes *a, int64_t d, float z,
+                                  float f, float *e_t, float *e_r) {
     float dd[2];
-    sg_read(t, a, d, SG_DV, 0, sg_theta(c), dd);  /* transmit, reflect */
+    sg_read(t, a, d, SG_DV, 0, z, dd);  /* transmit, reflect */
     float et = 1.0f - f + a->fade * dd[0], er = f + a->fade * dd[1];
     *e_t = et > 0.0f ? et : 0.0f;
     *e_r = er > 0.0f ? er : 0.0f;
+}
+
+/* interface_energies_at at incident cosine c (its table coordinate sg_theta(c)). */
+static inline void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, float c,
+                                      float f, float *e_t, float *e_r) {
+    interface_energies_at(t, a, d, sg_theta(c), f, e_t, e_r);
 }
 
 /* sgfit.sg_lookup (eqs. 8-9) of lobe ``lobe`` (0 transmit, 1 reflect), with the moment
@@ -185,12 +191,12 @@ static inline void sg_lookup(const SgTable *t, const SgAxes *a, int64_t d, int l
     sg_lookup_at(t, a, d, lobe, l2, sg_theta(c), k, angle, energy);
 }
 
-/* The transmitted lobe's sharpness and the sine of its axis angle (sg_lookup, moment
- * sharpness). */
-static void transmit_lobe(const SgTable *t, const SgAxes *a, int64_t d, float c, float *k,
-                          float *angle) {
+/* The transmitted lobe's sharpness and the sine of its axis angle (sg_lookup_at, moment
+ * sharpness) at table coordinate z. */
+static void transmit_lobe_at(const SgTable *t, const SgAxes *a, int64_t d, float z, float *k,
+                             float *angle) {
     float e;
-    sg_lookup(t, a, d, 0, 0, c, k, angle, &e);
+    sg_lookup_at(t, a, d, 0, 0, z, k, angle, &e);
 }
 
 /* sgfit.spread_cosines: the three incident cosines (weights 1/4, 1/4, 1/2) standing for a

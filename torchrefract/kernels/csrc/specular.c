@@ -35,10 +35,11 @@ typedef struct {
 /* The exit's energies (paths.trace_paths): the smooth interface's Fresnel split, or the
  * rough one's (SG table: ``in`` the entry's axes at alpha1, ``out`` the exit's at alpha2),
  * ``tir: conserve`` averaging over the entry lobe (paths.spread_exit) with the escape
- * fraction of the trapped light. */
+ * fraction of the trapped light; z1: the entry cosine cos1's table coordinate. */
 static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, int64_t b,
-                          float alpha1, float alpha2, float cos1, float cos2, float f2,
-                          int spread, float *e_t2, float *e_r2, float *esc, float *var) {
+                          float alpha1, float alpha2, float cos1, float z1, float cos2,
+                          float f2, int spread, float *e_t2, float *e_r2, float *esc,
+                          float *var) {
     float eta = j->ior[b];
     int64_t dist = j->dist[b];
     *esc = 1.0f;
@@ -49,7 +50,7 @@ static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, i
     } else if (spread) {  /* ``tir: conserve``, or internal bounces follow */
         int rough = alpha1 > j->table.alpha_min;
         float k1, sin_tilt;
-        transmit_lobe(&j->table, in, dist, cos1, &k1, &sin_tilt);
+        transmit_lobe_at(&j->table, in, dist, z1, &k1, &sin_tilt);
         /* cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities */
         float sc1 = 1.0f - cos1 * cos1;
         float sin_t = sqrtf(sc1 > 1e-12f ? sc1 : 1e-12f) / eta;
@@ -225,13 +226,14 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     float t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
     int bounce = sj->bo.limit > 0, tir2 = ex->tir2;
     for (int c = 0; c < 3; c++) t2[c] = ex->look[c];
+    float z1 = j->rough ? sg_theta(cos1) : 0.0f;  /* the entry's table coordinate */
     if (j->rough) {
-        interface_energies(&j->table, ax, j->dist[b], cos1, f1, &e_t1, &e_r1);
+        interface_energies_at(&j->table, ax, j->dist[b], z1, f1, &e_t1, &e_r1);
     } else {
         e_t1 = 1.0f - f1;
         e_r1 = f1;
     }
-    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, cos2, f2,
+    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, z1, cos2, f2,
                   j->tir_mode == 0 || bounce, &e_t2, &e_r2, &esc, &var1);
     float w2 = leaving_weight(j->tir_mode, tir2, e_t2, e_r2, esc), path;
     if (ok) {
