@@ -672,9 +672,9 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
             variance = lerpf(variance, var_k, apart);
         }
     }
-    /* the front reflection; rousiers.shade.finish */
+    /* the front reflection (its lookup tapped by cone_block); rousiers.shade.finish */
     float l_refl[3];
-    incident_sg(&j->lights, &j->env, b, p1, k->axis_r + 3 * i, k->k_r[i], l_refl);
+    incident_sg_at(&j->lights, b, p1, k->axis_r + 3 * i, k->k_r[i], k->tap_r + i, l_refl);
     finish_pixel(rj, view_axes, k, i, px, b, &xe, l_refl, l_trans, apart, sectors);
     j->exit_found[px] = found ? 1.0f : 0.0f;
     j->tir[px] = xe.tir ? 1.0f : 0.0f;
@@ -689,7 +689,7 @@ static void lean_pixel_of(const void *job, const SgAxes *view_axes, Block *k, in
 
 /* One block of pixels: rousiers_core.h's cone_block with lean_pixel. */
 static void lean_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    cone_block(job, &((const LeanJob *)job)->r, axes, r0, m, lean_pixel_of, 0);
+    cone_block(job, &((const LeanJob *)job)->r, axes, r0, m, lean_pixel_of, CONE_FRONT_TAPS);
 }
 
 /* ---- the LEAN moments of the back layer (moments.lean_mips' level 0) ---- */

@@ -660,10 +660,14 @@ static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, i
 typedef void (*cone_pixel_fn)(const void *job, const SgAxes *view_axes, Block *k, int i,
                               int64_t px, int64_t b);
 
+/* What cone_block prepares before a method's pixels: the front reflections' lookups
+ * (tap_r), and rousiers' exits (prepare_exit) with their lookups (tap_t). */
+enum { CONE_FRONT_TAPS = 1, CONE_EXITS = 2 };
+
 /* One block of pixels of a method on the cone (``rousiers``, ``lean``, ``gsr``): step 1
- * per pixel, step 2 (the marches, march_core.h) per ray family over the block, then
- * (``prepare``: rousiers' prepare_exit per pixel and the block's lookups tapped, then)
- * ``pixel`` per pixel, then the bounces. */
+ * per pixel, step 2 (the marches, march_core.h) per ray family over the block, then what
+ * ``prepare`` asks for (CONE_FRONT_TAPS, CONE_EXITS), then ``pixel`` per pixel, then the
+ * bounces. */
 static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, int64_t r0,
                        int m, cone_pixel_fn pixel, int prepare) {
     const Frame *j = &rj->f;
@@ -675,14 +679,15 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
         k.ax[i] = axes_at(j, axes + NAXES * b, b, k.alpha[i], k.own[i]);
         front_and_cone(j, k.ax[i], &k, i, px, b);
     }
-    if (prepare)  /* the front reflections' lookups, asked for before the marches */
+    if (prepare & CONE_FRONT_TAPS)  /* the front reflections' lookups, asked for before
+                                     * the marches */
         block_taps(j, r0, m, k.axis_r, k.k_r, k.tap_r);
     march_rays(j, &k.axis, m, j->march.steps, j->march.refine);
     if (rj->plane) on_tangent_plane(rj, &k, m);
     else
         for (int q = 0; q < 4; q++) march_rays(j, &k.cone[q], m, rj->cone_steps, rj->cone_refine);
     k.paths.n = 0;
-    if (prepare) {  /* every exit of the block first, then its lookups asked for */
+    if (prepare & CONE_EXITS) {  /* every exit of the block first, then its lookups */
         for (int i = 0; i < m; i++) prepare_exit(rj, &k, i, j->batch[r0 + i]);
         if (rj->levels == 0) block_taps(j, r0, m, &k.lobe_p[0][0], k.lobe_k, k.tap_t);
     }
@@ -701,7 +706,7 @@ static void rous_pixel(const void *job, const SgAxes *view_axes, Block *k, int i
 }
 
 static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) {
-    cone_block(job, (const RousJob *)job, axes, r0, m, rous_pixel, 1);
+    cone_block(job, (const RousJob *)job, axes, r0, m, rous_pixel, CONE_FRONT_TAPS | CONE_EXITS);
 }
 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
