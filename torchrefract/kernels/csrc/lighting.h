@@ -315,20 +315,13 @@ static inline void tr_store_xyz8(float *p, __m256 x, __m256 y, __m256 z) {
 }
 #endif
 
-/* A tap's two texel rows asked into the cache. */
+/* A tap's two texel rows asked into the cache: a kernel's lookups then overlap their
+ * memory reads with the work done before env_read reads them (the refracted directions
+ * scatter over the map). */
 static inline void env_tap_prefetch(const Lights *j, const EnvTap *p) {
     int64_t w = j->tex_w[p->b];
     __builtin_prefetch(j->tex[p->b] + (p->y0 * w + p->c0) * 3);
     __builtin_prefetch(j->tex[p->b] + (p->y1 * w + p->c0) * 3);
-}
-
-/* The tap along dir, its texel rows asked into the cache: a pixel's lookups then overlap
- * their memory reads with the work done before them (the refracted directions scatter
- * over the map); env_read reads them later. */
-static inline EnvTap env_prefetch(const Lights *j, int64_t b, const float *dir) {
-    EnvTap p = env_tap_dir(j, b, dir);
-    env_tap_prefetch(j, &p);
-    return p;
 }
 
 /* One view's SG-pre-convolved pyramid (lighting/sg_pyramid.py, SGPyramid): the padded
@@ -465,8 +458,8 @@ static inline void map_uv_n(const Lights *L, int n, const int64_t *bs, const flo
 #endif
 }
 
-/* env_prefetch of n <= 8 lookups (directions dirs[3 i ...], views bs[i]): their map
- * coordinates by map_uv_n. */
+/* The taps of n <= 8 lookups (directions dirs[3 i ...], views bs[i]), their texels asked
+ * for (env_tap_prefetch): their map coordinates by map_uv_n. */
 static inline void env_taps8(const Lights *L, int n, const int64_t *bs, const float *dirs,
                              EnvTap *out) {
     float u[8], v[8];
@@ -537,7 +530,7 @@ static float hit_light(const Lights *j, int64_t b, const float *o, const float *
 }
 
 /* lights.incident_radiance: the environment, or a light the ray hits (p: d's tap,
- * env_prefetch). */
+ * env_taps8). */
 static void incident_at(const Lights *j, int64_t b, const float *o, const float *d,
                         const EnvTap *p, float *out) {
     int64_t l;
