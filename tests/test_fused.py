@@ -189,6 +189,35 @@ def test_fused_lights_and_a_batch_of_views():
         assert b.timings["fused"] > 0, method  # the kernel ran, lights and all
 
 
+def test_lights_struct_built_once_per_lighting_and_rebuilt_when_it_changes():
+    """The kernels' lights struct is built once per Lighting object (the background and
+    each pass of a render share it) and built again where its tensors change in place
+    (a new map rotation must reach the kernel)."""
+    from torchrefract.lighting.lights import Lighting
+    from torchrefract.shading import fused
+
+    base = _small(ASSETS.parent / "configs" / "suite" / "slab_light.yaml", size=16)
+    lighting = Lighting.from_scenes([base, base.replace(
+        envmap=tr.EnvMap(path=base.envmap.path, rotate_deg=30.0))])
+    keep_a, keep_b, keep_c = fused._Keep(), fused._Keep(), fused._Keep()
+    a = fused._lights(lighting, keep_a)
+    assert fused._lights(lighting, keep_b) is a and len(keep_b) == len(keep_a) > 0
+    cos_before = _floats_at(a.rot_cos, 2)
+    lighting.rotate_deg.add_(90.0)
+    c = fused._lights(lighting, keep_c)
+    assert c is not a
+    assert _floats_at(c.rot_cos, 2) != cos_before
+    other = Lighting.from_scenes([base])
+    assert fused._lights(other, fused._Keep()) is not c
+
+
+def _floats_at(address: int, n: int) -> list[float]:
+    """n float32 values at a struct's pointer field."""
+    import ctypes
+
+    return list((ctypes.c_float * n).from_address(address))
+
+
 def test_fused_kernel_runs_where_it_covers_the_scene(monkeypatch):
     """Fused only where it can give the same image: not for ``rousiers`` with the paper's
     spread, not with fused=False (then the tensor code's image, bit for bit)."""

@@ -72,7 +72,33 @@ def _runs(g, lighting, materials=None) -> bool:
             and native.available())
 
 
+_BUILT = KeptByIdentity(4)
+"""The lights' and SG pyramids' structs built per Lighting object (a render pass's, asked
+for by the background, the one-sample pass and a sparse pass's samples) and its tensors'
+versions, with the tensors they point into: the last two passes' (four entries), so that
+at most two passes' maps and pyramids outlive their pass here."""
+
+
+def _per_lighting(kind: str, lighting, keep: _Keep, build):
+    """``build(lighting, keep)``'s struct, built once per ``lighting`` (and its tensors'
+    contents), the tensors it points into added to ``keep``."""
+    tensors = (lighting.rotate_deg, lighting.scale, lighting.light_pos,
+               lighting.light_radius, lighting.light_radiance, *lighting.texels)
+    key = (kind, *(t._version for t in tensors))
+    hit = _BUILT.get(lighting, key)
+    if hit is None:
+        own = _Keep()
+        hit = _BUILT.put(lighting, key, (build(lighting, own), own))
+    keep.extend(hit[1])
+    return hit[0]
+
+
 def _lights(lighting, keep: _Keep) -> native._Lights:
+    """The ``Lights`` of csrc/lighting.h for a batch (:func:`_per_lighting`)."""
+    return _per_lighting("lights", lighting, keep, _build_lights)
+
+
+def _build_lights(lighting, keep: _Keep) -> native._Lights:
     texels = lighting.texels
     # envmap.rotate_y's cosine and sine, one 0-d tensor at a time as it takes them (torch's
     # vectorized and scalar kernels may round differently)
@@ -140,7 +166,12 @@ _SG_META = KeptByIdentity(8)
 
 def _sg_env(lighting, keep: _Keep) -> native._SgEnv:
     """Each view's SG pyramid (``Lighting.pyramid``) for ``sg_env_tap`` and ``sg_env_read``
-    in csrc/lighting.h (a map's pyramid looked up once per batch)."""
+    in csrc/lighting.h (:func:`_per_lighting`)."""
+    return _per_lighting("sg_env", lighting, keep, _build_sg_env)
+
+
+def _build_sg_env(lighting, keep: _Keep) -> native._SgEnv:
+    """:func:`_sg_env`'s struct (a map's pyramid looked up once per batch)."""
     bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
     pyramids: dict = {}
     for b in range(len(lighting.texels)):
