@@ -91,11 +91,9 @@ def default_cache_dir() -> Path:
 
 @functools.lru_cache(maxsize=4)
 def _load_cached(spec: SGTableSpec, cache_dir: str) -> SGTable:
-    """The shipped table, else the cached one, else a table fitted now and cached."""
+    """The cached table (load_sg_table took the shipped one where it is ``spec``'s), else a
+    table fitted now and cached."""
     if spec == SGTableSpec() and SHIPPED_TABLE.is_file():
-        table = read_sg_table(SHIPPED_TABLE)
-        if table.spec == spec:
-            return table
         log.warning("%s was built for another spec; ignoring it", SHIPPED_TABLE)
     path = Path(cache_dir) / f"sg_table_{spec.key()}.npz"
     if path.is_file():
@@ -133,7 +131,20 @@ def load_sg_table(spec: SGTableSpec | None = None, cache_dir: str | Path | None 
         :class:`SGTable` on the CPU.
     """
     spec = SGTableSpec() if spec is None else spec
+    shipped = _shipped(spec)  # (the kernels ask for it several times a render)
+    if shipped is not None:
+        return shipped
     return _load_cached(spec, str(cache_dir or default_cache_dir()))
+
+
+@functools.lru_cache(maxsize=4)
+def _shipped(spec: SGTableSpec) -> SGTable | None:
+    """The shipped table where it is ``spec``'s, else None (no cache folder needed)."""
+    if spec == SGTableSpec() and SHIPPED_TABLE.is_file():
+        table = read_sg_table(SHIPPED_TABLE)
+        if table.spec == spec:
+            return table
+    return None
 
 
 # --------------------------------------------------------------------------------------
