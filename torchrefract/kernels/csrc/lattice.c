@@ -244,9 +244,10 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (j->status[p] != 2) continue;  /* (the plan lets a pixel wait on all its k) */
         int64_t fp = frame_at(j, p, at.bi, at.y, at.x);
-        int oy = (int)(at.y & 1), ox = (int)(at.x & 1);
-        if (oy && ox) fill_pixel(j, p, fp, off[2], 4);
-        else fill_pixel(j, p, fp, off[oy], 2);
+        int c = neighbour_class(j, &at);
+        if (c < 0) j->status[p] = 4;  /* (no plan lets such a pixel wait: shaded) */
+        else if (c == 2) fill_pixel(j, p, fp, off[2], 4);
+        else fill_pixel(j, p, fp, off[c], 2);
     }
 }
 
