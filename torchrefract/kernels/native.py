@@ -1013,7 +1013,8 @@ def put_rows(dst: torch.Tensor, pairs: list[tuple[torch.Tensor, torch.Tensor]]) 
     where the kernel does not run: unavailable, a gradient wanted, or a tensor that does
     not fit."""
     n = dst.numel()
-    if not available() or dst.dtype != torch.int64 or not dst.is_contiguous() or not all(
+    if (not available() or dst.dtype != torch.int64 or not dst.is_contiguous()
+            or dst.device.type != "cpu") or not all(
             o.dtype == torch.float32 and x.dtype == torch.float32 and o.dim() == 2
             and x.shape == (n, o.shape[1]) and o.is_contiguous() and x.is_contiguous()
             and o.device.type == "cpu" and x.device.type == "cpu"
@@ -1106,7 +1107,8 @@ def rays_at(frames: torch.Tensor, h: int, w: int, rows: torch.Tensor, cols: torc
     :func:`pixel_rays`' for an (h, w) grid, ``rows`` and ``cols`` (B, M) int64 -> the
     (B, M, 3) float32 rays through those (sub-)pixels, or ``None`` where the kernel is
     unavailable."""
-    if not available() or rows.dtype != torch.int64 or cols.dtype != torch.int64:
+    if (not available() or rows.dtype != torch.int64 or cols.dtype != torch.int64
+            or rows.device.type != "cpu" or cols.device.type != "cpu"):
         return None
     fr = frames.to(torch.float64).contiguous()
     rows, cols = rows.contiguous(), cols.contiguous()
