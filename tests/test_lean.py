@@ -311,6 +311,38 @@ def test_lean_with_one_tap_and_uniform_roughness_is_rousiers():
     assert (rel < 1e-3).float().mean() > 0.9, (rel < 1e-3).float().mean()
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_uniform_roughness_reads_no_moments_and_matches_a_constant_map(fused, tmp_path,
+                                                                       monkeypatch):
+    """One roughness per view: ``lean`` reads no moments pyramid (its footprint's roughness
+    moments are that roughness, moments.uniform_footprint), and its image is the one a
+    constant roughness map gives through the pyramid (two equal roughness lobes), to the
+    moments' rounding. Alpha 0.3 is no power of 2, so the map's means round."""
+    from PIL import Image
+
+    from torchrefract.methods.lean import shade
+    from torchrefract.shading import fused_lean
+
+    png = tmp_path / "const.png"
+    Image.fromarray(np.full((8, 16), 255, np.uint8), mode="L").save(png)
+    s = _sphere(roughness=0.3)
+    mapped = s.replace(material=tr.Material(ior=1.5, distribution="beckmann",
+                                            roughness_map=str(png), roughness_range=(0.0, 0.3)))
+    settings = tr.RenderSettings(fused=fused)
+    b = tr.render([mapped], settings=settings)
+
+    def no_pyramid(*_a, **_k):
+        raise AssertionError("the moments pyramid was built for a uniform roughness")
+
+    monkeypatch.setattr(shade, "lean_mips", no_pyramid)
+    monkeypatch.setattr(fused_lean, "_mips", no_pyramid)
+    a = tr.render([s], settings=settings)
+    obj = a.coverage[0] == 1
+    rel = ((a.radiance[0] - b.radiance[0]).abs() / b.radiance[0].abs().clamp(min=1e-3))[obj]
+    assert obj.sum() > 200
+    assert rel.max() < 1e-5, rel.max()
+
+
 def test_gsr_with_one_subdivision_is_lean():
     s = _sphere(roughness=0.15)
     a = tr.render([s.replace(method="gsr", method_options={"subdivisions": 1})]).radiance

@@ -94,7 +94,9 @@ def lean(g, lighting, materials, options, radiance: torch.Tensor, subdivisions: 
     if frame.n == 0:
         return radiance.view(b, h, w, 3), passes
     lobes = options.roughness_lobes if materials.has_maps else 1
-    mips, texel = _mips(g, materials, subdivisions, lobes)
+    # ``lean`` with one roughness per view reads no moments (moments.uniform_footprint)
+    mips, texel = (((), 0) if subdivisions == 1 and not materials.has_maps
+                   else _mips(g, materials, subdivisions, lobes))
     job = _LeanJob(
         r=rous, k=subdivisions, lobes=lobes, taps=options.ewa_taps, mips=len(mips), texel=texel,
         lean=keep.array(mips),

@@ -8,7 +8,8 @@
  *      the marches of march_core.h),
  *   2. the footprint (cone.trace_cone) and the moments over it: four taps along its major
  *      extent and the roughness moments at its center (moments.footprint_sums), their
- *      Gaussians (moments.gaussians: per subdivision and merged, the two-point roughness),
+ *      Gaussians (moments.gaussians: per subdivision and merged, the two-point roughness);
+ *      ``lean`` without a roughness map reads no pyramid (moments.uniform_footprint),
  *   3. the exit lobes of the merged Gaussian at the exact exit normal (shade._lobes, exact),
  *      each at its own axis and widened by the bounding rays' covariance
  *      (shade._ray_covariances, lobes.ray_covariance), each read by EWA taps on the SG
@@ -296,6 +297,14 @@ static void gauss_of(const Frame *j, int64_t b, const float *acc, float total, i
     }
     to_world(basis, u, g->u);
     to_world(basis, v, g->v);
+}
+
+/* moments.uniform_footprint: the merged Gaussian where the roughness is one value (no
+ * map), its roughness alpha's own moments (``lean``, one roughness lobe). */
+static void uniform_gauss(float alpha, Gauss *g) {
+    g->w = 1.0f;
+    g->var_mu = 0.5f * (alpha * alpha);
+    for (int c = 0; c < 3; c++) g->n[c] = g->u[c] = g->v[c] = g->cov[c] = 0.0f;
 }
 
 /* moments.separation: how clearly the subdivisions' normals form separate groups, in
@@ -647,16 +656,21 @@ static void lean_pixel(const LeanJob *lj, const SgAxes *view_axes, Block *k, int
     }
     ExitGeo xe;  /* the exact exit normal's interface (the mixture's center, the bounces) */
     exit_geo(ior, pe.p_t1, pe.k_t1, found, pe.exact_n, pe.p2, &xe);
-    /* the moments over the footprint: per subdivision and merged */
+    /* the moments over the footprint: per subdivision and merged (none where the
+     * roughness is one value: moments.uniform_footprint) */
     float sums[MAX_K * LEAN_CH], msum[LEAN_CH];
-    footprint_sums(lj, b, &fp, sums);
-    for (int q = 0; q < LEAN_CH; q++) {
-        float s = sums[q];
-        for (int t = 1; t < nk; t++) s = s + sums[t * LEAN_CH + q];
-        msum[q] = s;
-    }
     Gauss merged, g[MAX_K];
-    gauss_of(j, b, msum, msum[0], 0, lj->lobes, &merged);
+    if (lj->mips == 0) {
+        uniform_gauss(k->alpha[i], &merged);
+    } else {
+        footprint_sums(lj, b, &fp, sums);
+        for (int q = 0; q < LEAN_CH; q++) {
+            float s = sums[q];
+            for (int t = 1; t < nk; t++) s = s + sums[t * LEAN_CH + q];
+            msum[q] = s;
+        }
+        gauss_of(j, b, msum, msum[0], 0, lj->lobes, &merged);
+    }
     float l_trans[3];
     float variance = rays_mixture(lj, view_axes, k, i, b, mode, &pe, &xe, &merged, l_trans);
     float apart = 0.0f, sectors = 0.0f;
@@ -774,9 +788,10 @@ int64_t torchrefract_lean_moments_job_size(void) { return (int64_t)sizeof(Moment
 int torchrefract_lean(LeanJob *job, int threads) {
     if (job->k < 1 || job->k > MAX_K || job->lobes < 1 || job->lobes > 2 || job->taps < 1 ||
         job->taps > 16 ||
-        job->mips < 1 || job->r.levels != 0 ||
-        (job->texel != job->k * LEAN_CH &&
-         (job->k != 1 || job->texel != (job->lobes == 2 ? 4 : 2))))
+        job->mips < 0 || job->r.levels != 0 ||
+        (job->mips == 0 ? job->k != 1 || job->lobes != 1 || job->texel != 0
+                        : job->texel != job->k * LEAN_CH &&
+                              (job->k != 1 || job->texel != (job->lobes == 2 ? 4 : 2))))
         return -1;
     return run_shading(job, &job->r.f, NAXES, rous_axes, lean_block, threads);
 }

@@ -210,6 +210,23 @@ def gaussians(g: GBuffer, bi: torch.Tensor, acc: torch.Tensor) -> Footprint:
                      coverage=total.clamp(max=1.0))
 
 
+def uniform_footprint(alpha: torch.Tensor) -> Footprint:
+    """The merged Gaussian (K = 1) of any footprint where the roughness ``alpha`` (N,) is
+    one value (no roughness map): the mip's roughness moments are that value's own, w u / w
+    = alpha^2 (what :func:`gaussians` gives, to its rounding), so no pyramid is read.
+    Weight 1 (a pixel whose exit is found reads the roughness there); the normal, basis and
+    covariance zero: ``spread: rays`` reads the merged Gaussian's roughness alone (its lobe
+    sits at the exact exit normal)."""
+    n = alpha.shape[0]
+    a2 = (alpha * alpha)[:, None]
+    z3 = alpha.new_zeros(n, 1, 3)
+    return Footprint(weight=alpha.new_ones(n, 1), normal=z3, cov=alpha.new_zeros(n, 1, 2, 2),
+                     u=z3, v=z3, var_mu=0.5 * a2, alpha2=torch.stack([a2, a2], -1),
+                     alpha2_w=torch.full((n, 1, 2), 0.5, dtype=alpha.dtype,
+                                         device=alpha.device),
+                     coverage=alpha.new_ones(n))
+
+
 SEPARATION = (3.0, 10.0)
 """Trace ratios between (subdivisions' spread about their mean) and within (their own
 spread) where a footprint starts and ends counting as several lobes: one Gaussian blob cut
@@ -257,4 +274,5 @@ def two_point(m1: torch.Tensor, m2: torch.Tensor, m3: torch.Tensor
 
 
 __all__ = ["CHANNELS", "Footprint", "NZ_MIN", "camera_basis", "footprint_sums", "gaussians",
-           "lean_mips", "sector", "separation", "slope_jacobian", "slopes", "two_point"]
+           "lean_mips", "sector", "separation", "slope_jacobian", "slopes", "two_point",
+           "uniform_footprint"]

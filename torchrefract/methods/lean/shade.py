@@ -31,6 +31,7 @@ from torchrefract.methods.lean.moments import (
     gaussians,
     lean_mips,
     separation,
+    uniform_footprint,
 )
 from torchrefract.methods.rousiers.cone import Cone, bounding_normals, trace_cone
 from torchrefract.methods.rousiers.exit import ExitInterface, exit_interface, exit_lobe
@@ -85,9 +86,12 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     px = object_pixels(g, materials, idx)
     front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
     cone = trace_cone(g, px.bi, px.p1, front.p_t1, front.k_t1, options)
-    sums = footprint_sums(lean_mips(g, materials, subdivisions), subdivisions, px.bi,
-                          cone.xy_c, cone.major, cone.ext, cone.level)
-    fp = gaussians(g, px.bi, sums)
+    if subdivisions == 1 and spread == "rays" and not materials.has_maps:
+        fp = uniform_footprint(px.alpha)  # the moments of one roughness: its own
+    else:
+        sums = footprint_sums(lean_mips(g, materials, subdivisions), subdivisions, px.bi,
+                              cone.xy_c, cone.major, cone.ext, cone.level)
+        fp = gaussians(g, px.bi, sums)
     mode = "split" if bounce else options.tir
     if spread == "paper":
         lobes, normals, weight = _lobes(g, table, px, front, cone, fp, materials, options,
