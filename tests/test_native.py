@@ -370,3 +370,29 @@ def test_triangle_plane_table_matches_the_tensor_code(monkeypatch):
     assert (fast != slow).any(-1).float().mean() < 1e-3
     assert torch.allclose(fast, slow, rtol=0, atol=1e-6)
     assert torch.allclose(fast[:, :3].norm(dim=-1), torch.ones(1))
+
+
+@pytest.mark.skipif(not native.available(), reason="no native build here")
+def test_the_built_kernels_keep_their_prefetches():
+    """The lookups ask for their texels before they read them (csrc/lighting.h). GCC
+    deletes a call to a function holding only prefetches (it finds it const) unless the
+    helper is inlined first (``TR_PREFETCH``): every env and SG prefetch of the fused
+    kernels was gone so, and `specular`'s every-pixel kernel took 10-20% longer. The built
+    library must hold them (x86-64, where objdump reads it)."""
+    import platform
+    import shutil
+
+    objdump = shutil.which("objdump")
+    if objdump is None or platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("needs objdump on x86-64")
+    text = subprocess.run([objdump, "-d", "--no-show-raw-insn", native._load()._name],
+                          capture_output=True, text=True, check=True).stdout
+    holders, fn = {}, None
+    for line in text.splitlines():
+        if line.endswith(">:"):
+            fn = line.split("<", 1)[1].split(">", 1)[0].split(".", 1)[0]
+        elif "prefetch" in line:
+            holders[fn] = holders.get(fn, 0) + 1
+    # specular's block (env taps), the SG taps of rousiers' blocks and lean's EWA
+    assert sum(holders.values()) >= 20, holders
+    assert len(holders) >= 3, holders
