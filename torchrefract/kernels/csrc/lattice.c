@@ -18,6 +18,8 @@
  * the mean, from 1 on it is shaded, and between, the shaded value weighs smoothstep of
  * where t lies: the image changes continuously as t crosses the thresholds. */
 
+#include <string.h>
+
 #include "frame.h"
 
 typedef struct {
@@ -717,10 +719,104 @@ static inline __m256i mask8(const uint8_t *m) {
     return _mm256_cmpgt_epi32(v, _mm256_setzero_si256());
 }
 
+/* The ids of sub-pixels (0, 0) and (0, 1) of 8 pixels from the row at r (n = 2: 16 ids),
+ * as lanes: even and odd columns. */
+static inline void even_odd8(const int32_t *r, __m256i *even, __m256i *odd) {
+    __m256 a = _mm256_castsi256_ps(_mm256_loadu_si256((const __m256i *)r));
+    __m256 b = _mm256_castsi256_ps(_mm256_loadu_si256((const __m256i *)(r + 8)));
+    *even = _mm256_permute4x64_epi64(_mm256_castps_si256(_mm256_shuffle_ps(a, b, 0x88)), 0xd8);
+    *odd = _mm256_permute4x64_epi64(_mm256_castps_si256(_mm256_shuffle_ps(a, b, 0xdd)), 0xd8);
+}
+
+/* The face normals of ids a (x, y, z lanes; face 0 where ``want`` is clear). */
+static inline void face_normals8(const EdgesJob *j, __m256i a, __m256i want, __m256 *n) {
+    __m256i ia = _mm256_mullo_epi32(_mm256_and_si256(a, want), _mm256_set1_epi32(3));
+    for (int c = 0; c < 3; c++)
+        n[c] = _mm256_i32gather_ps(j->face_normal, _mm256_add_epi32(ia, _mm256_set1_epi32(c)), 4);
+}
+
+/* Lanes of ``want`` (ids >= 0 there) where the faces of b and of the first id (normals
+ * na) turn by more than face_tol: folds' first test, its float operations. */
+static inline __m256i face_turns8(const EdgesJob *j, const __m256 *na, __m256i b,
+                                  __m256i want) {
+    if (_mm256_testz_si256(want, want)) return want;
+    __m256 nb[3];
+    face_normals8(j, b, want, nb);
+    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nb[0], na[0]), _mm256_mul_ps(nb[1], na[1])),
+                             _mm256_mul_ps(nb[2], na[2]));
+    __m256 turn = _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
+    return _mm256_and_si256(want, _mm256_castps_si256(
+        _mm256_cmp_ps(turn, _mm256_set1_ps(j->face_tol), _CMP_GT_OQ)));
+}
+
+/* sub_pixels_differ (n = 2) of one layer for 8 pixels from p in lanes: the flagged lanes,
+ * and in *unsure those where two faces seen turn by more than face_tol (folds then also
+ * compares their corners: own_flags decides those). */
+static inline __m256i sub_pixels_differ8(const EdgesJob *j, const int32_t *ids,
+                                         const uint8_t *mask, int64_t p, int64_t s0,
+                                         __m256i *unsure) {
+    int64_t nw = 2 * j->w;
+    __m256i a, b, c, d, none = _mm256_set1_epi32(-1);
+    even_odd8(ids + s0, &a, &b);
+    even_odd8(ids + s0 + nw, &c, &d);
+    __m256i center = mask8(mask + p);
+    __m256i ca = _mm256_cmpgt_epi32(a, none), cb = _mm256_cmpgt_epi32(b, none);
+    __m256i cc = _mm256_cmpgt_epi32(c, none), cd = _mm256_cmpgt_epi32(d, none);
+    __m256i flag = _mm256_or_si256(
+        _mm256_or_si256(_mm256_xor_si256(ca, center), _mm256_xor_si256(cb, center)),
+        _mm256_or_si256(_mm256_xor_si256(cc, center), _mm256_xor_si256(cd, center)));
+    /* folds only where all four are covered as the center is, covered */
+    __m256i all = _mm256_andnot_si256(flag, center);
+    __m256i wb = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, b), all);
+    __m256i wc = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, c), all);
+    __m256i wd = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, d), all);
+    __m256i any = _mm256_or_si256(wb, _mm256_or_si256(wc, wd));
+    if (!_mm256_testz_si256(any, any)) {  /* two faces or more inside some pixel */
+        __m256 na[3];
+        face_normals8(j, a, any, na);
+        __m256i turns = _mm256_or_si256(face_turns8(j, na, b, wb),
+                                        _mm256_or_si256(face_turns8(j, na, c, wc),
+                                                        face_turns8(j, na, d, wd)));
+        *unsure = _mm256_or_si256(*unsure, turns);
+    }
+    return flag;
+}
+
+/* own_flags of the 8 pixels from p (n = 2, one row, inside the frame) into out: the
+ * sub-pixels' coverage and the faces' turns in lanes; own_flags itself where a turn needs
+ * folds' corner test. */
+static void own_flags8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
+    int64_t nw = 2 * j->w, s0 = (at.bi * j->h * 2 + at.y * 2) * nw + at.x * 2;
+    __m256i unsure = _mm256_setzero_si256();
+    __m256i flag = _mm256_or_si256(
+        sub_pixels_differ8(j, j->front_ids, j->front_mask, p, s0, &unsure),
+        sub_pixels_differ8(j, j->back_ids, j->back_mask, p, s0, &unsure));
+    __m256 alpha = j->per_pixel ? _mm256_loadu_ps(j->alpha + p) : _mm256_set1_ps(j->alpha[at.bi]);
+    __m256i smooth = _mm256_and_si256(mask8(j->front_mask + p), _mm256_castps_si256(
+        _mm256_cmp_ps(alpha, _mm256_set1_ps(j->smooth_alpha), _CMP_LT_OQ)));
+    flag = _mm256_or_si256(flag, smooth);
+    int f = _mm256_movemask_ps(_mm256_castsi256_ps(flag));
+    int u = _mm256_movemask_ps(_mm256_castsi256_ps(unsure)) & ~f;
+    for (int i = 0; i < 8; i++, pos_step(&at, j->h, j->w))
+        out[i] = (uint8_t)(u >> i & 1 ? own_flags(j, p + i, &at) : f >> i & 1);
+}
+
 /* pixel_pairs of the 8 pixels from p (one row, none on the frame's border nor its last
  * row: every pair inside), the pairs' tests in lanes with pair_flags' operations. */
 static void pixel_pairs8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
     __m256i fm = mask8(j->front_mask + p), bm = mask8(j->back_mask + p);
+    uint8_t own[8];
+    if (j->n == 2) {
+        own_flags8(j, p, at, own);
+    } else {
+        Pos q = at;
+        for (int i = 0; i < 8; i++, pos_step(&q, j->h, j->w)) own[i] = (uint8_t)own_flags(j, p + i, &q);
+    }
+    if (_mm256_testz_si256(_mm256_or_si256(fm, bm), _mm256_or_si256(fm, bm))) {
+        /* 8 empty pixels: no pair flags either end (each test needs p covered) */
+        memcpy(out, own, 8);
+        return;
+    }
     __m256 tol = _mm256_set1_ps(j->normal_tol), dtol = _mm256_set1_ps(j->depth_tol);
     __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
     __m256 dp = _mm256_loadu_ps(j->back_depth + p);
@@ -747,8 +843,7 @@ static void pixel_pairs8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
     }
     int32_t b8[8];
     _mm256_storeu_si256((__m256i *)b8, bits);
-    for (int i = 0; i < 8; i++, pos_step(&at, j->h, j->w))
-        out[i] = (uint8_t)(b8[i] | own_flags(j, p + i, &at));
+    for (int i = 0; i < 8; i++) out[i] = (uint8_t)(b8[i] | own[i]);
 }
 #endif
 
