@@ -159,12 +159,32 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
 typedef void (*tr_block_fn)(const void *job, const SgAxes *axes, int64_t r0, int m);
 typedef int (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
 
-typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; } ShadeRange;
+typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; const Frame *f; } ShadeRange;
 
+/* The G-buffer values every kernel reads first of pixels [r, e), asked into the cache: a
+ * block's pixels are a sparse, increasing list over frames of tens of MB (the adaptive
+ * lattice's), which the hardware's stream prefetchers follow poorly. */
+static inline __attribute__((always_inline)) void pixels_prefetch(const Frame *f, int64_t r,
+                                                                   int64_t e) {
+    for (int64_t i = r; i < e; i++) {
+        int64_t px = f->idx[i];
+        __builtin_prefetch(f->ray_dir + 3 * px);
+        __builtin_prefetch(f->front_pos + 3 * px);
+        __builtin_prefetch(f->front_normal + 3 * px);
+        __builtin_prefetch(f->front_uv + 2 * px);
+    }
+}
+
+/* The blocks of pixels [begin, end), each asking for the next one's G-buffer values
+ * before it is shaded. */
 static void shade_range(const void *arg, int64_t begin, int64_t end) {
     const ShadeRange *rg = (const ShadeRange *)arg;
-    for (int64_t r = begin; r < end; r += BLOCK)
+    pixels_prefetch(rg->f, begin, end - begin < BLOCK ? end : begin + BLOCK);
+    for (int64_t r = begin; r < end; r += BLOCK) {
+        int64_t next = r + BLOCK, stop = next + BLOCK < end ? next + BLOCK : end;
+        if (next < end) pixels_prefetch(rg->f, next, stop);
         rg->fn(rg->job, rg->axes, r, end - r < BLOCK ? (int)(end - r) : BLOCK);
+    }
 }
 
 /* A method kernel's entry: each view's ``naxes`` table axes filled (``fill``) with their
@@ -199,7 +219,7 @@ static int run_shading(const void *job, Frame *f, int naxes, tr_axes_fn fill, tr
     for (int64_t b = 0, k = 0; b < f->nb; b++)
         for (int q = 0; q < filled[b]; q++, k++)
             sg_slices(&f->table, f->dist[b], axes + naxes * b + q, slices + per * (size_t)k);
-    ShadeRange rg = {fn, job, axes};
+    ShadeRange rg = {fn, job, axes, f};
     int rc = 0;
 #ifdef _OPENMP
     int64_t chunks = (f->n + 63) / 64;
