@@ -161,7 +161,7 @@ typedef int (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
 
 typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; const Frame *f; } ShadeRange;
 
-/* The G-buffer values every kernel reads first of pixels [r, e), asked into the cache: a
+/* The G-buffer values every kernel reads of pixels [r, e), asked into the cache: a
  * block's pixels are a sparse, increasing list over frames of tens of MB (the adaptive
  * lattice's), which the hardware's stream prefetchers follow poorly. */
 static inline __attribute__((always_inline)) void pixels_prefetch(const Frame *f, int64_t r,
@@ -172,6 +172,8 @@ static inline __attribute__((always_inline)) void pixels_prefetch(const Frame *f
         __builtin_prefetch(f->front_pos + 3 * px);
         __builtin_prefetch(f->front_normal + 3 * px);
         __builtin_prefetch(f->front_uv + 2 * px);
+        __builtin_prefetch(f->front_dist + px);
+        __builtin_prefetch(f->back_dist + px);
     }
 }
 
