@@ -134,7 +134,7 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
                 int f = rays.found[i];
                 float s = f ? rays.s[i] : 0.0f;
                 for (int c = 0; c < 3; c++) {
-                    ps->w[r][c] = ps->w[r][c] * expf(-j->absorption[3 * b + c] * s);
+                    ps->w[r][c] = ps->w[r][c] * transmittance(j->absorption[3 * b + c], s);
                     if (f) ps->p[r][c] = rays.pos[3 * i + c];
                     ps->normal[r][c] = rays.normal[3 * i + c];
                 }

@@ -28,6 +28,12 @@ static inline float clampf(float x, float lo, float hi) {
     return x < lo ? lo : (x > hi ? hi : x);
 }
 
+/* Beer-Lambert transmittance exp(-a s) over a path of finite length s; exactly 1 without
+ * absorption (expf(-0) is 1: most scenes absorb nothing, and expf is a library call). */
+static inline float transmittance(float a, float s) {
+    return a == 0.0f ? 1.0f : expf(-a * s);
+}
+
 static inline void face_forward(const float *n, const float *d, float *out) {
     float s = dot3(n, d) > 0.0f ? -1.0f : 1.0f;
     for (int i = 0; i < 3; i++) out[i] = s * n[i];

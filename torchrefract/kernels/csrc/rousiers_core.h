@@ -485,7 +485,7 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
                  hit_light(&j->lights, b, j->eye + 3 * b, d, &l) < j->front_dist[px];
     float w1[3];
     for (int c = 0; c < 3; c++) {
-        w1[c] = et * expf(-j->absorption[3 * b + c] * path);
+        w1[c] = et * transmittance(j->absorption[3 * b + c], path);
         if (!bounce && !hidden) j->radiance[3 * px + c] = er * l_refl[c] + w1[c] * l_trans[c];
     }
     if (bounce) {  /* the pixel is written once its bounces are followed (cone_block) */

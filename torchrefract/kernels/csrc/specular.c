@@ -142,7 +142,7 @@ static void first_exit(const SpecJob *sj, const SgAxes *out, Paths *ps, int i, i
     if (tap) incident_at(&j->lights, b, p2, ex->look, tap, l_out);  /* look: t_ref or t1 */
     else incident(&j->lights, b, p2, ex->look, l_out);
     for (int c = 0; c < 3; c++) {
-        w1[c] = e_t1 * expf(-j->absorption[3 * b + c] * path);
+        w1[c] = e_t1 * transmittance(j->absorption[3 * b + c], path);
         ps->acc[i][c] = w1[c] * w_out * l_out[c];
     }
     ps->bounces[i] = 0.0f;
@@ -268,7 +268,7 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
                    e_t2, e_r2, var1, path);
     } else if (!hidden) {
         for (int c = 0; c < 3; c++) {
-            float att = expf(-j->absorption[3 * b + c] * path);
+            float att = transmittance(j->absorption[3 * b + c], path);
             j->radiance[3 * px + c] = e_r1 * l_refl[c] + e_t1 * w2 * att * l_trans[c];
         }
     }
