@@ -127,20 +127,38 @@ static inline int neighbour_class(const LatticeJob *j, const Pos *at) {
     return oy && ox ? 2 : oy;
 }
 
+/* What a plan's pixels share: the normals' reciprocal tolerance, and a view's roughness
+ * gap where the roughness is per view (kept while the view lasts). */
+typedef struct {
+    float inv_n, view_gap;
+    int64_t view;
+} PlanConst;
+
+/* The roughness gap alpha_min / alpha of pixel fp of view bi (plan_pixel's first). */
+static inline float alpha_gap(const LatticeJob *j, PlanConst *pc, int64_t bi, int64_t fp) {
+    if (j->per_pixel) return j->alpha_min * inv_tol(j->alpha[fp]);
+    if (pc->view != bi) {
+        pc->view = bi;
+        pc->view_gap = j->alpha_min * inv_tol(j->alpha[bi]);
+    }
+    return pc->view_gap;
+}
+
 /* The plan of object pixel p (frame index fp) with k neighbours at the offsets ``lo``
  * (level) and ``fo`` (frame); k a constant where inlined, so the neighbours' indices stay
  * in registers. Returns whether it waits. */
 static inline __attribute__((always_inline)) int plan_pixel(const LatticeJob *j, int64_t p,
                                                             int64_t fp, int64_t bi,
                                                             const int64_t *lo,
-                                                            const int64_t *fo, int k) {
+                                                            const int64_t *fo, int k,
+                                                            PlanConst *pc) {
     const float *fn = j->front_normal + 3 * fp, *bn = j->back_normal + 3 * fp;
     int back = j->back_mask[fp];
     float bd = j->back_depth[fp], tol = j->depth_tol * fabsf(bd);
-    float inv_n = inv_tol(j->normal_tol), inv_d = inv_tol(tol);
+    float inv_n = pc->inv_n, inv_d = inv_tol(tol);
     /* the gap: each test's measure over its tolerance, the largest (a per-view
      * roughness is the neighbours' too) */
-    float gap = j->alpha_min * inv_tol(alpha_of(j, bi, fp));
+    float gap = alpha_gap(j, pc, bi, fp);
     int wait = k > 0 && (!j->uniform || j->uniform[p]);
     for (int i = 0; i < k && wait; i++) {
         int64_t q = fp + fo[i];
@@ -165,6 +183,7 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
     neighbour_offsets(j, lo, fo);
     Pos at = pos_at(begin, j->h, j->w);
     int64_t view = at.bi, objects = 0, waiting = 0;
+    PlanConst pc = {inv_tol(j->normal_tol), 0.0f, -1};
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (at.bi != view) {
             add_counts(j, view, objects, waiting);
@@ -178,9 +197,9 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
             continue;
         }
         int c = neighbour_class(j, &at);
-        if (c == 2) waiting += plan_pixel(j, p, fp, at.bi, lo[2], fo[2], 4);
-        else if (c >= 0) waiting += plan_pixel(j, p, fp, at.bi, lo[c], fo[c], 2);
-        else plan_pixel(j, p, fp, at.bi, lo[0], fo[0], 0);
+        if (c == 2) waiting += plan_pixel(j, p, fp, at.bi, lo[2], fo[2], 4, &pc);
+        else if (c >= 0) waiting += plan_pixel(j, p, fp, at.bi, lo[c], fo[c], 2, &pc);
+        else plan_pixel(j, p, fp, at.bi, lo[0], fo[0], 0, &pc);
         objects++;
     }
     add_counts(j, view, objects, waiting);
