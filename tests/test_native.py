@@ -377,8 +377,8 @@ def test_the_built_kernels_keep_their_prefetches():
     """The lookups ask for their texels before they read them (csrc/lighting.h). GCC
     deletes a call to a function holding only prefetches (it finds it const) unless the
     helper is inlined first (``TR_PREFETCH``): every env and SG prefetch of the fused
-    kernels was gone so, and `specular`'s every-pixel kernel took 10-20% longer. The built
-    library must hold them (x86-64, where objdump reads it)."""
+    kernels was gone so (docs/benchmarks.md, nineteenth sitting). The built library must
+    hold them (x86-64, where objdump reads it)."""
     import platform
     import shutil
 
