@@ -343,6 +343,47 @@ def test_uniform_roughness_reads_no_moments_and_matches_a_constant_map(fused, tm
     assert rel.max() < 1e-5, rel.max()
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_gsr_pyramid_drops_the_roughness_channels_of_one_roughness(fused, tmp_path,
+                                                                  monkeypatch):
+    """``gsr`` with one roughness per view builds its moments without the roughness's
+    (moments.SLOPE_CHANNELS per subdivision: footprint_sums gives them from the
+    roughness), and its image is the one a constant roughness map gives through the full
+    pyramid, to the moments' rounding."""
+    from PIL import Image
+
+    from torchrefract.methods.lean import moments as mom, shade
+    from torchrefract.shading import fused_lean
+
+    png = tmp_path / "const.png"
+    Image.fromarray(np.full((8, 16), 255, np.uint8), mode="L").save(png)
+    s = _sphere(method="gsr", roughness=0.3).replace(method_options={"subdivisions": 4})
+    mapped = s.replace(material=tr.Material(ior=1.5, distribution="beckmann",
+                                            roughness_map=str(png), roughness_range=(0.0, 0.3)))
+    settings = tr.RenderSettings(fused=fused)
+    b = tr.render([mapped], settings=settings)
+    seen = []
+    mips, kernel = mom.lean_mips, fused_lean.moments
+
+    def spy_mips(g, materials, k, roughness=True):
+        seen.append(roughness)
+        return mips(g, materials, k, roughness)
+
+    def spy_kernel(g, materials, k, compact=0):
+        seen.append(compact)
+        return kernel(g, materials, k, compact)
+
+    monkeypatch.setattr(shade, "lean_mips", spy_mips)
+    monkeypatch.setattr(mom, "lean_mips", spy_mips)  # (fused_lean imports it when called)
+    monkeypatch.setattr(fused_lean, "moments", spy_kernel)
+    a = tr.render([s], settings=settings)
+    assert seen and all(v in (False, mom.SLOPE_CHANNELS) for v in seen), seen
+    obj = a.coverage[0] == 1
+    rel = ((a.radiance[0] - b.radiance[0]).abs() / b.radiance[0].abs().clamp(min=1e-3))[obj]
+    assert obj.sum() > 200
+    assert rel.max() < 1e-4, rel.max()
+
+
 def test_gsr_with_one_subdivision_is_lean():
     s = _sphere(roughness=0.15)
     a = tr.render([s.replace(method="gsr", method_options={"subdivisions": 1})]).radiance

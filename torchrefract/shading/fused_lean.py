@@ -110,7 +110,10 @@ def moments(g, materials, k: int, compact: int = 0) -> torch.Tensor | None:
     """``moments.lean_mips``' level 0, the back layer's LEAN moments (B, H, W, K * CHANNELS),
     by the kernel; ``None`` where it does not run (not built, or an input wants a
     gradient). ``compact`` 2 or 4 (K = 1): only the channels ``lean``'s merged Gaussian
-    reads, w and w u (and w u^2, w u^3 for two roughness lobes), (B, H, W, compact)."""
+    reads, w and w u (and w u^2, w u^3 for two roughness lobes), (B, H, W, compact);
+    ``SLOPE_CHANNELS``: each subdivision's without the roughness's, (B, H, W, K * 6)."""
+    from torchrefract.methods.lean.moments import SLOPE_CHANNELS as SLOPE  # (see _mips)
+
     b, h, w = g.shape
     maps = list(materials.roughness_maps) or [None] * b
     if not (native.available() and _ready() and g.back.normal.device.type == "cpu"
@@ -125,7 +128,7 @@ def moments(g, materials, k: int, compact: int = 0) -> torch.Tensor | None:
                          torch.int64),
         rrange=keep.ptr(materials.roughness_range if materials.roughness_range is not None
                         else torch.zeros(b, 2)))
-    out = torch.empty(b, h, w, compact or k * 9)
+    out = torch.empty(b, h, w, k * SLOPE if compact == SLOPE else compact or k * 9)
     job = _MomentsJob(f=frame, h=h, w=w, k=k, compact=compact, normal=keep.ptr(g.back.normal),
                       uv=keep.ptr(g.back.uv), mask=keep.ptr(g.back.mask, torch.bool),
                       out=out.data_ptr())
@@ -137,14 +140,17 @@ def _mips(g, materials, k: int, lobes: int) -> tuple[tuple[torch.Tensor, ...], i
     (for ``lean`` only the channels it reads: with spread ``rays`` the merged Gaussian's
     mean and covariance are not used, and a pyramid of 2 channels instead of 9 stays in
     cache), the box mips by torch."""
-    from torchrefract.methods.lean.moments import lean_mips  # (methods import this module)
+    # (imported here: the methods import this module)
+    from torchrefract.methods.lean.moments import SLOPE_CHANNELS as SLOPE, lean_mips
     from torchrefract.optics.ndf import build_box_mips
 
-    compact = (4 if lobes == 2 else 2) if k == 1 else 0
+    # ``gsr`` with one roughness per view: no roughness channels (footprint_sums)
+    compact = (4 if lobes == 2 else 2) if k == 1 else (0 if materials.has_maps else SLOPE)
     level0 = moments(g, materials, k, compact)
     if level0 is None:
-        return lean_mips(g, materials, k), k * 9
-    return build_box_mips(level0), compact or k * 9
+        per = 9 if materials.has_maps or k == 1 else SLOPE
+        return lean_mips(g, materials, k, per == 9), k * per
+    return build_box_mips(level0), k * SLOPE if compact == SLOPE else compact or k * 9
 
 
 __all__ = ["covered", "lean", "moments"]

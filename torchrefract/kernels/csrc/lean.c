@@ -30,6 +30,7 @@
 #include "rousiers_core.h"
 
 #define LEAN_CH 9    /* moments.CHANNELS */
+#define SLOPE_CH 6   /* moments.SLOPE_CHANNELS: the first LEAN_CH, without the roughness's */
 #define MAX_K 8      /* GsrOptions.subdivisions' maximum */
 #define MAX_LOBES (2 * MAX_K)
 #define NZ_MIN 0.2f  /* moments.NZ_MIN */
@@ -187,11 +188,37 @@ static void sample_lean(const LeanJob *lj, int64_t b, float x, float y, float lv
 
 static const float FOOTPRINT_TAPS[4] = {-0.375f, -0.125f, 0.125f, 0.375f};
 
+/* moments.footprint_sums of a pyramid without roughness channels (K * SLOPE_CH, one
+ * roughness per view): the four taps' sums, then per subdivision w u, w u^2, w u^3 from
+ * the view's roughness (u = alpha^2), into the LEAN_CH slots of acc. */
+static void slope_sums(const LeanJob *lj, int64_t b, const Foot *fp, float *acc) {
+    int nk = lj->k, nc = nk * SLOPE_CH, rng[2] = {0, nc};
+    float tap[MAX_K * SLOPE_CH], sum[MAX_K * SLOPE_CH];
+    for (int q = 0; q < nc; q++) sum[q] = 0.0f;
+    for (int t = 0; t < 4; t++) {
+        float o = FOOTPRINT_TAPS[t] * fp->major;
+        float x = fp->along_x ? fp->c[0] + o : fp->c[0] + 0.0f;
+        float y = fp->along_x ? fp->c[1] + 0.0f : fp->c[1] + o;
+        sample_lean(lj, b, x, y, fp->level, rng, 1, tap);
+        for (int q = 0; q < nc; q++) sum[q] = sum[q] + tap[q];
+    }
+    float alpha = lj->r.f.alpha[b], u = alpha * alpha, pw[3] = {u, u * u, (u * u) * u};
+    for (int s = 0; s < nk; s++) {
+        float *a = acc + s * LEAN_CH;
+        for (int q = 0; q < SLOPE_CH; q++) a[q] = sum[s * SLOPE_CH + q] / 4.0f;
+        for (int q = 0; q < 3; q++) a[SLOPE_CH + q] = a[0] * pw[q];
+    }
+}
+
 /* moments.footprint_sums: the moment sums (K, LEAN_CH) over the footprint. ``lean`` (K = 1)
  * reads only what its merged Gaussian uses: the coverage and the roughness moments (the
  * others are left 0). */
 static void footprint_sums(const LeanJob *lj, int64_t b, const Foot *fp, float *acc) {
     int nk = lj->k, nc = nk * LEAN_CH, compact = lj->texel != nc;
+    if (lj->texel == nk * SLOPE_CH) {  /* one roughness per view: its moments from it */
+        slope_sums(lj, b, fp, acc);
+        return;
+    }
     int rng[4] = {0, nc, 0, 0}, nr = 1;  /* gsr: all channels */
     if (compact) {  /* lean's own pyramid: w, u's moments */
         rng[1] = lj->texel;
@@ -713,7 +740,9 @@ typedef struct {
     int64_t h, w;
     int k;              /* subdivisions */
     int compact;        /* 0: the K * LEAN_CH channels; 2 or 4 (K = 1): w, w u (, w u^2,
-                         * w u^3), the channels ``lean``'s kernel reads (LeanJob.texel) */
+                         * w u^3), the channels ``lean``'s kernel reads (LeanJob.texel);
+                         * SLOPE_CH: the K * SLOPE_CH channels without the roughness's
+                         * (one roughness per view: footprint_sums gives them) */
     const float *normal, *uv;   /* the back layer's (B*H*W, 3), (B*H*W, 2) */
     const uint8_t *mask;        /* (B*H*W,) */
     float *out;                 /* (B*H*W, K * LEAN_CH) */
@@ -726,14 +755,15 @@ typedef struct {
 static void moments_range(const void *arg, int64_t begin, int64_t end) {
     const MomentsJob *mj = (const MomentsJob *)arg;
     const Frame *f = &mj->f;
-    int nk = mj->k, nc = mj->compact ? mj->compact : nk * LEAN_CH;
+    int nk = mj->k, nc = !mj->compact ? nk * LEAN_CH
+                        : mj->compact == SLOPE_CH ? nk * SLOPE_CH : mj->compact;
     int64_t hw = mj->h * mj->w;
     for (int64_t p = begin; p < end; p++) {
         float *o = mj->out + p * nc;
         for (int q = 0; q < nc; q++) o[q] = 0.0f;
         if (!mj->mask[p]) continue;  /* (coverage 0: the tensor code's channels times 0) */
         int64_t b = p / hw;
-        if (mj->compact) {
+        if (mj->compact && mj->compact != SLOPE_CH) {
             float alpha = roughness_at(f, b, mj->uv + 2 * p), uu = alpha * alpha;
             float ch[4] = {1.0f, uu, uu * uu, (uu * uu) * uu};
             for (int q = 0; q < nc; q++) o[q] = ch[q];
@@ -770,13 +800,15 @@ static void moments_range(const void *arg, int64_t begin, int64_t end) {
             float fs = floorf(rem / (float)(2.0 * TR_PI / nk));
             sec = fs != fs ? 0 : (fs < 0.0f ? 0 : (fs > (float)(nk - 1) ? nk - 1 : (int)fs));
         }
-        for (int q = 0; q < LEAN_CH; q++) o[sec * LEAN_CH + q] = ch[q];
+        int per = mj->compact == SLOPE_CH ? SLOPE_CH : LEAN_CH;
+        for (int q = 0; q < per; q++) o[sec * per + q] = ch[q];
     }
 }
 
 int torchrefract_lean_moments(MomentsJob *job, int threads) {
-    if (job->k < 1 || job->k > MAX_K || (job->compact && (job->k != 1 ||
-                                                          (job->compact != 2 && job->compact != 4))))
+    if (job->k < 1 || job->k > MAX_K ||
+        (job->compact && job->compact != SLOPE_CH &&
+         (job->k != 1 || (job->compact != 2 && job->compact != 4))))
         return -1;
     return tr_parallel_for(moments_range, job, job->f.nb * job->h * job->w, 4096, threads);
 }
@@ -791,6 +823,7 @@ int torchrefract_lean(LeanJob *job, int threads) {
         job->mips < 0 || job->r.levels != 0 ||
         (job->mips == 0 ? job->k != 1 || job->lobes != 1 || job->texel != 0
                         : job->texel != job->k * LEAN_CH &&
+                              !(job->texel == job->k * SLOPE_CH && job->lobes == 1) &&
                               (job->k != 1 || job->texel != (job->lobes == 2 ? 4 : 2))))
         return -1;
     return run_shading(job, &job->r.f, NAXES, rous_axes, lean_block, threads);

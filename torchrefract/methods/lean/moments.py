@@ -52,6 +52,9 @@ FOOTPRINT_TAPS = (-0.375, -0.125, 0.125, 0.375)
 """Taps along the footprint's major extent, in units of it (as ``rousiers``' NDF)."""
 CHANNELS = 9
 """Per subdivision: w, w s_x, w s_y, w M_xx, w M_xy, w M_yy, w u, w u^2, w u^3 (u = alpha^2)."""
+SLOPE_CHANNELS = 6
+"""The first CHANNELS, without the roughness's: a pyramid where the roughness is one value
+per view (:func:`lean_mips`)."""
 
 
 @dataclass(frozen=True)
@@ -126,9 +129,12 @@ def sector(s: torch.Tensor, k: int) -> torch.Tensor:
     return torch.floor(phi.remainder(2.0 * math.pi) / (2.0 * math.pi / k)).long().clamp(0, k - 1)
 
 
-def lean_mips(g: GBuffer, materials: MaterialBatch, k: int) -> tuple[torch.Tensor, ...]:
+def lean_mips(g: GBuffer, materials: MaterialBatch, k: int, roughness: bool = True
+              ) -> tuple[torch.Tensor, ...]:
     """The back layer's LEAN moments per subdivision (module docstring), box-filtered:
-    levels of (B, H_l, W_l, K * CHANNELS)."""
+    levels of (B, H_l, W_l, K * CHANNELS); without ``roughness`` the first SLOPE_CHANNELS
+    of each subdivision only (one roughness per view: :func:`footprint_sums` gives its
+    moments)."""
     b, h, w = g.shape
     basis = camera_basis(g)  # (B, 3, 3)
     n_world = g.back.normal  # (B, H, W, 3), outward
@@ -145,29 +151,36 @@ def lean_mips(g: GBuffer, materials: MaterialBatch, k: int) -> tuple[torch.Tenso
     wgt = g.back.mask.to(s.dtype)
     ch = torch.stack([torch.ones_like(wgt), s[..., 0], s[..., 1], m[..., 0, 0], m[..., 0, 1],
                       m[..., 1, 1], u, u * u, u * u * u], -1) * wgt[..., None]
+    c = CHANNELS if roughness else SLOPE_CHANNELS
     sec = sector(s, k)
-    out = torch.zeros(b, h, w, k, CHANNELS, dtype=s.dtype)
-    out.scatter_(3, sec[..., None, None].expand(b, h, w, 1, CHANNELS), ch[..., None, :])
-    return build_box_mips(out.view(b, h, w, k * CHANNELS))
+    out = torch.zeros(b, h, w, k, c, dtype=s.dtype)
+    out.scatter_(3, sec[..., None, None].expand(b, h, w, 1, c), ch[..., None, :c])
+    return build_box_mips(out.view(b, h, w, k * c))
 
 
 def footprint_sums(mips: tuple[torch.Tensor, ...], k: int, bi: torch.Tensor,
                    xy_c: torch.Tensor, major: torch.Tensor, ext: torch.Tensor,
-                   level: torch.Tensor) -> torch.Tensor:
+                   level: torch.Tensor, alpha: torch.Tensor | None = None) -> torch.Tensor:
     """The moment sums (N, K, CHANNELS) over each pixel's footprint: the mips read at
     ``level`` (the footprint's minor extent) with taps along its major extent (the
     anisotropic part, as :func:`torchrefract.methods.rousiers.cone.back_ndf` does); the
     roughness moments at its center only, as ``rousiers``' coverage ratios (measured closer
-    on the roughness-map globes: docs/decisions_lean.md)."""
+    on the roughness-map globes: docs/decisions_lean.md). Mips without roughness channels
+    (:func:`lean_mips`, ``roughness`` False) take them from each pixel's one roughness
+    ``alpha`` (N,): w u, w u^2, w u^3 with u = alpha^2, what the center's give then."""
     n = bi.shape[0]
+    c = mips[0].shape[-1] // k
     along_x = (ext[:, 0] >= ext[:, 1])[:, None]
-    acc = torch.zeros(n, k * CHANNELS, dtype=xy_c.dtype)
+    acc = torch.zeros(n, k * c, dtype=xy_c.dtype)
     for o in FOOTPRINT_TAPS:
         zero = torch.zeros_like(major)
         shift = torch.where(along_x, torch.stack([o * major, zero], -1),
                             torch.stack([zero, o * major], -1))
         acc = acc + sample_box_mips(mips, bi, xy_c + shift, level)
-    acc = acc.view(n, k, CHANNELS) / len(FOOTPRINT_TAPS)
+    acc = acc.view(n, k, c) / len(FOOTPRINT_TAPS)
+    if c == SLOPE_CHANNELS:
+        u = (alpha * alpha)[:, None, None]
+        return torch.cat([acc, acc[..., :1] * torch.cat([u, u * u, u * u * u], -1)], -1)
     center = sample_box_mips(mips, bi, xy_c, level).view(n, k, CHANNELS)
     # the roughness moments, rescaled to the taps' covered weight so that w stays theirs
     scale = acc[..., :1] / center[..., :1].clamp(min=1e-12)
@@ -273,6 +286,6 @@ def two_point(m1: torch.Tensor, m2: torch.Tensor, m3: torch.Tensor
     return nodes.to(m1.dtype), weights.to(m1.dtype)
 
 
-__all__ = ["CHANNELS", "Footprint", "NZ_MIN", "camera_basis", "footprint_sums", "gaussians",
+__all__ = ["CHANNELS", "Footprint", "NZ_MIN", "SLOPE_CHANNELS", "camera_basis", "footprint_sums", "gaussians",
            "lean_mips", "sector", "separation", "slope_jacobian", "slopes", "two_point",
            "uniform_footprint"]

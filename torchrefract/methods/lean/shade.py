@@ -88,9 +88,10 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     cone = trace_cone(g, px.bi, px.p1, front.p_t1, front.k_t1, options)
     if subdivisions == 1 and spread == "rays" and not materials.has_maps:
         fp = uniform_footprint(px.alpha)  # the moments of one roughness: its own
-    else:
-        sums = footprint_sums(lean_mips(g, materials, subdivisions), subdivisions, px.bi,
-                              cone.xy_c, cone.major, cone.ext, cone.level)
+    else:  # (one roughness per view: its moments from it, not through the mips)
+        sums = footprint_sums(lean_mips(g, materials, subdivisions, materials.has_maps),
+                              subdivisions, px.bi, cone.xy_c, cone.major, cone.ext,
+                              cone.level, materials.roughness[px.bi])
         fp = gaussians(g, px.bi, sums)
     mode = "split" if bounce else options.tir
     if spread == "paper":
