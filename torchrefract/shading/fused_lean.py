@@ -147,10 +147,9 @@ def _mips(g, materials, k: int, lobes: int) -> tuple[tuple[torch.Tensor, ...], i
     # ``gsr`` with one roughness per view: no roughness channels (footprint_sums)
     compact = (4 if lobes == 2 else 2) if k == 1 else (0 if materials.has_maps else SLOPE)
     level0 = moments(g, materials, k, compact)
-    if level0 is None:
-        per = 9 if materials.has_maps or k == 1 else SLOPE
-        return lean_mips(g, materials, k, per == 9), k * per
-    return build_box_mips(level0), k * SLOPE if compact == SLOPE else compact or k * 9
+    mips = (lean_mips(g, materials, k, materials.has_maps or k == 1) if level0 is None
+            else build_box_mips(level0))
+    return mips, mips[0].shape[-1]
 
 
 __all__ = ["covered", "lean", "moments"]

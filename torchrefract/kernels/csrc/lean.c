@@ -188,24 +188,33 @@ static void sample_lean(const LeanJob *lj, int64_t b, float x, float y, float lv
 
 static const float FOOTPRINT_TAPS[4] = {-0.375f, -0.125f, 0.125f, 0.375f};
 
-/* moments.footprint_sums of a pyramid without roughness channels (K * SLOPE_CH, one
- * roughness per view): the four taps' sums, then per subdivision w u, w u^2, w u^3 from
- * the view's roughness (u = alpha^2), into the LEAN_CH slots of acc. */
-static void slope_sums(const LeanJob *lj, int64_t b, const Foot *fp, float *acc) {
-    int nk = lj->k, nc = nk * SLOPE_CH, rng[2] = {0, nc};
-    float tap[MAX_K * SLOPE_CH], sum[MAX_K * SLOPE_CH];
-    for (int q = 0; q < nc; q++) sum[q] = 0.0f;
+/* The mean of the four taps along the footprint's major extent of texel channels [0, nc)
+ * (the ``nr`` ranges ``rng`` read, the others 0) into mean. */
+static void tap_means(const LeanJob *lj, int64_t b, const Foot *fp, const int *rng, int nr,
+                      int nc, float *mean) {
+    float tap[MAX_K * LEAN_CH];
+    for (int q = 0; q < nc; q++) mean[q] = tap[q] = 0.0f;
     for (int t = 0; t < 4; t++) {
         float o = FOOTPRINT_TAPS[t] * fp->major;
         float x = fp->along_x ? fp->c[0] + o : fp->c[0] + 0.0f;
         float y = fp->along_x ? fp->c[1] + 0.0f : fp->c[1] + o;
-        sample_lean(lj, b, x, y, fp->level, rng, 1, tap);
-        for (int q = 0; q < nc; q++) sum[q] = sum[q] + tap[q];
+        sample_lean(lj, b, x, y, fp->level, rng, nr, tap);
+        for (int q = 0; q < nc; q++) mean[q] = mean[q] + tap[q];
     }
+    for (int q = 0; q < nc; q++) mean[q] = mean[q] / 4.0f;
+}
+
+/* moments.footprint_sums of a pyramid without roughness channels (K * SLOPE_CH, one
+ * roughness per view): the taps' means, then per subdivision w u, w u^2, w u^3 from the
+ * view's roughness (u = alpha^2), into the LEAN_CH slots of acc. */
+static void slope_sums(const LeanJob *lj, int64_t b, const Foot *fp, float *acc) {
+    int nk = lj->k, nc = nk * SLOPE_CH, rng[2] = {0, nc};
+    float mean[MAX_K * SLOPE_CH];
+    tap_means(lj, b, fp, rng, 1, nc, mean);
     float alpha = lj->r.f.alpha[b], u = alpha * alpha, pw[3] = {u, u * u, (u * u) * u};
     for (int s = 0; s < nk; s++) {
         float *a = acc + s * LEAN_CH;
-        for (int q = 0; q < SLOPE_CH; q++) a[q] = sum[s * SLOPE_CH + q] / 4.0f;
+        for (int q = 0; q < SLOPE_CH; q++) a[q] = mean[s * SLOPE_CH + q];
         for (int q = 0; q < 3; q++) a[SLOPE_CH + q] = a[0] * pw[q];
     }
 }
@@ -229,16 +238,9 @@ static void footprint_sums(const LeanJob *lj, int64_t b, const Foot *fp, float *
         rng[3] = lj->lobes == 2 ? LEAN_CH : 7;
         nr = 2;
     }
-    float tap[MAX_K * LEAN_CH], center[MAX_K * LEAN_CH];
-    for (int q = 0; q < nc; q++) acc[q] = center[q] = tap[q] = 0.0f;
-    for (int t = 0; t < 4; t++) {
-        float o = FOOTPRINT_TAPS[t] * fp->major;
-        float x = fp->along_x ? fp->c[0] + o : fp->c[0] + 0.0f;
-        float y = fp->along_x ? fp->c[1] + 0.0f : fp->c[1] + o;
-        sample_lean(lj, b, x, y, fp->level, rng, nr, tap);
-        for (int q = 0; q < nc; q++) acc[q] = acc[q] + tap[q];
-    }
-    for (int q = 0; q < nc; q++) acc[q] = acc[q] / 4.0f;
+    float center[MAX_K * LEAN_CH];
+    for (int q = 0; q < nc; q++) center[q] = 0.0f;
+    tap_means(lj, b, fp, rng, nr, nc, acc);
     sample_lean(lj, b, fp->c[0], fp->c[1], fp->level, rng, nr, center);
     if (compact)  /* channels (w, u, u^2, u^3) to their places among the LEAN_CH */
         for (int q = lj->texel - 1; q >= 1; q--) {

@@ -286,6 +286,6 @@ def two_point(m1: torch.Tensor, m2: torch.Tensor, m3: torch.Tensor
     return nodes.to(m1.dtype), weights.to(m1.dtype)
 
 
-__all__ = ["CHANNELS", "Footprint", "NZ_MIN", "SLOPE_CHANNELS", "camera_basis", "footprint_sums", "gaussians",
-           "lean_mips", "sector", "separation", "slope_jacobian", "slopes", "two_point",
-           "uniform_footprint"]
+__all__ = ["CHANNELS", "Footprint", "NZ_MIN", "SLOPE_CHANNELS", "camera_basis",
+           "footprint_sums", "gaussians", "lean_mips", "sector", "separation",
+           "slope_jacobian", "slopes", "two_point", "uniform_footprint"]
