@@ -159,7 +159,12 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
 typedef void (*tr_block_fn)(const void *job, const SgAxes *axes, int64_t r0, int m);
 typedef int (*tr_axes_fn)(const Frame *f, int64_t b, SgAxes *out);
 
-typedef struct { tr_block_fn fn; const void *job; const SgAxes *axes; const Frame *f; } ShadeRange;
+typedef struct {
+    tr_block_fn fn;
+    const void *job;
+    const SgAxes *axes;
+    const Frame *f;  /* the job's frame: its pixels and G-buffer (pixels_prefetch) */
+} ShadeRange;
 
 /* The G-buffer values every kernel reads of pixels [r, e), asked into the cache: a
  * block's pixels are a sparse, increasing list over frames of tens of MB (the adaptive

@@ -722,14 +722,19 @@ static int pixel_pairs(const EdgesJob *j, int64_t p, const Pos *at) {
 #ifdef TR_HAVE_ENV8  /* AVX2 lanes (lighting.h) */
 #define TR_EDGES8 1
 
-/* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 pixels' normals from p and q. */
-static inline __m256 one_minus_dot8(const float *np, const float *nq) {
-    __m256 px, py, pz, qx, qy, qz;
-    tr_load_xyz8(np, &px, &py, &pz);
-    tr_load_xyz8(nq, &qx, &qy, &qz);
-    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(qx, px), _mm256_mul_ps(qy, py)),
-                             _mm256_mul_ps(qz, pz));
+/* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 lanes' vectors (x, y, z). */
+static inline __m256 one_minus_dot_lanes(const __m256 *u, const __m256 *v) {
+    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(u[0], v[0]), _mm256_mul_ps(u[1], v[1])),
+                             _mm256_mul_ps(u[2], v[2]));
     return _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
+}
+
+/* one_minus_dot_lanes of 8 pixels' normals from p and q. */
+static inline __m256 one_minus_dot8(const float *np, const float *nq) {
+    __m256 p[3], q[3];
+    tr_load_xyz8(np, &p[0], &p[1], &p[2]);
+    tr_load_xyz8(nq, &q[0], &q[1], &q[2]);
+    return one_minus_dot_lanes(q, p);
 }
 
 /* 8 bytes of a mask (0 or 1) as lanes of all ones or zeros. */
@@ -761,11 +766,8 @@ static inline __m256i face_turns8(const EdgesJob *j, const __m256 *na, __m256i b
     if (_mm256_testz_si256(want, want)) return want;
     __m256 nb[3];
     face_normals8(j, b, want, nb);
-    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nb[0], na[0]), _mm256_mul_ps(nb[1], na[1])),
-                             _mm256_mul_ps(nb[2], na[2]));
-    __m256 turn = _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
-    return _mm256_and_si256(want, _mm256_castps_si256(
-        _mm256_cmp_ps(turn, _mm256_set1_ps(j->face_tol), _CMP_GT_OQ)));
+    return _mm256_and_si256(want, _mm256_castps_si256(_mm256_cmp_ps(
+        one_minus_dot_lanes(nb, na), _mm256_set1_ps(j->face_tol), _CMP_GT_OQ)));
 }
 
 /* sub_pixels_differ (n = 2) of one layer for 8 pixels from p in lanes: the flagged lanes,
@@ -829,7 +831,8 @@ static void pixel_pairs8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
         own_flags8(j, p, at, own);
     } else {
         Pos q = at;
-        for (int i = 0; i < 8; i++, pos_step(&q, j->h, j->w)) own[i] = (uint8_t)own_flags(j, p + i, &q);
+        for (int i = 0; i < 8; i++, pos_step(&q, j->h, j->w))
+            own[i] = (uint8_t)own_flags(j, p + i, &q);
     }
     if (_mm256_testz_si256(_mm256_or_si256(fm, bm), _mm256_or_si256(fm, bm))) {
         /* 8 empty pixels: no pair flags either end (each test needs p covered) */
