@@ -222,10 +222,9 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
         ax = own;
     }
     float cos1 = ex->cos1, f1 = ex->f1, cos2 = ex->cos2, f2 = ex->f2;
-    const float *refl = ex->refl;
-    float t2[3], p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
+    const float *refl = ex->refl, *t2 = ex->look;  /* the transmitted light's direction */
+    float p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
     int bounce = sj->bo.limit > 0, tir2 = ex->tir2;
-    for (int c = 0; c < 3; c++) t2[c] = ex->look[c];
     float z1 = j->rough ? sg_theta(cos1) : 0.0f;  /* the entry's table coordinate */
     if (j->rough) {
         interface_energies_at(&j->table, ax, j->dist[b], z1, f1, &e_t1, &e_r1);
