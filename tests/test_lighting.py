@@ -98,3 +98,31 @@ def test_slab_lit_by_a_sphere_light_against_mitsuba():
         out = tr.render(s.replace(method=method))
         err = compare(out.radiance[0].numpy(), ref.radiance[0].numpy(), a)["relmse_object"]
         assert err < 0.25, (method, err, noise)
+
+
+def test_lighting_kept_for_batches_that_light_alike(tmp_path):
+    """A batch lit as one of the last few gets that Lighting object again (its kernels'
+    structs are built once); another rotation, scale or light gets its own, with its
+    values."""
+    import dataclasses  # noqa: PLC0415
+
+    import torchrefract as tr  # noqa: PLC0415
+    from conftest import small_scene_yaml  # noqa: PLC0415
+    from torchrefract.lighting.lights import Lighting  # noqa: PLC0415
+
+    base = tr.load_scene(small_scene_yaml(tmp_path))
+    turned = [base.replace(envmap=dataclasses.replace(base.envmap, rotate_deg=r))
+              for r in (10.0, 20.0)]
+    first = Lighting.from_scenes(turned)
+    moved = [s.replace(camera=dataclasses.replace(s.camera, eye=(0.1, 0.4, 3.0)))
+             for s in turned]
+    assert Lighting.from_scenes(moved) is first  # only the cameras differ
+    other = Lighting.from_scenes([turned[0], turned[0]])
+    assert other is not first and other.rotate_deg.tolist() == [10.0, 10.0]
+    brighter = [s.replace(envmap=dataclasses.replace(s.envmap, scale=2.0)) for s in turned]
+    assert Lighting.from_scenes(brighter).scale.tolist() == [2.0, 2.0]
+    lit = [s.replace(lights=(tr.SphereLight(position=(0.0, 2.0, 0.0), radius=0.2,
+                                            radiance=(5.0, 5.0, 5.0)),)) for s in turned]
+    with_light = Lighting.from_scenes(lit)
+    assert with_light.light_pos.shape == (2, 1, 3) and with_light.light_radius[0, 0] == 0.2
+    assert Lighting.from_scenes(turned) is first

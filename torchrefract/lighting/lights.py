@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting import envmap
 from torchrefract.matte import record
@@ -44,26 +45,47 @@ class Lighting:
 
     @staticmethod
     def from_scenes(scenes: list[Scene]) -> "Lighting":
-        num = max(len(s.lights) for s in scenes)
-        b = len(scenes)
-        pos, rad, le = torch.zeros(b, num, 3), torch.zeros(b, num), torch.zeros(b, num, 3)
-        for i, s in enumerate(scenes):
-            for j, l in enumerate(s.lights):
-                pos[i, j], rad[i, j] = torch.tensor(l.position), l.radius
-                le[i, j] = torch.tensor(l.radiance)
-        return Lighting(
-            texels=tuple(envmap.load_envmap(s.envmap.path) for s in scenes),
-            paths=tuple(s.envmap.path for s in scenes),
-            rotate_deg=torch.tensor([s.envmap.rotate_deg for s in scenes], dtype=torch.float32),
-            scale=torch.tensor([s.envmap.scale for s in scenes], dtype=torch.float32),
-            light_pos=pos, light_radius=rad, light_radiance=le)
-
+        """The lighting of ``scenes``; the same object again for scenes that light alike
+        (the same maps' tensors, rotations, scales and lights) as one of the last few
+        batches: a dataset's or benchmark's batches differ by their cameras, and the
+        fused kernels' structs are built once per Lighting (shading/fused.py)."""
+        texels = tuple(envmap.load_envmap(s.envmap.path) for s in scenes)
+        key = (tuple(id(t) for t in texels),
+               tuple((s.envmap.path, s.envmap.rotate_deg, s.envmap.scale, s.lights)
+                     for s in scenes))
+        try:
+            hit = _KEPT.get(texels[0], key)
+        except TypeError:  # a value that does not hash: built anew
+            return _lighting(scenes, texels)
+        # (its texels are held by the kept Lighting: an id above cannot be another's)
+        return hit if hit is not None else _KEPT.put(texels[0], key, _lighting(scenes, texels))
 
     def pyramid(self, b: int):
         """The SG-pre-convolved pyramid of scene ``b``'s map (built once per file, cached)."""
         from torchrefract.lighting.sg_pyramid import sg_pyramid_for  # noqa: PLC0415
 
         return sg_pyramid_for(self.paths[b], device=self.scale.device)
+
+
+_KEPT = KeptByIdentity(4)
+"""The last few batches' Lighting (:meth:`Lighting.from_scenes`), per first map tensor."""
+
+
+def _lighting(scenes: list[Scene], texels: tuple[torch.Tensor, ...]) -> Lighting:
+    """:meth:`Lighting.from_scenes` built anew, with the scenes' loaded maps ``texels``."""
+    num = max(len(s.lights) for s in scenes)
+    b = len(scenes)
+    pos, rad, le = torch.zeros(b, num, 3), torch.zeros(b, num), torch.zeros(b, num, 3)
+    for i, s in enumerate(scenes):
+        for j, l in enumerate(s.lights):
+            pos[i, j], rad[i, j] = torch.tensor(l.position), l.radius
+            le[i, j] = torch.tensor(l.radiance)
+    return Lighting(
+        texels=texels,
+        paths=tuple(s.envmap.path for s in scenes),
+        rotate_deg=torch.tensor([s.envmap.rotate_deg for s in scenes], dtype=torch.float32),
+        scale=torch.tensor([s.envmap.scale for s in scenes], dtype=torch.float32),
+        light_pos=pos, light_radius=rad, light_radiance=le)
 
 
 def hit_lights(origin: torch.Tensor, direction: torch.Tensor, pos: torch.Tensor,

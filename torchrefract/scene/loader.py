@@ -225,8 +225,9 @@ def _check(scene: Scene) -> Scene:
             _checked_rest.popitem(last=False)
         return checked
     _checked_rest.move_to_end(rest)
-    return dataclasses.replace(checked, camera=_camera(dataclasses.asdict(scene.camera),
-                                                       source))
+    cam = scene.camera  # its fields by name (no deep copy: _camera only reads them)
+    fields = {f.name: getattr(cam, f.name) for f in dataclasses.fields(cam)}
+    return dataclasses.replace(checked, camera=_camera(fields, source))
 
 
 _validated = KeptByIdentity(256)
