@@ -550,17 +550,20 @@ def test_refined_render_is_closer_to_uniform(monkeypatch):
 
 def test_refine_kernel_equals_tensor_code():
     """csrc/lattice.c's ``refine`` decides as adaptive._refine_torch: random radiances over
-    partly uniform pixels, odd sizes, a NaN and an infinity (whose neighbourhoods refine
-    nothing), three tolerances."""
+    partly uniform pixels, odd sizes (rows longer than the kernel's 64-pixel tiles too, and
+    1 to 3 samples per side), a NaN and an infinity (whose neighbourhoods refine nothing),
+    three tolerances."""
     if not native.available():
         pytest.skip("native kernels unavailable")
     g = torch.Generator().manual_seed(5)
-    for trial in range(12):
+    for trial in range(15):
         b, h, w, n = 2, 5 + trial % 3, 7 + trial % 2, 2
+        if trial >= 12:
+            h, w, n = (9, 133, 2) if trial == 12 else (6, 70, 1) if trial == 13 else (4, 65, 3)
         uniform = torch.rand(b, h, w, generator=g) > 0.3
         radiance = torch.rand(b, h * n, w * n, 3, generator=g) ** 4 * 3
-        radiance[0, 2, 2, 1] = float("nan")
-        radiance[1, 4, 0, 0] = float("inf")
+        radiance[0, n, n, 1] = float("nan")  # pixel (1, 1)'s first sub-pixel
+        radiance[1, 2 * n, 0, 0] = float("inf")  # pixel (2, 0)'s
         for rtol in (0.2, 0.8, 1.6):
             made = native.refine(uniform, radiance, rtol)
             want = adaptive._refine_torch(uniform, radiance[:, ::n, ::n], rtol)
