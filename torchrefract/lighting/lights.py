@@ -48,7 +48,8 @@ class Lighting:
         """The lighting of ``scenes``; the same object again for scenes that light alike
         (the same maps' tensors, rotations, scales and lights) as one of the last few
         batches: a dataset's or benchmark's batches differ by their cameras, and the
-        fused kernels' structs are built once per Lighting (shading/fused.py)."""
+        fused kernels' structs are built once per Lighting (shading/fused.py). Its tensors
+        must not be modified in place (``dataclasses.replace`` gives a new one)."""
         texels = tuple(envmap.load_envmap(s.envmap.path) for s in scenes)
         key = (tuple(id(t) for t in texels),
                tuple((s.envmap.path, s.envmap.rotate_deg, s.envmap.scale, s.lights)
