@@ -112,7 +112,7 @@ def moments(g, materials, k: int, compact: int = 0) -> torch.Tensor | None:
     gradient). ``compact`` 2 or 4 (K = 1): only the channels ``lean``'s merged Gaussian
     reads, w and w u (and w u^2, w u^3 for two roughness lobes), (B, H, W, compact);
     ``SLOPE_CHANNELS``: each subdivision's without the roughness's, (B, H, W, K * 6)."""
-    from torchrefract.methods.lean.moments import SLOPE_CHANNELS as SLOPE  # (see _mips)
+    from torchrefract.methods.lean.moments import CHANNELS, SLOPE_CHANNELS as SLOPE  # (_mips)
 
     b, h, w = g.shape
     maps = list(materials.roughness_maps) or [None] * b
@@ -128,7 +128,7 @@ def moments(g, materials, k: int, compact: int = 0) -> torch.Tensor | None:
                          torch.int64),
         rrange=keep.ptr(materials.roughness_range if materials.roughness_range is not None
                         else torch.zeros(b, 2)))
-    out = torch.empty(b, h, w, k * SLOPE if compact == SLOPE else compact or k * 9)
+    out = torch.empty(b, h, w, k * SLOPE if compact == SLOPE else compact or k * CHANNELS)
     job = _MomentsJob(f=frame, h=h, w=w, k=k, compact=compact, normal=keep.ptr(g.back.normal),
                       uv=keep.ptr(g.back.uv), mask=keep.ptr(g.back.mask, torch.bool),
                       out=out.data_ptr())
@@ -147,7 +147,7 @@ def _mips(g, materials, k: int, lobes: int) -> tuple[tuple[torch.Tensor, ...], i
     # ``gsr`` with one roughness per view: no roughness channels (footprint_sums)
     compact = (4 if lobes == 2 else 2) if k == 1 else (0 if materials.has_maps else SLOPE)
     level0 = moments(g, materials, k, compact)
-    mips = (lean_mips(g, materials, k, materials.has_maps or k == 1) if level0 is None
+    mips = (lean_mips(g, materials, k, materials.has_maps) if level0 is None
             else build_box_mips(level0))
     return mips, mips[0].shape[-1]
 
