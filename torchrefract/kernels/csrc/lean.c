@@ -580,13 +580,16 @@ static float rays_mixture(const LeanJob *lj, const SgAxes *view_axes, const Bloc
     float n4[4][3];
     uint8_t ok4[4];
     bounding_normals(&lj->r, k, i, n4, ok4);
+    float nk[4][3], t_k[4][3];  /* all four refracted at once (those not found unused) */
+    for (int q = 0; q < 4; q++) {
+        float mq[3] = {-n4[q][0], -n4[q][1], -n4[q][2]};
+        face_forward(mq, k->dirs[i][q], nk[q]);
+    }
+    refract_x4(k->dirs[i], (const float (*)[3])nk, ior, t_k);
     for (int q = 0; q < 4; q++) {
         if (!ok4[q]) continue;
-        const float *nq = n4[q], *dq = k->dirs[i][q];
-        float mq[3] = {-nq[0], -nq[1], -nq[2]}, nk[3], t_k[3], dk[3];
-        face_forward(mq, dq, nk);
-        refract(dq, nk, ior, t_k);
-        for (int c = 0; c < 3; c++) dk[c] = t_k[c] - t_c[c];
+        float dk[3];
+        for (int c = 0; c < 3; c++) dk[c] = t_k[q][c] - t_c[c];
         float x = dot3(dk, e1r), y = dot3(dk, e2);
         float add[3] = {x * x, x * y, y * y};
         for (int c = 0; c < 3; c++) rays[c] = rays[c] + add[c];

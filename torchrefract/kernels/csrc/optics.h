@@ -52,18 +52,59 @@ static inline float fresnel(float cos_i, float eta) {
     return sin2_t >= 1.0f ? 1.0f : clampf(f, 0.0f, 1.0f);
 }
 
-/* Snell (smooth.refract): the unit transmitted direction; returns TIR. */
-static inline int refract(const float *d, const float *n, float eta, float *t) {
-    float cos_i = clampf(-dot3(d, n), 0.0f, 1.0f);
-    float sin2_t = eta * eta * (1.0f - cos_i * cos_i);
-    float ct = 1.0f - sin2_t;
-    float cos_t = sqrtf(ct > 0.0f ? ct : 0.0f);
-    float k = eta * cos_i - cos_t;
-    for (int i = 0; i < 3; i++) t[i] = eta * d[i] + k * n[i];
-    float len = norm3(t);
-    if (len < 1e-20f) len = 1e-20f;
-    for (int i = 0; i < 3; i++) t[i] = t[i] / len;
-    return sin2_t >= 1.0f;
+/* Snell (smooth.refract): the unit transmitted direction; returns TIR. Written once for
+ * a lane type T as TR_DEFINE_LANES' bodies are (its dot3##S, norm3##S; M, SEL and K as
+ * there): the scalar ``refract`` and, where built for it, four rays in SSE lanes
+ * (refract_x4), the same bits lane by lane. */
+#define TR_DEFINE_REFRACT(T, M, S, SQRT, SEL, K)                                           \
+    static inline TR_LANES_ATTR M refract##S(const T *d, const T *n, T eta, T *t) {        \
+        T c = -dot3##S(d, n);                                                               \
+        T cos_i = SEL(c < K(T, 0), K(T, 0), SEL(c > K(T, 1), K(T, 1), c));                  \
+        T sin2_t = eta * eta * (K(T, 1) - cos_i * cos_i);                                   \
+        T ct = K(T, 1) - sin2_t;                                                            \
+        T cos_t = SQRT(SEL(ct > K(T, 0), ct, K(T, 0)));                                     \
+        T k = eta * cos_i - cos_t;                                                          \
+        for (int i = 0; i < 3; i++) t[i] = eta * d[i] + k * n[i];                          \
+        T len = norm3##S(t);                                                                \
+        len = SEL(len < K(T, 1e-20f), K(T, 1e-20f), len);                                   \
+        for (int i = 0; i < 3; i++) t[i] = t[i] / len;                                      \
+        return sin2_t >= K(T, 1);                                                           \
+    }
+
+TR_DEFINE_REFRACT(float, int, , sqrtf, TR_SEL_SCALAR, TR_K_SCALAR)
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+typedef float v4f __attribute__((vector_size(16)));
+typedef int v4i __attribute__((vector_size(16)));
+static inline v4f fma4f(v4f a, v4f b, v4f c) {
+    return (v4f)_mm_fmadd_ps((__m128)a, (__m128)b, (__m128)c);
+}
+static inline v4f sqrt4f(v4f a) { return (v4f)_mm_sqrt_ps((__m128)a); }
+static inline v4f abs4f(v4f a) { return (v4f)((v4i)a & (v4i){~(1 << 31), ~(1 << 31),
+                                                            ~(1 << 31), ~(1 << 31)}); }
+#define SEL4F(m, a, b) ((v4f)_mm_blendv_ps((__m128)(b), (__m128)(a), (__m128)(m)))
+#define K4F(T, x) ((T){(x), (x), (x), (x)})
+TR_DEFINE_LANES(v4f, v4i, 4f, fma4f, abs4f, sqrt4f, 1e-30f, SEL4F, K4F)
+TR_DEFINE_REFRACT(v4f, v4i, 4f, sqrt4f, SEL4F, K4F)
+#endif
+
+/* refract of four rays d[q] at normals n[q] (q < 4) into t[q]: in SSE lanes where built
+ * for it (a pixel's bounding rays), else one by one; the same bits either way. */
+static inline void refract_x4(const float (*d)[3], const float (*n)[3], float eta,
+                              float (*t)[3]) {
+#if defined(__AVX2__) && defined(__FMA__)
+    v4f dv[3], nv[3], tv[3];
+    for (int c = 0; c < 3; c++) {
+        dv[c] = (v4f){d[0][c], d[1][c], d[2][c], d[3][c]};
+        nv[c] = (v4f){n[0][c], n[1][c], n[2][c], n[3][c]};
+    }
+    refract4f(dv, nv, K4F(v4f, eta), tv);
+    for (int q = 0; q < 4; q++)
+        for (int c = 0; c < 3; c++) t[q][c] = tv[c][q];
+#else
+    for (int q = 0; q < 4; q++) refract(d[q], n[q], eta, t[q]);
+#endif
 }
 
 static inline void reflect(const float *d, const float *n, float *r) {

@@ -165,11 +165,15 @@ static float ray_spread(const RousJob *rj, const float *p_t1, const float *exact
     face_forward(m, p_t1, n);
     refract(p_t1, n, ior, t_c);
     int cnt = 0;
+    float nk[4][3], t_k[4][3];
     for (int k = 0; k < 4; k++) {
-        float mk[3] = {-n4[k][0], -n4[k][1], -n4[k][2]}, nk[3], t_k[3], dk[3];
-        face_forward(mk, dirs[k], nk);
-        refract(dirs[k], nk, ior, t_k);
-        for (int c = 0; c < 3; c++) dk[c] = t_k[c] - t_c[c];
+        float mk[3] = {-n4[k][0], -n4[k][1], -n4[k][2]};
+        face_forward(mk, dirs[k], nk[k]);
+    }
+    refract_x4(dirs, (const float (*)[3])nk, ior, t_k);
+    for (int k = 0; k < 4; k++) {
+        float dk[3];
+        for (int c = 0; c < 3; c++) dk[c] = t_k[k][c] - t_c[c];
         float chord2 = dot3(dk, dk);
         sum = k == 0 ? (ok4[k] ? chord2 : 0.0f) : sum + (ok4[k] ? chord2 : 0.0f);
         cnt += ok4[k] != 0;
