@@ -83,6 +83,8 @@ def lean(g, lighting, materials, options, radiance: torch.Tensor, subdivisions: 
     ``lobe_sigma``, ``footprint``; with internal bounces ``bounces``, ``bounce_residual``),
     shaded over ``radiance`` (B*H*W, 3), the background (written in place); ``None``, and
     ``radiance`` untouched, where the fused kernel does not run (module docstring)."""
+    from torchrefract.methods.lean.moments import reads_no_moments  # (as in _mips)
+
     if not covered(options, lighting, spread) or not 1 <= subdivisions <= 8:
         return None
     made = fused._frame(g, lighting, materials, options, radiance, sg_env=True)
@@ -94,8 +96,7 @@ def lean(g, lighting, materials, options, radiance: torch.Tensor, subdivisions: 
     if frame.n == 0:
         return radiance.view(b, h, w, 3), passes
     lobes = options.roughness_lobes if materials.has_maps else 1
-    # ``lean`` with one roughness per view reads no moments (moments.uniform_footprint)
-    mips, texel = (((), 0) if subdivisions == 1 and not materials.has_maps
+    mips, texel = (((), 0) if reads_no_moments(subdivisions, spread, materials.has_maps)
                    else _mips(g, materials, subdivisions, lobes))
     job = _LeanJob(
         r=rous, k=subdivisions, lobes=lobes, taps=options.ewa_taps, mips=len(mips), texel=texel,

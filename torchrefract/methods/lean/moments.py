@@ -223,6 +223,13 @@ def gaussians(g: GBuffer, bi: torch.Tensor, acc: torch.Tensor) -> Footprint:
                      coverage=total.clamp(max=1.0))
 
 
+def reads_no_moments(subdivisions: int, spread: str, has_maps: bool) -> bool:
+    """Whether a render's footprints are :func:`uniform_footprint` (no moments pyramid is
+    built or read): ``lean`` (one subdivision) with ``spread: rays`` and one roughness per
+    view. The tensor code and the fused kernel both ask here."""
+    return subdivisions == 1 and spread == "rays" and not has_maps
+
+
 def uniform_footprint(alpha: torch.Tensor) -> Footprint:
     """The merged Gaussian (K = 1) of any footprint where the roughness ``alpha`` (N,) is
     one value (no roughness map): the mip's roughness moments are that value's own, w u / w
@@ -288,4 +295,4 @@ def two_point(m1: torch.Tensor, m2: torch.Tensor, m3: torch.Tensor
 
 __all__ = ["CHANNELS", "Footprint", "NZ_MIN", "SLOPE_CHANNELS", "camera_basis",
            "footprint_sums", "gaussians", "lean_mips", "sector", "separation",
-           "slope_jacobian", "slopes", "two_point", "uniform_footprint"]
+           "reads_no_moments", "slope_jacobian", "slopes", "two_point", "uniform_footprint"]

@@ -30,6 +30,7 @@ from torchrefract.methods.lean.moments import (
     footprint_sums,
     gaussians,
     lean_mips,
+    reads_no_moments,
     separation,
     uniform_footprint,
 )
@@ -86,7 +87,7 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     px = object_pixels(g, materials, idx)
     front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
     cone = trace_cone(g, px.bi, px.p1, front.p_t1, front.k_t1, options)
-    if subdivisions == 1 and spread == "rays" and not materials.has_maps:
+    if reads_no_moments(subdivisions, spread, materials.has_maps):
         fp = uniform_footprint(px.alpha)  # the moments of one roughness: its own
     else:  # (one roughness per view: its moments from it, not through the mips)
         sums = footprint_sums(lean_mips(g, materials, subdivisions, materials.has_maps),
