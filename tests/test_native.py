@@ -396,3 +396,29 @@ def test_the_built_kernels_keep_their_prefetches():
     # specular's block (env taps), the SG taps of rousiers' blocks and lean's EWA
     assert sum(holders.values()) >= 20, holders
     assert len(holders) >= 3, holders
+
+
+def test_four_refractions_in_lanes_give_the_scalar_bits():
+    """csrc/optics.h's refract_x4 (a pixel's four bounding rays at once, in SSE lanes where
+    built for it) against its scalar refract, bit for bit: grazing and head-on rays, total
+    internal reflection, a zero and a NaN normal; and both against the tensor code."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    g = torch.Generator().manual_seed(7)
+    d = torch.nn.functional.normalize(torch.randn(4096, 4, 3, generator=g), dim=-1)
+    n = torch.nn.functional.normalize(torch.randn(4096, 4, 3, generator=g), dim=-1)
+    n = torch.where((d * n).sum(-1, keepdim=True) > 0, -n, n)  # facing the ray
+    n[:8, 0] = -d[:8, 0]  # head-on
+    n[8:16, 1] = torch.nn.functional.normalize(torch.cross(d[8:16, 1], n[8:16, 1], dim=-1)
+                                               + 1e-4 * n[8:16, 1], dim=-1)  # grazing
+    n[16, 2] = 0.0
+    n[17, 3] = float("nan")
+    eta = torch.rand(4096, generator=g) * 2.0 + 0.4  # both sides of 1: TIR where eta > 1
+    lanes, scalar = native.refract_x4(d, n, eta)
+    nan = torch.isnan(scalar)
+    assert torch.equal(torch.isnan(lanes), nan) and nan[17, 3].all()  # (NaN bits may differ)
+    assert torch.equal(lanes.view(torch.int32)[~nan], scalar.view(torch.int32)[~nan])
+    ref, _ = refract(d.reshape(-1, 3), n.reshape(-1, 3), eta.repeat_interleave(4))
+    ok = torch.isfinite(ref).all(-1)
+    assert ok.sum() > 16000
+    assert torch.allclose(scalar.reshape(-1, 3)[ok], ref[ok], atol=1e-5)

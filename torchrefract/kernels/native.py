@@ -221,6 +221,13 @@ class _RasterJob(ctypes.Structure):
                 ("rows", ctypes.c_int64), ("ids32", ctypes.c_int)]
 
 
+class _RefractX4Job(ctypes.Structure):
+    """ctypes mirror of ``RefractX4Job`` in csrc/cone.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("d", _p), ("nrm", _p), ("eta", _p), ("lanes", _p),
+                ("scalar", _p)]
+
+
 class _TriPlanesJob(ctypes.Structure):
     """ctypes mirror of ``TriPlanesJob`` in csrc/march.c."""
 
@@ -365,7 +372,7 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "specular": _SpecJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
@@ -753,6 +760,24 @@ def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: tor
     if n and not _call("footprint", job):
         return None
     return xy, xy_c, ext
+
+
+def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """csrc/optics.h's ``refract_x4`` (four rays at once, in lanes where built for them) and
+    its scalar ``refract`` over the same rays, for the tests that hold the two to the same
+    bits: ``d``, ``n`` (G, 4, 3) float32, ``eta`` (G,); ``None`` where the kernels do not
+    run."""
+    if not available():
+        return None
+    keep = _inputs((d, n, eta), ())
+    if keep is None:
+        return None
+    d, n, eta = keep
+    lanes, scalar = torch.empty_like(d), torch.empty_like(d)
+    job = _RefractX4Job(n=d.shape[0], d=d.data_ptr(), nrm=n.data_ptr(), eta=eta.data_ptr(),
+                        lanes=lanes.data_ptr(), scalar=scalar.data_ptr())
+    return (lanes, scalar) if _call("refract_x4", job) else None
 
 
 def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Tensor,

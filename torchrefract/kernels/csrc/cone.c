@@ -140,7 +140,30 @@ static void spread_range(const void *job, int64_t begin, int64_t end) {
     }
 }
 
+/* optics.h's refract_x4 against four scalar refract calls, for tests/test_native.py: the
+ * lanes must give the scalar code's bits (groups of four rays, each group its own eta). */
+typedef struct {
+    int64_t n;                  /* groups */
+    const float *d, *nrm;       /* (n, 4, 3) */
+    const float *eta;           /* (n,) */
+    float *lanes, *scalar;      /* out (n, 4, 3) */
+} RefractX4Job;
+
+static void refract_x4_range(const void *job, int64_t begin, int64_t end) {
+    const RefractX4Job *j = (const RefractX4Job *)job;
+    for (int64_t g = begin; g < end; g++) {
+        const float (*d)[3] = (const float (*)[3])(j->d + 12 * g);
+        const float (*nr)[3] = (const float (*)[3])(j->nrm + 12 * g);
+        refract_x4(d, nr, j->eta[g], (float (*)[3])(j->lanes + 12 * g));
+        for (int q = 0; q < 4; q++) refract(d[q], nr[q], j->eta[g], j->scalar + 12 * g + 3 * q);
+    }
+}
+
 /* Entry points (ctypes, native.py); 0, or -1 where a thread could not be started. */
+int torchrefract_refract_x4(const RefractX4Job *job, int threads) {
+    return tr_parallel_for(refract_x4_range, job, job->n, 16384, threads);
+}
+
 int torchrefract_footprint(const FootprintJob *job, int threads) {
     return tr_parallel_for(footprint_range, job, job->n, 16384, threads);
 }
@@ -152,3 +175,4 @@ int torchrefract_spread(const SpreadJob *job, int threads) {
 
 int64_t torchrefract_footprint_job_size(void) { return (int64_t)sizeof(FootprintJob); }
 int64_t torchrefract_spread_job_size(void) { return (int64_t)sizeof(SpreadJob); }
+int64_t torchrefract_refract_x4_job_size(void) { return (int64_t)sizeof(RefractX4Job); }
