@@ -1299,4 +1299,4 @@ def relight_values(vals: torch.Tensor, tex: torch.Tensor, row: torch.Tensor,
 
 __all__ = ["available", "boxes", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
            "library_path", "march", "native_enabled", "no_grad_through", "raster_ids",
-           "relight_reads", "relight_values", "set_native", "spread"]
+           "refract_x4", "relight_reads", "relight_values", "set_native", "spread"]
