@@ -422,3 +422,5 @@ def test_four_refractions_in_lanes_give_the_scalar_bits():
     ok = torch.isfinite(ref).all(-1)
     assert ok.sum() > 16000
     assert torch.allclose(scalar.reshape(-1, 3)[ok], ref[ok], atol=1e-5)
+    with pytest.raises(ValueError, match="refract_x4"):  # not groups of four: never read
+        native.refract_x4(d[:, :3], n[:, :3], eta)

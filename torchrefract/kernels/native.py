@@ -767,7 +767,14 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     """csrc/optics.h's ``refract_x4`` (four rays at once, in lanes where built for them) and
     its scalar ``refract`` over the same rays, for the tests that hold the two to the same
     bits: ``d``, ``n`` (G, 4, 3) float32, ``eta`` (G,); ``None`` where the kernels do not
-    run."""
+    run.
+
+    Raises:
+        ValueError: the shapes differ from those (the kernel reads 12 floats a group)."""
+    g = d.shape[0] if d.dim() == 3 else -1
+    if d.shape != (g, 4, 3) or n.shape != d.shape or eta.shape != (g,):
+        raise ValueError(f"refract_x4: d and n must be (G, 4, 3) and eta (G,), got "
+                         f"{tuple(d.shape)}, {tuple(n.shape)}, {tuple(eta.shape)}")
     if not available():
         return None
     keep = _inputs((d, n, eta), ())

@@ -294,5 +294,5 @@ def two_point(m1: torch.Tensor, m2: torch.Tensor, m3: torch.Tensor
 
 
 __all__ = ["CHANNELS", "Footprint", "NZ_MIN", "SLOPE_CHANNELS", "camera_basis",
-           "footprint_sums", "gaussians", "lean_mips", "sector", "separation",
-           "reads_no_moments", "slope_jacobian", "slopes", "two_point", "uniform_footprint"]
+           "footprint_sums", "gaussians", "lean_mips", "reads_no_moments", "sector",
+           "separation", "slope_jacobian", "slopes", "two_point", "uniform_footprint"]
