@@ -6,6 +6,7 @@ meshes; they fall back to the tensor code with a warning where they cannot be bu
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import subprocess
 import warnings
@@ -424,3 +425,28 @@ def test_four_refractions_in_lanes_give_the_scalar_bits():
     assert torch.allclose(scalar.reshape(-1, 3)[ok], ref[ok], atol=1e-5)
     with pytest.raises(ValueError, match="refract_x4"):  # not groups of four: never read
         native.refract_x4(d[:, :3], n[:, :3], eta)
+
+
+def test_light_coverage_bessel_matches_torch():
+    """csrc/lighting.h's i0e (Cephes' Chebyshev expansions, 24 values in lanes at a time, as
+    the light coverage's Gauss-Legendre nodes take it) against torch.special.i0e: the same
+    bits where torch's kernel is compiled with FMA (AVX2 and above, as Clenshaw's step is
+    fused here), else within an ulp or two; both ranges, their boundary at 8, counts that are
+    not multiples of 24, signs, zero, infinity and NaN."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    g = torch.Generator().manual_seed(3)
+    x = torch.cat([torch.rand(30001, generator=g, dtype=torch.float64) * 10.0,
+                   torch.rand(30001, generator=g, dtype=torch.float64) * 1000.0 - 500.0,
+                   torch.exp(torch.rand(30001, generator=g, dtype=torch.float64) * 60 - 30),
+                   torch.tensor([0.0, 8.0, math.nextafter(8.0, 9.0), math.nextafter(8.0, 7.0),
+                                 -8.0, 1e-300, 1e300, math.inf, -math.inf, math.nan],
+                                dtype=torch.float64)])
+    ours, ref = native.i0e(x), torch.special.i0e(x)
+    assert torch.equal(torch.isnan(ours), torch.isnan(ref)) and torch.isnan(ours[-1])
+    ok = ~torch.isnan(ref)
+    if torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"):
+        assert torch.equal(ours[ok], ref[ok])
+    else:
+        torch.testing.assert_close(ours[ok], ref[ok], rtol=1e-15, atol=0.0)
+    assert native.i0e(x.float()) is None  # float64 only

@@ -221,6 +221,12 @@ class _RasterJob(ctypes.Structure):
                 ("rows", ctypes.c_int64), ("ids32", ctypes.c_int)]
 
 
+class _I0eJob(ctypes.Structure):
+    """ctypes mirror of ``I0eJob`` in csrc/background.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("x", _p), ("out", _p)]
+
+
 class _RefractX4Job(ctypes.Structure):
     """ctypes mirror of ``RefractX4Job`` in csrc/cone.c."""
 
@@ -372,7 +378,7 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "specular": _SpecJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
@@ -785,6 +791,18 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     job = _RefractX4Job(n=d.shape[0], d=d.data_ptr(), nrm=n.data_ptr(), eta=eta.data_ptr(),
                         lanes=lanes.data_ptr(), scalar=scalar.data_ptr())
     return (lanes, scalar) if _call("refract_x4", job) else None
+
+
+def i0e(x: torch.Tensor) -> torch.Tensor | None:
+    """csrc/lighting.h's ``i0e_n`` (torch.special.i0e as the light coverage evaluates it, 24
+    values in lanes at a time) of the float64 CPU tensor ``x``, for the test that holds it to
+    torch's; ``None`` where the kernels do not run or ``x`` is of another dtype or device."""
+    if not available() or x.dtype != torch.float64 or x.device.type != "cpu":
+        return None
+    x = x.detach().contiguous()
+    out = torch.empty_like(x)
+    job = _I0eJob(n=x.numel(), x=x.data_ptr(), out=out.data_ptr())
+    return out if _call("i0e", job) else None
 
 
 def spread(p: torch.Tensor, n_c: torch.Tensor, dirs: torch.Tensor, n4: torch.Tensor,
