@@ -617,20 +617,22 @@ static inline void chebyshev_v(const tr_v4d *y, const double *c, int m, tr_v4d *
     for (int v = 0; v < TR_CHEB_V; v++) out[v] = 0.5 * (b0[v] - b2[v]);
 }
 
-/* i0e of n values: out[i] = i0e(x[i]), TR_CHEB_N at a time, both expansions for each and
- * the one of its range kept (lanes past n computed on 1 and dropped). */
+/* i0e of n values: out[i] = i0e(x[i]), TR_CHEB_N at a time, each expansion run where one of
+ * the values is in its range (lanes past n computed on 1 and dropped). */
 static void i0e_n(const double *x, int64_t n, double *out) {
     for (int64_t i0 = 0; i0 < n; i0 += TR_CHEB_N) {
-        int m = n - i0 < TR_CHEB_N ? (int)(n - i0) : TR_CHEB_N;
+        int m = n - i0 < TR_CHEB_N ? (int)(n - i0) : TR_CHEB_N, low = 0, high = 0;
         double v[TR_CHEB_N];
         tr_v4d ya[TR_CHEB_V], yb[TR_CHEB_V], ea[TR_CHEB_V], eb[TR_CHEB_V];
         for (int i = 0; i < TR_CHEB_N; i++) {
             v[i] = i < m ? fabs(x[i0 + i]) : 1.0;
             ya[i / 4][i % 4] = v[i] / 2.0 - 2.0;
             yb[i / 4][i % 4] = 32.0 / v[i] - 2.0;
+            low |= i < m && v[i] <= 8.0;
+            high |= i < m && !(v[i] <= 8.0);
         }
-        chebyshev_v(ya, TR_I0E_A, 30, ea);
-        chebyshev_v(yb, TR_I0E_B, 25, eb);
+        if (low) chebyshev_v(ya, TR_I0E_A, 30, ea);
+        if (high) chebyshev_v(yb, TR_I0E_B, 25, eb);
         for (int i = 0; i < m; i++)
             out[i0 + i] = v[i] <= 8.0 ? ea[i / 4][i % 4] : eb[i / 4][i % 4] / sqrt(v[i]);
     }
