@@ -450,3 +450,36 @@ def test_light_coverage_bessel_matches_torch():
     else:
         torch.testing.assert_close(ours[ok], ref[ok], rtol=1e-15, atol=0.0)
     assert native.i0e(x.float()) is None  # float64 only
+
+
+def test_roughness_maps_in_one_call_match_the_tensor_code():
+    """csrc/materials.c's roughness_at (the fused kernels' map lookup, materials.h) against
+    the tensor code's (textures.sample_uv through grid_sample): the same bits where torch's
+    kernel is compiled with FMA (AVX2 and above), else within an ulp or two; views with and
+    without a map (two maps of different sizes), UVs outside [0, 1), on texel centers and
+    edges, a NaN; and the fallback where a gradient is wanted."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    from torchrefract.optics.materials import MaterialBatch
+    g = torch.Generator().manual_seed(5)
+    maps = (torch.rand(37, 53, generator=g), None, torch.rand(8, 3, generator=g))
+    m = MaterialBatch(ior=torch.full((3,), 1.5), roughness=torch.tensor([0.1, 0.25, 0.4]),
+                      absorption=torch.zeros(3, 3), distribution=("beckmann",) * 3,
+                      roughness_maps=maps,
+                      roughness_range=torch.tensor([[0.05, 0.6], [0.0, 0.0], [0.3, 0.1]]))
+    n = 60000
+    batch = torch.randint(0, 3, (n,), generator=g)
+    uv = torch.rand(n, 2, generator=g) * 6.0 - 3.0
+    uv[:300] = torch.randint(-60, 60, (300, 2), generator=g) / torch.tensor([53.0, 37.0])
+    uv[300:600] = (torch.randint(-60, 60, (300, 2), generator=g) + 0.5) / 8.0
+    uv[600, 0] = float("nan")
+    ours = native.roughness_at(m.roughness, maps, m.roughness_range, batch, uv)
+    assert ours is not None and torch.isfinite(ours).all()
+    ref = m.roughness.clone().requires_grad_(True)  # the tensor code: a gradient wanted
+    want = dataclasses.replace(m, roughness=ref).roughness_at(batch, uv).detach()
+    assert torch.equal(ours[batch == 1], torch.full_like(ours[batch == 1], 0.25))
+    if torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"):
+        assert torch.equal(ours, want)
+    else:
+        torch.testing.assert_close(ours, want, rtol=1e-6, atol=1e-7)
+    assert torch.equal(m.roughness_at(batch, uv), ours)  # the kernel, where it runs

@@ -49,10 +49,11 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "background.c", "rousiers.c",
                                                                 "lean.c", "raster.c",
                                                                 "lattice.c", "relight.c",
-                                                                "box.c"))
+                                                                "box.c", "materials.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
-                          "lighting.h", "frame.h", "bounces.h", "rousiers_core.h"))
+                          "lighting.h", "materials.h", "frame.h", "bounces.h",
+                          "rousiers_core.h"))
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 # With -march=native where the compiler takes it: this CPU's instructions (fmaf inline,
@@ -221,6 +222,13 @@ class _RasterJob(ctypes.Structure):
                 ("rows", ctypes.c_int64), ("ids32", ctypes.c_int)]
 
 
+class _RoughnessJob(ctypes.Structure):
+    """ctypes mirror of ``RoughnessJob`` in csrc/materials.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("batch", _p), ("uv", _p), ("alpha", _p),
+                ("maps", _p), ("hw", _p), ("range", _p), ("out", _p)]
+
+
 class _I0eJob(ctypes.Structure):
     """ctypes mirror of ``I0eJob`` in csrc/background.c."""
 
@@ -378,7 +386,8 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "specular": _SpecJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "roughness": _RoughnessJob,
+            "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
@@ -791,6 +800,37 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     job = _RefractX4Job(n=d.shape[0], d=d.data_ptr(), nrm=n.data_ptr(), eta=eta.data_ptr(),
                         lanes=lanes.data_ptr(), scalar=scalar.data_ptr())
     return (lanes, scalar) if _call("refract_x4", job) else None
+
+
+def roughness_at(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, batch: torch.Tensor,
+                 uv: torch.Tensor) -> torch.Tensor | None:
+    """``MaterialBatch.roughness_at`` in one call (csrc/materials.c, the tensor code's
+    values): the roughness (N,) of points of views ``batch`` (N,) int64 at ``uv`` (N, 2),
+    for views of uniform roughness ``alpha`` (B,), roughness ``maps`` (B (H, W) or None) and
+    ``ranges`` (B, 2); every view index in [0, B). ``None`` where the kernel does not run:
+    unavailable, a gradient wanted, or a tensor of another dtype, shape or device."""
+    texs = [m for m in maps if m is not None]
+    if (not available() or batch.dtype != torch.int64 or len(maps) != alpha.shape[0]
+            or uv.shape != (batch.shape[0], 2) or ranges.shape != (len(maps), 2)
+            or any(t.requires_grad for t in (alpha, ranges, uv, *texs))
+            or any(t.dtype != torch.float32 or t.dim() != 2 or min(t.shape) < 1
+                   for t in texs)):
+        return None
+    keep = _inputs((alpha, ranges, uv, *texs), (batch,))
+    if keep is None:
+        return None
+    alpha, ranges, uv, batch = keep[0], keep[1], keep[2], keep[-1]
+    texs = iter(keep[3:-1])
+    tex_of = [None if m is None else next(texs) for m in maps]
+    ptrs = (ctypes.c_void_p * max(1, len(maps)))(
+        *[None if t is None else t.data_ptr() for t in tex_of])
+    hw = torch.tensor([(1, 1) if t is None else tuple(t.shape) for t in tex_of] or [(1, 1)],
+                      dtype=torch.int64)
+    out = torch.empty(batch.shape[0], dtype=torch.float32)
+    job = _RoughnessJob(n=batch.shape[0], batch=batch.data_ptr(), uv=uv.data_ptr(),
+                        alpha=alpha.data_ptr(), maps=ctypes.cast(ptrs, ctypes.c_void_p),
+                        hw=hw.data_ptr(), range=ranges.data_ptr(), out=out.data_ptr())
+    return out if _call("roughness", job) else None
 
 
 def i0e(x: torch.Tensor) -> torch.Tensor | None:

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take
 from torchrefract.optics.textures import load_roughness_map
 from torchrefract.scene.model import Scene
@@ -43,13 +44,25 @@ class MaterialBatch:
         """Per-point roughness (N,) of points on scene ``batch`` (N,) at UVs (N, 2)."""
         from torchrefract.optics.textures import sample_uv  # noqa: PLC0415
 
+        if self.has_maps:  # the same values in one kernel call, where it runs
+            out = native.roughness_at(self.roughness, self.roughness_maps,
+                                      self.roughness_range, batch, uv)
+            if out is not None:
+                return out
         alpha = take(self.roughness, batch)  # a new tensor (index_select copies)
+        # one lookup per map (a sweep's views share the loaded one), each point with its
+        # view's range: per point the same values as a lookup per view
+        views: dict[int, list[int]] = {}
         for b, tex in enumerate(self.roughness_maps):
-            if tex is None:
-                continue
-            sel = (batch == b).nonzero(as_tuple=True)[0]
+            if tex is not None:
+                views.setdefault(id(tex), []).append(b)
+        for group in views.values():
+            on = torch.zeros(len(self.roughness_maps), dtype=torch.bool, device=batch.device)
+            on[group] = True
+            sel = take(on, batch).nonzero(as_tuple=True)[0]
             if sel.numel():
-                lo, hi = self.roughness_range[b]
+                lo, hi = take(self.roughness_range, take(batch, sel)).unbind(-1)
+                tex = self.roughness_maps[group[0]]
                 put_(alpha, sel, lo + sample_uv(tex, take(uv, sel)) * (hi - lo))
         return alpha
 

@@ -10,6 +10,7 @@
 
 #include "lighting.h"
 #include "march_core.h"
+#include "materials.h"
 #include "sgtable.h"
 
 #include <stdlib.h>
@@ -115,32 +116,9 @@ static inline void march_rays(const Frame *f, Rays *r, int m, int steps, int ref
     march_rays_on(&f->march, r, m, steps, refine);
 }
 
-/* textures.sample_uv: bilinear, wrapping in u and v (v = 0 at the image's bottom). */
-static float sample_uv(const float *tex, int64_t h, int64_t w, float u, float v) {
-    float x = (u - floorf(u)) * (float)w - 0.5f;
-    float y = 1.0f - v;
-    y = (y - floorf(y)) * (float)h - 0.5f;
-    /* the circularly padded image's coordinates, through grid_sample's round trip */
-    float gx = 2.0f * (x + 1.0f) / (float)(w + 1) - 1.0f;
-    float gy = 2.0f * (y + 1.0f) / (float)(h + 1) - 1.0f;
-    float px = clampf((gx + 1.0f) * ((float)(w + 1) / 2.0f), 0.0f, (float)(w + 1));
-    float py = clampf((gy + 1.0f) * ((float)(h + 1) / 2.0f), 0.0f, (float)(h + 1));
-    int64_t x0 = (int64_t)floorf(px), y0 = (int64_t)floorf(py);
-    int64_t x1 = x0 + 1 <= w + 1 ? x0 + 1 : x0, y1 = y0 + 1 <= h + 1 ? y0 + 1 : y0;
-    float fx = px - (float)x0, fy = py - (float)y0;
-    int64_t c0 = (x0 - 1 + w) % w, c1 = (x1 - 1 + w) % w;
-    int64_t r0 = (y0 - 1 + h) % h, r1 = (y1 - 1 + h) % h;
-    float top = tex[r0 * w + c0] * (1.0f - fx) + tex[r0 * w + c1] * fx;
-    float bot = tex[r1 * w + c0] * (1.0f - fx) + tex[r1 * w + c1] * fx;
-    return top * (1.0f - fy) + bot * fy;
-}
-
 /* materials.roughness_at: the map of view b at uv (lo + v (hi - lo)), else its roughness. */
 static inline float roughness_at(const Frame *f, int64_t b, const float *uv) {
-    const float *tex = f->rmap[b];
-    if (!tex) return f->alpha[b];
-    float lo = f->rrange[2 * b], hi = f->rrange[2 * b + 1];
-    return lo + sample_uv(tex, f->rmap_hw[2 * b], f->rmap_hw[2 * b + 1], uv[0], uv[1]) * (hi - lo);
+    return roughness_of(f->alpha, f->rmap, f->rmap_hw, f->rrange, b, uv);
 }
 
 /* shading.bounces.escape_fraction's interpolation of its per-view grid over alpha. */

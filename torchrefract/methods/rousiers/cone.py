@@ -17,7 +17,7 @@ import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels.cone import footprint as _footprint, ray_spread as _ray_spread
-from torchrefract.kernels.index import take
+from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.kernels.march import Exit, camera_coordinates, camera_planes, march_back
 from torchrefract.methods.rousiers.options import RousiersOptions
 from torchrefract.optics.materials import MaterialBatch
@@ -217,14 +217,15 @@ def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor
     """(B, H, W, n) per back-layer pixel: its roughness as hat weights on the n levels
     (linear between the two nearest), zero where the back layer is empty."""
     b, h, w = g.shape
-    flat_b = torch.arange(b).repeat_interleave(h * w)
-    alpha = materials.roughness_at(flat_b, g.back.uv.reshape(-1, 2))  # (B*H*W,)
-    lo, hi = materials.roughness_range[flat_b].unbind(-1)
+    on = where_true(g.back.mask.reshape(-1))  # the back layer's pixels (the rest: zero)
+    bi = on // (h * w)
+    alpha = materials.roughness_at(bi, take(g.back.uv.reshape(-1, 2), on))
+    lo, hi = take(materials.roughness_range, bi).unbind(-1)
     pos = ((alpha - lo) / (hi - lo).clamp(min=1e-12)).clamp(0.0, 1.0) * (n - 1)
     idx = torch.arange(n, dtype=pos.dtype)
-    wts = (1.0 - (pos[:, None] - idx[None, :]).abs()).clamp(min=0.0)  # (B*H*W, n)
-    wts = wts * g.back.mask.reshape(-1, 1).to(wts.dtype)
-    return wts.view(b, h, w, n)
+    wts = (1.0 - (pos[:, None] - idx[None, :]).abs()).clamp(min=0.0)  # (K, n)
+    out = torch.zeros((b * h * w, n), dtype=wts.dtype)
+    return put_(out, on, wts).view(b, h, w, n)
 
 
 def coverage_mips(g: GBuffer, materials: MaterialBatch, n_levels: int
