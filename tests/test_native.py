@@ -483,3 +483,31 @@ def test_roughness_maps_in_one_call_match_the_tensor_code():
     else:
         torch.testing.assert_close(ours, want, rtol=1e-6, atol=1e-7)
     assert torch.equal(m.roughness_at(batch, uv), ours)  # the kernel, where it runs
+
+
+def test_level_coverage_in_one_call_matches_the_tensor_code():
+    """csrc/materials.c's level_coverage (a back layer's roughness as hat weights on the
+    exit's roughness levels) against cone.level_coverage's tensor code, bit for bit on the
+    globe with a roughness map (2 and 4 levels), a view without a map and a range given
+    high to low; zero off the back layer."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    from torchrefract.geometry.gbuffer import build_gbuffer
+    from torchrefract.geometry.mesh import load_mesh
+    from torchrefract.methods.rousiers.cone import level_coverage
+    from torchrefract.optics.materials import MaterialBatch
+    base = tr.load_scene(str(ASSETS.parent / "configs" / "suite" / "globe_gradient.yaml"))
+    cam = dataclasses.replace(base.camera, width=48, height=40, samples_per_pixel=1)
+    s = base.replace(camera=cam)
+    scenes = [s, s.replace(material=dataclasses.replace(s.material, roughness_map=None,
+                                                        roughness=0.2)),
+              s.replace(material=dataclasses.replace(s.material, roughness_range=(0.5, 0.1)))]
+    g = build_gbuffer([load_mesh(x.mesh, x.transform) for x in scenes],
+                      [x.camera for x in scenes])
+    m = MaterialBatch.from_scenes(scenes)
+    ref_m = dataclasses.replace(m, roughness=m.roughness.clone().requires_grad_(True))
+    for n in (2, 4):
+        ours = level_coverage(g, m, n)
+        ref = level_coverage(g, ref_m, n).detach()  # a gradient wanted: the tensor code
+        assert ours.shape == (3, 40, 48, n) and torch.equal(ours, ref)
+        assert (ours[~g.back.mask] == 0).all() and (ours.sum(-1)[g.back.mask] > 0.99).all()

@@ -229,6 +229,13 @@ class _RoughnessJob(ctypes.Structure):
                 ("maps", _p), ("hw", _p), ("range", _p), ("out", _p)]
 
 
+class _CoverageJob(ctypes.Structure):
+    """ctypes mirror of ``CoverageJob`` in csrc/materials.c."""
+
+    _fields_ = [("r", _RoughnessJob), ("hw", ctypes.c_int64), ("levels", ctypes.c_int64),
+                ("mask", _p), ("out", _p)]
+
+
 class _I0eJob(ctypes.Structure):
     """ctypes mirror of ``I0eJob`` in csrc/background.c."""
 
@@ -387,6 +394,7 @@ class _RelightJob(ctypes.Structure):
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "roughness": _RoughnessJob,
+            "level_coverage": _CoverageJob,
             "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
@@ -802,6 +810,35 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     return (lanes, scalar) if _call("refract_x4", job) else None
 
 
+def _roughness_job(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor,
+                   batch: torch.Tensor | None, uv: torch.Tensor, n: int):
+    """The ``RoughnessJob`` of csrc/materials.c for n points (``batch``: their views, or
+    None) and the tensors it points into (to keep), or None where the kernels do not run
+    on them (unavailable, a gradient wanted, another dtype, shape or device)."""
+    texs = [m for m in maps if m is not None]
+    if (not available() or len(maps) != alpha.shape[0] or uv.shape != (n, 2)
+            or ranges.shape != (len(maps), 2)
+            or (batch is not None and (batch.dtype != torch.int64 or batch.shape != (n,)))
+            or any(t.requires_grad for t in (alpha, ranges, uv, *texs))
+            or any(t.dtype != torch.float32 or t.dim() != 2 or min(t.shape) < 1
+                   for t in texs)):
+        return None
+    keep = _inputs((alpha, ranges, uv, *texs), () if batch is None else (batch,))
+    if keep is None:
+        return None
+    texs = iter(keep[3:3 + len(texs)])
+    tex_of = [None if m is None else next(texs) for m in maps]
+    ptrs = (ctypes.c_void_p * max(1, len(maps)))(
+        *[None if t is None else t.data_ptr() for t in tex_of])
+    hw = torch.tensor([(1, 1) if t is None else tuple(t.shape) for t in tex_of] or [(1, 1)],
+                      dtype=torch.int64)
+    job = _RoughnessJob(n=n, batch=keep[-1].data_ptr() if batch is not None else None,
+                        uv=keep[2].data_ptr(), alpha=keep[0].data_ptr(),
+                        maps=ctypes.cast(ptrs, ctypes.c_void_p), hw=hw.data_ptr(),
+                        range=keep[1].data_ptr())
+    return job, (keep, ptrs, hw)
+
+
 def roughness_at(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, batch: torch.Tensor,
                  uv: torch.Tensor) -> torch.Tensor | None:
     """``MaterialBatch.roughness_at`` in one call (csrc/materials.c, the tensor code's
@@ -809,28 +846,32 @@ def roughness_at(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, batch: 
     for views of uniform roughness ``alpha`` (B,), roughness ``maps`` (B (H, W) or None) and
     ``ranges`` (B, 2); every view index in [0, B). ``None`` where the kernel does not run:
     unavailable, a gradient wanted, or a tensor of another dtype, shape or device."""
-    texs = [m for m in maps if m is not None]
-    if (not available() or batch.dtype != torch.int64 or len(maps) != alpha.shape[0]
-            or uv.shape != (batch.shape[0], 2) or ranges.shape != (len(maps), 2)
-            or any(t.requires_grad for t in (alpha, ranges, uv, *texs))
-            or any(t.dtype != torch.float32 or t.dim() != 2 or min(t.shape) < 1
-                   for t in texs)):
+    made = _roughness_job(alpha, maps, ranges, batch, uv, batch.shape[0])
+    if made is None:
         return None
-    keep = _inputs((alpha, ranges, uv, *texs), (batch,))
-    if keep is None:
-        return None
-    alpha, ranges, uv, batch = keep[0], keep[1], keep[2], keep[-1]
-    texs = iter(keep[3:-1])
-    tex_of = [None if m is None else next(texs) for m in maps]
-    ptrs = (ctypes.c_void_p * max(1, len(maps)))(
-        *[None if t is None else t.data_ptr() for t in tex_of])
-    hw = torch.tensor([(1, 1) if t is None else tuple(t.shape) for t in tex_of] or [(1, 1)],
-                      dtype=torch.int64)
+    job, _keep = made
     out = torch.empty(batch.shape[0], dtype=torch.float32)
-    job = _RoughnessJob(n=batch.shape[0], batch=batch.data_ptr(), uv=uv.data_ptr(),
-                        alpha=alpha.data_ptr(), maps=ctypes.cast(ptrs, ctypes.c_void_p),
-                        hw=hw.data_ptr(), range=ranges.data_ptr(), out=out.data_ptr())
+    job.out = out.data_ptr()
     return out if _call("roughness", job) else None
+
+
+def level_coverage(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, uv: torch.Tensor,
+                   mask: torch.Tensor, levels: int) -> torch.Tensor | None:
+    """``cone.level_coverage`` in one call (csrc/materials.c, the tensor code's values): per
+    pixel of the back layer's ``uv`` (B, H, W, 2) and ``mask`` (B, H, W) its roughness as
+    hat weights on ``levels`` levels, (B, H, W, levels); the materials as for
+    :func:`roughness_at`. ``None`` where the kernel does not run."""
+    b, h, w = mask.shape
+    if mask.dtype != torch.bool or uv.shape != (b, h, w, 2) or levels < 1:
+        return None
+    made = _roughness_job(alpha, maps, ranges, None, uv.reshape(-1, 2), b * h * w)
+    if made is None or mask.device.type != "cpu":
+        return None
+    job, _keep = made
+    m = mask.contiguous()
+    out = torch.empty((b, h, w, levels), dtype=torch.float32)
+    cj = _CoverageJob(r=job, hw=h * w, levels=levels, mask=m.data_ptr(), out=out.data_ptr())
+    return out if _call("level_coverage", cj) else None
 
 
 def i0e(x: torch.Tensor) -> torch.Tensor | None:

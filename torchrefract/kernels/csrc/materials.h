@@ -9,6 +9,11 @@
 
 #include <math.h>
 
+/* (i + n) % n for i in [-1, n + 1] (the padded image's index less one), without a division. */
+static inline int64_t wrap_index(int64_t i, int64_t n) {
+    return i < 0 ? i + n : (i >= n ? i - n : i);
+}
+
 /* textures.sample_uv: bilinear, wrapping in u and v (v = 0 at the image's bottom), through
  * the circularly padded image and grid_sample's steps (align_corners, border), op for op
  * as torch's CPU kernel takes them: the location's round trip and clamp, the four corners'
@@ -28,8 +33,8 @@ static inline float sample_uv(const float *tex, int64_t h, int64_t w, float u, f
     float dw = px - xw, de = 1.0f - dw, dn = py - yn, ds = 1.0f - dn;
     float nw = ds * de, ne = ds * dw, sw = dn * de, se = dn * dw;
     /* the padded image's (row, column) r, c is the map's (r - 1, c - 1), wrapped */
-    int64_t c0 = (x0 - 1 + w) % w, c1 = (x1 - 1 + w) % w;
-    int64_t r0 = (y0 - 1 + h) % h, r1 = (y1 - 1 + h) % h;
+    int64_t c0 = wrap_index(x0 - 1, w), c1 = wrap_index(x1 - 1, w);
+    int64_t r0 = wrap_index(y0 - 1, h), r1 = wrap_index(y1 - 1, h);
     int in_e = x1 <= w + 1, in_s = y1 <= h + 1;
     float v_nw = tex[r0 * w + c0], v_ne = in_e ? tex[r0 * w + c1] : 0.0f;
     float v_sw = in_s ? tex[r1 * w + c0] : 0.0f;

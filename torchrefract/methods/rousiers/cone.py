@@ -17,6 +17,7 @@ import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels.cone import footprint as _footprint, ray_spread as _ray_spread
+from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.kernels.march import Exit, camera_coordinates, camera_planes, march_back
 from torchrefract.methods.rousiers.options import RousiersOptions
@@ -216,6 +217,10 @@ def level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
 def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor:
     """(B, H, W, n) per back-layer pixel: its roughness as hat weights on the n levels
     (linear between the two nearest), zero where the back layer is empty."""
+    out = native.level_coverage(materials.roughness, materials.roughness_maps,
+                                materials.roughness_range, g.back.uv, g.back.mask, n)
+    if out is not None:  # the same values in one kernel call
+        return out
     b, h, w = g.shape
     on = where_true(g.back.mask.reshape(-1))  # the back layer's pixels (the rest: zero)
     bi = on // (h * w)
