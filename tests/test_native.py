@@ -511,3 +511,30 @@ def test_level_coverage_in_one_call_matches_the_tensor_code():
         ref = level_coverage(g, ref_m, n).detach()  # a gradient wanted: the tensor code
         assert ours.shape == (3, 40, 48, n) and torch.equal(ours, ref)
         assert (ours[~g.back.mask] == 0).all() and (ours.sum(-1)[g.back.mask] > 0.99).all()
+
+
+def test_light_coverage_in_one_call_matches_the_tensor_code():
+    """lights.sg_light_coverage through csrc/lighting.h's light_coverage (the fused kernels'
+    integral, in one call for the tensor code's callers) against the tensor code (taken
+    where a gradient is wanted): wide and sharp lobes, infinite sharpness, padding lights
+    (radius 0) and an origin inside a light; float32 rounding apart, the same values."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    from torchrefract.lighting.lights import sg_light_coverage
+    g = torch.Generator().manual_seed(11)
+    n, nl = 6000, 3
+    o = torch.randn(n, 3, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    k = torch.exp(torch.rand(n, generator=g) * 12.0 - 2.0)
+    k[:20] = float("inf")
+    pos = torch.randn(n, nl, 3, generator=g) * 3.0
+    pos[:, 0] = o + 2.0 * d + 0.1 * torch.randn(n, 3, generator=g)  # near the axis
+    rad = torch.rand(n, nl, generator=g) * 0.8
+    rad[:, 2] = 0.0
+    pos[30:40, 1] = o[30:40]  # the origin inside the light
+    ours = sg_light_coverage(o, d, k, pos, rad)
+    ref = sg_light_coverage(o, d, k.clone().requires_grad_(True), pos, rad).detach()
+    assert ours.dtype == torch.float32 and (ours[:, 2] == 0).all()
+    assert (ours[30:40, 1] == 1).all() and (ours[:, 0] > 0.5).sum() > 1000
+    torch.testing.assert_close(ours, ref, rtol=1e-6, atol=1e-12)
+    assert (ours == ref).float().mean() > 0.999

@@ -236,6 +236,14 @@ class _CoverageJob(ctypes.Structure):
                 ("mask", _p), ("out", _p)]
 
 
+class _CoverJob(ctypes.Structure):
+    """ctypes mirror of ``CoverJob`` in csrc/background.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("nl", ctypes.c_int64), ("o", _p), ("d", _p),
+                ("k", _p), ("pos", _p), ("r", _p), ("gl_x", _p), ("gl_w", _p),
+                ("gl_n", ctypes.c_int64), ("out", _p)]
+
+
 class _I0eJob(ctypes.Structure):
     """ctypes mirror of ``I0eJob`` in csrc/background.c."""
 
@@ -393,7 +401,8 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "roughness": _RoughnessJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "light_coverage": _CoverJob,
+            "roughness": _RoughnessJob,
             "level_coverage": _CoverageJob,
             "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
@@ -872,6 +881,34 @@ def level_coverage(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, uv: t
     out = torch.empty((b, h, w, levels), dtype=torch.float32)
     cj = _CoverageJob(r=job, hw=h * w, levels=levels, mask=m.data_ptr(), out=out.data_ptr())
     return out if _call("level_coverage", cj) else None
+
+
+def light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: torch.Tensor,
+                   pos: torch.Tensor, radius: torch.Tensor, gl_x: torch.Tensor,
+                   gl_w: torch.Tensor) -> torch.Tensor | None:
+    """``lights.sg_light_coverage`` in one call (csrc/lighting.h's ``light_coverage``, the
+    fused kernels' own): (N, L) float32 for lobes ``origin``, ``direction`` (N, 3),
+    ``sharpness`` (N,) and their lights ``pos`` (N, L, 3), ``radius`` (N, L), on the
+    Gauss-Legendre rule ``gl_x``, ``gl_w`` (float64). ``None`` where the kernel does not
+    run: unavailable, a gradient wanted, or a tensor of another dtype, shape or device."""
+    n = origin.shape[0]
+    nl = radius.shape[1] if radius.dim() == 2 else -1
+    if (not available() or origin.shape != (n, 3) or direction.shape != (n, 3)
+            or sharpness.shape != (n,) or pos.shape != (n, nl, 3) or radius.shape != (n, nl)
+            or gl_x.dtype != torch.float64 or gl_w.dtype != torch.float64
+            or gl_x.shape != gl_w.shape or gl_x.dim() != 1
+            or any(t.requires_grad for t in (origin, direction, sharpness, pos, radius))):
+        return None
+    keep = _inputs((origin, direction, sharpness, pos, radius), ())
+    if keep is None or gl_x.device.type != "cpu":
+        return None
+    o, d, k, p, r = keep
+    gx, gw = gl_x.contiguous(), gl_w.contiguous()
+    out = torch.empty((n, nl), dtype=torch.float32)
+    job = _CoverJob(n=n, nl=nl, o=o.data_ptr(), d=d.data_ptr(), k=k.data_ptr(),
+                    pos=p.data_ptr(), r=r.data_ptr(), gl_x=gx.data_ptr(), gl_w=gw.data_ptr(),
+                    gl_n=gx.numel(), out=out.data_ptr())
+    return out if _call("light_coverage", job) else None
 
 
 def i0e(x: torch.Tensor) -> torch.Tensor | None:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from torchrefract.kept import KeptByIdentity
+from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting import envmap
 from torchrefract.matte import record
@@ -244,6 +245,10 @@ def sg_light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: 
     Returns:
         (N, L) coverage in [0, 1].
     """
+    if direction.dtype == torch.float32 and origin.shape[0] > 0 and pos.shape[1] > 0:
+        out = native.light_coverage(origin, direction, sharpness, pos, radius, _GL_X, _GL_W)
+        if out is not None:  # the same integral in one kernel call (the fused kernels')
+            return out
     dt = torch.float64
     to = pos.to(dt) - origin.to(dt)[:, None, :]
     d = to.norm(dim=-1).clamp(min=1e-30)

@@ -5,6 +5,8 @@
 
 #include "lighting.h"
 
+#include <string.h>
+
 typedef struct {
     int64_t b, hw;              /* views, pixels per view */
     const float *ray_dir;       /* (B*H*W, 3) */
@@ -115,3 +117,36 @@ int torchrefract_i0e(const I0eJob *job, int threads) {
 }
 
 int64_t torchrefract_i0e_job_size(void) { return (int64_t)sizeof(I0eJob); }
+
+/* lights.sg_light_coverage over N lobes (the tensor code's callers: ``sh``, the matte
+ * passes' lookups): lighting.h's light_coverage with each lobe's own lights, (N, L). */
+typedef struct {
+    int64_t n, nl;              /* lobes, lights each */
+    const float *o, *d, *k;     /* (N, 3) origins, (N, 3) unit axes, (N,) sharpness */
+    const float *pos, *r;       /* (N, L, 3), (N, L): each lobe's lights */
+    const double *gl_x, *gl_w;  /* the Gauss-Legendre rule (lights._GL_X, _GL_W) */
+    int64_t gl_n;
+    float *out;                 /* (N, L) */
+} CoverJob;
+
+static void cover_range(const void *job, int64_t begin, int64_t end) {
+    const CoverJob *j = (const CoverJob *)job;
+    Lights L;
+    memset(&L, 0, sizeof(L));
+    L.nl = j->nl;  /* lobe i as "view" i: its lights at (i L + l) */
+    L.light_pos = j->pos;
+    L.light_r = j->r;
+    L.gl_x = j->gl_x;
+    L.gl_w = j->gl_w;
+    L.gl_n = j->gl_n;
+    for (int64_t i = begin; i < end; i++)
+        for (int64_t l = 0; l < j->nl; l++)
+            j->out[i * j->nl + l] =
+                (float)light_coverage(&L, i, l, j->o + 3 * i, j->d + 3 * i, j->k[i]);
+}
+
+int torchrefract_light_coverage(const CoverJob *job, int threads) {
+    return tr_parallel_for(cover_range, job, job->n, 1024, threads);
+}
+
+int64_t torchrefract_light_coverage_job_size(void) { return (int64_t)sizeof(CoverJob); }
