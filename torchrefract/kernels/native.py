@@ -828,7 +828,7 @@ def _roughness_job(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor,
     if (not available() or len(maps) != alpha.shape[0] or uv.shape != (n, 2)
             or ranges.shape != (len(maps), 2)
             or (batch is not None and (batch.dtype != torch.int64 or batch.shape != (n,)))
-            or any(t.requires_grad for t in (alpha, ranges, uv, *texs))
+            or not no_grad_through(alpha, ranges, uv, *texs)
             or any(t.dtype != torch.float32 or t.dim() != 2 or min(t.shape) < 1
                    for t in texs)):
         return None
@@ -897,7 +897,7 @@ def light_coverage(origin: torch.Tensor, direction: torch.Tensor, sharpness: tor
             or sharpness.shape != (n,) or pos.shape != (n, nl, 3) or radius.shape != (n, nl)
             or gl_x.dtype != torch.float64 or gl_w.dtype != torch.float64
             or gl_x.shape != gl_w.shape or gl_x.dim() != 1
-            or any(t.requires_grad for t in (origin, direction, sharpness, pos, radius))):
+            or not no_grad_through(origin, direction, sharpness, pos, radius)):
         return None
     keep = _inputs((origin, direction, sharpness, pos, radius), ())
     if keep is None or gl_x.device.type != "cpu":
