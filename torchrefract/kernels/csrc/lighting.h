@@ -589,14 +589,14 @@ typedef double tr_v4d __attribute__((vector_size(32)));
 #define TR_CHEB_N 24
 #define TR_CHEB_V (TR_CHEB_N / 4)
 
-/* y b0 - b1 lane by lane, rounded once (fma(y, b0, -b1), as ATen's kernel fuses it). */
-static inline tr_v4d fms_v4d(tr_v4d y, tr_v4d b0, tr_v4d b1) {
+/* out = y b0 - b1 lane by lane, rounded once (fma(y, b0, -b1), as ATen's kernel fuses it);
+ * by pointer, so that no 32-byte vector is passed by value where AVX is not built. */
+static inline void fms_v4d(const tr_v4d *y, const tr_v4d *b0, const tr_v4d *b1,
+                           tr_v4d *out) {
 #if defined(__AVX2__) && defined(__FMA__)
-    return (tr_v4d)_mm256_fmsub_pd((__m256d)y, (__m256d)b0, (__m256d)b1);
+    *out = (tr_v4d)_mm256_fmsub_pd((__m256d)*y, (__m256d)*b0, (__m256d)*b1);
 #else
-    tr_v4d r;
-    for (int l = 0; l < 4; l++) r[l] = fma(y[l], b0[l], -b1[l]);
-    return r;
+    for (int l = 0; l < 4; l++) (*out)[l] = fma((*y)[l], (*b0)[l], -(*b1)[l]);
 #endif
 }
 
@@ -612,7 +612,8 @@ static inline void chebyshev_v(const tr_v4d *y, const double *c, int m, tr_v4d *
         for (int v = 0; v < TR_CHEB_V; v++) {
             b2[v] = b1[v];
             b1[v] = b0[v];
-            b0[v] = fms_v4d(y[v], b1[v], b2[v]) + c[k];
+            fms_v4d(y + v, b1 + v, b2 + v, b0 + v);
+            b0[v] += c[k];
         }
     for (int v = 0; v < TR_CHEB_V; v++) out[v] = 0.5 * (b0[v] - b2[v]);
 }
