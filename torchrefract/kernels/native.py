@@ -401,10 +401,9 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob, "light_coverage": _CoverJob,
-            "roughness": _RoughnessJob,
-            "level_coverage": _CoverageJob,
-            "specular": _SpecJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob,
+            "light_coverage": _CoverJob, "roughness": _RoughnessJob,
+            "level_coverage": _CoverageJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
