@@ -538,3 +538,20 @@ def test_light_coverage_in_one_call_matches_the_tensor_code():
     assert (ours[30:40, 1] == 1).all() and (ours[:, 0] > 0.5).sum() > 1000
     torch.testing.assert_close(ours, ref, rtol=1e-6, atol=1e-12)
     assert (ours == ref).float().mean() > 0.999
+
+
+def test_roughness_lookup_refuses_views_out_of_range():
+    """A view index outside the batch never reaches the kernel (it would read past the
+    arrays): the tensor code runs and raises its own IndexError."""
+    from torchrefract.optics.materials import MaterialBatch
+    m = MaterialBatch(ior=torch.full((2,), 1.5), roughness=torch.tensor([0.1, 0.2]),
+                      absorption=torch.zeros(2, 3), distribution=("beckmann",) * 2,
+                      roughness_maps=(torch.rand(4, 4), None),
+                      roughness_range=torch.tensor([[0.0, 1.0], [0.0, 0.0]]))
+    uv = torch.rand(3, 2)
+    for bad in (torch.tensor([0, 1, 2]), torch.tensor([0, -1, 1])):
+        assert native.roughness_at(m.roughness, m.roughness_maps, m.roughness_range, bad,
+                                   uv) is None
+        with pytest.raises(IndexError):
+            m.roughness_at(bad, uv)
+    assert m.roughness_at(torch.tensor([1, 1, 1]), uv).tolist() == pytest.approx([0.2] * 3)

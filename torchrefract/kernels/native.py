@@ -852,11 +852,15 @@ def roughness_at(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, batch: 
     """``MaterialBatch.roughness_at`` in one call (csrc/materials.c, the tensor code's
     values): the roughness (N,) of points of views ``batch`` (N,) int64 at ``uv`` (N, 2),
     for views of uniform roughness ``alpha`` (B,), roughness ``maps`` (B (H, W) or None) and
-    ``ranges`` (B, 2); every view index in [0, B). ``None`` where the kernel does not run:
-    unavailable, a gradient wanted, or a tensor of another dtype, shape or device."""
+    ``ranges`` (B, 2). ``None`` where the kernel does not run: unavailable, a gradient
+    wanted, a tensor of another dtype, shape or device, or a view index outside [0, B)."""
     made = _roughness_job(alpha, maps, ranges, batch, uv, batch.shape[0])
     if made is None:
         return None
+    if batch.numel():  # a view outside [0, B): the tensor code raises its error
+        lo, hi = torch.aminmax(batch)
+        if int(lo) < 0 or int(hi) >= len(maps):
+            return None
     job, _keep = made
     out = torch.empty(batch.shape[0], dtype=torch.float32)
     job.out = out.data_ptr()
