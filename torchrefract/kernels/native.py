@@ -244,6 +244,13 @@ class _CoverJob(ctypes.Structure):
                 ("gl_n", ctypes.c_int64), ("out", _p)]
 
 
+class _IncidentJob(ctypes.Structure):
+    """ctypes mirror of ``IncidentJob`` in csrc/background.c (shading/fused.py fills it)."""
+
+    _fields_ = [("lights", _Lights), ("env", _SgEnv), ("n", ctypes.c_int64), ("batch", _p),
+                ("o", _p), ("d", _p), ("k", _p), ("out", _p)]
+
+
 class _I0eJob(ctypes.Structure):
     """ctypes mirror of ``I0eJob`` in csrc/background.c."""
 
@@ -402,7 +409,8 @@ class _RelightJob(ctypes.Structure):
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob,
-            "light_coverage": _CoverJob, "roughness": _RoughnessJob,
+            "light_coverage": _CoverJob, "incident_sg": _IncidentJob,
+            "roughness": _RoughnessJob,
             "level_coverage": _CoverageJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,

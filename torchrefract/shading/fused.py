@@ -26,6 +26,7 @@ from torchrefract.kernels import native
 from torchrefract.kernels.march import camera_planes
 from torchrefract.lighting.lights import _GL_W, _GL_X
 from torchrefract.lighting.sg_pyramid import _texel_angle
+from torchrefract.matte import record
 from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import TIR_RULES
 from torchrefract.optics.sg_table import K_MAX, K_MIN
@@ -188,6 +189,43 @@ def _build_sg_env(lighting, keep: _Keep) -> native._SgEnv:
                          meta=keep.array(metas),
                          base_hw=keep.ptr(torch.tensor(base_hw), torch.int64),
                          atlas_hw=keep.ptr(torch.tensor(atlas_hw), torch.int64))
+
+
+def incident_sg(lighting, batch: torch.Tensor, origin: torch.Tensor, direction: torch.Tensor,
+                sharpness: torch.Tensor) -> torch.Tensor | None:
+    """``lights.incident_radiance_sg`` (``env: sg``) of N lobes in one kernel call, the fused
+    kernels' own lookups (csrc/lighting.h's ``incident_sg``: the same values within float32
+    rounding): (N, 3) for lobes of views ``batch`` (N,) int64 at ``origin``, ``direction``
+    (N, 3) with ``sharpness`` (N,). ``None`` where it does not run: the fused kernels off or
+    unavailable, a gradient wanted, a matte recording (it records the tensor code's
+    lookups), or a tensor of another dtype, shape or device."""
+    n = batch.shape[0]
+    if (not (settings.current().fused and native.available()) or record.active()
+            or batch.dtype != torch.int64 or origin.shape != (n, 3)
+            or direction.shape != (n, 3) or sharpness.shape != (n,)
+            or not native.no_grad_through(origin, direction, sharpness,
+                                          *_lighting_tensors(lighting))
+            or any(t.device.type != "cpu" or t.dtype != torch.float32
+                   for t in (origin, direction, sharpness))):
+        return None
+    out = torch.empty((n, 3), dtype=torch.float32)
+    if n == 0:
+        return out
+    if int(batch.min()) < 0 or int(batch.max()) >= len(lighting.texels):
+        return None
+    keep = _Keep()
+    held = [x.detach().contiguous() for x in (batch, origin, direction, sharpness)]
+    job = native._IncidentJob(lights=_lights(lighting, keep), env=_sg_env(lighting, keep),
+                              n=n, batch=held[0].data_ptr(), o=held[1].data_ptr(),
+                              d=held[2].data_ptr(), k=held[3].data_ptr(),
+                              out=out.data_ptr())
+    return out if native._call("incident_sg", job) else None
+
+
+def _lighting_tensors(lighting) -> tuple:
+    """The tensors of a batch's lighting a gradient may want."""
+    return (lighting.rotate_deg, lighting.scale, lighting.light_pos, lighting.light_radius,
+            lighting.light_radiance, *lighting.texels)
 
 
 def specular(g, lighting, materials, options, radiance: torch.Tensor
@@ -393,4 +431,4 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     return frame, keep, radiance, passes
 
 
-__all__ = ["background", "prefiltered", "rousiers", "specular"]
+__all__ = ["background", "incident_sg", "prefiltered", "rousiers", "specular"]

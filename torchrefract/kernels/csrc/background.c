@@ -150,3 +150,28 @@ int torchrefract_light_coverage(const CoverJob *job, int threads) {
 }
 
 int64_t torchrefract_light_coverage_job_size(void) { return (int64_t)sizeof(CoverJob); }
+
+/* lights.incident_radiance_sg over N lobes (the tensor code's lookups where ``sh`` shades):
+ * lighting.h's incident_sg, the fused kernels' own: the environment's SG pyramid around
+ * each lobe, the sphere lights' share of it (sharpness inf: a plain lookup). */
+typedef struct {
+    Lights lights;
+    SgEnv env;
+    int64_t n;
+    const int64_t *batch;       /* (N,) each lobe's view */
+    const float *o, *d, *k;     /* (N, 3) origins, (N, 3) unit axes, (N,) sharpness */
+    float *out;                 /* (N, 3) */
+} IncidentJob;
+
+static void incident_range(const void *job, int64_t begin, int64_t end) {
+    const IncidentJob *j = (const IncidentJob *)job;
+    for (int64_t i = begin; i < end; i++)
+        incident_sg(&j->lights, &j->env, j->batch[i], j->o + 3 * i, j->d + 3 * i, j->k[i],
+                    j->out + 3 * i);
+}
+
+int torchrefract_incident_sg(const IncidentJob *job, int threads) {
+    return tr_parallel_for(incident_range, job, job->n, 2048, threads);
+}
+
+int64_t torchrefract_incident_sg_job_size(void) { return (int64_t)sizeof(IncidentJob); }

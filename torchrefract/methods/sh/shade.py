@@ -56,6 +56,7 @@ from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leav
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
 from torchrefract.optics.smooth import normalize, tangent_frame
+from torchrefract.shading import fused
 from torchrefract.shading.background import background
 from torchrefract.shading.bounces import escape_fraction
 
@@ -272,6 +273,16 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
             var_geo)
 
 
+def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
+              direction: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
+    """``incident_radiance_sg``: in one fused kernel call where it runs (the fused methods'
+    own lookups, ``fused.incident_sg``), else the tensor code (gradients, a matte
+    recording)."""
+    out = fused.incident_sg(lighting, bi, origin, direction, sharpness)
+    return incident_radiance_sg(lighting, bi, origin, direction, sharpness) if out is None \
+        else out
+
+
 def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options: SHOptions,
               items: tuple[SceneTable, ...]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Shade a G-buffer with the precomputed refracted-path mapping (module docstring).
@@ -372,12 +383,12 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
         k = torch.where(matched, torch.full_like(k, float("inf")), k)
         absorption = take(materials.absorption, px.bi)
         att = torch.exp(-absorption * length[:, None])  # (N, 3), sec. 5.4
-        l_refl = incident_radiance_sg(lighting, px.bi, px.p1, front.axis_r, front.k_r)
-        l_trans = incident_radiance_sg(lighting, px.bi, px.p1, direction, k)
+        l_refl = _incident(lighting, px.bi, px.p1, front.axis_r, front.k_r)
+        l_trans = _incident(lighting, px.bi, px.p1, direction, k)
         l_obj = e_r[:, None] * l_refl + (e_t1 * weight2)[:, None] * att * l_trans
         if two:
             att_b = torch.exp(-absorption * length_b[:, None])
-            l_b = incident_radiance_sg(lighting, px.bi, px.p1, direction_b, k_b)
+            l_b = _incident(lighting, px.bi, px.p1, direction_b, k_b)
             l_obj = l_obj + (e_t1 * weight_b)[:, None] * att_b * l_b
         l_obj = torch.nan_to_num(l_obj, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
         composite(g, lighting, px, radiance, l_obj)
