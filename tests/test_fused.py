@@ -347,3 +347,39 @@ def test_fused_bounces_the_same_bits_in_lanes_and_scalar(method, options):
     assert list(a.passes) == list(b.passes)
     for k in a.passes:
         assert torch.equal(a.passes[k], b.passes[k]), k
+
+
+def test_incident_sg_in_one_call_matches_the_tensor_code():
+    """fused.incident_sg (the fused kernels' SG lookups and sphere lights for N lobes, as
+    `sh` uses them) against lights.incident_radiance_sg: two views (different map
+    rotations, a light), wide to plain lobes; float32 rounding apart, the same radiance.
+    Where the tensor code would refuse (a negative sharpness) or a view is out of range,
+    it does not run."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    from torchrefract.lighting.lights import Lighting, incident_radiance_sg
+    from torchrefract.shading import fused
+    base = tr.load_scene(str(ASSETS.parent / "configs" / "suite" / "slab_light.yaml"))
+    lighting = Lighting.from_scenes([base, base.replace(envmap=tr.EnvMap(
+        path=base.envmap.path, rotate_deg=140.0, scale=0.5))])
+    g = torch.Generator().manual_seed(4)
+    n = 5000
+    batch = torch.randint(0, 2, (n,), generator=g)
+    origin = torch.randn(n, 3, generator=g) * 0.3
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    direction[:500] = torch.nn.functional.normalize(
+        torch.tensor([0.3, 0.2, -1.5]) - origin[:500], dim=-1)  # at the light
+    k = torch.exp(torch.rand(n, generator=g) * 10.0 - 1.0)
+    k[::7] = float("inf")
+    ours = fused.incident_sg(lighting, batch, origin, direction, k)
+    ref = incident_radiance_sg(lighting, batch, origin, direction, k)
+    assert ours is not None and torch.isfinite(ours).all()
+    rel = ((ours - ref).abs() / ref.abs().clamp(min=1e-3)).amax(-1)
+    assert (rel <= 1e-4).float().mean() >= 0.999, float(rel.max())
+    assert (ref[:500].amax(-1) > 5.0).sum() > 50  # the light seen
+    bad = k.clone()
+    bad[3] = -1.0
+    assert fused.incident_sg(lighting, batch, origin, direction, bad) is None
+    with pytest.raises(ValueError, match="sharpness"):
+        incident_radiance_sg(lighting, batch, origin, direction, bad)
+    assert fused.incident_sg(lighting, batch + 1, origin, direction, k) is None

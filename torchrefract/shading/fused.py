@@ -83,9 +83,7 @@ at most two passes' maps and pyramids outlive their pass here."""
 def _per_lighting(kind: str, lighting, keep: _Keep, build):
     """``build(lighting, keep)``'s struct, built once per ``lighting`` (and its tensors'
     contents), the tensors it points into added to ``keep``."""
-    tensors = (lighting.rotate_deg, lighting.scale, lighting.light_pos,
-               lighting.light_radius, lighting.light_radiance, *lighting.texels)
-    key = (kind, *(t._version for t in tensors))
+    key = (kind, *(t._version for t in _lighting_tensors(lighting)))
     hit = _BUILT.get(lighting, key)
     if hit is None:
         own = _Keep()
@@ -211,7 +209,8 @@ def incident_sg(lighting, batch: torch.Tensor, origin: torch.Tensor, direction: 
     out = torch.empty((n, 3), dtype=torch.float32)
     if n == 0:
         return out
-    if int(batch.min()) < 0 or int(batch.max()) >= len(lighting.texels):
+    if (int(batch.min()) < 0 or int(batch.max()) >= len(lighting.texels)
+            or bool((~(sharpness >= 0)).any())):  # the tensor code raises its error
         return None
     keep = _Keep()
     held = [x.detach().contiguous() for x in (batch, origin, direction, sharpness)]
