@@ -383,3 +383,44 @@ def test_incident_sg_in_one_call_matches_the_tensor_code():
     with pytest.raises(ValueError, match="sharpness"):
         incident_radiance_sg(lighting, batch, origin, direction, bad)
     assert fused.incident_sg(lighting, batch + 1, origin, direction, k) is None
+
+
+def test_lobes_in_one_call_match_the_tensor_code():
+    """fused.front_lobes and fused.exit_lobes (the SG table's lobes for N points through the
+    fused kernels' lookups, as `sh` uses them) against lobes.front_lobes, sg_lobe and
+    spread_energies: random views, IOR 1-2.5 and its inverse (TIR), roughness 0.001-0.7,
+    both distributions; float32 rounding apart, the same values."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    from torchrefract.methods.rousiers.lobes import front_lobes, sg_lobe, spread_energies
+    from torchrefract.optics.sgfit import load_sg_table
+    from torchrefract.shading import fused
+    g = torch.Generator().manual_seed(2)
+    n = 20000
+    view = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    n1 = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    n1 = torch.where((view * n1).sum(-1, keepdim=True) < 0, -n1, n1)
+    cos1 = (view * n1).sum(-1).clamp(0.0, 1.0)
+    ior = 1.0 + torch.rand(n, generator=g) * 1.5
+    alpha = torch.rand(n, generator=g) * 0.7 + 0.001
+    dist = torch.randint(0, 2, (n,), generator=g)
+    var = torch.rand(n, generator=g) * 0.05
+    table = load_sg_table()
+
+    def close(a, b, name):  # unit axes: absolute; the rest relative
+        err = (a - b).abs() if a.dim() == 2 else (a - b).abs() / b.abs().clamp(min=1e-3)
+        assert float(err.max()) < (1e-5 if a.dim() == 2 else 1e-4), (name, float(err.max()))
+
+    ours = fused.front_lobes(view, n1, cos1, ior, alpha, dist)
+    ref = front_lobes(table, view, n1, cos1, ior, alpha, dist)
+    for f in ("e_r", "k_r", "axis_r", "e_t1", "k_t1", "p_t1"):
+        close(getattr(ours, f), getattr(ref, f), f)
+    for eta in (ior, 1.0 / ior):
+        k, e_t, e_r = fused.exit_lobes(cos1, eta, alpha, dist, var)
+        close(k, sg_lobe(table, cos1, eta, alpha, dist, "transmit")[1], "k_t")
+        for a, b, name in zip((e_t, e_r), spread_energies(table, cos1, var, eta, alpha, dist),
+                              ("e_t", "e_r")):
+            close(a, b, name)
+        only_k = fused.exit_lobes(cos1, eta, alpha, dist)
+        assert torch.equal(only_k[0], k) and only_k[1] is None and only_k[2] is None
+    assert fused.front_lobes(view, n1, cos1, ior, alpha.requires_grad_(True), dist) is None

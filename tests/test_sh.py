@@ -718,8 +718,9 @@ def test_the_rough_interface_gain_counts_the_interfaces_inside(one_thread):
 
 
 def test_lookups_in_the_fused_kernel_give_the_tensor_codes_image(one_thread):
-    """`sh`'s SG lookups (reflection, transmission, the branch) through the fused kernels'
-    `incident_sg` against the tensor code's `incident_radiance_sg` (`fused=False`), with a
+    """`sh`'s SG lookups (reflection, transmission, the branch) and its table lobes (front,
+    exit) through the fused kernels (`incident_sg`, `front_lobes`, `exit_lobes`) against the
+    tensor code's (`fused=False`), with a
     sphere light, rough and smooth glass and two views of different maps' rotations: the
     same image within float32 rounding (the issue's 1e-4 relative on 99.9% of object
     pixels)."""

@@ -244,6 +244,15 @@ class _CoverJob(ctypes.Structure):
                 ("gl_n", ctypes.c_int64), ("out", _p)]
 
 
+class _LobesJob(ctypes.Structure):
+    """ctypes mirror of ``LobesJob`` in csrc/rousiers.c (shading/fused.py fills it)."""
+
+    _fields_ = [("table", _SgTable), ("n", ctypes.c_int64), ("front", ctypes.c_int),
+                ("view", _p), ("n1", _p), ("cos", _p), ("eta", _p), ("alpha", _p),
+                ("var", _p), ("dist", _p), ("e_r", _p), ("k_r", _p), ("axis_r", _p),
+                ("e_t", _p), ("k_t", _p), ("p_t", _p)]
+
+
 class _IncidentJob(ctypes.Structure):
     """ctypes mirror of ``IncidentJob`` in csrc/background.c (shading/fused.py fills it)."""
 
@@ -409,7 +418,7 @@ class _RelightJob(ctypes.Structure):
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
             "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob,
-            "light_coverage": _CoverJob, "incident_sg": _IncidentJob,
+            "light_coverage": _CoverJob, "incident_sg": _IncidentJob, "lobes": _LobesJob,
             "roughness": _RoughnessJob,
             "level_coverage": _CoverageJob, "specular": _SpecJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,

@@ -221,6 +221,63 @@ def incident_sg(lighting, batch: torch.Tensor, origin: torch.Tensor, direction: 
     return out if native._call("incident_sg", job) else None
 
 
+def front_lobes(view: torch.Tensor, n1: torch.Tensor, cos1: torch.Tensor, ior: torch.Tensor,
+                alpha: torch.Tensor, dist: torch.Tensor):
+    """``lobes.front_lobes`` (step 1, eqs. 8-9) of N points in one kernel call, the fused
+    kernels' own table lookups (csrc/rousiers.c's ``lobes``: the same values within float32
+    rounding), as a ``FrontLobes``; ``None`` where it does not run (as
+    :func:`incident_sg`)."""
+    from torchrefract.methods.rousiers.lobes import FrontLobes  # noqa: PLC0415
+
+    n = cos1.shape[0]
+    out = _lobes(n, {"view": view, "n1": n1}, {"cos": cos1, "eta": ior, "alpha": alpha},
+                 dist, ("e_r", "k_r", "e_t", "k_t"), ("axis_r", "p_t"), front=True)
+    if out is None:
+        return None
+    return FrontLobes(e_r=out["e_r"], k_r=out["k_r"], axis_r=out["axis_r"],
+                      e_t1=out["e_t"], k_t1=out["k_t"], p_t1=out["p_t"])
+
+
+def exit_lobes(cos: torch.Tensor, eta: torch.Tensor, alpha: torch.Tensor, dist: torch.Tensor,
+               var: torch.Tensor | None = None):
+    """An exit's transmitted lobe sharpness (``lobes.sg_lobe(..., "transmit")[1]``) and,
+    with ``var``, ``lobes.spread_energies`` (e_t, e_r) of N points in one kernel call (the
+    fused kernels' own lookups): ``(k_t, e_t, e_r)`` (the energies None without ``var``);
+    ``None`` where it does not run (as :func:`incident_sg`)."""
+    n = cos.shape[0]
+    scal = {"cos": cos, "eta": eta, "alpha": alpha}
+    if var is not None:
+        scal["var"] = var
+    outs = ("k_t", "e_t", "e_r") if var is not None else ("k_t",)
+    out = _lobes(n, {}, scal, dist, outs, (), front=False)
+    if out is None:
+        return None
+    return out["k_t"], out.get("e_t"), out.get("e_r")
+
+
+def _lobes(n: int, vec3: dict, scal: dict, dist: torch.Tensor, outs: tuple, outs3: tuple,
+           front: bool) -> dict | None:
+    """Run csrc/rousiers.c's ``lobes`` on n points: ``vec3`` (N, 3) and ``scal`` (N,)
+    float32 inputs, ``dist`` (N,) int64; the named outputs (N,) and ``outs3`` (N, 3)."""
+    ins = (*vec3.values(), *scal.values())
+    if (not (settings.current().fused and native.available()) or dist.shape != (n,)
+            or dist.dtype != torch.int64 or dist.device.type != "cpu"
+            or any(x.shape != (n, 3) for x in vec3.values())
+            or any(x.shape != (n,) for x in scal.values())
+            or any(x.device.type != "cpu" or x.dtype != torch.float32 for x in ins)
+            or not native.no_grad_through(*ins)):
+        return None
+    held = {k: x.detach().contiguous() for k, x in {**vec3, **scal, "dist": dist}.items()}
+    res = {k: torch.empty(n) for k in outs} | {k: torch.empty(n, 3) for k in outs3}
+    if n == 0:
+        return res
+    keep = _Keep()
+    job = native._LobesJob(table=_table(keep), n=n, front=int(front),
+                           **{k: v.data_ptr() for k, v in held.items()},
+                           **{k: v.data_ptr() for k, v in res.items()})
+    return res if native._call("lobes", job) else None
+
+
 def _lighting_tensors(lighting) -> tuple:
     """The tensors of a batch's lighting a gradient may want."""
     return (lighting.rotate_deg, lighting.scale, lighting.light_pos, lighting.light_radius,
@@ -430,4 +487,5 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     return frame, keep, radiance, passes
 
 
-__all__ = ["background", "incident_sg", "prefiltered", "rousiers", "specular"]
+__all__ = ["background", "exit_lobes", "front_lobes", "incident_sg", "prefiltered",
+           "rousiers", "specular"]

@@ -311,7 +311,9 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
     if idx.numel() > 0:
         table = load_sg_table()
         px = object_pixels(g, materials, idx)
-        front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
+        front = fused.front_lobes(px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
+        if front is None:  # the tensor code: gradients, the fused kernels off
+            front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
         var1 = 1.0 / front.k_t1.clamp(min=1e-12)
         var_view = _snell_spread(px, var1)
         n = idx.numel()
@@ -358,11 +360,17 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
             nonlocal esc
             cos_in = torch.maximum(cos_out, critical_cosine(px.ior) + CRITICAL_MARGIN
                                    ).clamp(max=1.0)
-            k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
+            conserve = options.exit_weight == "conserve"
+            made = fused.exit_lobes(cos_in, eta2, px.alpha, px.dist, var1 if conserve else None)
+            if made is None:  # the tensor code: gradients, the fused kernels off
+                k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
+                e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist) \
+                    if conserve else (None, None)
+            else:
+                k_t2, e_t2, e_r2 = made
             k_out = 1.0 / (1.0 / k_t2 + var_g).clamp(min=1e-12)
-            if options.exit_weight != "conserve":
+            if not conserve:
                 return k_out, thr_path
-            e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist)
             if esc is None:
                 esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi)
             return k_out, leaving_weight("conserve", torch.zeros_like(matched), e_t2, e_r2, esc)
