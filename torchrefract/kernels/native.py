@@ -835,6 +835,15 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     return (lanes, scalar) if _call("refract_x4", job) else None
 
 
+def views_in_range(batch: torch.Tensor, b: int) -> bool:
+    """Whether every view index of ``batch`` lies in [0, b) (one reduction), so that a
+    kernel reading per-view arrays by it never reads past them."""
+    if batch.numel() == 0:
+        return True
+    lo, hi = torch.aminmax(batch)
+    return int(lo) >= 0 and int(hi) < b
+
+
 def _roughness_job(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor,
                    batch: torch.Tensor | None, uv: torch.Tensor, n: int):
     """The ``RoughnessJob`` of csrc/materials.c for n points (``batch``: their views, or
@@ -872,12 +881,8 @@ def roughness_at(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, batch: 
     ``ranges`` (B, 2). ``None`` where the kernel does not run: unavailable, a gradient
     wanted, a tensor of another dtype, shape or device, or a view index outside [0, B)."""
     made = _roughness_job(alpha, maps, ranges, batch, uv, batch.shape[0])
-    if made is None:
+    if made is None or not views_in_range(batch, len(maps)):  # (the tensor code raises)
         return None
-    if batch.numel():  # a view outside [0, B): the tensor code raises its error
-        lo, hi = torch.aminmax(batch)
-        if int(lo) < 0 or int(hi) >= len(maps):
-            return None
     job, _keep = made
     out = torch.empty(batch.shape[0], dtype=torch.float32)
     job.out = out.data_ptr()
@@ -891,10 +896,11 @@ def level_coverage(alpha: torch.Tensor, maps: tuple, ranges: torch.Tensor, uv: t
     hat weights on ``levels`` levels, (B, H, W, levels); the materials as for
     :func:`roughness_at`. ``None`` where the kernel does not run."""
     b, h, w = mask.shape
-    if mask.dtype != torch.bool or uv.shape != (b, h, w, 2) or levels < 1:
+    if (mask.dtype != torch.bool or mask.device.type != "cpu" or uv.shape != (b, h, w, 2)
+            or levels < 1):
         return None
     made = _roughness_job(alpha, maps, ranges, None, uv.reshape(-1, 2), b * h * w)
-    if made is None or mask.device.type != "cpu":
+    if made is None:
         return None
     job, _keep = made
     m = mask.contiguous()
@@ -1462,4 +1468,5 @@ def relight_values(vals: torch.Tensor, tex: torch.Tensor, row: torch.Tensor,
 
 __all__ = ["available", "boxes", "build", "footprint", "lattice_fill", "lattice_plan", "layer",
            "library_path", "march", "native_enabled", "no_grad_through", "raster_ids",
-           "refract_x4", "relight_reads", "relight_values", "set_native", "spread"]
+           "refract_x4", "relight_reads", "relight_values", "set_native", "spread",
+           "views_in_range"]

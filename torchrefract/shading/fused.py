@@ -42,10 +42,8 @@ def _wants_grad(g, lighting, materials) -> bool:
         return False
     tensors = [] if materials is None else [materials.ior, materials.roughness,
                                             materials.absorption]
-    tensors += [lighting.scale,
-               lighting.rotate_deg, lighting.light_pos, lighting.light_radius,
-               lighting.light_radiance, g.ray_dir, g.front.position, g.front.normal,
-               g.meshes.tri_vertices, g.meshes.tri_normals, *lighting.texels]
+    tensors += [*_lighting_tensors(lighting), g.ray_dir, g.front.position, g.front.normal,
+                g.meshes.tri_vertices, g.meshes.tri_normals]
     return any(t.requires_grad for t in tensors)
 
 
@@ -199,25 +197,24 @@ def incident_sg(lighting, batch: torch.Tensor, origin: torch.Tensor, direction: 
     lookups), or a tensor of another dtype, shape or device."""
     n = batch.shape[0]
     if (not (settings.current().fused and native.available()) or record.active()
-            or batch.dtype != torch.int64 or origin.shape != (n, 3)
-            or direction.shape != (n, 3) or sharpness.shape != (n,)
+            or origin.shape != (n, 3) or direction.shape != (n, 3) or sharpness.shape != (n,)
             or not native.no_grad_through(origin, direction, sharpness,
-                                          *_lighting_tensors(lighting))
-            or any(t.device.type != "cpu" or t.dtype != torch.float32
-                   for t in (origin, direction, sharpness))):
+                                          *_lighting_tensors(lighting))):
+        return None
+    held = native._inputs((origin, direction, sharpness), (batch,))
+    if held is None:
         return None
     out = torch.empty((n, 3), dtype=torch.float32)
     if n == 0:
         return out
-    if (int(batch.min()) < 0 or int(batch.max()) >= len(lighting.texels)
+    if (not native.views_in_range(batch, len(lighting.texels))
             or bool((~(sharpness >= 0)).any())):  # the tensor code raises its error
         return None
     keep = _Keep()
-    held = [x.detach().contiguous() for x in (batch, origin, direction, sharpness)]
+    o, d, k, bi = held
     job = native._IncidentJob(lights=_lights(lighting, keep), env=_sg_env(lighting, keep),
-                              n=n, batch=held[0].data_ptr(), o=held[1].data_ptr(),
-                              d=held[2].data_ptr(), k=held[3].data_ptr(),
-                              out=out.data_ptr())
+                              n=n, batch=bi.data_ptr(), o=o.data_ptr(), d=d.data_ptr(),
+                              k=k.data_ptr(), out=out.data_ptr())
     return out if native._call("incident_sg", job) else None
 
 
@@ -261,13 +258,14 @@ def _lobes(n: int, vec3: dict, scal: dict, dist: torch.Tensor, outs: tuple, outs
     float32 inputs, ``dist`` (N,) int64; the named outputs (N,) and ``outs3`` (N, 3)."""
     ins = (*vec3.values(), *scal.values())
     if (not (settings.current().fused and native.available()) or dist.shape != (n,)
-            or dist.dtype != torch.int64 or dist.device.type != "cpu"
             or any(x.shape != (n, 3) for x in vec3.values())
             or any(x.shape != (n,) for x in scal.values())
-            or any(x.device.type != "cpu" or x.dtype != torch.float32 for x in ins)
             or not native.no_grad_through(*ins)):
         return None
-    held = {k: x.detach().contiguous() for k, x in {**vec3, **scal, "dist": dist}.items()}
+    kept = native._inputs(ins, (dist,))
+    if kept is None:
+        return None
+    held = dict(zip((*vec3, *scal, "dist"), kept))
     res = {k: torch.empty(n) for k in outs} | {k: torch.empty(n, 3) for k in outs3}
     if n == 0:
         return res
