@@ -9,7 +9,8 @@
  * S_oi. Vectorized with GCC/Clang vector types: the SH of a point's 3 E directions
  * together (8 directions per vector), then the product with the coefficients 8 channels
  * at a time (the table is stored (S, K, 8): the C <= 8 channels of a coefficient side by
- * side), one broadcast and multiply-add per (direction, coefficient). Float32 throughout
+ * side), one broadcast and multiply-add per (direction, coefficient), the partial sums in
+ * registers; the next point's samples are prefetched while one computes. Float32 throughout
  * and no contraction (as the tensor code: -ffp-contract=off); the sums run in another order
  * (the images agree to float32 rounding, tests/test_sh.py). */
 
@@ -61,6 +62,7 @@ typedef struct {
     int l[SH_MAXK], m[SH_MAXK];
     float f[SH_MAXK];
     float qmm[SH_MAXL + 1];
+    int kidx[SH_MAXL + 1][2 * SH_MAXL + 1]; /* k of (l, m) at [l][SH_MAXL + m], l + m even */
 } ShConst;
 
 static void sh_constants(int order, ShConst *cst) {
@@ -73,6 +75,7 @@ static void sh_constants(int order, ShConst *cst) {
                              * exp(lgamma(l - am + 1.0) - lgamma(l + am + 1.0)));
             cst->l[k] = l;
             cst->m[k] = m;
+            cst->kidx[l][SH_MAXL + m] = k;
             cst->f[k] = (float)(m == 0 ? kk : sqrt(2.0) * kk);
             k++;
         }
@@ -86,39 +89,51 @@ static void sh_constants(int order, ShConst *cst) {
 
 static inline v8f splat(float a) { return (v8f){a, a, a, a, a, a, a, a}; }
 
-/* ysh[k][v]: the even functions of the directions (x, y, z)[v] (nv vectors of 8). */
-static void sh_even(const ShConst *cst, int order, int nv, const v8f *x, const v8f *y,
-                    const v8f *z, v8f ysh[SH_MAXK][SH_NV]) {
-    v8f cm[SH_MAXL + 1][SH_NV], sm[SH_MAXL + 1][SH_NV];
-    v8f q[SH_MAXL + 1][SH_MAXL + 1][SH_NV]; /* q[l][m]: Q_l^m(z) */
+/* ysh[k][v]: the even functions of the directions (x, y, z)[v] (nv vectors of 8), band by
+ * band per m: Q_l^m(z) by its recurrence (two terms live), each even (l, m) written as it
+ * comes; the same operations in the same order as a table of all Q_l^m would take. */
+static inline __attribute__((always_inline)) void sh_even(
+        const ShConst *cst, int order, int nv, const v8f *x, const v8f *y, const v8f *z,
+        v8f ysh[SH_MAXK][SH_NV]) {
+    v8f c[SH_NV], s[SH_NV], qa[SH_NV], qb[SH_NV]; /* cos, sin m phi (x sin^m); Q_{l-1,2}^m */
     for (int v = 0; v < nv; v++) {
-        cm[0][v] = splat(1.0f);
-        sm[0][v] = splat(0.0f);
-        for (int m = 1; m <= order; m++) {
-            v8f c = cm[m - 1][v], s = sm[m - 1][v];
-            cm[m][v] = c * x[v] - s * y[v];
-            sm[m][v] = c * y[v] + s * x[v];
+        c[v] = splat(1.0f);
+        s[v] = splat(0.0f);
+    }
+#pragma GCC unroll 9
+    for (int m = 0; m <= order; m++) {
+        for (int v = 0; v < nv && m > 0; v++) {
+            v8f c1 = c[v] * x[v] - s[v] * y[v];
+            s[v] = c[v] * y[v] + s[v] * x[v];
+            c[v] = c1;
         }
-        for (int m = 0; m <= order; m++) {
-            q[m][m][v] = splat(cst->qmm[m]);
-            if (m + 1 <= order) q[m + 1][m][v] = splat((float)(2 * m + 1)) * z[v] * q[m][m][v];
-            /* (l - m) Q_l^m = (2l - 1) z Q_{l-1}^m - (l + m - 1) Q_{l-2}^m, divided as the
-             * tensor code does (folding 1 / (l - m) into the constants moved a few pixels
-             * by 1.6e-4 relative) */
-            for (int l = m + 2; l <= order; l++)
-                q[l][m][v] = (splat((float)(2 * l - 1)) * z[v] * q[l - 1][m][v]
-                              - splat((float)(l + m - 1)) * q[l - 2][m][v])
-                             / splat((float)(l - m));
-        }
-        for (int k = 0; k < cst->k; k++) {
-            int l = cst->l[k], m = cst->m[k];
-            v8f f = splat(cst->f[k]);
-            if (m == 0)
-                ysh[k][v] = f * q[l][0][v];
-            else if (m > 0)
-                ysh[k][v] = f * q[l][m][v] * cm[m][v];
-            else
-                ysh[k][v] = f * q[l][-m][v] * sm[-m][v];
+#pragma GCC unroll 9
+        for (int l = m; l <= order; l++) {
+            for (int v = 0; v < nv; v++) { /* the vectors side by side: chains overlap */
+                v8f q;
+                if (l == m) {
+                    q = splat(cst->qmm[m]);
+                } else if (l == m + 1) {
+                    q = splat((float)(2 * m + 1)) * z[v] * qa[v];
+                } else {
+                    /* (l - m) Q_l^m = (2l - 1) z Q_{l-1}^m - (l + m - 1) Q_{l-2}^m, divided
+                     * as the tensor code does (folding 1 / (l - m) into the constants
+                     * moved a few pixels by 1.6e-4 relative) */
+                    q = (splat((float)(2 * l - 1)) * z[v] * qa[v]
+                         - splat((float)(l + m - 1)) * qb[v]) / splat((float)(l - m));
+                }
+                qb[v] = qa[v];
+                qa[v] = q;
+                if ((l + m) & 1) continue;
+                if (m == 0) {
+                    int k = cst->kidx[l][SH_MAXL];
+                    ysh[k][v] = splat(cst->f[k]) * q;
+                } else {
+                    int kp = cst->kidx[l][SH_MAXL + m], kn = cst->kidx[l][SH_MAXL - m];
+                    ysh[kp][v] = splat(cst->f[kp]) * q * c[v];
+                    ysh[kn][v] = splat(cst->f[kn]) * q * s[v];
+                }
+            }
         }
     }
 }
@@ -203,6 +218,31 @@ static inline v8f coeff_row(const void *coeffs, int64_t sample, int k) {
 #endif
 }
 
+/* The samples and weights of point i: given, or from its face and barycentrics. */
+static inline void point_samples(const ShEvalJob *job, int64_t i, int64_t *smp, float *sw) {
+    if (job->samples) {
+        for (int t = 0; t < 3; t++) {
+            smp[t] = job->samples[i * 3 + t];
+            sw[t] = job->s_w[i * 3 + t];
+        }
+    } else {
+        interpolate_point(job, i, smp, sw);
+    }
+}
+
+/* A sample's frame and coefficient rows (45 x 8 float16: 720 bytes) into the cache. */
+static inline void prefetch_sample(const ShEvalJob *job, int64_t sample) {
+    __builtin_prefetch(job->frame + sample * 9);
+    const char *c = (const char *)job->coeffs + sample * SH_MAXK * SH_CPAD * (SH_HALF ? 2 : 4);
+    for (int b = 0; b < SH_MAXK * SH_CPAD * (SH_HALF ? 2 : 4); b += 64)
+        __builtin_prefetch(c + b);
+}
+
+/* A sample's coefficient row k (its channels side by side) times the window's k-th weight. */
+static inline v8f windowed(const ShEvalJob *job, const v8f *wv, int64_t sample, int k) {
+    return coeff_row(job->coeffs, sample, k) * wv[k];
+}
+
 static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
     const ShEvalJob *job = (const ShEvalJob *)vjob;
     const int e = (int)job->e, order = (int)job->order;
@@ -217,16 +257,17 @@ static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
     v8f ysh[SH_MAXK][SH_NV];
     float *xs = (float *)xv, *ys = (float *)yv, *zs = (float *)zv;
     float dirs[SH_MAXE][3];
+    int64_t smp[3], nsmp[3];
+    float swt[3], nswt[3];
+    if (begin < end) point_samples(job, begin, nsmp, nswt);
     for (int64_t i = begin; i < end; i++) {
-        int64_t smp[3];
-        float swt[3];
-        if (job->samples) {
-            for (int t = 0; t < 3; t++) {
-                smp[t] = job->samples[i * 3 + t];
-                swt[t] = job->s_w[i * 3 + t];
-            }
-        } else {
-            interpolate_point(job, i, smp, swt);
+        for (int t = 0; t < 3; t++) {
+            smp[t] = nsmp[t];
+            swt[t] = nswt[t];
+        }
+        if (i + 1 < end) { /* the next point's samples, fetched while this one computes */
+            point_samples(job, i + 1, nsmp, nswt);
+            for (int t = 0; t < 3; t++) prefetch_sample(job, nsmp[t]);
         }
         if (job->spread) {
             spread_directions(job->omega + i * 3, job->spread[i], dirs);
@@ -250,7 +291,10 @@ static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
                 zs[d] = (o[0] * fr[6] + o[1] * fr[7]) + o[2] * fr[8];
             }
         }
-        sh_even(&cst, order, nv, xv, yv, zv, ysh);
+        if (order == SH_MAXL && nv == SH_NV) /* the default: loops of known length, unrolled */
+            sh_even(&cst, SH_MAXL, SH_NV, xv, yv, zv, ysh);
+        else
+            sh_even(&cst, order, nv, xv, yv, zv, ysh);
         const float *yflat = (const float *)ysh; /* ysh[k][v] lane t at (k * SH_NV + v) * 8 + t */
         v8f acc[SH_MAXE];
         for (int j = 0; j < e; j++) acc[j] = splat(0.0f);
@@ -263,20 +307,58 @@ static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
                 int k = 0;
                 for (; k + 4 <= nk; k += 4) {
                     const float *yk = ys0 + k * SH_NV * 8;
-                    p0 += splat(yk[0]) * (coeff_row(job->coeffs, smp[s], k) * wv[k]);
-                    p1 += splat(yk[SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 1) * wv[k + 1]);
-                    p2 += splat(yk[2 * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 2) * wv[k + 2]);
-                    p3 += splat(yk[3 * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k + 3) * wv[k + 3]);
+                    p0 += splat(yk[0]) * windowed(job, wv, smp[s], k);
+                    p1 += splat(yk[SH_NV * 8]) * windowed(job, wv, smp[s], k + 1);
+                    p2 += splat(yk[2 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 2);
+                    p3 += splat(yk[3 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 3);
                 }
                 for (; k < nk; k++)
-                    p0 += splat(ys0[k * SH_NV * 8]) * (coeff_row(job->coeffs, smp[s], k) * wv[k]);
+                    p0 += splat(ys0[k * SH_NV * 8]) * windowed(job, wv, smp[s], k);
                 acc[0] += sw * ((p0 + p1) + (p2 + p3));
+                continue;
+            }
+            if (e == SH_MAXE) {
+                /* the view and its four offsets: ten partial sums held in registers (an
+                 * array indexed by a run-time e lives in memory, each add waiting on a
+                 * store), even and odd k apart */
+                v8f a0 = splat(0.0f), a1 = a0, a2 = a0, a3 = a0, a4 = a0;
+                v8f b0 = a0, b1 = a0, b2 = a0, b3 = a0, b4 = a0;
+                int k = 0;
+                for (; k + 2 <= nk; k += 2) {
+                    v8f w = windowed(job, wv, smp[s], k);
+                    v8f u = windowed(job, wv, smp[s], k + 1);
+                    const float *yk = ys0 + k * SH_NV * 8, *yu = yk + SH_NV * 8;
+                    a0 += splat(yk[0]) * w;
+                    a1 += splat(yk[1]) * w;
+                    a2 += splat(yk[2]) * w;
+                    a3 += splat(yk[3]) * w;
+                    a4 += splat(yk[4]) * w;
+                    b0 += splat(yu[0]) * u;
+                    b1 += splat(yu[1]) * u;
+                    b2 += splat(yu[2]) * u;
+                    b3 += splat(yu[3]) * u;
+                    b4 += splat(yu[4]) * u;
+                }
+                if (k < nk) {
+                    v8f w = windowed(job, wv, smp[s], k);
+                    const float *yk = ys0 + k * SH_NV * 8;
+                    a0 += splat(yk[0]) * w;
+                    a1 += splat(yk[1]) * w;
+                    a2 += splat(yk[2]) * w;
+                    a3 += splat(yk[3]) * w;
+                    a4 += splat(yk[4]) * w;
+                }
+                acc[0] += sw * (a0 + b0);
+                acc[1] += sw * (a1 + b1);
+                acc[2] += sw * (a2 + b2);
+                acc[3] += sw * (a3 + b3);
+                acc[4] += sw * (a4 + b4);
                 continue;
             }
             v8f part[SH_MAXE];
             for (int j = 0; j < e; j++) part[j] = splat(0.0f);
             for (int k = 0; k < nk; k++) {
-                v8f w = coeff_row(job->coeffs, smp[s], k) * wv[k];
+                v8f w = windowed(job, wv, smp[s], k);
                 const float *yk = ys0 + k * SH_NV * 8;
                 for (int j = 0; j < e; j++) part[j] += splat(yk[j]) * w;
             }
