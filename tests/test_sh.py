@@ -754,3 +754,47 @@ def test_lookups_in_the_fused_kernel_give_the_tensor_codes_image(one_thread):
     a, b = ours.radiance[obj], ref.radiance[obj]
     rel = ((a - b).abs() / b.abs().clamp(min=1e-3)).amax(-1)
     assert obj.sum() > 200 and (rel <= 1e-4).float().mean() >= 0.999, float(rel.max())
+
+
+def test_native_map_of_a_batch_gives_the_per_item_image(one_thread):
+    """`_map_items`' one native call over the items sharing a table (`sh_map`: faces and
+    barycentrics from the G-buffer, the view into object space, eq. 2, the exit back in
+    world space, the spread) against the tensor code's item-by-item `_map_pixels`: three
+    poses and scales of one mesh (one table), rough, smooth and barely rough items, both
+    branches; the same image and passes within float32 rounding."""
+    _tracer_or_skip()
+    from torchrefract.methods.sh import native as sh_native
+
+    if not sh_native.available():
+        pytest.skip("no native sh kernel")
+    cam = tr.Camera(eye=(0.2, 0.6, 3.2), width=40, height=40)
+    light = tr.SphereLight(position=(0.0, 2.0, -2.5), radius=0.4, radiance=(50.0, 40.0, 30.0))
+    scenes = [tr.Scene(mesh=str(ASSETS / "meshes" / "torus.ply"), material=mat, camera=cam,
+                       envmap=tr.EnvMap(path=ENV, rotate_deg=30.0), lights=(light,),
+                       transform=tr.Transform(rotate_deg=rot, scale=scale),
+                       method="sh", method_options={**SMALL, "branches": 2})
+              for mat, rot, scale in ((tr.Material(ior=1.5, roughness=0.2), (-50, 0, 20), 1.0),
+                                      (tr.Material(ior=1.5, roughness=0.0), (10, 40, 0), 0.7),
+                                      (tr.Material(ior=1.5, roughness=0.05), (0, 0, 0), 1.3))]
+    calls = []
+    real = sh_native.map_pixels
+
+    def counted(*a, **k):
+        calls.append(real(*a, **k))
+        return calls[-1]
+
+    settings = tr.RenderSettings(adaptive=False)
+    try:
+        sh_native.map_pixels = counted
+        ours = tr.render(scenes, settings=settings)
+        sh_native.map_pixels = lambda *a, **k: False  # the tensor code, item by item
+        ref = tr.render(scenes, settings=settings)
+    finally:
+        sh_native.map_pixels = real
+    assert calls == [True, True]  # the main path and the branch, each in one call
+    obj = (ours.coverage > 0.99) & (ref.coverage > 0.99)
+    a, b = ours.radiance[obj], ref.radiance[obj]
+    rel = ((a - b).abs() / b.abs().clamp(min=1e-3)).amax(-1)
+    assert obj.sum() > 500 and float(rel.max()) <= 1e-4, float(rel.max())
+    for name in ("lobe_sigma", "path_length"):
+        assert torch.allclose(ours.passes[name], ref.passes[name], rtol=1e-4, atol=1e-6), name

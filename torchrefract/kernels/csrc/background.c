@@ -165,9 +165,16 @@ typedef struct {
 
 static void incident_range(const void *job, int64_t begin, int64_t end) {
     const IncidentJob *j = (const IncidentJob *)job;
-    for (int64_t i = begin; i < end; i++)
-        incident_sg(&j->lights, &j->env, j->batch[i], j->o + 3 * i, j->d + 3 * i, j->k[i],
-                    j->out + 3 * i);
+    for (int64_t i0 = begin; i0 < end; i0 += 8) { /* eight taps found in lanes, then read */
+        const int n = end - i0 < 8 ? (int)(end - i0) : 8;
+        SgTap taps[8];
+        sg_env_tap8(&j->lights, &j->env, n, j->batch + i0, j->d + 3 * i0, j->k + i0, taps);
+        for (int t = 0; t < n; t++) {
+            const int64_t i = i0 + t;
+            incident_sg_at(&j->lights, j->batch[i], j->o + 3 * i, j->d + 3 * i, j->k[i],
+                           taps + t, j->out + 3 * i);
+        }
+    }
 }
 
 int torchrefract_incident_sg(const IncidentJob *job, int threads) {

@@ -44,6 +44,9 @@ HEADER = Path(_native.__file__).with_name("csrc") / "common.h"
 CPAD = 8
 """Channels per coefficient in the kernel's table (the 6 stored, zero-padded to a vector)."""
 MAX_DIRECTIONS = 5
+MAP_CHANNELS = 7
+"""The channels :func:`map_pixels` reads (``precompute.CHANNELS``: exit direction, length,
+exit cosine, throughput, gain)."""
 
 _p = ctypes.c_void_p
 
@@ -56,6 +59,17 @@ class _ShEvalJob(ctypes.Structure):
                 ("samples", _p), ("s_w", _p), ("faces", _p), ("bary", _p), ("lattice", _p),
                 ("rate", ctypes.c_int64), ("spread", _p), ("frame", _p), ("coeffs", _p),
                 ("weights", _p), ("out", _p)]
+
+
+class _ShMapJob(ctypes.Structure):
+    """ctypes mirror of ``ShMapJob`` in csrc/sh_eval.c."""
+
+    _fields_ = [("eval", _ShEvalJob), ("n", ctypes.c_int64), ("sel", _p), ("pix", _p),
+                ("item", _p), ("tri", _p), ("gbary", _p), ("face_offset", _p), ("view", _p),
+                ("var_view", _p), ("alpha", _p), ("rotation", _p), ("scale", _p),
+                ("rough", _p), ("radius", ctypes.c_float), ("max_spread", ctypes.c_float),
+                ("direction", _p), ("length", _p), ("cos_exit", _p), ("throughput", _p),
+                ("var_geo", _p)]
 
 
 class _ShPathJob(ctypes.Structure):
@@ -100,7 +114,8 @@ def _load() -> ctypes.CDLL | None:
         if _LIB is None and _FAILED is None:
             try:
                 lib = ctypes.CDLL(str(build()))
-                _native.bind(lib, {"sh_eval": _ShEvalJob, "sh_paths": _ShPathJob})
+                _native.bind(lib, {"sh_eval": _ShEvalJob, "sh_map": _ShMapJob,
+                                   "sh_paths": _ShPathJob})
                 lib.torchrefract_sh_eval_half.restype = ctypes.c_int
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
@@ -196,6 +211,56 @@ def evaluate_points(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Te
                 spread=None if spread is None else spread.detach().float())
 
 
+def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor, rate: int,
+               order: int, weights: torch.Tensor, radius: float, max_spread: float,
+               sel: torch.Tensor, pixels: dict[str, torch.Tensor], items: dict[str, torch.Tensor],
+               out: dict[str, torch.Tensor]) -> bool:
+    """:func:`.shade._map_pixels` for the positions ``sel`` of the object pixels (their
+    items sharing the table ``padded``, ``frame``, ``lattice``, ``rate``): writes
+    ``out``'s ``direction`` (N, 3), ``length``, ``cos_exit``, ``throughput`` and ``var_geo``
+    (N,) at ``sel``; False where the kernel cannot run (the caller runs the tensor code).
+
+    Args:
+        pixels: per object pixel ``pix`` (flat G-buffer index), ``item``, ``view`` (N, 3),
+            ``var_view``, ``alpha``; and ``tri``, ``bary``: the G-buffer's front faces
+            (batch ids, int32) and barycentrics, flat.
+        items: per batch item ``face_offset``, ``rotation`` (B, 3, 3), ``scale`` (B,) and
+            ``rough`` (B,) bool: whether its four offset views are read.
+    """
+    if _load() is None or padded.shape[-1] != CPAD or tuple(padded.shape[1:]) != (45, CPAD):
+        return False
+    if (padded.dtype == torch.float16) != table_half() or not all(
+            out[k].is_contiguous() and out[k].dtype == torch.float32 for k in out):
+        return False
+    n = int(sel.numel())
+    if n == 0:
+        return True
+    f32 = lambda x: float(torch.tensor(x, dtype=torch.float32))  # noqa: E731
+    held = {"sel": sel.long().contiguous(), "pix": pixels["pix"].long().contiguous(),
+            "item": pixels["item"].long().contiguous(),
+            "tri": pixels["tri"].to(torch.int32).contiguous(),
+            "gbary": pixels["bary"].float().contiguous(),
+            "view": pixels["view"].detach().float().contiguous(),
+            "var_view": pixels["var_view"].detach().float().contiguous(),
+            "alpha": pixels["alpha"].detach().float().contiguous(),
+            "face_offset": items["face_offset"].long().contiguous(),
+            "rotation": items["rotation"].float().contiguous(),
+            "scale": items["scale"].float().contiguous(),
+            "rough": items["rough"].to(torch.uint8).contiguous(),
+            "frame": frame.contiguous(), "lattice": lattice.long().contiguous(),
+            "weights": weights.detach().float().contiguous(), "coeffs": padded.contiguous()}
+    ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
+                    frame=held["frame"].data_ptr(), coeffs=held["coeffs"].data_ptr(),
+                    weights=held["weights"].data_ptr(), lattice=held["lattice"].data_ptr())
+    job = _ShMapJob(eval=ev, n=n, radius=f32(radius), max_spread=f32(max_spread),
+                    **{k: held[k].data_ptr() for k in (
+                        "sel", "pix", "item", "tri", "gbary", "view", "var_view", "alpha",
+                        "face_offset", "rotation", "scale", "rough")},
+                    **{k: out[k].data_ptr() for k in (
+                        "direction", "length", "cos_exit", "throughput", "var_geo")})
+    return _LIB.torchrefract_sh_map(ctypes.byref(job), torch.get_num_threads()) == 0
+
+
 _VSQRT: list = []
 
 
@@ -284,4 +349,4 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
 
 
 __all__ = ["CPAD", "SOURCES", "available", "build", "evaluate", "evaluate_points",
-           "library_path", "padded_coeffs", "table_half", "torch_sqrt_function", "trace_paths"]
+           "library_path", "map_pixels", "padded_coeffs", "table_half", "torch_sqrt_function", "trace_paths"]

@@ -98,9 +98,10 @@ def scene_table(table: SHTable | None, mesh: MeshData, transform) -> SceneTable:
                       translate=torch.tensor(transform.translate, dtype=torch.float32))
 
 
-def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
+def check_mesh(g: GBuffer, b: int, item: SceneTable, checked: set | None = None) -> None:
     """Static by design: the G-buffer's mesh of batch item ``b`` must be the precomputed
-    mesh under the scene's transform.
+    mesh under the scene's transform. ``checked``: the (faces, table mesh, transform)
+    already found equal in this G-buffer (views of one scene share its faces), skipped.
 
     Raises:
         ValueError: another mesh (face count or positions differ), naming both.
@@ -112,6 +113,10 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
                          f"precomputed table is for {mesh.num_faces}; re-run prepare() on "
                          "the scenes rendered (a deformed or other mesh needs its own table)")
     off = int(g.meshes.face_offset[b])
+    key = (off, id(mesh), item.scale, tuple(item.rotation.flatten().tolist()),
+           tuple(item.translate.tolist()))
+    if checked is not None and key in checked:
+        return
     world = g.meshes.tri_vertices[off:off + nf]  # (F, 3, 3)
     expect = (mesh.vertices[mesh.faces] * item.scale) @ item.rotation.T + item.translate
     err = float((world - expect).abs().max())
@@ -120,6 +125,8 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
         raise ValueError(f"method 'sh': batch item {b}'s mesh differs from its precomputed "
                          f"table's by up to {err:.3g} (tolerance {tol:.3g}); re-run prepare() "
                          "on the scenes rendered (a deformed mesh needs its own table)")
+    if checked is not None:
+        checked.add(key)
 
 
 def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
@@ -273,6 +280,41 @@ def _map_pixels(g: GBuffer, px: Pixels, bi: int, sel: torch.Tensor, item: SceneT
             var_geo)
 
 
+def _map_items(g: GBuffer, px: Pixels, bis: list[int], items: tuple[SceneTable, ...],
+               options: SHOptions, var_view: torch.Tensor, rough: torch.Tensor,
+               outs: tuple[torch.Tensor, ...], first: int = 0) -> None:
+    """:func:`_map_pixels` for the batch items ``bis`` (one table), written into ``outs``
+    (direction, length, exit cosine, throughput, variance; per object pixel): in one
+    native call where it runs and no gradient is wanted, else item by item."""
+    table = items[bis[0]].table
+    weights = window(options.order, options.window, options.window_width)
+    if sh_native.available() and native.no_grad_through(px.view, var_view, px.alpha, weights):
+        in_group = torch.zeros(g.shape[0], dtype=torch.bool)
+        in_group[bis] = True
+        sel = where_true(take(in_group, px.bi))
+        eye = torch.eye(3)
+        per_item = {
+            "face_offset": g.meshes.face_offset, "rough": rough,
+            "rotation": torch.stack([it.rotation if it.table is not None else eye
+                                     for it in items]),
+            "scale": torch.tensor([it.scale for it in items], dtype=torch.float32)}
+        pixels = {"pix": px.idx, "item": px.bi, "tri": g.front.tri.reshape(-1),
+                  "bary": g.front.bary.reshape(-1, 3), "view": px.view,
+                  "var_view": var_view, "alpha": px.alpha}
+        out = dict(zip(("direction", "length", "cos_exit", "throughput", "var_geo"), outs))
+        if sh_native.map_pixels(_padded(table, first), table.layout.frame,
+                                table.layout.lattice, table.layout.rate, options.order,
+                                weights, table.radius, MAX_SPREAD, sel, pixels, per_item,
+                                out):
+            return
+    for bi in bis:
+        sel = where_true(px.bi == bi)
+        vals = _map_pixels(g, px, bi, sel, items[bi], options, var_view, bool(rough[bi]),
+                           first)
+        for dst, v in zip(outs, vals):
+            put_(dst, sel, v)
+
+
 def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
               direction: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
     """``incident_radiance_sg``: in one fused kernel call where it runs (the fused methods'
@@ -325,6 +367,8 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
         if two:  # the reflected branch's (energy 0: none)
             direction_b, length_b = px.d.clone(), torch.zeros(n)
             cos_b, energy_b, var_geo_b = torch.ones(n), torch.zeros(n), torch.zeros(n)
+        mapped = {}  # table -> the batch items it maps
+        checked = set()
         for bi, item in enumerate(items):
             sel = where_true(px.bi == bi)
             if sel.numel() == 0:
@@ -333,23 +377,23 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
                 put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
                 put_(length, sel, take(length_fallback, sel))
                 continue
-            check_mesh(g, bi, item)
+            check_mesh(g, bi, item, checked)
             if float(materials.ior[bi]) != item.table.settings.ior:
                 raise ValueError(f"method 'sh': batch item {bi} has IOR "
                                  f"{float(materials.ior[bi])}, its table "
                                  f"{item.table.settings.ior}; re-run prepare()")
-            rough = bool((take(px.alpha, sel) > ROUGH).any())
-            outs = _map_pixels(g, px, bi, sel, item, options, var_view, rough)
-            for dst, v in zip((direction, length, cos_exit, thr, var_geo), outs):
-                put_(dst, sel, v)
+            if two and item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
+                raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
+                                 "channels (branches: 1); re-run prepare()")
+            mapped.setdefault(id(item.table), []).append(bi)
+        rough = torch.zeros(b).index_add_(0, px.bi, (px.alpha > ROUGH).float()) > 0
+        outs = (direction, length, cos_exit, thr, var_geo)
+        outs_b = (direction_b, length_b, cos_b, energy_b, var_geo_b) if two else None
+        for bis in mapped.values():
+            _map_items(g, px, bis, items, options, var_view, rough, outs)
             if two:
-                if item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
-                    raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
-                                     "channels (branches: 1); re-run prepare()")
-                outs = _map_pixels(g, px, bi, sel, item, options, var_view, rough,
-                                   len(CHANNELS))
-                for dst, v in zip((direction_b, length_b, cos_b, energy_b, var_geo_b), outs):
-                    put_(dst, sel, v)
+                _map_items(g, px, bis, items, options, var_view, rough, outs_b,
+                           len(CHANNELS))
         # The exit interface (leaving: eta = 1 / ior), its lobe at the exit cosine (held
         # just outside TIR, where interpolation may dip below the critical angle).
         eta2 = 1.0 / px.ior

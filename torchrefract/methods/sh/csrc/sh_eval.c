@@ -140,8 +140,8 @@ static inline __attribute__((always_inline)) void sh_even(
 
 /* layout.interpolation for one point: the three lattice samples of the small triangle the
  * barycentrics fall in, and their weights (float32, formula by formula). */
-static void interpolate_point(const ShEvalJob *job, int64_t i, int64_t *smp, float *sw) {
-    const float *bi = job->bary + i * 3;
+static void interpolate_point(const ShEvalJob *job, int64_t face, const float *bi,
+                              int64_t *smp, float *sw) {
     const int64_t n = job->rate;
     float b[3];
     for (int t = 0; t < 3; t++) b[t] = bi[t] < 0.0f ? 0.0f : bi[t];
@@ -176,7 +176,7 @@ static void interpolate_point(const ShEvalJob *job, int64_t i, int64_t *smp, flo
     float ws = (w[0] + w[1]) + w[2];
     if (ws < 1e-12f) ws = 1e-12f;
     const int64_t npts = (n + 1) * (n + 2) / 2;
-    const int64_t *lat = job->lattice + job->faces[i] * npts;
+    const int64_t *lat = job->lattice + face * npts;
     for (int t = 0; t < 3; t++) {
         sw[t] = w[t] / ws;
         smp[t] = lat[pj[t] * (n + 1) - (pj[t] * (pj[t] - 1)) / 2 + pi[t]];
@@ -226,7 +226,7 @@ static inline void point_samples(const ShEvalJob *job, int64_t i, int64_t *smp, 
             sw[t] = job->s_w[i * 3 + t];
         }
     } else {
-        interpolate_point(job, i, smp, sw);
+        interpolate_point(job, job->faces[i], job->bary + i * 3, smp, sw);
     }
 }
 
@@ -243,20 +243,125 @@ static inline v8f windowed(const ShEvalJob *job, const v8f *wv, int64_t sample, 
     return coeff_row(job->coeffs, sample, k) * wv[k];
 }
 
-static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
-    const ShEvalJob *job = (const ShEvalJob *)vjob;
-    const int e = (int)job->e, order = (int)job->order;
-    const int nc = (int)job->c, nr = (int)job->c_rest;
+/* What every point of a call shares: the constants of the basis and the window. */
+typedef struct {
     ShConst cst;
-    sh_constants(order, &cst);
-    const int nk = cst.k;
-    const int nd = 3 * e, nv = (nd + 7) / 8;
+    int nk;
     v8f wv[SH_MAXK];
-    for (int k = 0; k < nk; k++) wv[k] = splat(job->weights[k]);
+} ShShared;
+
+static void shared_init(const ShEvalJob *job, ShShared *sh) {
+    sh_constants((int)job->order, &sh->cst);
+    sh->nk = sh->cst.k;
+    for (int k = 0; k < sh->nk; k++) sh->wv[k] = splat(job->weights[k]);
+}
+
+/* Eq. 2 at one point: its samples smp (weights swt) for the e view directions dirs;
+ * acc[j] lanes c: channel c at direction j. */
+static void eval_point(const ShEvalJob *job, const ShShared *sh, const int64_t *smp,
+                       const float *swt, int e, float dirs[SH_MAXE][3], v8f acc[SH_MAXE]) {
+    const int order = (int)job->order, nk = sh->nk, nv = (3 * e + 7) / 8;
+    const v8f *wv = sh->wv;
     v8f xv[SH_NV], yv[SH_NV], zv[SH_NV];
     v8f ysh[SH_MAXK][SH_NV];
     float *xs = (float *)xv, *ys = (float *)yv, *zs = (float *)zv;
+    for (int v = 0; v < SH_NV; v++) {
+        xv[v] = splat(0.0f);
+        yv[v] = splat(0.0f);
+        zv[v] = splat(1.0f);
+    }
+    for (int s = 0; s < 3; s++) {
+        const float *fr = job->frame + smp[s] * 9;
+        for (int j = 0; j < e; j++) {
+            const float *o = dirs[j];
+            int d = s * e + j;
+            /* einsum("ner,nsar->nsea"): sum over r in order */
+            xs[d] = (o[0] * fr[0] + o[1] * fr[1]) + o[2] * fr[2];
+            ys[d] = (o[0] * fr[3] + o[1] * fr[4]) + o[2] * fr[5];
+            zs[d] = (o[0] * fr[6] + o[1] * fr[7]) + o[2] * fr[8];
+        }
+    }
+    if (order == SH_MAXL && nv == SH_NV) /* the default: loops of known length, unrolled */
+        sh_even(&sh->cst, SH_MAXL, SH_NV, xv, yv, zv, ysh);
+    else
+        sh_even(&sh->cst, order, nv, xv, yv, zv, ysh);
+    const float *yflat = (const float *)ysh; /* ysh[k][v] lane t at (k * SH_NV + v) * 8 + t */
+    for (int j = 0; j < e; j++) acc[j] = splat(0.0f);
+    for (int s = 0; s < 3; s++) {
+        const float *ys0 = yflat + s * e;
+        v8f sw = splat(swt[s]);
+        if (e == 1) {
+            /* one direction: four partial sums, so the adds do not wait on each other */
+            v8f p0 = splat(0.0f), p1 = p0, p2 = p0, p3 = p0;
+            int k = 0;
+            for (; k + 4 <= nk; k += 4) {
+                const float *yk = ys0 + k * SH_NV * 8;
+                p0 += splat(yk[0]) * windowed(job, wv, smp[s], k);
+                p1 += splat(yk[SH_NV * 8]) * windowed(job, wv, smp[s], k + 1);
+                p2 += splat(yk[2 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 2);
+                p3 += splat(yk[3 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 3);
+            }
+            for (; k < nk; k++)
+                p0 += splat(ys0[k * SH_NV * 8]) * windowed(job, wv, smp[s], k);
+            acc[0] += sw * ((p0 + p1) + (p2 + p3));
+            continue;
+        }
+        if (e == SH_MAXE) {
+            /* the view and its four offsets: ten partial sums held in registers (an
+             * array indexed by a run-time e lives in memory, each add waiting on a
+             * store), even and odd k apart */
+            v8f a0 = splat(0.0f), a1 = a0, a2 = a0, a3 = a0, a4 = a0;
+            v8f b0 = a0, b1 = a0, b2 = a0, b3 = a0, b4 = a0;
+            int k = 0;
+            for (; k + 2 <= nk; k += 2) {
+                v8f w = windowed(job, wv, smp[s], k);
+                v8f u = windowed(job, wv, smp[s], k + 1);
+                const float *yk = ys0 + k * SH_NV * 8, *yu = yk + SH_NV * 8;
+                a0 += splat(yk[0]) * w;
+                a1 += splat(yk[1]) * w;
+                a2 += splat(yk[2]) * w;
+                a3 += splat(yk[3]) * w;
+                a4 += splat(yk[4]) * w;
+                b0 += splat(yu[0]) * u;
+                b1 += splat(yu[1]) * u;
+                b2 += splat(yu[2]) * u;
+                b3 += splat(yu[3]) * u;
+                b4 += splat(yu[4]) * u;
+            }
+            if (k < nk) {
+                v8f w = windowed(job, wv, smp[s], k);
+                const float *yk = ys0 + k * SH_NV * 8;
+                a0 += splat(yk[0]) * w;
+                a1 += splat(yk[1]) * w;
+                a2 += splat(yk[2]) * w;
+                a3 += splat(yk[3]) * w;
+                a4 += splat(yk[4]) * w;
+            }
+            acc[0] += sw * (a0 + b0);
+            acc[1] += sw * (a1 + b1);
+            acc[2] += sw * (a2 + b2);
+            acc[3] += sw * (a3 + b3);
+            acc[4] += sw * (a4 + b4);
+            continue;
+        }
+        v8f part[SH_MAXE];
+        for (int j = 0; j < e; j++) part[j] = splat(0.0f);
+        for (int k = 0; k < nk; k++) {
+            v8f w = windowed(job, wv, smp[s], k);
+            const float *yk = ys0 + k * SH_NV * 8;
+            for (int j = 0; j < e; j++) part[j] += splat(yk[j]) * w;
+        }
+        for (int j = 0; j < e; j++) acc[j] += sw * part[j];
+    }
+}
+
+static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
+    const ShEvalJob *job = (const ShEvalJob *)vjob;
+    const int e = (int)job->e, nc = (int)job->c, nr = (int)job->c_rest;
+    ShShared sh;
+    shared_init(job, &sh);
     float dirs[SH_MAXE][3];
+    v8f acc[SH_MAXE];
     int64_t smp[3], nsmp[3];
     float swt[3], nswt[3];
     if (begin < end) point_samples(job, begin, nsmp, nswt);
@@ -275,95 +380,7 @@ static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
             for (int j = 0; j < e; j++)
                 for (int t = 0; t < 3; t++) dirs[j][t] = job->omega[(i * e + j) * 3 + t];
         }
-        for (int v = 0; v < SH_NV; v++) {
-            xv[v] = splat(0.0f);
-            yv[v] = splat(0.0f);
-            zv[v] = splat(1.0f);
-        }
-        for (int s = 0; s < 3; s++) {
-            const float *fr = job->frame + smp[s] * 9;
-            for (int j = 0; j < e; j++) {
-                const float *o = dirs[j];
-                int d = s * e + j;
-                /* einsum("ner,nsar->nsea"): sum over r in order */
-                xs[d] = (o[0] * fr[0] + o[1] * fr[1]) + o[2] * fr[2];
-                ys[d] = (o[0] * fr[3] + o[1] * fr[4]) + o[2] * fr[5];
-                zs[d] = (o[0] * fr[6] + o[1] * fr[7]) + o[2] * fr[8];
-            }
-        }
-        if (order == SH_MAXL && nv == SH_NV) /* the default: loops of known length, unrolled */
-            sh_even(&cst, SH_MAXL, SH_NV, xv, yv, zv, ysh);
-        else
-            sh_even(&cst, order, nv, xv, yv, zv, ysh);
-        const float *yflat = (const float *)ysh; /* ysh[k][v] lane t at (k * SH_NV + v) * 8 + t */
-        v8f acc[SH_MAXE];
-        for (int j = 0; j < e; j++) acc[j] = splat(0.0f);
-        for (int s = 0; s < 3; s++) {
-            const float *ys0 = yflat + s * e;
-            v8f sw = splat(swt[s]);
-            if (e == 1) {
-                /* one direction: four partial sums, so the adds do not wait on each other */
-                v8f p0 = splat(0.0f), p1 = p0, p2 = p0, p3 = p0;
-                int k = 0;
-                for (; k + 4 <= nk; k += 4) {
-                    const float *yk = ys0 + k * SH_NV * 8;
-                    p0 += splat(yk[0]) * windowed(job, wv, smp[s], k);
-                    p1 += splat(yk[SH_NV * 8]) * windowed(job, wv, smp[s], k + 1);
-                    p2 += splat(yk[2 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 2);
-                    p3 += splat(yk[3 * SH_NV * 8]) * windowed(job, wv, smp[s], k + 3);
-                }
-                for (; k < nk; k++)
-                    p0 += splat(ys0[k * SH_NV * 8]) * windowed(job, wv, smp[s], k);
-                acc[0] += sw * ((p0 + p1) + (p2 + p3));
-                continue;
-            }
-            if (e == SH_MAXE) {
-                /* the view and its four offsets: ten partial sums held in registers (an
-                 * array indexed by a run-time e lives in memory, each add waiting on a
-                 * store), even and odd k apart */
-                v8f a0 = splat(0.0f), a1 = a0, a2 = a0, a3 = a0, a4 = a0;
-                v8f b0 = a0, b1 = a0, b2 = a0, b3 = a0, b4 = a0;
-                int k = 0;
-                for (; k + 2 <= nk; k += 2) {
-                    v8f w = windowed(job, wv, smp[s], k);
-                    v8f u = windowed(job, wv, smp[s], k + 1);
-                    const float *yk = ys0 + k * SH_NV * 8, *yu = yk + SH_NV * 8;
-                    a0 += splat(yk[0]) * w;
-                    a1 += splat(yk[1]) * w;
-                    a2 += splat(yk[2]) * w;
-                    a3 += splat(yk[3]) * w;
-                    a4 += splat(yk[4]) * w;
-                    b0 += splat(yu[0]) * u;
-                    b1 += splat(yu[1]) * u;
-                    b2 += splat(yu[2]) * u;
-                    b3 += splat(yu[3]) * u;
-                    b4 += splat(yu[4]) * u;
-                }
-                if (k < nk) {
-                    v8f w = windowed(job, wv, smp[s], k);
-                    const float *yk = ys0 + k * SH_NV * 8;
-                    a0 += splat(yk[0]) * w;
-                    a1 += splat(yk[1]) * w;
-                    a2 += splat(yk[2]) * w;
-                    a3 += splat(yk[3]) * w;
-                    a4 += splat(yk[4]) * w;
-                }
-                acc[0] += sw * (a0 + b0);
-                acc[1] += sw * (a1 + b1);
-                acc[2] += sw * (a2 + b2);
-                acc[3] += sw * (a3 + b3);
-                acc[4] += sw * (a4 + b4);
-                continue;
-            }
-            v8f part[SH_MAXE];
-            for (int j = 0; j < e; j++) part[j] = splat(0.0f);
-            for (int k = 0; k < nk; k++) {
-                v8f w = windowed(job, wv, smp[s], k);
-                const float *yk = ys0 + k * SH_NV * 8;
-                for (int j = 0; j < e; j++) part[j] += splat(yk[j]) * w;
-            }
-            for (int j = 0; j < e; j++) acc[j] += sw * part[j];
-        }
+        eval_point(job, &sh, smp, swt, e, dirs, acc);
         float *out = job->out + i * e * nc;
         for (int j = 0; j < e; j++) {
             const float *a = (const float *)&acc[j];
@@ -384,4 +401,118 @@ int torchrefract_sh_eval(const ShEvalJob *job, int threads) {
         || (job->spread && job->e != SH_MAXE) || (!job->samples && job->rate < 1))
         return -2;
     return tr_parallel_for(sh_eval_range, job, job->n, 256, threads);
+}
+
+/* shade._map_pixels for the object pixels of the batch items sharing one table: per pixel
+ * its front face and barycentrics from the G-buffer, the view in object space, eq. 2 at
+ * the view (and, for an item with rough pixels, the four views around it), then the exit
+ * direction back in world space, the length, exit cosine, throughput and the variance of
+ * the exit directions (the geometric spread), written at the pixel's position. */
+typedef struct {
+    ShEvalJob eval;          /* the table and basis (n, e, omega, samples, faces, bary,
+                              * spread and out unused) */
+    int64_t n;               /* positions mapped */
+    const int64_t *sel;      /* (n,) positions in the per-pixel arrays */
+    const int64_t *pix;      /* (N,) flat G-buffer pixel of each position */
+    const int64_t *item;     /* (N,) batch item of each position */
+    const int32_t *tri;      /* (B H W,) front faces, ids over the batch's meshes */
+    const float *gbary;      /* (B H W, 3) front barycentrics */
+    const int64_t *face_offset; /* (B,) first face of each item's mesh */
+    const float *view;       /* (N, 3) unit view directions (world, towards the viewer) */
+    const float *var_view;   /* (N,) variance of the view directions the lobe spans */
+    const float *alpha;      /* (N,) front roughness */
+    const float *rotation;   /* (B, 3, 3) object -> world rotation R (omega = view R) */
+    const float *scale;      /* (B,) the items' uniform scale */
+    const uint8_t *rough;    /* (B,) 1: the four offset views are read (the item's choice) */
+    float radius;            /* the table's length unit */
+    float max_spread;        /* largest offset angle */
+    float *direction;        /* (N, 3) outputs, at the positions sel */
+    float *length, *cos_exit, *throughput, *var_geo; /* (N,) */
+} ShMapJob;
+
+/* The samples and weights of the q-th position mapped: its pixel's front face and
+ * barycentrics. */
+static inline void map_samples(const ShMapJob *job, int64_t q, int64_t *smp, float *sw) {
+    const int64_t p = job->sel[q], pix = job->pix[p];
+    interpolate_point(&job->eval, (int64_t)job->tri[pix] - job->face_offset[job->item[p]],
+                      job->gbary + pix * 3, smp, sw);
+}
+
+static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
+    const ShMapJob *job = (const ShMapJob *)vjob;
+    const ShEvalJob *ev = &job->eval;
+    ShShared sh;
+    shared_init(ev, &sh);
+    float dirs[SH_MAXE][3];
+    v8f acc[SH_MAXE];
+    int64_t smp[3], nsmp[3];
+    float swt[3], nswt[3];
+    if (begin < end) map_samples(job, begin, nsmp, nswt);
+    for (int64_t q = begin; q < end; q++) {
+        const int64_t p = job->sel[q], b = job->item[p];
+        const float *rot = job->rotation + b * 9, *vw = job->view + p * 3;
+        for (int t = 0; t < 3; t++) {
+            smp[t] = nsmp[t];
+            swt[t] = nswt[t];
+        }
+        if (q + 1 < end) { /* the next point's samples, fetched while this one computes */
+            map_samples(job, q + 1, nsmp, nswt);
+            for (int t = 0; t < 3; t++) prefetch_sample(ev, nsmp[t]);
+        }
+        float om[3];
+        for (int t = 0; t < 3; t++) /* view @ R: world -> object */
+            om[t] = (vw[0] * rot[t] + vw[1] * rot[3 + t]) + vw[2] * rot[6 + t];
+        const int rough = job->rough[b] != 0;
+        float var_v = 0.0f, r = 0.0f;
+        if (rough) {
+            var_v = job->var_view[p];
+            r = sqrtf(var_v);
+            r = r > job->max_spread ? job->max_spread : r;
+            spread_directions(om, r, dirs);
+        } else {
+            for (int t = 0; t < 3; t++) dirs[0][t] = om[t];
+        }
+        eval_point(ev, &sh, smp, swt, rough ? SH_MAXE : 1, dirs, acc);
+        const float *v0 = (const float *)&acc[0];
+        float center[3] = {v0[0], v0[1], v0[2]};
+        normalize3(center);
+        float var_geo = 0.0f;
+        if (rough) {
+            float r2 = r * r;
+            r2 = r2 < 1e-12f ? 1e-12f : r2;
+            float sum = 0.0f;
+            for (int j = 1; j < SH_MAXE; j++) { /* chords between the exits ~ angles */
+                const float *vj = (const float *)&acc[j];
+                float d[3] = {vj[0], vj[1], vj[2]};
+                normalize3(d);
+                for (int t = 0; t < 3; t++) d[t] = d[t] - center[t];
+                sum += (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
+            }
+            var_geo = sum / 4.0f * (var_v / r2);
+            /* the rough interfaces met inside: Beckmann slopes' variance per axis
+             * alpha^2 / 2 times the path's gain */
+            const float a = job->alpha[p], gain = v0[6] > 0.0f ? v0[6] : 0.0f;
+            var_geo = var_geo + (0.5f * a * a) * gain;
+        }
+        if (norm3f(v0) < 1e-3f) /* ringing cancelled the vector: go straight */
+            for (int t = 0; t < 3; t++) center[t] = -om[t];
+        float *dir = job->direction + p * 3;
+        for (int t = 0; t < 3; t++) /* object -> world: R center */
+            dir[t] = (center[0] * rot[t * 3] + center[1] * rot[t * 3 + 1])
+                     + center[2] * rot[t * 3 + 2];
+        const float len = v0[3] * job->radius * job->scale[b];
+        job->length[p] = len > 0.0f ? len : 0.0f;
+        job->cos_exit[p] = v0[4] < 0.0f ? 0.0f : (v0[4] > 1.0f ? 1.0f : v0[4]);
+        job->throughput[p] = v0[5] < 0.0f ? 0.0f : (v0[5] > 1.0f ? 1.0f : v0[5]);
+        job->var_geo[p] = var_geo;
+    }
+}
+
+int64_t torchrefract_sh_map_job_size(void) { return (int64_t)sizeof(ShMapJob); }
+
+int torchrefract_sh_map(const ShMapJob *job, int threads) {
+    const ShEvalJob *ev = &job->eval;
+    if (ev->order < 0 || ev->order > SH_MAXL || ev->c < 7 || ev->c > SH_CPAD || ev->rate < 1)
+        return -2;
+    return tr_parallel_for(sh_map_range, job, job->n, 256, threads);
 }
