@@ -58,6 +58,18 @@ class MeshData:
         return int(self.faces.shape[0])
 
     @functools.cached_property
+    def content_hash(self) -> str:
+        """SHA-256 (hex) of the vertices, faces and shading normals: the key of what is
+        computed from the mesh's content (``sh``'s tables), hashed once per mesh."""
+        h = hashlib.sha256()
+        for t, dt in ((self.vertices, np.float32), (self.faces, np.int64),
+                      (self.normals, np.float32)):
+            a = np.ascontiguousarray(t.numpy().astype(dt))
+            h.update(str(a.shape).encode())
+            h.update(a.tobytes())
+        return h.hexdigest()
+
+    @functools.cached_property
     def tri_vertices(self) -> torch.Tensor:
         """(F, 3, 3) float32 corner positions, gathered once per mesh (the batch's table
         and the face sphere read them)."""

@@ -47,14 +47,9 @@ _memory: "OrderedDict[tuple, SHTable]" = OrderedDict()
 
 
 def mesh_hash(mesh: MeshData) -> str:
-    """SHA-256 (hex) of an object-space mesh's vertices, faces and shading normals."""
-    h = hashlib.sha256()
-    for t, dt in ((mesh.vertices, np.float32), (mesh.faces, np.int64),
-                  (mesh.normals, np.float32)):
-        a = np.ascontiguousarray(t.numpy().astype(dt))
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+    """SHA-256 (hex) of an object-space mesh's vertices, faces and shading normals
+    (:attr:`MeshData.content_hash`, computed once per mesh)."""
+    return mesh.content_hash
 
 
 def settings_key(settings: Settings) -> str:

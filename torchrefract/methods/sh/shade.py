@@ -34,7 +34,7 @@ An index-matched object (IOR 1) has no interface: it is invisible (no table need
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -82,6 +82,9 @@ class SceneTable:
         mesh: the object-space mesh the table was made for.
         rotation: (3, 3) float32 object-to-world rotation; scale, translate: the rest of
             the scene's transform.
+        checked: the G-buffer faces found to be this mesh under this transform
+            (:func:`check_mesh`), shared by the items of one ``prepare``: each batch's
+            faces are compared once per render, not once per view and pass.
     """
 
     table: SHTable | None
@@ -89,19 +92,22 @@ class SceneTable:
     rotation: torch.Tensor
     scale: float
     translate: torch.Tensor
+    checked: dict = field(default_factory=dict, compare=False, repr=False)
 
 
-def scene_table(table: SHTable | None, mesh: MeshData, transform) -> SceneTable:
-    """A :class:`SceneTable` for a scene's ``transform`` (SCENE_SPEC: scale, rotate, translate)."""
+def scene_table(table: SHTable | None, mesh: MeshData, transform,
+                checked: dict | None = None) -> SceneTable:
+    """A :class:`SceneTable` for a scene's ``transform`` (SCENE_SPEC: scale, rotate,
+    translate); ``checked``: the memo it shares with the other items of a batch."""
     r = torch.from_numpy(rotation_matrix(transform.rotate_deg).astype(np.float32))
     return SceneTable(table=table, mesh=mesh, rotation=r, scale=float(transform.scale),
-                      translate=torch.tensor(transform.translate, dtype=torch.float32))
+                      translate=torch.tensor(transform.translate, dtype=torch.float32),
+                      checked={} if checked is None else checked)
 
 
-def check_mesh(g: GBuffer, b: int, item: SceneTable, checked: set | None = None) -> None:
+def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
     """Static by design: the G-buffer's mesh of batch item ``b`` must be the precomputed
-    mesh under the scene's transform. ``checked``: the (faces, table mesh, transform)
-    already found equal in this G-buffer (views of one scene share its faces), skipped.
+    mesh under the scene's transform (once per faces and transform: ``item.checked``).
 
     Raises:
         ValueError: another mesh (face count or positions differ), naming both.
@@ -113,11 +119,12 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable, checked: set | None = None)
                          f"precomputed table is for {mesh.num_faces}; re-run prepare() on "
                          "the scenes rendered (a deformed or other mesh needs its own table)")
     off = int(g.meshes.face_offset[b])
-    key = (off, id(mesh), item.scale, tuple(item.rotation.flatten().tolist()),
-           tuple(item.translate.tolist()))
-    if checked is not None and key in checked:
-        return
     world = g.meshes.tri_vertices[off:off + nf]  # (F, 3, 3)
+    # (the faces tensor is held as the value: its id is not reused while in the memo)
+    key = (id(g.meshes.tri_vertices), off, id(mesh), item.scale,
+           tuple(item.rotation.flatten().tolist()), tuple(item.translate.tolist()))
+    if key in item.checked:
+        return
     expect = (mesh.vertices[mesh.faces] * item.scale) @ item.rotation.T + item.translate
     err = float((world - expect).abs().max())
     tol = 1e-4 * max(1.0, float(expect.abs().max()))
@@ -125,8 +132,7 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable, checked: set | None = None)
         raise ValueError(f"method 'sh': batch item {b}'s mesh differs from its precomputed "
                          f"table's by up to {err:.3g} (tolerance {tol:.3g}); re-run prepare() "
                          "on the scenes rendered (a deformed mesh needs its own table)")
-    if checked is not None:
-        checked.add(key)
+    item.checked[key] = g.meshes.tri_vertices
 
 
 def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
@@ -368,7 +374,6 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
             direction_b, length_b = px.d.clone(), torch.zeros(n)
             cos_b, energy_b, var_geo_b = torch.ones(n), torch.zeros(n), torch.zeros(n)
         mapped = {}  # table -> the batch items it maps
-        checked = set()
         for bi, item in enumerate(items):
             sel = where_true(px.bi == bi)
             if sel.numel() == 0:
@@ -377,7 +382,7 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
                 put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
                 put_(length, sel, take(length_fallback, sel))
                 continue
-            check_mesh(g, bi, item, checked)
+            check_mesh(g, bi, item)
             if float(materials.ior[bi]) != item.table.settings.ior:
                 raise ValueError(f"method 'sh': batch item {bi} has IOR "
                                  f"{float(materials.ior[bi])}, its table "
