@@ -348,5 +348,6 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
     return PathEnds(**out, branch=branch_ends)
 
 
-__all__ = ["CPAD", "SOURCES", "available", "build", "evaluate", "evaluate_points",
-           "library_path", "map_pixels", "padded_coeffs", "table_half", "torch_sqrt_function", "trace_paths"]
+__all__ = ["CPAD", "MAP_CHANNELS", "SOURCES", "available", "build", "evaluate",
+           "evaluate_points", "library_path", "map_pixels", "padded_coeffs", "table_half",
+           "torch_sqrt_function", "trace_paths"]

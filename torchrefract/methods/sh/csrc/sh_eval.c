@@ -438,6 +438,9 @@ static inline void map_samples(const ShMapJob *job, int64_t q, int64_t *smp, flo
                       job->gbary + pix * 3, smp, sw);
 }
 
+#define MAP_AHEAD 2 /* points whose samples are prefetched ahead */
+#define MAP_RING (MAP_AHEAD + 1)
+
 static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
     const ShMapJob *job = (const ShMapJob *)vjob;
     const ShEvalJob *ev = &job->eval;
@@ -445,20 +448,24 @@ static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
     shared_init(ev, &sh);
     float dirs[SH_MAXE][3];
     v8f acc[SH_MAXE];
-    int64_t smp[3], nsmp[3];
-    float swt[3], nswt[3];
-    if (begin < end) map_samples(job, begin, nsmp, nswt);
+    /* the samples of the points q .. q + MAP_AHEAD (ring[q % MAP_RING]): those ahead are
+     * asked into the cache while this one computes (a lattice's points lie apart) */
+    int64_t ring[MAP_RING][3];
+    float wring[MAP_RING][3];
+    for (int64_t q = begin; q < end && q < begin + MAP_AHEAD; q++) {
+        map_samples(job, q, ring[q % MAP_RING], wring[q % MAP_RING]);
+        for (int t = 0; t < 3; t++) prefetch_sample(ev, ring[q % MAP_RING][t]);
+    }
     for (int64_t q = begin; q < end; q++) {
         const int64_t p = job->sel[q], b = job->item[p];
         const float *rot = job->rotation + b * 9, *vw = job->view + p * 3;
-        for (int t = 0; t < 3; t++) {
-            smp[t] = nsmp[t];
-            swt[t] = nswt[t];
+        const int64_t a = q + MAP_AHEAD;
+        if (a < end) {
+            map_samples(job, a, ring[a % MAP_RING], wring[a % MAP_RING]);
+            for (int t = 0; t < 3; t++) prefetch_sample(ev, ring[a % MAP_RING][t]);
         }
-        if (q + 1 < end) { /* the next point's samples, fetched while this one computes */
-            map_samples(job, q + 1, nsmp, nswt);
-            for (int t = 0; t < 3; t++) prefetch_sample(ev, nsmp[t]);
-        }
+        const int64_t *smp = ring[q % MAP_RING];
+        const float *swt = wring[q % MAP_RING];
         float om[3];
         for (int t = 0; t < 3; t++) /* view @ R: world -> object */
             om[t] = (vw[0] * rot[t] + vw[1] * rot[3 + t]) + vw[2] * rot[6 + t];
