@@ -321,6 +321,33 @@ def _map_items(g: GBuffer, px: Pixels, bis: list[int], items: tuple[SceneTable, 
             put_(dst, sel, v)
 
 
+def _tables_of(g: GBuffer, px: Pixels, items: tuple[SceneTable, ...],
+               materials: MaterialBatch, two: bool, matched: torch.Tensor,
+               length: torch.Tensor, length_fallback: torch.Tensor) -> list[list[int]]:
+    """The batch items with object pixels grouped by their table (checked: the mesh, the
+    IOR, the branch channels); an item without a table (IOR 1) has its pixels marked
+    ``matched`` and their ``length`` the layers' gap instead."""
+    mapped: dict[int, list[int]] = {}
+    for bi, item in enumerate(items):
+        sel = where_true(px.bi == bi)
+        if sel.numel() == 0:
+            continue
+        if item.table is None:  # IOR 1: no interface
+            put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
+            put_(length, sel, take(length_fallback, sel))
+            continue
+        check_mesh(g, bi, item)
+        if float(materials.ior[bi]) != item.table.settings.ior:
+            raise ValueError(f"method 'sh': batch item {bi} has IOR "
+                             f"{float(materials.ior[bi])}, its table "
+                             f"{item.table.settings.ior}; re-run prepare()")
+        if two and item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
+            raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
+                             "channels (branches: 1); re-run prepare()")
+        mapped.setdefault(id(item.table), []).append(bi)
+    return list(mapped.values())
+
+
 def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
               direction: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
     """``incident_radiance_sg``: in one fused kernel call where it runs (the fused methods'
@@ -373,28 +400,11 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
         if two:  # the reflected branch's (energy 0: none)
             direction_b, length_b = px.d.clone(), torch.zeros(n)
             cos_b, energy_b, var_geo_b = torch.ones(n), torch.zeros(n), torch.zeros(n)
-        mapped = {}  # table -> the batch items it maps
-        for bi, item in enumerate(items):
-            sel = where_true(px.bi == bi)
-            if sel.numel() == 0:
-                continue
-            if item.table is None:  # IOR 1: no interface
-                put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
-                put_(length, sel, take(length_fallback, sel))
-                continue
-            check_mesh(g, bi, item)
-            if float(materials.ior[bi]) != item.table.settings.ior:
-                raise ValueError(f"method 'sh': batch item {bi} has IOR "
-                                 f"{float(materials.ior[bi])}, its table "
-                                 f"{item.table.settings.ior}; re-run prepare()")
-            if two and item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
-                raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
-                                 "channels (branches: 1); re-run prepare()")
-            mapped.setdefault(id(item.table), []).append(bi)
+        mapped = _tables_of(g, px, items, materials, two, matched, length, length_fallback)
         rough = torch.zeros(b).index_add_(0, px.bi, (px.alpha > ROUGH).float()) > 0
         outs = (direction, length, cos_exit, thr, var_geo)
         outs_b = (direction_b, length_b, cos_b, energy_b, var_geo_b) if two else None
-        for bis in mapped.values():
+        for bis in mapped:
             _map_items(g, px, bis, items, options, var_view, rough, outs)
             if two:
                 _map_items(g, px, bis, items, options, var_view, rough, outs_b,

@@ -256,12 +256,14 @@ static void shared_init(const ShEvalJob *job, ShShared *sh) {
     for (int k = 0; k < sh->nk; k++) sh->wv[k] = splat(job->weights[k]);
 }
 
+static void eval_products(const ShEvalJob *job, const ShShared *sh, const int64_t *smp,
+                          const float *swt, int e, const float *yflat, v8f acc[SH_MAXE]);
+
 /* Eq. 2 at one point: its samples smp (weights swt) for the e view directions dirs;
  * acc[j] lanes c: channel c at direction j. */
 static void eval_point(const ShEvalJob *job, const ShShared *sh, const int64_t *smp,
                        const float *swt, int e, float dirs[SH_MAXE][3], v8f acc[SH_MAXE]) {
-    const int order = (int)job->order, nk = sh->nk, nv = (3 * e + 7) / 8;
-    const v8f *wv = sh->wv;
+    const int order = (int)job->order, nv = (3 * e + 7) / 8;
     v8f xv[SH_NV], yv[SH_NV], zv[SH_NV];
     v8f ysh[SH_MAXK][SH_NV];
     float *xs = (float *)xv, *ys = (float *)yv, *zs = (float *)zv;
@@ -285,7 +287,15 @@ static void eval_point(const ShEvalJob *job, const ShShared *sh, const int64_t *
         sh_even(&sh->cst, SH_MAXL, SH_NV, xv, yv, zv, ysh);
     else
         sh_even(&sh->cst, order, nv, xv, yv, zv, ysh);
-    const float *yflat = (const float *)ysh; /* ysh[k][v] lane t at (k * SH_NV + v) * 8 + t */
+    eval_products(job, sh, smp, swt, e, (const float *)ysh, acc);
+}
+
+/* eval_point's products: the windowed coefficients of the three samples times their SH at
+ * the e directions (yflat: ysh[k][v] lane t at (k * SH_NV + v) * 8 + t), blended. */
+static void eval_products(const ShEvalJob *job, const ShShared *sh, const int64_t *smp,
+                          const float *swt, int e, const float *yflat, v8f acc[SH_MAXE]) {
+    const int nk = sh->nk;
+    const v8f *wv = sh->wv;
     for (int j = 0; j < e; j++) acc[j] = splat(0.0f);
     for (int s = 0; s < 3; s++) {
         const float *ys0 = yflat + s * e;
