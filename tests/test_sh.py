@@ -769,13 +769,16 @@ def test_native_map_of_a_batch_gives_the_per_item_image(one_thread):
         pytest.skip("no native sh kernel")
     cam = tr.Camera(eye=(0.2, 0.6, 3.2), width=40, height=40)
     light = tr.SphereLight(position=(0.0, 2.0, -2.5), radius=0.4, radiance=(50.0, 40.0, 30.0))
-    scenes = [tr.Scene(mesh=str(ASSETS / "meshes" / "torus.ply"), material=mat, camera=cam,
+    scenes = [tr.Scene(mesh=str(ASSETS / "meshes" / mesh), material=mat, camera=cam,
                        envmap=tr.EnvMap(path=ENV, rotate_deg=30.0), lights=(light,),
                        transform=tr.Transform(rotate_deg=rot, scale=scale),
                        method="sh", method_options={**SMALL, "branches": 2})
-              for mat, rot, scale in ((tr.Material(ior=1.5, roughness=0.2), (-50, 0, 20), 1.0),
-                                      (tr.Material(ior=1.5, roughness=0.0), (10, 40, 0), 0.7),
-                                      (tr.Material(ior=1.5, roughness=0.05), (0, 0, 0), 1.3))]
+              for mesh, mat, rot, scale in (
+                  ("torus.ply", tr.Material(ior=1.5, roughness=0.2), (-50, 0, 20), 1.0),
+                  ("suzanne.ply", tr.Material(ior=1.5, roughness=0.1), (0, 20, 0), 0.8),
+                  ("torus.ply", tr.Material(ior=1.5, roughness=0.0), (10, 40, 0), 0.7),
+                  ("torus.ply", tr.Material(ior=1.0, roughness=0.1), (0, 0, 0), 1.0),
+                  ("torus.ply", tr.Material(ior=1.5, roughness=0.05), (0, 0, 0), 1.3))]
     calls = []
     real = sh_native.map_pixels
 
@@ -791,7 +794,9 @@ def test_native_map_of_a_batch_gives_the_per_item_image(one_thread):
         ref = tr.render(scenes, settings=settings)
     finally:
         sh_native.map_pixels = real
-    assert calls == [True, True]  # the main path and the branch, each in one call
+    # per table (the torus's three items, suzanne's one; none at IOR 1): the main path
+    # and the branch, each in one call
+    assert calls == [True] * 4
     obj = (ours.coverage > 0.99) & (ref.coverage > 0.99)
     a, b = ours.radiance[obj], ref.radiance[obj]
     rel = ((a - b).abs() / b.abs().clamp(min=1e-3)).amax(-1)
