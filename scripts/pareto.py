@@ -109,6 +109,10 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     ("gsr", "gsr", {}, 1, False),
     ("gsr ib2", "gsr", {"internal_bounces": 2}, 1, False),
     ("gsr paper ib2", "gsr", {"internal_bounces": 2, "spread": "paper"}, 1, False),
+    # Genevaux et al. 2006 (issue #25): the precomputed mapping (its table made in the
+    # warm-up render, cached per mesh and IOR: not in the time)
+    ("sh", "sh", {}, 1, False),
+    ("sh adaptive b8", "sh", {ADAPTIVE: True}, 8, False),
     # One sample per pixel instead of the scenes' n x n grid (what a user short of time
     # would set; Mitsuba's 1 spp is the same pixel count):
     ("specular 1x1", "specular", {SPP: 1}, 1, False),
@@ -308,7 +312,7 @@ def _family(method: str, variant: str) -> str:
 
 STYLE = {"specular": ("tab:blue", "o"), "prefiltered": ("tab:green", "s"),
          "rousiers": ("tab:red", "D"), "mitsuba": ("0.3", "^"),
-         "mitsuba oidn": ("tab:purple", "v"), "auto": ("gold", "*")}
+         "mitsuba oidn": ("tab:purple", "v"), "auto": ("gold", "*"), "sh": ("tab:cyan", "P")}
 
 
 # Horizontal lines: converged Mitsuba at a limited depth (the best a method modelling that
