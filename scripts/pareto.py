@@ -113,6 +113,7 @@ VARIANTS: list[tuple[str, str, dict, int, bool]] = [
     # warm-up render, cached per mesh and IOR: not in the time)
     ("sh", "sh", {}, 1, False),
     ("sh adaptive b8", "sh", {ADAPTIVE: True}, 8, False),
+    ("sh branches2", "sh", {"branches": 2}, 1, False),  # + the first internal reflection
     # One sample per pixel instead of the scenes' n x n grid (what a user short of time
     # would set; Mitsuba's 1 spp is the same pixel count):
     ("specular 1x1", "specular", {SPP: 1}, 1, False),
