@@ -423,4 +423,19 @@ def test_lobes_in_one_call_match_the_tensor_code():
             close(a, b, name)
         only_k = fused.exit_lobes(cos1, eta, alpha, dist)
         assert torch.equal(only_k[0], k) and only_k[1] is None and only_k[2] is None
+    # runs of points at one (eta, alpha, distribution), as a view without a roughness map
+    # gives them, are read through the axes' slices: the same bits as point by point
+    run_ior, run_alpha = ior.view(-1, 500)[:, :1].expand(-1, 500).reshape(-1), \
+        alpha.view(-1, 500)[:, :1].expand(-1, 500).reshape(-1)
+    run_dist = dist.view(-1, 500)[:, :1].expand(-1, 500).reshape(-1)
+    runs = fused.front_lobes(view, n1, cos1, run_ior, run_alpha, run_dist)
+    for j in range(0, 1500, 50):  # 50 points a call: below the kernel's run length
+        t = slice(j, j + 50)
+        one = fused.front_lobes(view[t], n1[t], cos1[t], run_ior[t], run_alpha[t], run_dist[t])
+        for f in ("e_r", "k_r", "axis_r", "e_t1", "k_t1", "p_t1"):
+            assert torch.equal(getattr(one, f), getattr(runs, f)[t]), f
+    k_run, e_t_run, _ = fused.exit_lobes(cos1, 1.0 / run_ior, run_alpha, run_dist, var)
+    k_one, e_t_one, _ = fused.exit_lobes(cos1[:50], 1.0 / run_ior[:50], run_alpha[:50],
+                                         run_dist[:50], var[:50])
+    assert torch.equal(k_run[:50], k_one) and torch.equal(e_t_run[:50], e_t_one)
     assert fused.front_lobes(view, n1, cos1, ior, alpha.requires_grad_(True), dist) is None
