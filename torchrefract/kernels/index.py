@@ -31,6 +31,14 @@ def where_true(mask: torch.Tensor) -> torch.Tensor:
     return mask.nonzero().squeeze(1)
 
 
+def where_in(ids: torch.Tensor, members: list[int], size: int) -> torch.Tensor:
+    """(K,) int64 positions of the entries of ``ids`` (1-D int64 in [0, ``size``)) that are
+    among ``members`` (e.g. the points whose view is one of a group of views)."""
+    on = torch.zeros(size, dtype=torch.bool, device=ids.device)
+    on[members] = True
+    return where_true(take(on, ids))
+
+
 def broadcast_shape(*shapes) -> tuple[int, ...]:
     """The shape ``shapes`` broadcast to (torch's rule, numpy's implementation:
     ``torch.broadcast_shapes`` imports ``torch._refs`` on its first call, which slowed every

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrefract.kernels import native
-from torchrefract.kernels.index import put_, take
+from torchrefract.kernels.index import put_, take, where_in
 from torchrefract.optics.textures import load_roughness_map
 from torchrefract.scene.model import Scene
 
@@ -57,9 +57,7 @@ class MaterialBatch:
             if tex is not None:
                 views.setdefault(id(tex), []).append(b)
         for group in views.values():
-            on = torch.zeros(len(self.roughness_maps), dtype=torch.bool, device=batch.device)
-            on[group] = True
-            sel = take(on, batch).nonzero(as_tuple=True)[0]
+            sel = where_in(batch, group, len(self.roughness_maps))
             if sel.numel():
                 lo, hi = take(self.roughness_range, take(batch, sel)).unbind(-1)
                 tex = self.roughness_maps[group[0]]

@@ -211,6 +211,12 @@ def evaluate_points(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Te
                 spread=None if spread is None else spread.detach().float())
 
 
+def _f32(x: float) -> float:
+    """A scalar rounded to float32 as torch rounds a Python float against float32 tensors
+    (the kernels' float fields)."""
+    return float(torch.tensor(x, dtype=torch.float32))
+
+
 def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor, rate: int,
                order: int, weights: torch.Tensor, radius: float, max_spread: float,
                sel: torch.Tensor, pixels: dict[str, torch.Tensor], items: dict[str, torch.Tensor],
@@ -235,7 +241,6 @@ def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor,
     n = int(sel.numel())
     if n == 0:
         return True
-    f32 = lambda x: float(torch.tensor(x, dtype=torch.float32))  # noqa: E731
     held = {"sel": sel.long().contiguous(), "pix": pixels["pix"].long().contiguous(),
             "item": pixels["item"].long().contiguous(),
             "tri": pixels["tri"].to(torch.int32).contiguous(),
@@ -252,7 +257,7 @@ def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor,
     ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
                     frame=held["frame"].data_ptr(), coeffs=held["coeffs"].data_ptr(),
                     weights=held["weights"].data_ptr(), lattice=held["lattice"].data_ptr())
-    job = _ShMapJob(eval=ev, n=n, radius=f32(radius), max_spread=f32(max_spread),
+    job = _ShMapJob(eval=ev, n=n, radius=_f32(radius), max_spread=_f32(max_spread),
                     **{k: held[k].data_ptr() for k in (
                         "sel", "pix", "item", "tri", "gbary", "view", "var_view", "alpha",
                         "face_offset", "rotation", "scale", "rough")},
@@ -324,10 +329,8 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
     held = {"p": p.float().contiguous(), "nrm": n.float().contiguous(),
             "omega": omega.float().contiguous(), "tri_n": tri_normals.float().contiguous(),
             "g_n": g_normals.float().contiguous()}
-    # the scalars rounded to float32 as torch rounds a Python float against float32 tensors
-    f32 = lambda x: float(torch.tensor(x, dtype=torch.float32))  # noqa: E731
     job = _ShPathJob(n=count, max_events=int(max_events), greedy=int(branch == "greedy"),
-                     ior=f32(ior), inv_ior=f32(1.0 / ior), eps=f32(eps), pad0=0.0,
+                     ior=_f32(ior), inv_ior=_f32(1.0 / ior), eps=_f32(eps), pad0=0.0,
                      scene=embree.scene, intersect1=embree.intersect1,
                      intersect16=embree.intersect16 if packets else None,
                      vsqrt=torch_sqrt_function(), branches=2 if two else 1,

@@ -42,7 +42,7 @@ import torch
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.geometry.mesh import MeshData, rotation_matrix
 from torchrefract.kernels import native
-from torchrefract.kernels.index import put_, take, where_true
+from torchrefract.kernels.index import put_, take, where_in, where_true
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
 from torchrefract.methods.rousiers.lobes import front_lobes, sg_lobe, spread_energies
 from torchrefract.methods.rousiers.pixels import Pixels, object_pixels
@@ -295,9 +295,7 @@ def _map_items(g: GBuffer, px: Pixels, bis: list[int], items: tuple[SceneTable, 
     table = items[bis[0]].table
     weights = window(options.order, options.window, options.window_width)
     if sh_native.available() and native.no_grad_through(px.view, var_view, px.alpha, weights):
-        in_group = torch.zeros(g.shape[0], dtype=torch.bool)
-        in_group[bis] = True
-        sel = where_true(take(in_group, px.bi))
+        sel = where_in(px.bi, bis, g.shape[0])
         eye = torch.eye(3)
         per_item = {
             "face_offset": g.meshes.face_offset, "rough": rough,
