@@ -10,9 +10,9 @@
  * together (8 directions per vector), then the product with the coefficients 8 channels
  * at a time (the table is stored (S, K, 8): the C <= 8 channels of a coefficient side by
  * side), one broadcast and multiply-add per (direction, coefficient), the partial sums in
- * registers; the next point's samples are prefetched while one computes. Float32 throughout
- * and no contraction (as the tensor code: -ffp-contract=off); the sums run in another order
- * (the images agree to float32 rounding, tests/test_sh.py). */
+ * registers; the samples of the points ahead are prefetched while one computes. Float32
+ * throughout and no contraction (as the tensor code: -ffp-contract=off); the sums run in
+ * another order (the images agree to float32 rounding, tests/test_sh.py). */
 
 #include "../../../kernels/csrc/common.h"
 
@@ -219,7 +219,8 @@ static inline v8f coeff_row(const void *coeffs, int64_t sample, int k) {
 }
 
 /* The samples and weights of point i: given, or from its face and barycentrics. */
-static inline void point_samples(const ShEvalJob *job, int64_t i, int64_t *smp, float *sw) {
+static inline void point_samples(const void *vjob, int64_t i, int64_t *smp, float *sw) {
+    const ShEvalJob *job = (const ShEvalJob *)vjob;
     if (job->samples) {
         for (int t = 0; t < 3; t++) {
             smp[t] = job->samples[i * 3 + t];
@@ -236,6 +237,37 @@ static inline void prefetch_sample(const ShEvalJob *job, int64_t sample) {
     const char *c = (const char *)job->coeffs + sample * SH_MAXK * SH_CPAD * (SH_HALF ? 2 : 4);
     for (int b = 0; b < SH_MAXK * SH_CPAD * (SH_HALF ? 2 : 4); b += 64)
         __builtin_prefetch(c + b);
+}
+
+#define SH_AHEAD 2 /* points whose samples are found and prefetched ahead */
+#define SH_RING (SH_AHEAD + 1)
+
+/* The samples and weights of point i of a job (point_samples, map_samples). */
+typedef void (*samples_fn)(const void *job, int64_t i, int64_t *smp, float *sw);
+
+/* The samples of the points i .. i + SH_AHEAD of a range (slot q % SH_RING): those ahead
+ * are asked into the cache while point i computes (neighbouring points, such as a
+ * lattice's, need not share their samples). */
+typedef struct {
+    int64_t smp[SH_RING][3];
+    float sw[SH_RING][3];
+} SampleRing;
+
+static inline void ring_fill(SampleRing *rg, const ShEvalJob *ev, samples_fn at,
+                             const void *job, int64_t q) {
+    at(job, q, rg->smp[q % SH_RING], rg->sw[q % SH_RING]);
+    for (int t = 0; t < 3; t++) prefetch_sample(ev, rg->smp[q % SH_RING][t]);
+}
+
+/* Point i's slot, the points SH_AHEAD after it found (from ``begin``, the first ones). */
+static inline __attribute__((always_inline)) int ring_step(
+        SampleRing *rg, const ShEvalJob *ev, samples_fn at, const void *job, int64_t i,
+        int64_t begin, int64_t end) {
+    if (i == begin)
+        for (int64_t q = begin; q < end && q < begin + SH_AHEAD; q++)
+            ring_fill(rg, ev, at, job, q);
+    if (i + SH_AHEAD < end) ring_fill(rg, ev, at, job, i + SH_AHEAD);
+    return (int)(i % SH_RING);
 }
 
 /* A sample's coefficient row k (its channels side by side) times the window's k-th weight. */
@@ -372,18 +404,11 @@ static void sh_eval_range(const void *vjob, int64_t begin, int64_t end) {
     shared_init(job, &sh);
     float dirs[SH_MAXE][3];
     v8f acc[SH_MAXE];
-    int64_t smp[3], nsmp[3];
-    float swt[3], nswt[3];
-    if (begin < end) point_samples(job, begin, nsmp, nswt);
+    SampleRing rg;
     for (int64_t i = begin; i < end; i++) {
-        for (int t = 0; t < 3; t++) {
-            smp[t] = nsmp[t];
-            swt[t] = nswt[t];
-        }
-        if (i + 1 < end) { /* the next point's samples, fetched while this one computes */
-            point_samples(job, i + 1, nsmp, nswt);
-            for (int t = 0; t < 3; t++) prefetch_sample(job, nsmp[t]);
-        }
+        const int slot = ring_step(&rg, job, point_samples, job, i, begin, end);
+        const int64_t *smp = rg.smp[slot];
+        const float *swt = rg.sw[slot];
         if (job->spread) {
             spread_directions(job->omega + i * 3, job->spread[i], dirs);
         } else {
@@ -442,14 +467,12 @@ typedef struct {
 
 /* The samples and weights of the q-th position mapped: its pixel's front face and
  * barycentrics. */
-static inline void map_samples(const ShMapJob *job, int64_t q, int64_t *smp, float *sw) {
+static inline void map_samples(const void *vjob, int64_t q, int64_t *smp, float *sw) {
+    const ShMapJob *job = (const ShMapJob *)vjob;
     const int64_t p = job->sel[q], pix = job->pix[p];
     interpolate_point(&job->eval, (int64_t)job->tri[pix] - job->face_offset[job->item[p]],
                       job->gbary + pix * 3, smp, sw);
 }
-
-#define MAP_AHEAD 2 /* points whose samples are prefetched ahead */
-#define MAP_RING (MAP_AHEAD + 1)
 
 static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
     const ShMapJob *job = (const ShMapJob *)vjob;
@@ -458,24 +481,13 @@ static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
     shared_init(ev, &sh);
     float dirs[SH_MAXE][3];
     v8f acc[SH_MAXE];
-    /* the samples of the points q .. q + MAP_AHEAD (ring[q % MAP_RING]): those ahead are
-     * asked into the cache while this one computes (a lattice's points lie apart) */
-    int64_t ring[MAP_RING][3];
-    float wring[MAP_RING][3];
-    for (int64_t q = begin; q < end && q < begin + MAP_AHEAD; q++) {
-        map_samples(job, q, ring[q % MAP_RING], wring[q % MAP_RING]);
-        for (int t = 0; t < 3; t++) prefetch_sample(ev, ring[q % MAP_RING][t]);
-    }
+    SampleRing rg;
     for (int64_t q = begin; q < end; q++) {
         const int64_t p = job->sel[q], b = job->item[p];
         const float *rot = job->rotation + b * 9, *vw = job->view + p * 3;
-        const int64_t a = q + MAP_AHEAD;
-        if (a < end) {
-            map_samples(job, a, ring[a % MAP_RING], wring[a % MAP_RING]);
-            for (int t = 0; t < 3; t++) prefetch_sample(ev, ring[a % MAP_RING][t]);
-        }
-        const int64_t *smp = ring[q % MAP_RING];
-        const float *swt = wring[q % MAP_RING];
+        const int slot = ring_step(&rg, ev, map_samples, job, q, begin, end);
+        const int64_t *smp = rg.smp[slot];
+        const float *swt = rg.sw[slot];
         float om[3];
         for (int t = 0; t < 3; t++) /* view @ R: world -> object */
             om[t] = (vw[0] * rot[t] + vw[1] * rot[3 + t]) + vw[2] * rot[6 + t];
