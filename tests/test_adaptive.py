@@ -228,6 +228,40 @@ def test_lattice_plan_kernel_equals_tensor_code():
     assert any(fewer), fewer
 
 
+def test_first_pass_mask_and_index_kernels_equal_tensor_code():
+    """csrc/index.c: the first pass's mask (a level's waiting pixels taken out at its stride)
+    and the object pixels' flat indices and views are the tensor expressions', on real
+    plans of odd-sized batches of two views and on masks whose views do not fill whole
+    8-byte words, all clear or all set."""
+    assert native.available()
+    s = _scene("sphere_a03", 49, n=1)
+    g, args = _lattice_inputs(s)
+    g2, args2 = _lattice_inputs(s.replace(camera=dataclasses.replace(
+        s.camera, eye=(0.4, 0.5, 2.9))))
+    args = [torch.cat([a, b]) for a, b in zip(args, args2)]  # two views
+    tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
+    for stride in (1, 2):
+        status = native.lattice_plan(*args, *tols, stride=stride)[0]
+        assert (status == 2).any() and (status == 1).any()
+        mine, ref = args[0].clone(), args[0].clone()
+        assert native.clear_waiting(mine, status, stride)
+        ref[:, ::stride, ::stride] &= status != 2
+        assert torch.equal(mine, ref) and not torch.equal(mine, args[0]), stride
+        masks = [mine, args[0], torch.zeros_like(mine), torch.ones(3, 7, 5, dtype=torch.bool),
+                 torch.rand(2, 33, 65, generator=torch.Generator().manual_seed(stride)) > 0.6]
+        for m in masks:
+            hw = m.shape[1] * m.shape[2]
+            idx, view = native.mask_index(m, hw)
+            want = m.reshape(-1).nonzero(as_tuple=True)[0]
+            assert torch.equal(idx, want) and torch.equal(view, want // hw)
+    # the G-buffer's own: its object pixels' views, found with their indices
+    both = build_gbuffer([load_mesh(s.mesh, s.transform)] * 2,
+                         [s.camera, dataclasses.replace(s.camera, eye=(0.4, 0.5, 2.9))])
+    idx, view = both.object_index(), both.object_views()
+    assert view.unique().tolist() == [0, 1]
+    assert torch.equal(view, idx // (49 * 49)) and both.object_index() is idx
+
+
 def test_lattice_fill_kernel_equals_tensor_code():
     """The fill's decisions and means agree bit for bit, NaN and Inf neighbours included
     (never interpolated from)."""

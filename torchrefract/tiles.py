@@ -163,7 +163,7 @@ def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -
     if not entry.shades_object_index or idx.numel() <= size:
         return entry.shade(g, lighting, materials, options, state)
     pieces = split(idx, size)
-    alpha = materials.roughness_at(idx // (h * w), take(g.front.uv.reshape(-1, 2), idx))
+    alpha = materials.roughness_at(g.object_views(), take(g.front.uv.reshape(-1, 2), idx))
     rough = alpha > 0
     mixed = bool(rough.any()) and not bool(rough.all())
     witness = take(idx, rough.nonzero()[0]) if mixed else None  # (1,)

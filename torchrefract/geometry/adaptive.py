@@ -453,14 +453,21 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     coarse_waiting = coarse[:, 1]
     coarse_views = fine_views & (coarse_waiting > 0) & (coarse_waiting >= share * coarse[:, 0])
     # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
-    first = shaded.clone()
-    first[:, ::n, ::n] &= fine.status != 2
+    first = shaded.clone(memory_format=torch.contiguous_format)
+    _clear_waiting(first, fine.status, n)
     if not bool(coarse_views.any()):
         return replace(g, shade=first), Lattice(levels=(fine,))
     _no_wait(coarse_status, coarse_views)
-    first[:, ::2 * n, ::2 * n] &= coarse_status != 2
+    _clear_waiting(first, coarse_status, 2 * n)
     return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status, coarse_gap, sub=n),
                                                     fine))
+
+
+def _clear_waiting(first: torch.Tensor, status: torch.Tensor, stride: int) -> None:
+    """In place: a level's waiting pixels out of the first pass's (B, H, W) mask ``first``,
+    ``first[:, ::stride, ::stride] &= status != 2`` (csrc/index.c where it runs)."""
+    if not native.clear_waiting(first, status, stride):
+        first[:, ::stride, ::stride] &= status != 2
 
 
 def waiting(level: Level) -> bool:

@@ -183,13 +183,27 @@ class GBuffer:
         """(N,) flat (B*H*W) indices of the object (sub-)pixels to shade, in order. Kept in
         ``derived`` with the mask it was found in (held, so its identity cannot be reused)
         and that mask's version: the tiling and the method of one pass ask for it alike."""
+        return self._object_pixels()[0]
+
+    def object_views(self) -> torch.Tensor:
+        """(N,) the view of each of :meth:`object_index`'s pixels (its index // (H*W)),
+        found and kept with it."""
+        return self._object_pixels()[1]
+
+    def _object_pixels(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`object_index` and :meth:`object_views`: in two sweeps of csrc/index.c
+        where the native kernels run, else ``nonzero`` and a division."""
         mask = self.front.mask if self.shade is None else self.shade
         kept = self.derived.get("object_index")
         if kept is not None and kept[0] is mask and kept[1] == mask._version:
             return kept[2]
-        idx = mask.reshape(-1).nonzero(as_tuple=True)[0]
-        self.derived["object_index"] = (mask, mask._version, idx)
-        return idx
+        b, h, w = self.shape
+        made = native.mask_index(mask, h * w)
+        if made is None:
+            idx = mask.reshape(-1).nonzero(as_tuple=True)[0]
+            made = idx, idx // (h * w)
+        self.derived["object_index"] = (mask, mask._version, made)
+        return made
 
 
 def intersect_triangles(origin: torch.Tensor, direction: torch.Tensor,

@@ -49,7 +49,8 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
                                                                 "background.c", "rousiers.c",
                                                                 "lean.c", "raster.c",
                                                                 "lattice.c", "relight.c",
-                                                                "box.c", "materials.c"))
+                                                                "box.c", "materials.c",
+                                                                "index.c"))
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "materials.h", "frame.h", "bounces.h",
@@ -388,6 +389,21 @@ class _CenterJob(ctypes.Structure):
                     "position", "dist", "depth", "bary", "normal", "uv", "ray_dir")]
 
 
+class _MaskJob(ctypes.Structure):
+    """ctypes mirror of ``MaskJob`` in csrc/index.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("hw", ctypes.c_int64), ("block", ctypes.c_int64),
+                ("mask", _p), ("first", _p), ("total", ctypes.c_int64), ("idx", _p),
+                ("view", _p)]
+
+
+class _WaitJob(ctypes.Structure):
+    """ctypes mirror of ``WaitJob`` in csrc/index.c."""
+
+    _fields_ = [(f, ctypes.c_int64) for f in ("b", "h", "w", "stride", "fh", "fw")] + [
+        ("status", _p), ("mask", _p)]
+
+
 class _ShadeLevel(ctypes.Structure):
     """ctypes mirror of ``ShadeLevel`` in csrc/lattice.c."""
 
@@ -428,7 +444,8 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob, "rays_at": _RaysAtJob,
-            "put_rows": _PutRowsJob,
+            "put_rows": _PutRowsJob, "mask_count": _MaskJob, "mask_index": _MaskJob,
+            "clear_waiting": _WaitJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -1170,6 +1187,45 @@ def box_mips(x: torch.Tensor, max_levels: int) -> tuple[torch.Tensor, ...] | Non
     job = _MipsJob(b=b, c=c, nlevels=len(outs), hw=hw.data_ptr(),
                    out=ctypes.cast(ptrs, ctypes.c_void_p), level=0)
     return (x, *outs[1:]) if _call("mips", job) else None
+
+
+MASK_BLOCK = 16384
+"""The elements a block of :func:`mask_index` counts and writes (a thread's unit)."""
+
+
+def mask_index(mask: torch.Tensor, hw: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The flat indices of the set elements of a bool ``mask`` (any shape), in order, and
+    each one's view (index // ``hw``): ``mask.reshape(-1).nonzero()`` and the division, by
+    csrc/index.c in two sweeps on torch's threads. ``None`` where the kernels are
+    unavailable or the mask is not a CPU bool tensor."""
+    if not available() or mask.dtype != torch.bool or mask.device.type != "cpu" or hw < 1:
+        return None
+    m = mask.reshape(-1).contiguous()
+    first = torch.empty(max(1, -(-m.numel() // MASK_BLOCK)), dtype=torch.int64)
+    job = _MaskJob(n=m.numel(), hw=hw, block=MASK_BLOCK, mask=m.data_ptr(),
+                   first=first.data_ptr())
+    if not _call("mask_count", job):
+        return None
+    idx, view = torch.empty(job.total, dtype=torch.int64), torch.empty(job.total,
+                                                                         dtype=torch.int64)
+    job.idx, job.view = idx.data_ptr(), view.data_ptr()
+    return (idx, view) if _call("mask_index", job) else None
+
+
+def clear_waiting(mask: torch.Tensor, status: torch.Tensor, stride: int) -> bool:
+    """In place: ``mask[:, ::stride, ::stride] &= status != 2`` for a level's (B, h, w)
+    uint8 ``status`` over the contiguous (B, H, W) bool ``mask`` (csrc/index.c); ``False``,
+    nothing written, where the kernels are unavailable or the tensors do not fit."""
+    b, fh, fw = mask.shape
+    if (not available() or mask.dtype != torch.bool or status.dtype != torch.uint8
+            or not mask.is_contiguous() or not status.is_contiguous()
+            or mask.device.type != "cpu" or status.device.type != "cpu"
+            or status.shape != mask[:, ::stride, ::stride].shape):
+        return False
+    _, h, w = status.shape
+    job = _WaitJob(b=b, h=h, w=w, stride=stride, fh=fh, fw=fw, status=status.data_ptr(),
+                   mask=mask.data_ptr())
+    return _call("clear_waiting", job)
 
 
 def one_sample_passes(front_mask: torch.Tensor, back_mask: torch.Tensor,

@@ -363,7 +363,7 @@ def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
         return None
     frame, keep, radiance, passes = made
     b, h, w = g.shape
-    sigma = torch.zeros(b * h * w)
+    sigma = torch.zeros(b * h * w if blur else 1)  # (read by the kernel with ``blur`` only)
     if blur:
         passes["blur_sigma"] = sigma.view(b, h, w, 1)
     job = native._SpecJob(f=frame, blur=int(blur), blur_sigma=sigma.data_ptr(),
@@ -433,7 +433,7 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     if idx.numel() == 0:
         return native._Frame(n=0), keep, radiance, passes
     ptr = keep.ptr
-    bi = idx // (h * w)
+    bi = g.object_views()
     # paths.trace_paths' switch: the rough energies for all where any entry point is rough
     # (without roughness maps a view's entry points have its roughness: no gather)
     maps = list(materials.roughness_maps) or [None] * b

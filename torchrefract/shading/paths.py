@@ -82,8 +82,7 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     exit's.
     """
     b, h, w = g.shape
-    idx = g.object_index()  # compact: object pixels only
-    bi = idx // (h * w)
+    idx, bi = g.object_index(), g.object_views()  # compact: object pixels only
     d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
     p1 = take(g.front.position.reshape(-1, 3), idx)
     n1 = face_forward(take(g.front.normal.reshape(-1, 3), idx), d)
