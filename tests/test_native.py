@@ -427,6 +427,34 @@ def test_four_refractions_in_lanes_give_the_scalar_bits():
         native.refract_x4(d[:, :3], n[:, :3], eta)
 
 
+def test_spread_cosines_in_lanes_give_the_scalar_bits():
+    """csrc/sgtable.h's sg_theta3 and fresnel3 (a spread's three cosines at once, in lanes
+    where built for them) against the scalar sg_theta and fresnel, bit for bit: cosines
+    over [0, 1] and around both branch points (0.5, and s = 1/2 at cos = sqrt(3)/2),
+    outside it, -0, NaN; eta on both sides of 1 (TIR); and the coordinates against the
+    tensor code's (sgfit._coordinates' z)."""
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    g = torch.Generator().manual_seed(11)
+    cs = torch.rand(20000, 3, generator=g)
+    around = torch.tensor([0.5, math.sqrt(3) / 2, 0.0, 1.0])
+    cs[:4000] = (around[torch.randint(0, 4, (4000, 3), generator=g)]
+                 + (torch.rand(4000, 3, generator=g) - 0.5) * 1e-5)
+    cs[4000, :] = torch.tensor([-0.3, 1.7, -0.0])
+    cs[4001, :] = torch.tensor([float("nan"), 1e-30, 1.0 - 1e-7])
+    eta = torch.rand(20000, generator=g) * 2.0 + 0.4
+    lanes, scalar = native.theta3(cs, eta)
+    nan = torch.isnan(scalar)
+    assert torch.equal(torch.isnan(lanes), nan)
+    assert torch.equal(lanes.view(torch.int32)[~nan], scalar.view(torch.int32)[~nan])
+    assert (scalar[:, 1] == 1.0).sum() > 1000  # TIR lanes seen
+    c = cs.clamp(0.0, 1.0)[4002:]
+    z = torch.acos(c).clamp(0.0, math.pi / 2) * (4.0 / math.pi) - 1.0
+    assert torch.allclose(scalar[4002:, 0], z, atol=1e-6)
+    with pytest.raises(ValueError, match="theta3"):
+        native.theta3(cs[:, :2], eta)
+
+
 def test_light_coverage_bessel_matches_torch():
     """csrc/lighting.h's i0e (Cephes' Chebyshev expansions, 24 values in lanes at a time, as
     the light coverage's Gauss-Legendre nodes take it) against torch.special.i0e: the same

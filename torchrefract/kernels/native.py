@@ -274,6 +274,12 @@ class _RefractX4Job(ctypes.Structure):
                 ("scalar", _p)]
 
 
+class _Theta3Job(ctypes.Structure):
+    """ctypes mirror of ``Theta3Job`` in csrc/cone.c."""
+
+    _fields_ = [("n", ctypes.c_int64), ("cs", _p), ("eta", _p), ("lanes", _p), ("scalar", _p)]
+
+
 class _TriPlanesJob(ctypes.Structure):
     """ctypes mirror of ``TriPlanesJob`` in csrc/march.c."""
 
@@ -433,7 +439,8 @@ class _RelightJob(ctypes.Structure):
 
 _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "footprint": _FootprintJob,
-            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "i0e": _I0eJob,
+            "spread": _SpreadJob, "refract_x4": _RefractX4Job, "theta3": _Theta3Job,
+            "i0e": _I0eJob,
             "light_coverage": _CoverJob, "incident_sg": _IncidentJob, "lobes": _LobesJob,
             "roughness": _RoughnessJob,
             "level_coverage": _CoverageJob, "specular": _SpecJob,
@@ -850,6 +857,25 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
     job = _RefractX4Job(n=d.shape[0], d=d.data_ptr(), nrm=n.data_ptr(), eta=eta.data_ptr(),
                         lanes=lanes.data_ptr(), scalar=scalar.data_ptr())
     return (lanes, scalar) if _call("refract_x4", job) else None
+
+
+def theta3(cs: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """csrc/sgtable.h's ``sg_theta3`` and ``fresnel3`` (a spread's three cosines at once, in
+    lanes where built for them) and the scalar ``sg_theta`` and ``fresnel``, for the tests
+    that hold them to the same bits: ``cs`` (G, 3) float32, ``eta`` (G,); each result
+    (G, 2, 3): the table coordinates, then the reflectances. ``None`` where the kernels do
+    not run."""
+    if cs.dim() != 2 or cs.shape[1] != 3 or eta.shape != cs.shape[:1]:
+        raise ValueError(f"theta3: cs must be (G, 3) and eta (G,), got {tuple(cs.shape)}, "
+                         f"{tuple(eta.shape)}")
+    keep = _inputs((cs, eta), ()) if available() else None
+    if keep is None:
+        return None
+    cs, eta = keep
+    lanes, scalar = torch.empty(cs.shape[0], 2, 3), torch.empty(cs.shape[0], 2, 3)
+    job = _Theta3Job(n=cs.shape[0], cs=cs.data_ptr(), eta=eta.data_ptr(),
+                     lanes=lanes.data_ptr(), scalar=scalar.data_ptr())
+    return (lanes, scalar) if _call("theta3", job) else None
 
 
 def views_in_range(batch: torch.Tensor, b: int) -> bool:

@@ -16,6 +16,7 @@
  */
 
 #include "optics.h"
+#include "sgtable.h"
 
 typedef struct {
     int64_t n;
@@ -158,6 +159,35 @@ static void refract_x4_range(const void *job, int64_t begin, int64_t end) {
         for (int q = 0; q < 4; q++) refract(d[q], nr[q], j->eta[g], j->scalar + 12 * g + 3 * q);
     }
 }
+
+/* sgtable.h's sg_theta3 and fresnel3 (three cosines at once, in lanes where built for
+ * them) against sg_theta and fresnel, for tests/test_native.py: the same bits. */
+typedef struct {
+    int64_t n;                  /* triples */
+    const float *cs;            /* (n, 3) cosines */
+    const float *eta;           /* (n,) */
+    float *lanes, *scalar;      /* out (n, 2, 3): sg_theta, then fresnel */
+} Theta3Job;
+
+static void theta3_range(const void *job, int64_t begin, int64_t end) {
+    const Theta3Job *j = (const Theta3Job *)job;
+    for (int64_t g = begin; g < end; g++) {
+        const float *cs = j->cs + 3 * g;
+        float *lanes = j->lanes + 6 * g, *scalar = j->scalar + 6 * g;
+        sg_theta3(cs, lanes);
+        fresnel3(cs, j->eta[g], lanes + 3);
+        for (int i = 0; i < 3; i++) {
+            scalar[i] = sg_theta(cs[i]);
+            scalar[3 + i] = fresnel(cs[i], j->eta[g]);
+        }
+    }
+}
+
+int torchrefract_theta3(const Theta3Job *job, int threads) {
+    return tr_parallel_for(theta3_range, job, job->n, 16384, threads);
+}
+
+int64_t torchrefract_theta3_job_size(void) { return (int64_t)sizeof(Theta3Job); }
 
 /* Entry points (ctypes, native.py); 0, or -1 where a thread could not be started. */
 int torchrefract_refract_x4(const RefractX4Job *job, int threads) {

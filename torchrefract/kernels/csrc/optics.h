@@ -39,18 +39,26 @@ static inline void face_forward(const float *n, const float *d, float *out) {
     for (int i = 0; i < 3; i++) out[i] = s * n[i];
 }
 
-static inline float fresnel(float cos_i, float eta) {
-    cos_i = clampf(cos_i, 0.0f, 1.0f);
-    float sin2_t = eta * eta * (1.0f - cos_i * cos_i);
-    float ct = 1.0f - sin2_t;
-    float cos_t = sqrtf(ct > 0.0f ? ct : 0.0f);
-    float rs_den = eta * cos_i + cos_t, rp_den = cos_i + eta * cos_t;
-    if (rs_den < 1e-12f) rs_den = 1e-12f;
-    if (rp_den < 1e-12f) rp_den = 1e-12f;
-    float rs = (eta * cos_i - cos_t) / rs_den, rp = (cos_i - eta * cos_t) / rp_den;
-    float f = 0.5f * (rs * rs + rp * rp);
-    return sin2_t >= 1.0f ? 1.0f : clampf(f, 0.0f, 1.0f);
-}
+/* Fresnel's unpolarized reflectance at incident cosine cos_i for relative index eta (1
+ * under TIR), written once for a lane type T as TR_DEFINE_REFRACT below: the scalar
+ * ``fresnel`` and, where built for it, ``fresnel4f`` (four in SSE lanes: sgtable.h's
+ * spread energies), the same bits lane by lane. */
+#define TR_DEFINE_FRESNEL(T, S, SQRT, SEL, K)                                               \
+    static inline TR_LANES_ATTR T fresnel##S(T cos_i, T eta) {                              \
+        cos_i = SEL(cos_i < K(T, 0), K(T, 0), SEL(cos_i > K(T, 1), K(T, 1), cos_i));        \
+        T sin2_t = eta * eta * (K(T, 1) - cos_i * cos_i);                                   \
+        T ct = K(T, 1) - sin2_t;                                                            \
+        T cos_t = SQRT(SEL(ct > K(T, 0), ct, K(T, 0)));                                     \
+        T rs_den = eta * cos_i + cos_t, rp_den = cos_i + eta * cos_t;                       \
+        rs_den = SEL(rs_den < K(T, 1e-12f), K(T, 1e-12f), rs_den);                          \
+        rp_den = SEL(rp_den < K(T, 1e-12f), K(T, 1e-12f), rp_den);                          \
+        T rs = (eta * cos_i - cos_t) / rs_den, rp = (cos_i - eta * cos_t) / rp_den;         \
+        T f = K(T, 0.5f) * (rs * rs + rp * rp);                                             \
+        f = SEL(f < K(T, 0), K(T, 0), SEL(f > K(T, 1), K(T, 1), f));                        \
+        return SEL(sin2_t >= K(T, 1), K(T, 1), f);                                          \
+    }
+
+TR_DEFINE_FRESNEL(float, , sqrtf, TR_SEL_SCALAR, TR_K_SCALAR)
 
 /* Snell (smooth.refract): the unit transmitted direction; returns TIR. Written once for
  * a lane type T as TR_DEFINE_LANES' bodies are (its dot3##S, norm3##S; M, SEL and K as
@@ -87,6 +95,7 @@ static inline v4f abs4f(v4f a) { return (v4f)((v4i)a & (v4i){~(1 << 31), ~(1 << 
 #define K4F(T, x) ((T){(x), (x), (x), (x)})
 TR_DEFINE_LANES(v4f, v4i, 4f, fma4f, abs4f, sqrt4f, 1e-30f, SEL4F, K4F)
 TR_DEFINE_REFRACT(v4f, v4i, 4f, sqrt4f, SEL4F, K4F)
+TR_DEFINE_FRESNEL(v4f, 4f, sqrt4f, SEL4F, K4F)
 #endif
 
 /* refract of four rays d[q] at normals n[q] (q < 4) into t[q]: in SSE lanes where built

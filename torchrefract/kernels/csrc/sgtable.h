@@ -87,6 +87,42 @@ static inline float sg_theta(float c) {
     return clampf(theta, 0.0f, (float)(0.5 * TR_PI)) * (float)(4.0 / TR_PI) - 1.0f;
 }
 
+/* sg_theta of the three cosines cs (the spread's, spread_cosines) into z: in lanes where
+ * built for it, with the same float and double operations (tr_asin_d's and tr_acos_d's
+ * branches as selects: one polynomial a lane, on the argument its branch takes; their
+ * copysign is the identity on these non-negative arguments), so the same bits. */
+static inline void sg_theta3(const float *cs, float *z) {
+#if defined(__AVX2__) && defined(__FMA__)
+    const float eps2 = 1.1920929e-07f * 1.1920929e-07f;
+    v4f c = {cs[0], cs[1], cs[2], cs[2]};
+    c = SEL4F(c < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(c > K4F(v4f, 1.0f), K4F(v4f, 1.0f), c));
+    v4f s2 = K4F(v4f, 1.0f) - c * c;
+    s2 = SEL4F(s2 < K4F(v4f, eps2), K4F(v4f, eps2), s2);
+    v4f s = sqrt4f(s2);
+    v4i big = c > K4F(v4f, 0.5f);  /* asin of min(s, 0.9), else acos of min(c, 0.5) */
+    v4f arg = SEL4F(big, SEL4F(s < K4F(v4f, 0.9f), s, K4F(v4f, 0.9f)),
+                    SEL4F(c < K4F(v4f, 0.5f), c, K4F(v4f, 0.5f)));
+    __m256d a = _mm256_cvtps_pd((__m128)arg), half = _mm256_set1_pd(0.5);
+    __m256d far = _mm256_cmp_pd(a, half, _CMP_GT_OQ);  /* (only asin's can be) */
+    __m256d zb = _mm256_mul_pd(half, _mm256_sub_pd(_mm256_set1_pd(1.0), a));
+    __m256d u = _mm256_blendv_pd(a, _mm256_sqrt_pd(zb), far);
+    __m256d v = _mm256_blendv_pd(_mm256_mul_pd(a, a), zb, far);
+    __m256d p = _mm256_set1_pd(TR_ASIN_Q[0]);
+    for (int i = 1; i < 9; i++) p = _mm256_fmadd_pd(p, v, _mm256_set1_pd(TR_ASIN_Q[i]));
+    __m256d r = _mm256_fmadd_pd(_mm256_mul_pd(u, v), p, u), pi2 = _mm256_set1_pd(TR_PI / 2);
+    __m256d asin_r = _mm256_blendv_pd(r, _mm256_sub_pd(pi2, _mm256_mul_pd(_mm256_set1_pd(2.0),
+                                                                          r)), far);
+    __m256d bigd = _mm256_castsi256_pd(_mm256_cvtepi32_epi64((__m128i)big));
+    v4f theta = (v4f)_mm256_cvtpd_ps(_mm256_blendv_pd(_mm256_sub_pd(pi2, r), asin_r, bigd));
+    const v4f top = K4F(v4f, (float)(0.5 * TR_PI));
+    theta = SEL4F(theta < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(theta > top, top, theta));
+    v4f out = theta * K4F(v4f, (float)(4.0 / TR_PI)) - K4F(v4f, 1.0f);
+    for (int i = 0; i < 3; i++) z[i] = out[i];
+#else
+    for (int i = 0; i < 3; i++) z[i] = sg_theta(cs[i]);
+#endif
+}
+
 /* The (alpha, eta) bilinear part of trilinear at one theta node: x, then y, on the
  * node's (E, A) plane ``p`` (row stride se). The one formula of trilinear and sg_slices. */
 static inline float sg_bilinear(const float *p, int64_t se, const SgAxes *a) {
@@ -222,17 +258,29 @@ static void spread_cosines(float cos_theta, float var, float *cs) {
 
 static const float SPREAD_W[3] = {0.25f, 0.25f, 0.5f};
 
+/* fresnel at the three cosines cs (eta n_ratio) into f: in lanes where built for it. */
+static inline void fresnel3(const float *cs, float n_ratio, float *f) {
+#if defined(__AVX2__) && defined(__FMA__)
+    v4f r = fresnel4f((v4f){cs[0], cs[1], cs[2], cs[2]}, K4F(v4f, n_ratio));
+    for (int i = 0; i < 3; i++) f[i] = r[i];
+#else
+    for (int i = 0; i < 3; i++) f[i] = fresnel(cs[i], n_ratio);
+#endif
+}
+
 /* sgfit.spread_interface_energies: interface_energies (exact Fresnel at each direction)
  * averaged over a lobe of variance var around the axis at cos_theta; n_ratio is Fresnel's
  * argument (incident over far side), ``a`` the table's interface (eta = 1 / n_ratio). */
 static void spread_interface_energies(const SgTable *t, const SgAxes *a, int64_t d,
                                       float cos_theta, float var, float n_ratio, float *e_t,
                                       float *e_r) {
-    float cs[3], ts = 0.0f, rs = 0.0f;
+    float cs[3], z[3], f[3], ts = 0.0f, rs = 0.0f;
     spread_cosines(cos_theta, var, cs);
+    sg_theta3(cs, z);
+    fresnel3(cs, n_ratio, f);
     for (int i = 0; i < 3; i++) {
         float et, er;
-        interface_energies(t, a, d, cs[i], fresnel(cs[i], n_ratio), &et, &er);
+        interface_energies_at(t, a, d, z[i], f[i], &et, &er);
         ts = i == 0 ? SPREAD_W[0] * et : ts + SPREAD_W[i] * et;
         rs = i == 0 ? SPREAD_W[0] * er : rs + SPREAD_W[i] * er;
     }
@@ -263,10 +311,11 @@ static inline void sg_lobe(const SgTable *t, const SgAxes *a, const SgAxes *a0, 
 static void spread_table_energies(const SgTable *t, const SgAxes *a, const SgAxes *a0,
                                   int64_t d, float cos_theta, float var, float *e_t,
                                   float *e_r) {
-    float cs[3], ts = 0.0f, rs = 0.0f;
+    float cs[3], zs[3], ts = 0.0f, rs = 0.0f;
     spread_cosines(cos_theta, var, cs);
+    sg_theta3(cs, zs);
     for (int i = 0; i < 3; i++) {
-        float e[2], z = sg_theta(cs[i]);
+        float e[2], z = zs[i];
         sg_read(t, a, d, SG_EV, 0, z, e);
         e[0] = e[0] > 0.0f ? e[0] : 0.0f;
         e[1] = e[1] > 0.0f ? e[1] : 0.0f;
