@@ -87,14 +87,13 @@ static inline float sg_theta(float c) {
     return clampf(theta, 0.0f, (float)(0.5 * TR_PI)) * (float)(4.0 / TR_PI) - 1.0f;
 }
 
-/* sg_theta of the three cosines cs (the spread's, spread_cosines) into z: in lanes where
- * built for it, with the same float and double operations (tr_asin_d's and tr_acos_d's
- * branches as selects: one polynomial a lane, on the argument its branch takes; their
- * copysign is the identity on these non-negative arguments), so the same bits. */
-static inline void sg_theta3(const float *cs, float *z) {
 #if defined(__AVX2__) && defined(__FMA__)
+/* sg_theta of four cosines in lanes, with the same float and double operations
+ * (tr_asin_d's and tr_acos_d's branches as selects: one polynomial a lane, on the argument
+ * its branch takes; their copysign is the identity on these non-negative arguments), so
+ * the same bits. */
+static inline v4f sg_theta4(v4f c) {
     const float eps2 = 1.1920929e-07f * 1.1920929e-07f;
-    v4f c = {cs[0], cs[1], cs[2], cs[2]};
     c = SEL4F(c < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(c > K4F(v4f, 1.0f), K4F(v4f, 1.0f), c));
     v4f s2 = K4F(v4f, 1.0f) - c * c;
     s2 = SEL4F(s2 < K4F(v4f, eps2), K4F(v4f, eps2), s2);
@@ -116,11 +115,32 @@ static inline void sg_theta3(const float *cs, float *z) {
     v4f theta = (v4f)_mm256_cvtpd_ps(_mm256_blendv_pd(_mm256_sub_pd(pi2, r), asin_r, bigd));
     const v4f top = K4F(v4f, (float)(0.5 * TR_PI));
     theta = SEL4F(theta < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(theta > top, top, theta));
-    v4f out = theta * K4F(v4f, (float)(4.0 / TR_PI)) - K4F(v4f, 1.0f);
+    return theta * K4F(v4f, (float)(4.0 / TR_PI)) - K4F(v4f, 1.0f);
+}
+#endif
+
+/* sg_theta of the three cosines cs (the spread's, spread_cosines) into z: in lanes where
+ * built for it (sg_theta4), the same bits. */
+static inline void sg_theta3(const float *cs, float *z) {
+#if defined(__AVX2__) && defined(__FMA__)
+    v4f out = sg_theta4((v4f){cs[0], cs[1], cs[2], cs[2]});
     for (int i = 0; i < 3; i++) z[i] = out[i];
 #else
     for (int i = 0; i < 3; i++) z[i] = sg_theta(cs[i]);
 #endif
+}
+
+/* sg_theta of m cosines c into z (a block's entry cosines), four at a time in lanes where
+ * built for it, the same bits. */
+static inline void sg_theta_n(const float *c, int m, float *z) {
+    int i = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+    for (; i + 4 <= m; i += 4) {
+        v4f out = sg_theta4((v4f){c[i], c[i + 1], c[i + 2], c[i + 3]});
+        for (int q = 0; q < 4; q++) z[i + q] = out[q];
+    }
+#endif
+    for (; i < m; i++) z[i] = sg_theta(c[i]);
 }
 
 /* The (alpha, eta) bilinear part of trilinear at one theta node: x, then y, on the

@@ -201,9 +201,10 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
 /* Step 3 for ray i of a marched block (paths.trace_paths, render_specular, and
  * render_prefiltered with ``blur``): the energies and the exit rule, the absorption, the
  * two lookups (``taps``: the reflected and the transmitted light's, asked for by the block;
- * NULL with ``blur``); the pixel and its passes written. */
+ * NULL with ``blur``; z1: the entry cosine's table coordinate, read where the batch is
+ * rough); the pixel and its passes written. */
 static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, int i,
-                        const float *d, const Exit *ex, const EnvTap *taps, int tir1,
+                        const float *d, const Exit *ex, float z1, const EnvTap *taps, int tir1,
                         int64_t px, int64_t b, SpecBlock *sb) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
@@ -225,7 +226,6 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     const float *refl = ex->refl, *t2 = ex->look;  /* the transmitted light's direction */
     float p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
     int bounce = sj->bo.limit > 0, tir2 = ex->tir2;
-    float z1 = j->rough ? sg_theta(cos1) : 0.0f;  /* the entry's table coordinate */
     if (j->rough) {
         interface_energies_at(&j->table, ax, j->dist[b], z1, f1, &e_t1, &e_r1);
     } else {
@@ -323,12 +323,17 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
     for (int i = 0; i < m; i++)
         exit_of(j, &rays, i, d + 3 * i, n1 + 3 * i, j->batch[r0 + i], sj->bo.limit > 0, ex + i);
     if (!sj->blur) block_taps_of(j, ex, r0, m, taps);
+    float cos1[BLOCK], z1[BLOCK];  /* the entries' table coordinates, in lanes */
+    if (j->rough) {
+        for (int i = 0; i < m; i++) cos1[i] = ex[i].cos1;
+        sg_theta_n(cos1, m, z1);
+    }
     SpecBlock sb;
     sb.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, ex + i, sj->blur ? NULL : taps[i],
-                    tir1[i], j->idx[r0 + i], b, &sb);
+        shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, ex + i, j->rough ? z1[i] : 0.0f,
+                    sj->blur ? NULL : taps[i], tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
         finish_block(j, &sj->bo, sj, inside_specular, 0, axes, 2, &sb.paths,
