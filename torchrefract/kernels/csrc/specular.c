@@ -91,8 +91,8 @@ static float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b, floa
     return var + (alpha > 0.0f ? 1.0f / k_r : 0.0f);
 }
 
-/* A marched ray's two interfaces (paths.trace_paths): the entry's cosine, Fresnel term and
- * mirror direction ``refl``; the exit's view-facing normal, cosine, Fresnel term, refracted
+/* A marched ray's two interfaces (paths.trace_paths): the entry's cosine, Fresnel term
+ * (block_fresnel) and mirror direction ``refl``; the exit's view-facing normal, cosine, Fresnel term, refracted
  * ray ``t_ref`` and the direction the transmitted light is looked up along (``look``: the
  * exit's refracted ray, with internal bounces (``bounce``) always, else the ``tir:
  * reflect`` mirror under TIR; the entry's refracted ray where no exit was found). */
@@ -107,15 +107,39 @@ static void exit_of(const Frame *j, const Rays *rays, int i, const float *d, con
     float eta = j->ior[b];
     int ok = rays->found[i];
     e->cos1 = -dot3(d, n1);
-    e->f1 = fresnel(e->cos1, 1.0f / eta);
     face_forward(rays->normal + 3 * i, t1, e->n2);
     e->cos2 = -dot3(t1, e->n2);
-    e->f2 = fresnel(e->cos2, eta);
     e->tir2 = refract(t1, e->n2, eta, e->t2) && ok;
     for (int c = 0; c < 3; c++) e->t_ref[c] = e->t2[c];
     if (j->tir_mode == 2 && e->tir2) reflect(t1, e->n2, e->t2);
     reflect(d, n1, e->refl);
     for (int c = 0; c < 3; c++) e->look[c] = ok ? (bounce ? e->t_ref[c] : e->t2[c]) : t1[c];
+}
+
+/* The Fresnel terms of a block's m exits' two interfaces (exit_of's cosines; the entry at
+ * 1 / ior, the exit at ior), four at a time in lanes where built for it, the same bits. */
+static void block_fresnel(const Frame *j, Exit *ex, int64_t r0, int m) {
+    int i = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+    for (; i + 4 <= m; i += 4) {
+        v4f c1, c2, eta;
+        for (int q = 0; q < 4; q++) {
+            c1[q] = ex[i + q].cos1;
+            c2[q] = ex[i + q].cos2;
+            eta[q] = j->ior[j->batch[r0 + i + q]];
+        }
+        v4f f1 = fresnel4f(c1, K4F(v4f, 1.0f) / eta), f2 = fresnel4f(c2, eta);
+        for (int q = 0; q < 4; q++) {
+            ex[i + q].f1 = f1[q];
+            ex[i + q].f2 = f2[q];
+        }
+    }
+#endif
+    for (; i < m; i++) {
+        float eta = j->ior[j->batch[r0 + i]];
+        ex[i].f1 = fresnel(ex[i].cos1, 1.0f / eta);
+        ex[i].f2 = fresnel(ex[i].cos2, eta);
+    }
 }
 
 /* The first exit with internal bounces (render_specular's _interface at k = 0): what the
@@ -322,6 +346,7 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
     EnvTap taps[BLOCK][2];  /* the block's lookups asked for at once, read after the energies */
     for (int i = 0; i < m; i++)
         exit_of(j, &rays, i, d + 3 * i, n1 + 3 * i, j->batch[r0 + i], sj->bo.limit > 0, ex + i);
+    block_fresnel(j, ex, r0, m);
     if (!sj->blur) block_taps_of(j, ex, r0, m, taps);
     float cos1[BLOCK], z1[BLOCK];  /* the entries' table coordinates, in lanes */
     if (j->rough) {
