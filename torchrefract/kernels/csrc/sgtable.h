@@ -219,6 +219,43 @@ static void interface_energies_at(const SgTable *t, const SgAxes *a, int64_t d, 
     *e_r = er > 0.0f ? er : 0.0f;
 }
 
+/* interface_energies_at at three table coordinates z (Fresnel f): where the axes hold the
+ * slices of distribution d, the three reads in lanes (axis_nodes and trilinear's slice
+ * reads, op for op: the same bits), else one by one. */
+static inline void interface_energies3(const SgTable *t, const SgAxes *a, int64_t d,
+                                       const float *z, const float *f, float *e_t,
+                                       float *e_r) {
+#if defined(__AVX2__) && defined(__FMA__)
+    if (a->slice && a->slice_d == d && t->nt < INT32_MAX / SG_SLICES) {
+        const float top = (float)(t->nt - 1);
+        v4f g = {z[0], z[1], z[2], z[2]};
+        v4f x = (g + K4F(v4f, 1.0f)) * K4F(v4f, top / 2.0f);  /* axis_nodes */
+        x = SEL4F(x < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(x > K4F(v4f, top), K4F(v4f, top), x));
+        v4f fl = (v4f)_mm_floor_ps((__m128)x), w = x - fl;
+        __m128i i0 = _mm_cvttps_epi32((__m128)fl);
+        __m128i i1 = _mm_min_epi32(_mm_add_epi32(i0, _mm_set1_epi32(1)),
+                                   _mm_set1_epi32((int)t->nt - 1));
+        const float *dv = a->slice + SG_DV * t->nt;  /* (2 channels, T) */
+        v4f dd[2];
+        for (int c = 0; c < 2; c++) {
+            v4f c0 = (v4f)_mm_i32gather_ps(dv + c * t->nt, i0, 4);
+            v4f c1 = (v4f)_mm_i32gather_ps(dv + c * t->nt, i1, 4);
+            dd[c] = c0 * (K4F(v4f, 1.0f) - w) + c1 * w;
+        }
+        v4f fv = {f[0], f[1], f[2], f[2]}, fade = K4F(v4f, a->fade);
+        v4f et = K4F(v4f, 1.0f) - fv + fade * dd[0], er = fv + fade * dd[1];
+        et = SEL4F(et > K4F(v4f, 0.0f), et, K4F(v4f, 0.0f));
+        er = SEL4F(er > K4F(v4f, 0.0f), er, K4F(v4f, 0.0f));
+        for (int i = 0; i < 3; i++) {
+            e_t[i] = et[i];
+            e_r[i] = er[i];
+        }
+        return;
+    }
+#endif
+    for (int i = 0; i < 3; i++) interface_energies_at(t, a, d, z[i], f[i], e_t + i, e_r + i);
+}
+
 /* interface_energies_at at incident cosine c (its table coordinate sg_theta(c)). */
 static inline void interface_energies(const SgTable *t, const SgAxes *a, int64_t d, float c,
                                       float f, float *e_t, float *e_r) {
@@ -294,15 +331,14 @@ static inline void fresnel3(const float *cs, float n_ratio, float *f) {
 static void spread_interface_energies(const SgTable *t, const SgAxes *a, int64_t d,
                                       float cos_theta, float var, float n_ratio, float *e_t,
                                       float *e_r) {
-    float cs[3], z[3], f[3], ts = 0.0f, rs = 0.0f;
+    float cs[3], z[3], f[3], et[3], er[3], ts = 0.0f, rs = 0.0f;
     spread_cosines(cos_theta, var, cs);
     sg_theta3(cs, z);
     fresnel3(cs, n_ratio, f);
+    interface_energies3(t, a, d, z, f, et, er);
     for (int i = 0; i < 3; i++) {
-        float et, er;
-        interface_energies_at(t, a, d, z[i], f[i], &et, &er);
-        ts = i == 0 ? SPREAD_W[0] * et : ts + SPREAD_W[i] * et;
-        rs = i == 0 ? SPREAD_W[0] * er : rs + SPREAD_W[i] * er;
+        ts = i == 0 ? SPREAD_W[0] * et[i] : ts + SPREAD_W[i] * et[i];
+        rs = i == 0 ? SPREAD_W[0] * er[i] : rs + SPREAD_W[i] * er[i];
     }
     *e_t = ts;
     *e_r = rs;

@@ -92,10 +92,11 @@ static float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b, floa
 }
 
 /* A marched ray's two interfaces (paths.trace_paths): the entry's cosine, Fresnel term
- * (block_fresnel) and mirror direction ``refl``; the exit's view-facing normal, cosine, Fresnel term, refracted
- * ray ``t_ref`` and the direction the transmitted light is looked up along (``look``: the
- * exit's refracted ray, with internal bounces (``bounce``) always, else the ``tir:
- * reflect`` mirror under TIR; the entry's refracted ray where no exit was found). */
+ * (block_fresnel) and mirror direction ``refl``; the exit's view-facing normal, cosine,
+ * Fresnel term, refracted ray ``t_ref`` and the direction the transmitted light is looked
+ * up along (``look``: the exit's refracted ray, with internal bounces (``bounce``) always,
+ * else the ``tir: reflect`` mirror under TIR; the entry's refracted ray where no exit was
+ * found). */
 typedef struct {
     float cos1, f1, refl[3], n2[3], cos2, f2, t2[3], t_ref[3], look[3];
     int tir2;
