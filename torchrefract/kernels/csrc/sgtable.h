@@ -315,6 +315,31 @@ static void spread_cosines(float cos_theta, float var, float *cs) {
 
 static const float SPREAD_W[3] = {0.25f, 0.25f, 0.5f};
 
+/* The spread's weighted sums of the energies et, er at its three cosines. */
+static inline void spread_sum(const float *et, const float *er, float *e_t, float *e_r) {
+    float ts = 0.0f, rs = 0.0f;
+    for (int i = 0; i < 3; i++) {
+        ts = i == 0 ? SPREAD_W[0] * et[i] : ts + SPREAD_W[i] * et[i];
+        rs = i == 0 ? SPREAD_W[0] * er[i] : rs + SPREAD_W[i] * er[i];
+    }
+    *e_t = ts;
+    *e_r = rs;
+}
+
+/* fresnel of m cosines c at their own eta into f (a block's spreads), four at a time in
+ * lanes where built for it, the same bits. */
+static inline void fresnel_n(const float *c, const float *eta, int m, float *f) {
+    int i = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+    for (; i + 4 <= m; i += 4) {
+        v4f r = fresnel4f((v4f){c[i], c[i + 1], c[i + 2], c[i + 3]},
+                          (v4f){eta[i], eta[i + 1], eta[i + 2], eta[i + 3]});
+        for (int q = 0; q < 4; q++) f[i + q] = r[q];
+    }
+#endif
+    for (; i < m; i++) f[i] = fresnel(c[i], eta[i]);
+}
+
 /* fresnel at the three cosines cs (eta n_ratio) into f: in lanes where built for it. */
 static inline void fresnel3(const float *cs, float n_ratio, float *f) {
 #if defined(__AVX2__) && defined(__FMA__)
@@ -331,17 +356,12 @@ static inline void fresnel3(const float *cs, float n_ratio, float *f) {
 static void spread_interface_energies(const SgTable *t, const SgAxes *a, int64_t d,
                                       float cos_theta, float var, float n_ratio, float *e_t,
                                       float *e_r) {
-    float cs[3], z[3], f[3], et[3], er[3], ts = 0.0f, rs = 0.0f;
+    float cs[3], z[3], f[3], et[3], er[3];
     spread_cosines(cos_theta, var, cs);
     sg_theta3(cs, z);
     fresnel3(cs, n_ratio, f);
     interface_energies3(t, a, d, z, f, et, er);
-    for (int i = 0; i < 3; i++) {
-        ts = i == 0 ? SPREAD_W[0] * et[i] : ts + SPREAD_W[i] * et[i];
-        rs = i == 0 ? SPREAD_W[0] * er[i] : rs + SPREAD_W[i] * er[i];
-    }
-    *e_t = ts;
-    *e_r = rs;
+    spread_sum(et, er, e_t, e_r);
 }
 
 /* rousiers.lobes.sg_lobe: sg_lookup with GGX's L2 sharpness, its energy faded towards the

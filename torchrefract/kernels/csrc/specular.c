@@ -32,43 +32,29 @@ typedef struct {
     Paths paths;
 } SpecBlock;
 
-/* The exit's energies (paths.trace_paths): the smooth interface's Fresnel split, or the
- * rough one's (SG table: ``in`` the entry's axes at alpha1, ``out`` the exit's at alpha2),
- * ``tir: conserve`` averaging over the entry lobe (paths.spread_exit) with the escape
- * fraction of the trapped light; z1: the entry cosine cos1's table coordinate. */
-static void exit_energies(const Frame *j, const SgAxes *in, const SgAxes *out, int64_t b,
-                          float alpha1, float alpha2, float cos1, float z1, float cos2,
-                          float f2, int spread, float *e_t2, float *e_r2, float *esc,
-                          float *var) {
+/* ``tir: conserve``'s (or internal bounces') spread at the exit (paths.spread_exit): the
+ * cosine of the transmitted lobe's axis at the exit's normal, and the lobe's variance
+ * (``in``: the table's axes of the entry at alpha1; z1: the entry cosine cos1's table
+ * coordinate); the energies are then averaged over it (spread_interface_energies). */
+static void spread_axis(const Frame *j, const SgAxes *in, int64_t b, float alpha1, float cos1,
+                        float z1, float cos2, float *c_axis_out, float *var) {
     float eta = j->ior[b];
-    int64_t dist = j->dist[b];
-    *esc = 1.0f;
-    *var = 0.0f;
-    if (!j->rough) {
-        *e_t2 = 1.0f - f2;
-        *e_r2 = f2;
-    } else if (spread) {  /* ``tir: conserve``, or internal bounces follow */
-        int rough = alpha1 > j->table.alpha_min;
-        float k1, sin_tilt;
-        transmit_lobe_at(&j->table, in, dist, z1, &k1, &sin_tilt);
-        /* cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities */
-        float sc1 = 1.0f - cos1 * cos1;
-        float sin_t = sqrtf(sc1 > 1e-12f ? sc1 : 1e-12f) / eta;
-        float st2 = 1.0f - sin_t * sin_t;
-        float cos_t = sqrtf(st2 > 1e-12f ? st2 : 1e-12f);
-        float ca = cos_of_asin(sin_tilt), sa = sin_tilt;
-        float cos_d = ca * cos_t + sa * sin_t, sin_d = sa * cos_t - ca * sin_t;
-        float sc2 = 1.0f - cos2 * cos2;
-        float sin2 = sqrtf(sc2 > 1e-12f ? sc2 : 1e-12f);
-        float c_axis = cos2 * cos_d - sin2 * sin_d;
-        if (c_axis < 0.0f) c_axis = 0.0f;
-        if (!rough) c_axis = cos2;
-        *var = rough ? 1.0f / k1 : 0.0f;
-        spread_interface_energies(&j->table, out, dist, c_axis, *var, eta, e_t2, e_r2);
-        *esc = escape(j, b, alpha2);
-    } else {
-        interface_energies(&j->table, out, dist, cos2, f2, e_t2, e_r2);
-    }
+    int rough = alpha1 > j->table.alpha_min;
+    float k1, sin_tilt;
+    transmit_lobe_at(&j->table, in, j->dist[b], z1, &k1, &sin_tilt);
+    /* cos(theta2 + tilt_axis - tilt_ray) by the angle-sum identities */
+    float sc1 = 1.0f - cos1 * cos1;
+    float sin_t = sqrtf(sc1 > 1e-12f ? sc1 : 1e-12f) / eta;
+    float st2 = 1.0f - sin_t * sin_t;
+    float cos_t = sqrtf(st2 > 1e-12f ? st2 : 1e-12f);
+    float ca = cos_of_asin(sin_tilt), sa = sin_tilt;
+    float cos_d = ca * cos_t + sa * sin_t, sin_d = sa * cos_t - ca * sin_t;
+    float sc2 = 1.0f - cos2 * cos2;
+    float sin2 = sqrtf(sc2 > 1e-12f ? sc2 : 1e-12f);
+    float c_axis = cos2 * cos_d - sin2 * sin_d;
+    if (c_axis < 0.0f) c_axis = 0.0f;
+    *c_axis_out = rough ? c_axis : cos2;
+    *var = rough ? 1.0f / k1 : 0.0f;
 }
 
 /* optics.exit_rule.leaving_weight: what leaves the last interface under the tir rule. */
@@ -223,42 +209,96 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
     return refl;
 }
 
+/* A pixel of a block: its roughness at the entry and at the exit (a map's, at their UVs),
+ * its table axes (the view's entry and exit, or its own where a map gives the roughness),
+ * and its interfaces' energies (block_energies): the entry's, the exit's with the escape
+ * fraction esc of the trapped light and the spread's variance var1. */
+typedef struct {
+    float alpha, alpha2;
+    const SgAxes *ax;
+    SgAxes own[2];
+    float e_t1, e_r1, e_t2, e_r2, esc, var1;
+} SpecPixel;
+
+static void pixel_axes(const Frame *j, const SgAxes *view_ax, const Rays *rays, int i,
+                       int64_t px, int64_t b, SpecPixel *sp) {
+    float eta = j->ior[b];
+    sp->alpha = roughness_at(j, b, j->front_uv + 2 * px);
+    sp->alpha2 = sp->alpha;
+    sp->ax = view_ax;
+    if (j->rmap[b]) {
+        if (rays->found[i]) {
+            float uv2[2];
+            interpolate(rays->bary + 3 * i, j->tri_uvs + 6 * rays->tri[i], 2, uv2);
+            sp->alpha2 = roughness_at(j, b, uv2);
+        }
+        sg_axes(&j->table, eta, sp->alpha, sp->own);
+        sg_axes(&j->table, 1.0f / eta, sp->alpha2, sp->own + 1);
+        sp->ax = sp->own;
+    }
+}
+
+/* The energies of a block's m pixels (paths.trace_paths): the entry's and the exit's,
+ * smooth (Fresnel) or rough (the SG table's, eq. 9 of de Rousiers 2012); under ``tir:
+ * conserve`` or with internal bounces (``spread``) the exit's averaged over the entry
+ * lobe (spread_axis), with the escape fraction. The spreads' table coordinates, Fresnel
+ * terms and reads are found for the whole block at once (in lanes: the same bits as
+ * spread_interface_energies pixel by pixel). z1: the entries' table coordinates. */
+static void block_energies(const Frame *j, SpecPixel *sp, const Exit *ex, const float *z1,
+                           int64_t r0, int m, int spread) {
+    float cs[3 * BLOCK], zs[3 * BLOCK], fs[3 * BLOCK], etas[3 * BLOCK];
+    for (int i = 0; i < m; i++) {
+        int64_t b = j->batch[r0 + i];
+        SpecPixel *p = sp + i;
+        float f1 = ex[i].f1, f2 = ex[i].f2;
+        p->esc = 1.0f;
+        p->var1 = 0.0f;
+        if (!j->rough) {
+            p->e_t1 = 1.0f - f1;
+            p->e_r1 = f1;
+            p->e_t2 = 1.0f - f2;
+            p->e_r2 = f2;
+            continue;
+        }
+        interface_energies_at(&j->table, p->ax, j->dist[b], z1[i], f1, &p->e_t1, &p->e_r1);
+        if (!spread) {
+            interface_energies(&j->table, p->ax + 1, j->dist[b], ex[i].cos2, f2, &p->e_t2,
+                               &p->e_r2);
+            continue;
+        }
+        float c_axis;
+        spread_axis(j, p->ax, b, p->alpha, ex[i].cos1, z1[i], ex[i].cos2, &c_axis, &p->var1);
+        spread_cosines(c_axis, p->var1, cs + 3 * i);
+        for (int q = 0; q < 3; q++) etas[3 * i + q] = j->ior[b];
+    }
+    if (!j->rough || !spread) return;
+    sg_theta_n(cs, 3 * m, zs);
+    fresnel_n(cs, etas, 3 * m, fs);
+    for (int i = 0; i < m; i++) {
+        int64_t b = j->batch[r0 + i];
+        float et[3], er[3];
+        interface_energies3(&j->table, sp[i].ax + 1, j->dist[b], zs + 3 * i, fs + 3 * i, et,
+                            er);
+        spread_sum(et, er, &sp[i].e_t2, &sp[i].e_r2);
+        sp[i].esc = escape(j, b, sp[i].alpha2);
+    }
+}
+
 /* Step 3 for ray i of a marched block (paths.trace_paths, render_specular, and
- * render_prefiltered with ``blur``): the energies and the exit rule, the absorption, the
- * two lookups (``taps``: the reflected and the transmitted light's, asked for by the block;
- * NULL with ``blur``; z1: the entry cosine's table coordinate, read where the batch is
- * rough); the pixel and its passes written. */
-static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, int i,
-                        const float *d, const Exit *ex, float z1, const EnvTap *taps, int tir1,
+ * render_prefiltered with ``blur``): with the pixel's energies (``sp``), the exit rule,
+ * the absorption, the two lookups (``taps``: the reflected and the transmitted light's,
+ * asked for by the block; NULL with ``blur``); the pixel and its passes written. */
+static void shade_pixel(const SpecJob *sj, const SpecPixel *sp, const Rays *rays, int i,
+                        const float *d, const Exit *ex, const EnvTap *taps, int tir1,
                         int64_t px, int64_t b, SpecBlock *sb) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
-    float eta = j->ior[b];
+    float eta = j->ior[b], alpha = sp->alpha;
     int ok = rays->found[i];
-    /* the roughness at the entry and at the exit (a map's, at their UVs) */
-    float alpha = roughness_at(j, b, j->front_uv + 2 * px), alpha2 = alpha, uv2[2];
-    SgAxes own[2];
-    if (j->rmap[b]) {
-        if (ok) {
-            interpolate(rays->bary + 3 * i, j->tri_uvs + 6 * rays->tri[i], 2, uv2);
-            alpha2 = roughness_at(j, b, uv2);
-        }
-        sg_axes(&j->table, eta, alpha, own);
-        sg_axes(&j->table, 1.0f / eta, alpha2, own + 1);
-        ax = own;
-    }
-    float cos1 = ex->cos1, f1 = ex->f1, cos2 = ex->cos2, f2 = ex->f2;
     const float *refl = ex->refl, *t2 = ex->look;  /* the transmitted light's direction */
-    float p2[3], e_t1, e_r1, e_t2, e_r2, esc, var1;
+    float p2[3], e_t1 = sp->e_t1, e_r1 = sp->e_r1, e_t2 = sp->e_t2, e_r2 = sp->e_r2;
+    float esc = sp->esc, var1 = sp->var1;
     int bounce = sj->bo.limit > 0, tir2 = ex->tir2;
-    if (j->rough) {
-        interface_energies_at(&j->table, ax, j->dist[b], z1, f1, &e_t1, &e_r1);
-    } else {
-        e_t1 = 1.0f - f1;
-        e_r1 = f1;
-    }
-    exit_energies(j, ax, ax + 1, b, alpha, alpha2, cos1, z1, cos2, f2,
-                  j->tir_mode == 0 || bounce, &e_t2, &e_r2, &esc, &var1);
     float w2 = leaving_weight(j->tir_mode, tir2, e_t2, e_r2, esc), path;
     if (ok) {
         for (int c = 0; c < 3; c++) p2[c] = rays->pos[3 * i + c];
@@ -288,8 +328,8 @@ static void shade_pixel(const SpecJob *sj, const SgAxes *ax, const Rays *rays, i
     if (bounce) {  /* the pixel is written once its bounces are followed (shade_block) */
         sb->hidden[i] = (uint8_t)hidden;
         for (int c = 0; c < 3; c++) sb->front[i][c] = e_r1 * l_refl[c];
-        first_exit(sj, ax + 1, &sb->paths, i, b, rays, t1, ex, taps ? taps + 1 : NULL, p2, e_t1,
-                   e_t2, e_r2, var1, path);
+        first_exit(sj, sp->ax + 1, &sb->paths, i, b, rays, t1, ex, taps ? taps + 1 : NULL, p2,
+                   e_t1, e_t2, e_r2, var1, path);
     } else if (!hidden) {
         for (int c = 0; c < 3; c++) {
             float att = transmittance(j->absorption[3 * b + c], path);
@@ -354,12 +394,18 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         for (int i = 0; i < m; i++) cos1[i] = ex[i].cos1;
         sg_theta_n(cos1, m, z1);
     }
+    SpecPixel sp[BLOCK];
+    for (int i = 0; i < m; i++) {
+        int64_t b = j->batch[r0 + i];
+        pixel_axes(j, axes + 2 * b, &rays, i, j->idx[r0 + i], b, sp + i);
+    }
+    block_energies(j, sp, ex, z1, r0, m, j->tir_mode == 0 || sj->bo.limit > 0);
     SpecBlock sb;
     sb.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        shade_pixel(sj, axes + 2 * b, &rays, i, d + 3 * i, ex + i, j->rough ? z1[i] : 0.0f,
-                    sj->blur ? NULL : taps[i], tir1[i], j->idx[r0 + i], b, &sb);
+        shade_pixel(sj, sp + i, &rays, i, d + 3 * i, ex + i, sj->blur ? NULL : taps[i],
+                    tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
         finish_block(j, &sj->bo, sj, inside_specular, 0, axes, 2, &sb.paths,
