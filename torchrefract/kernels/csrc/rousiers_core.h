@@ -108,12 +108,50 @@ typedef struct {
     float split_t, split_r;
 } ExitGeo;
 
+/* ``tir: clamp`` and ``conserve``'s incident cosine at the exit: clamped to just above
+ * the critical one under TIR. */
+static inline float clamped_cos(const ExitGeo *e) {
+    return e->tir ? e->cos_crit + 1e-4f : e->cos2;
+}
+
+/* exit_lobe under ``tir: clamp`` or ``conserve``: the transmitted lobe at table coordinate
+ * z_in (of clamped_cos) and its weight: clamp's, or conserve's energies averaged over the
+ * entry lobe at the spread's table coordinates zs (of spread_cosines at cos2, var1) with
+ * the escape fraction. */
+static void clamped_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
+                         int mode, const ExitGeo *e, float z_in, const float *zs,
+                         float *p_out, float *k_t2, float *weight) {
+    const Frame *j = &rj->f;
+    int64_t dist = j->dist[b];
+    float t_t2, e_t2;
+    sg_lobe_at(&j->table, ax + OUT, ax + OUT0, dist, 0, z_in, k_t2, &t_t2, &e_t2);
+    lobe_axis(e->view2, e->n_in, t_t2, -1.0f, p_out);
+    if (mode == CLAMP) {
+        *weight = e->tir ? 1.0f : e_t2;
+        return;
+    }
+    float esc = escape(j, b, alpha), et, er;
+    table_energies_spread(&j->table, ax + OUT, ax + OUT0, dist, zs, &et, &er);
+    float w = et + er * esc;
+    *weight = w > 1.0f ? 1.0f : w;
+}
+
+/* exit_lobe's end: the unit axis, the sharpness widened by the geometric spread, the
+ * weight. */
+static inline void lobe_out(const ExitGeo *e, float k_t2, float weight, float *p_out,
+                            float *k_out, float *w_out) {
+    normalize3(p_out);
+    float v = 1.0f / k_t2 + e->var_geo;
+    *k_out = 1.0f / (v > 1e-12f ? v : 1e-12f);
+    *w_out = weight;
+}
+
 static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha, int mode,
                       const ExitGeo *e, float *p_out, float *k_out, float *w_out) {
     const Frame *j = &rj->f;
     int64_t dist = j->dist[b];
     const float *view2 = e->view2, *n_in = e->n_in;
-    float cos2 = e->cos2, cos_crit = e->cos_crit, var1 = e->var1, var_geo = e->var_geo;
+    float cos2 = e->cos2, var1 = e->var1;
     int tir = e->tir;
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
     float k_t2, t_t2, e_t2, weight;
@@ -135,23 +173,16 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
             lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
             weight = e_t2;
         }
-    } else {  /* clamp, conserve: the incident angle clamped to the critical one */
-        float cos_in = tir ? cos_crit + 1e-4f : cos2;
-        sg_lobe(&j->table, out, out0, dist, 0, cos_in, &k_t2, &t_t2, &e_t2);
-        lobe_axis(view2, n_in, t_t2, -1.0f, p_out);
-        if (mode == CLAMP) {
-            weight = tir ? 1.0f : e_t2;
-        } else {
-            float esc = escape(j, b, alpha), et, er;
-            spread_table_energies(&j->table, out, out0, dist, cos2, var1, &et, &er);
-            weight = et + er * esc;
-            if (weight > 1.0f) weight = 1.0f;
+    } else {  /* clamp, conserve */
+        float cs[3], zs[3];
+        if (mode == CONSERVE) {
+            spread_cosines(cos2, var1, cs);
+            sg_theta3(cs, zs);
         }
+        clamped_lobe(rj, ax, b, alpha, mode, e, sg_theta(clamped_cos(e)), zs, p_out, &k_t2,
+                     &weight);
     }
-    normalize3(p_out);
-    float v = 1.0f / k_t2 + var_geo;
-    *k_out = 1.0f / (v > 1e-12f ? v : 1e-12f);
-    *w_out = weight;
+    lobe_out(e, k_t2, weight, p_out, k_out, w_out);
 }
 
 /* kernels.cone.ray_spread: the bounding rays refracted out at their exit normals, their
@@ -405,14 +436,18 @@ static void first_reflection(const RousJob *rj, const SgAxes *ax, Paths *ps, int
 
 /* The lobe the light leaves by: exit.exit_lobe at roughness ``alpha``, axes ``ax`` (its
  * direction p, sharpness k and weight); where the exit is not found, the front lobe's. */
-static void leaving_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
-                         int mode, const ExitGeo *e, float *p, float *k, float *wt) {
-    exit_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
+static inline void lost_exit(const ExitGeo *e, float *p, float *k, float *wt) {
     if (!e->found) {  /* leave with the front lobe */
         for (int c = 0; c < 3; c++) p[c] = e->p_t1[c];
         *k = e->k_t1;
         *wt = 1.0f;
     }
+}
+
+static void leaving_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alpha,
+                         int mode, const ExitGeo *e, float *p, float *k, float *wt) {
+    exit_lobe(rj, ax, b, alpha, mode, e, p, k, wt);
+    lost_exit(e, p, k, wt);
 }
 
 /* The light of one exit lobe (leaving_lobe): its sharpness k and weight, and the
@@ -509,12 +544,13 @@ static void finish_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, i
 }
 
 /* Steps 3-4 for pixel i (exit.exit_interface, cone.trace_cone's footprint): the exit
- * interface at the exact exit normal, the footprint; without roughness levels also the
- * exit lobe (leaving_lobe), whose lookup cone_block then taps for the whole block. */
+ * interface at the exact exit normal, the footprint (without roughness levels
+ * block_leaving_lobes then finds the block's exit lobes, and cone_block taps their
+ * lookups). */
 static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
     const Frame *j = &rj->f;
     const SgAxes *ax = k->ax[i];
-    float ior = j->ior[b], alpha = k->alpha[i];
+    float ior = j->ior[b];
     const float *p_t1 = k->axis.t + 3 * i;
     int found = k->axis.found[i];
     float exact_n[3], n4[4][3], k_t1 = k->k_t1[i];
@@ -545,9 +581,35 @@ static void prepare_exit(const RousJob *rj, Block *k, int i, int64_t b) {
         spread_table_energies(&j->table, ax + OUT, ax + OUT0, j->dist[b], e->cos2, e->var1,
                               &e->split_t, &e->split_r);
     }
-    if (rj->levels == 0) {  /* exit_light's lobe */
-        int mode = exit_mode(rj);
-        leaving_lobe(rj, ax, b, alpha, mode, e, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
+}
+
+/* Without roughness levels, the exit lobes of a block's m pixels after prepare_exit
+ * (leaving_lobe, exit_light's lobe): under ``tir: clamp`` and ``conserve`` the table
+ * coordinates of the clamped cosines and of the spreads found for the whole block at once,
+ * in lanes (the same bits as pixel by pixel), so that the pixels' chains run side by side. */
+static void block_leaving_lobes(const RousJob *rj, Block *k, int64_t r0, int m) {
+    const Frame *j = &rj->f;
+    int mode = exit_mode(rj);
+    if (mode != CLAMP && mode != CONSERVE) {
+        for (int i = 0; i < m; i++)
+            leaving_lobe(rj, k->ax[i], j->batch[r0 + i], k->alpha[i], mode, k->ex + i,
+                         k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
+        return;
+    }
+    float c_in[BLOCK], z_in[BLOCK], cs[3 * BLOCK], zs[3 * BLOCK];
+    for (int i = 0; i < m; i++) {
+        c_in[i] = clamped_cos(k->ex + i);
+        if (mode == CONSERVE) spread_cosines(k->ex[i].cos2, k->ex[i].var1, cs + 3 * i);
+    }
+    sg_theta_n(c_in, m, z_in);
+    if (mode == CONSERVE) sg_theta_n(cs, 3 * m, zs);
+    for (int i = 0; i < m; i++) {
+        const ExitGeo *e = k->ex + i;
+        float k_t2, w;
+        clamped_lobe(rj, k->ax[i], j->batch[r0 + i], k->alpha[i], mode, e, z_in[i], zs + 3 * i,
+                     k->lobe_p[i], &k_t2, &w);
+        lobe_out(e, k_t2, w, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
+        lost_exit(e, k->lobe_p[i], &k->lobe_k[i], &k->lobe_w[i]);
     }
 }
 
@@ -693,7 +755,10 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
     k.paths.n = 0;
     if (prepare & CONE_EXITS) {  /* every exit of the block first, then its lookups */
         for (int i = 0; i < m; i++) prepare_exit(rj, &k, i, j->batch[r0 + i]);
-        if (rj->levels == 0) block_taps(j, r0, m, &k.lobe_p[0][0], k.lobe_k, k.tap_t);
+        if (rj->levels == 0) {
+            block_leaving_lobes(rj, &k, r0, m);
+            block_taps(j, r0, m, &k.lobe_p[0][0], k.lobe_k, k.tap_t);
+        }
     }
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];

@@ -382,32 +382,45 @@ static inline void sg_lobe(const SgTable *t, const SgAxes *a, const SgAxes *a0, 
     sg_lobe_at(t, a, a0, d, lobe, sg_theta(c), k, angle, energy);
 }
 
+/* The table's transmitted and reflected energies e (2) at table coordinate z, faded as
+ * sg_lobe's (``a0``: the interface at alpha_min). */
+static inline void table_energies_at(const SgTable *t, const SgAxes *a, const SgAxes *a0,
+                                     int64_t d, float z, float *e) {
+    sg_read(t, a, d, SG_EV, 0, z, e);
+    e[0] = e[0] > 0.0f ? e[0] : 0.0f;
+    e[1] = e[1] > 0.0f ? e[1] : 0.0f;
+    if (a->fade < 1.0f) {
+        float e0[2];
+        sg_read(t, a0, d, SG_EV, 0, z, e0);
+        e0[0] = e0[0] > 0.0f ? e0[0] : 0.0f;
+        e0[1] = e0[1] > 0.0f ? e0[1] : 0.0f;
+        e[0] = e0[0] + a->fade * (e[0] - e0[0]);
+        e[1] = e0[1] + a->fade * (e[1] - e0[1]);
+    }
+}
+
+/* table_energies_at at a spread's three table coordinates zs, summed with its weights. */
+static inline void table_energies_spread(const SgTable *t, const SgAxes *a, const SgAxes *a0,
+                                         int64_t d, const float *zs, float *e_t, float *e_r) {
+    float et[3], er[3];
+    for (int i = 0; i < 3; i++) {
+        float e[2];
+        table_energies_at(t, a, a0, d, zs[i], e);
+        et[i] = e[0];
+        er[i] = e[1];
+    }
+    spread_sum(et, er, e_t, e_r);
+}
+
 /* rousiers.lobes.spread_energies: the table's transmitted and reflected energies (faded as
  * sg_lobe's) averaged over a lobe of variance var around the axis at cos_theta. */
 static void spread_table_energies(const SgTable *t, const SgAxes *a, const SgAxes *a0,
                                   int64_t d, float cos_theta, float var, float *e_t,
                                   float *e_r) {
-    float cs[3], zs[3], ts = 0.0f, rs = 0.0f;
+    float cs[3], zs[3];
     spread_cosines(cos_theta, var, cs);
     sg_theta3(cs, zs);
-    for (int i = 0; i < 3; i++) {
-        float e[2], z = zs[i];
-        sg_read(t, a, d, SG_EV, 0, z, e);
-        e[0] = e[0] > 0.0f ? e[0] : 0.0f;
-        e[1] = e[1] > 0.0f ? e[1] : 0.0f;
-        if (a->fade < 1.0f) {
-            float e0[2];
-            sg_read(t, a0, d, SG_EV, 0, z, e0);
-            e0[0] = e0[0] > 0.0f ? e0[0] : 0.0f;
-            e0[1] = e0[1] > 0.0f ? e0[1] : 0.0f;
-            e[0] = e0[0] + a->fade * (e[0] - e0[0]);
-            e[1] = e0[1] + a->fade * (e[1] - e0[1]);
-        }
-        ts = i == 0 ? SPREAD_W[0] * e[0] : ts + SPREAD_W[i] * e[0];
-        rs = i == 0 ? SPREAD_W[0] * e[1] : rs + SPREAD_W[i] * e[1];
-    }
-    *e_t = ts;
-    *e_r = rs;
+    table_energies_spread(t, a, a0, d, zs, e_t, e_r);
 }
 
 #endif
