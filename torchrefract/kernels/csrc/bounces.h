@@ -34,6 +34,10 @@ typedef struct {
      * looked up for the whole wave (inside_lookups): along look_d, with sharpness look_k
      * (an SG lookup) or a plain one (the method's ``sg`` 0), times look_w */
     float look_d[RAYS][3], look_k[RAYS], look_w[RAYS];
+    /* table coordinates a method finds for the whole wave before its rays are shaded
+     * (its tr_coords_fn: each ray's chain of dependent steps then runs beside the
+     * others'), read by its tr_inside_fn */
+    float coord[RAYS][5];
 } Paths;
 
 /* A method's interface model for ray r of the paths at a later interface: asks for the
@@ -41,6 +45,10 @@ typedef struct {
  * returns the reflectance, and the reflected lobe's direction and variance. */
 typedef float (*tr_inside_fn)(const void *job, const SgAxes *view_axes, Paths *ps, int r,
                               int64_t b, int last, float *dir, float *var_out);
+
+/* A method's table coordinates for rays [0, n) of the paths (``coord``), before they are
+ * shaded; NULL where its tr_inside_fn needs none. */
+typedef void (*tr_coords_fn)(const void *job, Paths *ps, int64_t r0, int n, int last);
 
 /* materials.roughness_at at the barycentrics of triangle tri (0 where none:
  * gbuffer.interpolate of tri.clamp(min=0)). */
@@ -110,8 +118,8 @@ static void inside_lookups(const Frame *j, Paths *ps, int64_t r0, int n, int sg)
  * them over the segment, shade it (``shade``, with view b's ``naxes`` table axes), keep
  * the rays that go on; until none does. */
 static void follow_block(const Frame *j, const Bounces *bo, const void *job,
-                         tr_inside_fn shade, int sg, const SgAxes *axes, int naxes, Paths *ps,
-                         int64_t r0) {
+                         tr_inside_fn shade, tr_coords_fn coords, int sg, const SgAxes *axes,
+                         int naxes, Paths *ps, int64_t r0) {
     Job inside = j->march;
     inside.pw = 8;
     Rays rays;
@@ -144,6 +152,7 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
         }
         int last = k >= bo->limit, n = ps->n;
         float dirs[RAYS][3], vars[RAYS], refls[RAYS];
+        if (coords) coords(job, ps, r0, n, last);
         for (int r = 0; r < n; r++) {  /* shade, the light leaving looked up for all */
             int64_t b = j->batch[r0 + ps->pix[r]];
             refls[r] = shade(job, axes + naxes * b, ps, r, b, last, dirs[r], &vars[r]);
@@ -163,9 +172,10 @@ static void follow_block(const Frame *j, const Bounces *bo, const void *job,
  * ``front`` (its front reflection's light) plus what left through the interfaces met from
  * inside, over the background unless a light hides it (``hidden``), and its bounce passes. */
 static void finish_block(const Frame *j, const Bounces *bo, const void *job,
-                         tr_inside_fn shade, int sg, const SgAxes *axes, int naxes, Paths *ps,
-                         const float (*front)[3], const uint8_t *hidden, int64_t r0, int m) {
-    follow_block(j, bo, job, shade, sg, axes, naxes, ps, r0);
+                         tr_inside_fn shade, tr_coords_fn coords, int sg, const SgAxes *axes,
+                         int naxes, Paths *ps, const float (*front)[3], const uint8_t *hidden,
+                         int64_t r0, int m) {
+    follow_block(j, bo, job, shade, coords, sg, axes, naxes, ps, r0);
     for (int i = 0; i < m; i++) {
         int64_t px = j->idx[r0 + i];
         for (int c = 0; c < 3 && !hidden[i]; c++)

@@ -657,6 +657,43 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
  * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
  * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
  * direction and variance of the reflected lobe. */
+/* Ray r's arrival at an interface from inside: the view direction, the view-facing
+ * normal, the incident cosine (returned), the critical one, TIR, and the cosine its
+ * transmitted lobe is read at (held just above the critical one under TIR where the rule
+ * lets the light out there). */
+static float inside_cosines(const Frame *j, const Paths *ps, int r, int64_t b, int last,
+                            float *view, float *n_view, float *cos_crit, int *tir,
+                            float *cos_t) {
+    int mode = j->tir_mode;
+    float ior = j->ior[b];
+    const float *t = ps->t[r];
+    float cc = 1.0f - 1.0f / (ior * ior);
+    *cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
+    for (int c = 0; c < 3; c++) view[c] = -t[c];
+    face_forward(ps->normal[r], t, n_view);
+    float cos = clampf(dot3(view, n_view), 0.0f, 1.0f);
+    *tir = cos < *cos_crit;
+    *cos_t = ((last && mode == CLAMP) || mode == CONSERVE) && *tir ? *cos_crit + 1e-4f : cos;
+    return cos;
+}
+
+/* shade_inside's table coordinates for the wave's n rays (tr_coords_fn): of cos_t, of
+ * cos, and of the spread's three cosines around cos (spread_cosines), for all rays at
+ * once in lanes (sg_theta_n: the same bits as sg_theta ray by ray). */
+static void inside_coords(const void *job, Paths *ps, int64_t r0, int n, int last) {
+    const Frame *j = &((const RousJob *)job)->f;
+    for (int r = 0; r < n; r++) {
+        float view[3], n_view[3], cos_crit, cos_t, *c = ps->coord[r];
+        int tir;
+        float cos = inside_cosines(j, ps, r, j->batch[r0 + ps->pix[r]], last, view, n_view,
+                                   &cos_crit, &tir, &cos_t);
+        c[0] = cos_t;
+        c[1] = cos;
+        spread_cosines(cos, ps->var[r], c + 2);
+    }
+    sg_theta_n(&ps->coord[0][0], 5 * n, &ps->coord[0][0]);
+}
+
 static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, int r,
                           int64_t b, int last, float *dir, float *var_out) {
     const RousJob *rj = (const RousJob *)job;
@@ -666,19 +703,17 @@ static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, i
     const SgAxes *ax = axes_at(j, view_axes, b, alpha, own);
     const SgAxes *out = ax + OUT, *out0 = ax + OUT0;
     int64_t dist = j->dist[b];
-    int mode = j->tir_mode;
-    float ior = j->ior[b], var = ps->var[r], *t = ps->t[r];
-    float cc = 1.0f - 1.0f / (ior * ior), cos_crit = sqrtf(cc > 0.0f ? cc : 0.0f);
-    float n_view[3], view[3] = {-t[0], -t[1], -t[2]};
-    face_forward(ps->normal[r], t, n_view);
-    float cos = clampf(dot3(view, n_view), 0.0f, 1.0f);
-    int tir = cos < cos_crit;
-    float cos_t = ((last && mode == CLAMP) || mode == CONSERVE) && tir ? cos_crit + 1e-4f : cos;
+    int mode = j->tir_mode, tir;
+    float ior = j->ior[b], var = ps->var[r], *t = ps->t[r], cos_crit, cos_t;
+    float n_view[3], view[3];
+    inside_cosines(j, ps, r, b, last, view, n_view, &cos_crit, &tir, &cos_t);
+    const float *z = ps->coord[r];  /* of cos_t, cos, the spread's (inside_coords) */
     float k_t, t_t, e_t, k_r = INFINITY, t_r = 0.0f, e_r = 0.0f;
-    sg_lobe(&j->table, out, out0, dist, 0, cos_t, &k_t, &t_t, &e_t);
-    if (!(last && mode == CONSERVE)) sg_lobe(&j->table, out, out0, dist, 1, cos, &k_r, &t_r, &e_r);
+    sg_lobe_at(&j->table, out, out0, dist, 0, z[0], &k_t, &t_t, &e_t);
+    if (!(last && mode == CONSERVE))
+        sg_lobe_at(&j->table, out, out0, dist, 1, z[1], &k_r, &t_r, &e_r);
     if (!last || mode == CONSERVE)  /* the split averaged over the lobe carried */
-        spread_table_energies(&j->table, out, out0, dist, cos, var, &e_t, &e_r);
+        table_energies_spread(&j->table, out, out0, dist, z + 2, &e_t, &e_r);
     float p_t[3], k_out, w_out = e_t, refl = e_r, inv_kr = 1.0f / (k_r > 1e-12f ? k_r : 1e-12f);
     lobe_axis(view, n_view, t_t, -1.0f, p_t);
     normalize3(p_t);
@@ -694,7 +729,7 @@ static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, i
         refl = go_on * e_r;
     } else if (last && mode == CLAMP) {  /* TIR light leaves at the critical angle */
         float e_true = e_t, k_u, t_u;
-        if (tir) sg_lobe(&j->table, out, out0, dist, 0, cos, &k_u, &t_u, &e_true);
+        if (tir) sg_lobe_at(&j->table, out, out0, dist, 0, z[1], &k_u, &t_u, &e_true);
         w_out = tir ? (e_true + e_r > 1.0f ? 1.0f : e_true + e_r) : e_true;
         refl = tir ? 0.0f : e_r;
     } else if (last) {  /* reflect: under TIR the internal reflection lobe is read */
@@ -765,7 +800,7 @@ static void cone_block(const void *job, const RousJob *rj, const SgAxes *axes, i
         pixel(job, axes + NAXES * b, &k, i, j->idx[r0 + i], b);
     }
     if (rj->bo.limit > 0)
-        finish_block(j, &rj->bo, rj, shade_inside, 1, axes, NAXES, &k.paths,
+        finish_block(j, &rj->bo, rj, shade_inside, inside_coords, 1, axes, NAXES, &k.paths,
                      (const float (*)[3])k.front, k.hidden, r0, m);
 }
 

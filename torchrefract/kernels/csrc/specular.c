@@ -408,7 +408,7 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
                     tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
-        finish_block(j, &sj->bo, sj, inside_specular, 0, axes, 2, &sb.paths,
+        finish_block(j, &sj->bo, sj, inside_specular, NULL, 0, axes, 2, &sb.paths,
                      (const float (*)[3])sb.front, sb.hidden, r0, m);
 }
 
