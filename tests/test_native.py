@@ -358,16 +358,25 @@ def test_cli_no_native_flag_is_a_setting_of_its_renders(monkeypatch):
 
 @needs_native
 def test_triangle_plane_table_matches_the_tensor_code(monkeypatch):
-    """march.plane_table's rows by the native kernel equal the tensor code's (float64, then
-    rounded to float32: equal but where float64 rounding meets a float32 tie)."""
+    """march.plane_table's rows by the native kernel (every distinct view of a batch in one
+    call) equal the tensor code's view by view (float64, then rounded to float32: equal but
+    where float64 rounding meets a float32 tie): two meshes, two cameras, a repeated view
+    sharing its rows."""
     from torchrefract.kernels import march  # noqa: PLC0415
 
-    scene = tr.load_scene(str(ASSETS.parent / "configs" / "suite" / "bunny_a01.yaml"))
-    g = build_gbuffer([load_mesh(scene.mesh, scene.transform)], [scene.camera])
+    suite = ASSETS.parent / "configs" / "suite"
+    scene = tr.load_scene(str(suite / "bunny_a01.yaml"))
+    other = tr.load_scene(str(suite / "suzanne_a01.yaml"))
+    bunny, monkey = (load_mesh(s.mesh, s.transform) for s in (scene, other))
+    cam2 = dataclasses.replace(scene.camera, eye=(0.5, 0.6, 2.7))
+    g = build_gbuffer([bunny, monkey, bunny, bunny],
+                      [scene.camera, scene.camera, cam2, scene.camera])
     fast, base = march.plane_table(g.meshes, g.eye, g.proj)
     monkeypatch.setattr(native, "tri_planes", lambda *a: None)
     slow, base2 = march.plane_table(g.meshes, g.eye, g.proj)
-    assert torch.equal(base, base2) and fast.shape == slow.shape == (g.meshes.num_faces[0], 4)
+    nb, nm = bunny.faces.shape[0], monkey.faces.shape[0]
+    assert torch.equal(base, base2) and fast.shape == slow.shape == (2 * nb + nm, 4)
+    assert base[3] == base[0]  # the repeated view reads the first one's rows
     assert (fast != slow).any(-1).float().mean() < 1e-3
     assert torch.allclose(fast, slow, rtol=0, atol=1e-6)
     assert torch.allclose(fast[:, :3].norm(dim=-1), torch.ones(1))

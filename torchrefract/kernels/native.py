@@ -283,7 +283,8 @@ class _Theta3Job(ctypes.Structure):
 class _TriPlanesJob(ctypes.Structure):
     """ctypes mirror of ``TriPlanesJob`` in csrc/march.c."""
 
-    _fields_ = [("n", ctypes.c_int64), ("tv", _p), ("eye", _p), ("basis", _p), ("out", _p)]
+    _fields_ = [("n", ctypes.c_int64), ("nv", ctypes.c_int64), ("first", _p), ("face0", _p),
+                ("tv", _p), ("eye", _p), ("basis", _p), ("out", _p)]
 
 
 class _LatticeJob(ctypes.Structure):
@@ -628,25 +629,29 @@ def march_fields(planes, both: bool) -> dict | None:
                 tri_back=back.data_ptr(), simd=simd, keep=(table, base, back, front))
 
 
-def tri_planes(tv: torch.Tensor, eye: torch.Tensor, basis: torch.Tensor
-               ) -> torch.Tensor | None:
-    """``march.plane_table``'s rows of one view, (F, 4) float32, computed in double as the
-    tensor code does (the same table within float64 rounding); ``None`` where the kernel
-    is unavailable or an input is not a float32 CPU tensor.
+def tri_planes(tv: torch.Tensor, face0: torch.Tensor, count: torch.Tensor, eye: torch.Tensor,
+               basis: torch.Tensor) -> torch.Tensor | None:
+    """``march.plane_table``'s rows of V views in one call, (sum of ``count``, 4) float32,
+    computed in double as the tensor code does (the same table within float64 rounding);
+    ``None`` where the kernel is unavailable or an input is not a CPU tensor of its dtype.
 
     Args:
-        tv: (F, 3, 3) the view's triangles; eye: (3,); basis: (9,) rows right, up, forward.
+        tv: (T, 3, 3) the batch's triangles; face0, count: (V,) int64, view v's triangles
+            are ``tv[face0[v]:face0[v] + count[v]]``; eye: (V, 3); basis: (V, 9) rows
+            right, up, forward.
     """
     if not available():
         return None
-    keep = _inputs((tv, eye, basis), ())
+    keep = _inputs((tv, eye, basis), (face0, count))
     if keep is None:
         return None
-    tv, eye, basis = keep
-    out = torch.empty(tv.shape[0], 4)
-    if tv.shape[0] == 0:
+    tv, eye, basis, face0, count = keep
+    first = torch.cat([count.new_zeros(1), count.cumsum(0)])
+    out = torch.empty(int(first[-1]), 4)
+    if out.shape[0] == 0:
         return out
-    job = _TriPlanesJob(n=tv.shape[0], tv=tv.data_ptr(), eye=eye.data_ptr(),
+    job = _TriPlanesJob(n=out.shape[0], nv=count.numel(), first=first.data_ptr(),
+                        face0=face0.data_ptr(), tv=tv.data_ptr(), eye=eye.data_ptr(),
                         basis=basis.data_ptr(), out=out.data_ptr())
     return out if _call("tri_planes", job) else None
 
