@@ -197,7 +197,7 @@ class GBuffer:
         kept = self.derived.get("object_index")
         if kept is not None and kept[0] is mask and kept[1] == mask._version:
             return kept[2]
-        b, h, w = self.shape
+        _, h, w = self.shape
         made = native.mask_index(mask, h * w)
         if made is None:
             idx = mask.reshape(-1).nonzero(as_tuple=True)[0]

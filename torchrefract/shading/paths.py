@@ -81,7 +81,6 @@ def trace_paths(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     model's masking-shadowing loss when rough), at the front hit's roughness and at the
     exit's.
     """
-    b, h, w = g.shape
     idx, bi = g.object_index(), g.object_views()  # compact: object pixels only
     d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
     p1 = take(g.front.position.reshape(-1, 3), idx)
