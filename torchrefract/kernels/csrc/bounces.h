@@ -37,7 +37,7 @@ typedef struct {
     /* table coordinates a method finds for the whole wave before its rays are shaded
      * (its tr_coords_fn: each ray's chain of dependent steps then runs beside the
      * others'), read by its tr_inside_fn */
-    float coord[RAYS][5];
+    float coord[RAYS][8];
 } Paths;
 
 /* A method's interface model for ray r of the paths at a later interface: asks for the

@@ -682,16 +682,19 @@ static float inside_cosines(const Frame *j, const Paths *ps, int r, int64_t b, i
  * once in lanes (sg_theta_n: the same bits as sg_theta ray by ray). */
 static void inside_coords(const void *job, Paths *ps, int64_t r0, int n, int last) {
     const Frame *j = &((const RousJob *)job)->f;
+    float c[5 * RAYS], z[5 * RAYS];
     for (int r = 0; r < n; r++) {
-        float view[3], n_view[3], cos_crit, cos_t, *c = ps->coord[r];
+        float view[3], n_view[3], cos_crit, cos_t;
         int tir;
         float cos = inside_cosines(j, ps, r, j->batch[r0 + ps->pix[r]], last, view, n_view,
                                    &cos_crit, &tir, &cos_t);
-        c[0] = cos_t;
-        c[1] = cos;
-        spread_cosines(cos, ps->var[r], c + 2);
+        c[5 * r] = cos_t;
+        c[5 * r + 1] = cos;
+        spread_cosines(cos, ps->var[r], c + 5 * r + 2);
     }
-    sg_theta_n(&ps->coord[0][0], 5 * n, &ps->coord[0][0]);
+    sg_theta_n(c, 5 * n, z);
+    for (int r = 0; r < n; r++)
+        for (int q = 0; q < 5; q++) ps->coord[r][q] = z[5 * r + q];
 }
 
 static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, int r,

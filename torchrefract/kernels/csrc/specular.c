@@ -70,11 +70,17 @@ static inline float leaving_weight(int mode, int tir, float e_t, float e_r, floa
 
 /* The reflected lobe's spread for the next interface (render_specular's _interface): a
  * rough interface's internal reflection lobe (the table's moment sharpness) widens it. */
-static float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b, float alpha,
-                           float cos, float var) {
+static float reflected_var_at(const SpecJob *sj, const SgAxes *out, int64_t b, float alpha,
+                              float z, float var) {
     float k_r, ang, e;
-    sg_lookup(&sj->f.table, out, sj->f.dist[b], 1, 0, cos, &k_r, &ang, &e);
+    sg_lookup_at(&sj->f.table, out, sj->f.dist[b], 1, 0, z, &k_r, &ang, &e);
     return var + (alpha > 0.0f ? 1.0f / k_r : 0.0f);
+}
+
+/* reflected_var_at at the incident cosine cos (its table coordinate sg_theta(cos)). */
+static inline float reflected_var(const SpecJob *sj, const SgAxes *out, int64_t b,
+                                  float alpha, float cos, float var) {
+    return reflected_var_at(sj, out, b, alpha, sg_theta(cos), var);
 }
 
 /* A marched ray's two interfaces (paths.trace_paths): the entry's cosine, Fresnel term
@@ -163,6 +169,40 @@ static void first_exit(const SpecJob *sj, const SgAxes *out, Paths *ps, int i, i
     add_ray(ps, i, p2, r, w_next, var, 1.0f);
 }
 
+/* Ray r's view-facing normal at its next interface (n_view) and the incident cosine. */
+static inline float inside_cosine(const Paths *ps, int r, float *n_view) {
+    face_forward(ps->normal[r], ps->t[r], n_view);
+    return -dot3(ps->t[r], n_view);
+}
+
+/* inside_specular's table coordinates and Fresnel terms for the wave's n rays
+ * (tr_coords_fn), where the batch is rough: the spread's three cosines' coordinates, the
+ * incident cosine's (the reflected lobe's), then the spread's three Fresnel terms
+ * (Paths.coord[r][0..2], [3], [4..6]), for all rays at once in lanes (the same bits as
+ * spread_interface_energies ray by ray). */
+static void specular_coords(const void *job, Paths *ps, int64_t r0, int n, int last) {
+    const Frame *j = &((const SpecJob *)job)->f;
+    (void)last;
+    if (!j->rough) return;
+    float c[4 * RAYS], z[4 * RAYS], etas[3 * RAYS], f[3 * RAYS];
+    for (int r = 0; r < n; r++) {
+        float n_view[3], cos = inside_cosine(ps, r, n_view);
+        spread_cosines(cos, ps->var[r], c + 3 * r);
+        c[3 * n + r] = cos;
+        for (int q = 0; q < 3; q++) etas[3 * r + q] = j->ior[j->batch[r0 + ps->pix[r]]];
+    }
+    sg_theta_n(c, 4 * n, z);
+    fresnel_n(c, etas, 3 * n, f);
+    for (int r = 0; r < n; r++) {
+        float *o = ps->coord[r];
+        for (int q = 0; q < 3; q++) {
+            o[q] = z[3 * r + q];
+            o[4 + q] = f[3 * r + q];
+        }
+        o[3] = z[3 * n + r];
+    }
+}
+
 /* A later interface (render_specular's _interface, k >= 1): the smooth ray refracts out
  * with the interface's energies (Fresnel; rough: the table's, averaged over the lobe
  * carried), the ``tir`` rule at the budget's last interface; the mirror ray goes on. A ray
@@ -179,14 +219,16 @@ static float inside_specular(const void *job, const SgAxes *view_axes, Paths *ps
         out = &own;
     }
     float n_view[3], t_out[3];
-    face_forward(ps->normal[r], t, n_view);
-    float cos = -dot3(t, n_view), f = fresnel(cos, eta);
+    float cos = inside_cosine(ps, r, n_view), f = fresnel(cos, eta);
     int tir = refract(t, n_view, eta, t_out);
     reflect(t, n_view, dir);
     float e_t = 1.0f - f, e_r = f, var = 0.0f;
-    if (j->rough) {
-        spread_interface_energies(&j->table, out, j->dist[b], cos, ps->var[r], eta, &e_t, &e_r);
-        if (!last) var = reflected_var(sj, out, b, alpha, cos, ps->var[r]);
+    if (j->rough) {  /* the spread's and the cosine's coordinates: specular_coords */
+        const float *z = ps->coord[r];
+        float et[3], er[3];
+        interface_energies3(&j->table, out, j->dist[b], z, z + 4, et, er);
+        spread_sum(et, er, &e_t, &e_r);
+        if (!last) var = reflected_var_at(sj, out, b, alpha, z[3], ps->var[r]);
     }
     float esc = j->rough && (!ps->found[r] || (last && j->tir_mode == 0))
                     ? escape(j, b, alpha) : 1.0f;
@@ -408,7 +450,7 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
                     tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
-        finish_block(j, &sj->bo, sj, inside_specular, NULL, 0, axes, 2, &sb.paths,
+        finish_block(j, &sj->bo, sj, inside_specular, specular_coords, 0, axes, 2, &sb.paths,
                      (const float (*)[3])sb.front, sb.hidden, r0, m);
 }
 
