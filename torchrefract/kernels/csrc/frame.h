@@ -132,6 +132,16 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
     return e[i0] * (1.0f - w) + e[i0 + 1] * w;
 }
 
+/* sg_env_tap of a block's m lookups (view of pixel i: the job's batch[r0 + i]; directions
+ * dirs[3 i ...], sharpness ks[i]), eight at a time in lanes, their texels asked for (the
+ * same taps as incident_sg's, read by incident_sg_at). */
+static void block_taps(const Frame *j, int64_t r0, int m, const float *dirs, const float *ks,
+                       SgTap *out) {
+    for (int i0 = 0; i0 < m; i0 += 8)
+        sg_env_tap8(&j->lights, &j->env, m - i0 < 8 ? m - i0 : 8, j->batch + r0 + i0,
+                    dirs + 3 * i0, ks + i0, out + i0);
+}
+
 /* A method's work on one block of m <= BLOCK pixels from r0, given each view's table
  * axes; and the filling of one view's axes (returns how many it filled, from out[0]). */
 typedef void (*tr_block_fn)(const void *job, const SgAxes *axes, int64_t r0, int m);

@@ -613,15 +613,6 @@ static void block_leaving_lobes(const RousJob *rj, Block *k, int64_t r0, int m) 
     }
 }
 
-/* sg_env_tap of a block's m lookups (view of pixel i: the job's batch[r0 + i]; directions
- * dirs[3 i ...], sharpness ks[i]), eight at a time in lanes, their texels asked for. */
-static void block_taps(const Frame *j, int64_t r0, int m, const float *dirs, const float *ks,
-                       SgTap *out) {
-    for (int i0 = 0; i0 < m; i0 += 8)
-        sg_env_tap8(&j->lights, &j->env, m - i0 < 8 ? m - i0 : 8, j->batch + r0 + i0,
-                    dirs + 3 * i0, ks + i0, out + i0);
-}
-
 /* Step 5 for pixel i (prepare_exit first; exit.exit_lobe, shade.render_rousiers): the
  * front reflection's and the exit lobe's light, the absorption, the pixel (finish_pixel)
  * and its passes. */

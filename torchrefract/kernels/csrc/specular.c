@@ -260,6 +260,7 @@ typedef struct {
     const SgAxes *ax;
     SgAxes own[2];
     float e_t1, e_r1, e_t2, e_r2, esc, var1;
+    float k_r, k_t;             /* with ``blur``: the lookups' sharpness (blur_taps) */
 } SpecPixel;
 
 static void pixel_axes(const Frame *j, const SgAxes *view_ax, const Rays *rays, int i,
@@ -326,16 +327,42 @@ static void block_energies(const Frame *j, SpecPixel *sp, const Exit *ex, const 
     }
 }
 
+/* ``prefiltered``'s lookups for a block's m pixels (``blur``): each pixel's reflected and
+ * transmitted sharpness (prefiltered.blur_sharpness, from the front roughness) and their
+ * SG taps, eight at a time in lanes (block_taps: incident_sg's own taps). */
+static void blur_taps(const Frame *j, SpecPixel *sp, const Exit *ex, int64_t r0, int m,
+                      SgTap (*taps)[2]) {
+    float dirs[2][3 * BLOCK], ks[2][BLOCK];
+    for (int i = 0; i < m; i++) {
+        float eta = j->ior[j->batch[r0 + i]], a2 = sp[i].alpha * sp[i].alpha;
+        float q = 1.0f - 1.0f / eta, p = eta - 1.0f;
+        float var_t = 0.5f * a2 * (q * q + p * p), var_r = 2.0f * a2;
+        sp[i].k_t = ks[1][i] = var_t > 0.0f ? 1.0f / var_t : INFINITY;
+        sp[i].k_r = ks[0][i] = var_r > 0.0f ? 1.0f / var_r : INFINITY;
+        for (int c = 0; c < 3; c++) {
+            dirs[0][3 * i + c] = ex[i].refl[c];
+            dirs[1][3 * i + c] = ex[i].look[c];
+        }
+    }
+    SgTap t[2][BLOCK];
+    for (int k = 0; k < 2; k++) block_taps(j, r0, m, dirs[k], ks[k], t[k]);
+    for (int i = 0; i < m; i++) {
+        taps[i][0] = t[0][i];
+        taps[i][1] = t[1][i];
+    }
+}
+
 /* Step 3 for ray i of a marched block (paths.trace_paths, render_specular, and
  * render_prefiltered with ``blur``): with the pixel's energies (``sp``), the exit rule,
  * the absorption, the two lookups (``taps``: the reflected and the transmitted light's,
- * asked for by the block; NULL with ``blur``); the pixel and its passes written. */
+ * asked for by the block; with ``blur`` sg_taps, blur_taps'); the pixel and its passes
+ * written. */
 static void shade_pixel(const SpecJob *sj, const SpecPixel *sp, const Rays *rays, int i,
-                        const float *d, const Exit *ex, const EnvTap *taps, int tir1,
-                        int64_t px, int64_t b, SpecBlock *sb) {
+                        const float *d, const Exit *ex, const EnvTap *taps,
+                        const SgTap *sg_taps, int tir1, int64_t px, int64_t b,
+                        SpecBlock *sb) {
     const Frame *j = &sj->f;
     const float *p1 = rays->p + 3 * i, *t1 = rays->t + 3 * i;
-    float eta = j->ior[b], alpha = sp->alpha;
     int ok = rays->found[i];
     const float *refl = ex->refl, *t2 = ex->look;  /* the transmitted light's direction */
     float p2[3], e_t1 = sp->e_t1, e_r1 = sp->e_r1, e_t2 = sp->e_t2, e_r2 = sp->e_r2;
@@ -352,14 +379,10 @@ static void shade_pixel(const SpecJob *sj, const SpecPixel *sp, const Rays *rays
         path = th > 0.0f ? th : 0.0f;
     }
     float l_refl[3], l_trans[3];
-    if (sj->blur) {  /* prefiltered.blur_sharpness */
-        float a2 = alpha * alpha, q = 1.0f - 1.0f / eta, p = eta - 1.0f;
-        float var_t = 0.5f * a2 * (q * q + p * p), var_r = 2.0f * a2;
-        float k_t = var_t > 0.0f ? 1.0f / var_t : INFINITY;
-        float k_r = var_r > 0.0f ? 1.0f / var_r : INFINITY;
-        incident_sg(&j->lights, &j->env, b, p1, refl, k_r, l_refl);
-        if (!bounce) incident_sg(&j->lights, &j->env, b, p2, t2, k_t, l_trans);
-        sj->blur_sigma[px] = 1.0f / sqrtf(k_t);
+    if (sj->blur) {  /* prefiltered.blur_sharpness (blur_taps) */
+        incident_sg_at(&j->lights, b, p1, refl, sp->k_r, sg_taps, l_refl);
+        if (!bounce) incident_sg_at(&j->lights, b, p2, t2, sp->k_t, sg_taps + 1, l_trans);
+        sj->blur_sigma[px] = 1.0f / sqrtf(sp->k_t);
     } else {
         incident_at(&j->lights, b, p1, refl, taps, l_refl);
         if (!bounce) incident_at(&j->lights, b, p2, t2, taps + 1, l_trans);
@@ -442,12 +465,14 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
         pixel_axes(j, axes + 2 * b, &rays, i, j->idx[r0 + i], b, sp + i);
     }
     block_energies(j, sp, ex, z1, r0, m, j->tir_mode == 0 || sj->bo.limit > 0);
+    SgTap sg_taps[BLOCK][2];
+    if (sj->blur) blur_taps(j, sp, ex, r0, m, sg_taps);
     SpecBlock sb;
     sb.paths.n = 0;
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
         shade_pixel(sj, sp + i, &rays, i, d + 3 * i, ex + i, sj->blur ? NULL : taps[i],
-                    tir1[i], j->idx[r0 + i], b, &sb);
+                    sj->blur ? sg_taps[i] : NULL, tir1[i], j->idx[r0 + i], b, &sb);
     }
     if (sj->bo.limit > 0)
         finish_block(j, &sj->bo, sj, inside_specular, specular_coords, 0, axes, 2, &sb.paths,
