@@ -84,7 +84,7 @@ def render_lean(g: GBuffer, lighting: Lighting, materials: MaterialBatch, option
     if idx.numel() == 0:
         return radiance.view(b, h, w, 3), object_passes(g, idx, bounce, None, None)
     table = load_sg_table()
-    px = object_pixels(g, materials, idx)
+    px = object_pixels(g, materials)
     front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
     cone = trace_cone(g, px.bi, px.p1, front.p_t1, front.k_t1, options)
     if reads_no_moments(subdivisions, spread, materials.has_maps):

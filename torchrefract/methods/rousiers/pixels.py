@@ -39,10 +39,10 @@ class Pixels:
     dist: torch.Tensor
 
 
-def object_pixels(g: GBuffer, materials: MaterialBatch, idx: torch.Tensor) -> Pixels:
-    """The front hits of the pixels ``idx`` (flat, where the front layer is set)."""
-    _, h, w = g.shape
-    bi = g.object_views() if idx is g.object_index() else idx // (h * w)
+def object_pixels(g: GBuffer, materials: MaterialBatch) -> Pixels:
+    """The front hits of the object pixels ``g`` shades (``g.object_index()``, with their
+    views ``g.object_views()``)."""
+    idx, bi = g.object_index(), g.object_views()
     d = take(g.ray_dir.reshape(-1, 3), idx)  # (N, 3)
     p1 = take(g.front.position.reshape(-1, 3), idx)
     n1 = face_forward(take(g.front.normal.reshape(-1, 3), idx), d)  # view side

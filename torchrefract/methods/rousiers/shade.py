@@ -56,7 +56,7 @@ def render_rousiers(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if idx.numel() == 0:  # the same passes as a batch with object pixels
         return radiance.view(b, h, w, 3), object_passes(g, idx, bounce, None, None)
     table = load_sg_table()
-    px = object_pixels(g, materials, idx)
+    px = object_pixels(g, materials)
     # 1. Front interface lobes (eqs. 8-9).
     front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
     # 2. Cone tracing: the axis and four bounding rays (eq. 12), their footprint.

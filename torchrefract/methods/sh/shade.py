@@ -383,7 +383,7 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
     values = {k: torch.zeros(b * h * w) for k in PASSES}
     if idx.numel() > 0:
         table = load_sg_table()
-        px = object_pixels(g, materials, idx)
+        px = object_pixels(g, materials)
         front = fused.front_lobes(px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
         if front is None:  # the tensor code: gradients, the fused kernels off
             front = front_lobes(table, px.view, px.n1, px.cos1, px.ior, px.alpha, px.dist)
