@@ -437,7 +437,7 @@ def test_four_refractions_in_lanes_give_the_scalar_bits():
 
 
 def test_spread_cosines_in_lanes_give_the_scalar_bits():
-    """csrc/sgtable.h's sg_theta3 and fresnel3 (a spread's three cosines at once, in lanes
+    """csrc/sgtable.h's sg_theta_n and fresnel_n on a spread's three cosines (in lanes
     where built for them) against the scalar sg_theta and fresnel, bit for bit: cosines
     over [0, 1] and around both branch points (0.5, and s = 1/2 at cos = sqrt(3)/2),
     outside it, -0, NaN; eta on both sides of 1 (TIR); and the coordinates against the

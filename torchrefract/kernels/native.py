@@ -865,7 +865,7 @@ def refract_x4(d: torch.Tensor, n: torch.Tensor, eta: torch.Tensor
 
 
 def theta3(cs: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """csrc/sgtable.h's ``sg_theta3`` and ``fresnel3`` (a spread's three cosines at once, in
+    """csrc/sgtable.h's ``sg_theta_n`` and ``fresnel_n`` on a spread's three cosines (in
     lanes where built for them) and the scalar ``sg_theta`` and ``fresnel``, for the tests
     that hold them to the same bits: ``cs`` (G, 3) float32, ``eta`` (G,); each result
     (G, 2, 3): the table coordinates, then the reflectances. ``None`` where the kernels do

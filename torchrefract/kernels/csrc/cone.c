@@ -160,8 +160,9 @@ static void refract_x4_range(const void *job, int64_t begin, int64_t end) {
     }
 }
 
-/* sgtable.h's sg_theta3 and fresnel3 (three cosines at once, in lanes where built for
- * them) against sg_theta and fresnel, for tests/test_native.py: the same bits. */
+/* sgtable.h's sg_theta_n and fresnel_n on a spread's three cosines (one partial group of
+ * lanes where built for them) against sg_theta and fresnel, for tests/test_native.py: the
+ * same bits. */
 typedef struct {
     int64_t n;                  /* triples */
     const float *cs;            /* (n, 3) cosines */
@@ -174,8 +175,9 @@ static void theta3_range(const void *job, int64_t begin, int64_t end) {
     for (int64_t g = begin; g < end; g++) {
         const float *cs = j->cs + 3 * g;
         float *lanes = j->lanes + 6 * g, *scalar = j->scalar + 6 * g;
-        sg_theta3(cs, lanes);
-        fresnel3(cs, j->eta[g], lanes + 3);
+        const float etas[3] = {j->eta[g], j->eta[g], j->eta[g]};
+        sg_theta_n(cs, 3, lanes);
+        fresnel_n(cs, etas, 3, lanes + 3);
         for (int i = 0; i < 3; i++) {
             scalar[i] = sg_theta(cs[i]);
             scalar[3 + i] = fresnel(cs[i], j->eta[g]);

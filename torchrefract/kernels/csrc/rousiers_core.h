@@ -177,7 +177,7 @@ static void exit_lobe(const RousJob *rj, const SgAxes *ax, int64_t b, float alph
         float cs[3], zs[3];
         if (mode == CONSERVE) {
             spread_cosines(cos2, var1, cs);
-            sg_theta3(cs, zs);
+            sg_theta_n(cs, 3, zs);
         }
         clamped_lobe(rj, ax, b, alpha, mode, e, sg_theta(clamped_cos(e)), zs, p_out, &k_t2,
                      &weight);

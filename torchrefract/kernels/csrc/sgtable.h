@@ -117,30 +117,27 @@ static inline v4f sg_theta4(v4f c) {
     theta = SEL4F(theta < K4F(v4f, 0.0f), K4F(v4f, 0.0f), SEL4F(theta > top, top, theta));
     return theta * K4F(v4f, (float)(4.0 / TR_PI)) - K4F(v4f, 1.0f);
 }
-#endif
 
-/* sg_theta of the three cosines cs (the spread's, spread_cosines) into z: in lanes where
- * built for it (sg_theta4), the same bits. */
-static inline void sg_theta3(const float *cs, float *z) {
-#if defined(__AVX2__) && defined(__FMA__)
-    v4f out = sg_theta4((v4f){cs[0], cs[1], cs[2], cs[2]});
-    for (int i = 0; i < 3; i++) z[i] = out[i];
-#else
-    for (int i = 0; i < 3; i++) z[i] = sg_theta(cs[i]);
-#endif
+/* Four values of x from i, the last of the m repeated past the end (a partial group of
+ * four lanes; z may be x: each group is read before it is written). */
+static inline v4f lanes_from(const float *x, int i, int m) {
+    v4f v;
+    for (int q = 0; q < 4; q++) v[q] = x[i + q < m ? i + q : m - 1];
+    return v;
 }
-
-/* sg_theta of m cosines c into z (a block's entry cosines), four at a time in lanes where
- * built for it, the same bits. */
-static inline void sg_theta_n(const float *c, int m, float *z) {
-    int i = 0;
-#if defined(__AVX2__) && defined(__FMA__)
-    for (; i + 4 <= m; i += 4) {
-        v4f out = sg_theta4((v4f){c[i], c[i + 1], c[i + 2], c[i + 3]});
-        for (int q = 0; q < 4; q++) z[i + q] = out[q];
-    }
 #endif
-    for (; i < m; i++) z[i] = sg_theta(c[i]);
+
+/* sg_theta of m cosines c into z (a spread's three, a block's), four at a time in lanes
+ * where built for it, the same bits. */
+static inline void sg_theta_n(const float *c, int m, float *z) {
+#if defined(__AVX2__) && defined(__FMA__)
+    for (int i = 0; i < m; i += 4) {
+        v4f out = sg_theta4(lanes_from(c, i, m));
+        for (int q = 0; q < 4 && i + q < m; q++) z[i + q] = out[q];
+    }
+#else
+    for (int i = 0; i < m; i++) z[i] = sg_theta(c[i]);
+#endif
 }
 
 /* The (alpha, eta) bilinear part of trilinear at one theta node: x, then y, on the
@@ -326,27 +323,16 @@ static inline void spread_sum(const float *et, const float *er, float *e_t, floa
     *e_r = rs;
 }
 
-/* fresnel of m cosines c at their own eta into f (a block's spreads), four at a time in
- * lanes where built for it, the same bits. */
+/* fresnel of m cosines c at their own eta into f (a spread's three, a block's), four at a
+ * time in lanes where built for it, the same bits. */
 static inline void fresnel_n(const float *c, const float *eta, int m, float *f) {
-    int i = 0;
 #if defined(__AVX2__) && defined(__FMA__)
-    for (; i + 4 <= m; i += 4) {
-        v4f r = fresnel4f((v4f){c[i], c[i + 1], c[i + 2], c[i + 3]},
-                          (v4f){eta[i], eta[i + 1], eta[i + 2], eta[i + 3]});
-        for (int q = 0; q < 4; q++) f[i + q] = r[q];
+    for (int i = 0; i < m; i += 4) {
+        v4f r = fresnel4f(lanes_from(c, i, m), lanes_from(eta, i, m));
+        for (int q = 0; q < 4 && i + q < m; q++) f[i + q] = r[q];
     }
-#endif
-    for (; i < m; i++) f[i] = fresnel(c[i], eta[i]);
-}
-
-/* fresnel at the three cosines cs (eta n_ratio) into f: in lanes where built for it. */
-static inline void fresnel3(const float *cs, float n_ratio, float *f) {
-#if defined(__AVX2__) && defined(__FMA__)
-    v4f r = fresnel4f((v4f){cs[0], cs[1], cs[2], cs[2]}, K4F(v4f, n_ratio));
-    for (int i = 0; i < 3; i++) f[i] = r[i];
 #else
-    for (int i = 0; i < 3; i++) f[i] = fresnel(cs[i], n_ratio);
+    for (int i = 0; i < m; i++) f[i] = fresnel(c[i], eta[i]);
 #endif
 }
 
@@ -356,10 +342,10 @@ static inline void fresnel3(const float *cs, float n_ratio, float *f) {
 static void spread_interface_energies(const SgTable *t, const SgAxes *a, int64_t d,
                                       float cos_theta, float var, float n_ratio, float *e_t,
                                       float *e_r) {
-    float cs[3], z[3], f[3], et[3], er[3];
+    float cs[3], z[3], f[3], et[3], er[3], etas[3] = {n_ratio, n_ratio, n_ratio};
     spread_cosines(cos_theta, var, cs);
-    sg_theta3(cs, z);
-    fresnel3(cs, n_ratio, f);
+    sg_theta_n(cs, 3, z);
+    fresnel_n(cs, etas, 3, f);
     interface_energies3(t, a, d, z, f, et, er);
     spread_sum(et, er, e_t, e_r);
 }
@@ -419,7 +405,7 @@ static void spread_table_energies(const SgTable *t, const SgAxes *a, const SgAxe
                                   float *e_r) {
     float cs[3], zs[3];
     spread_cosines(cos_theta, var, cs);
-    sg_theta3(cs, zs);
+    sg_theta_n(cs, 3, zs);
     table_energies_spread(t, a, a0, d, zs, e_t, e_r);
 }
 
