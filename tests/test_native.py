@@ -285,6 +285,25 @@ def test_a_compile_error_is_reported_with_the_compiler_output(monkeypatch, tmp_p
     assert not list((tmp_path / "cache").rglob("*.so*"))  # no half-written library left
 
 
+def test_an_error_under_the_machine_flags_is_raised_not_built_around(monkeypatch, tmp_path):
+    """A source that fails only with ``-march=native`` (an AVX2 path) raises: a build with
+    fewer flags would run without the lane code, and nothing would say so."""
+    cc = native._compiler()
+    if cc is None or not native._accepts(cc, ("-march=native", "-fopenmp")):
+        pytest.skip("no compiler taking -march=native -fopenmp")
+    macros = subprocess.run(cc.split() + ["-march=native", "-dM", "-E", "-x", "c", "-"],
+                            input="", capture_output=True, text=True).stdout
+    if "__AVX2__" not in macros:
+        pytest.skip("this CPU has no AVX2")
+    src = tmp_path / "lanes.c"
+    src.write_text("#ifdef __AVX2__\n#error the lane path is broken\n#endif\n"
+                   "int torchrefract_f(void) { return 0; }\n")
+    monkeypatch.setattr(native, "SOURCES", (src,))
+    with pytest.raises(RuntimeError, match="the lane path is broken"):
+        native.build(tmp_path / "cache")
+    assert not list((tmp_path / "cache").rglob("*.so*"))
+
+
 @needs_native
 def test_a_compiler_without_openmp_builds_the_pthread_kernels(monkeypatch, tmp_path):
     """``-fopenmp`` is tried first (csrc/common.h: torch's thread pool); a compiler that

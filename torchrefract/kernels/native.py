@@ -28,6 +28,7 @@ and the tensor code runs instead (the same images, slower). On by default; a ren
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import math
 import os
@@ -35,6 +36,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -517,17 +519,37 @@ def build(cache_dir: str | Path | None = None, name: str = "kernels",
     # no half-written library.
     with atomic_path(out, suffix=".so") as tmp:
         # With OpenMP where the compiler has it (csrc/common.h: torch's thread pool), else
-        # with pthreads alone.
-        for extra in (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], []):
-            cmd = (cc.split() + list(FLAGS) + extra + ["-o", str(tmp)]
-                   + [str(src) for src in sources] + ["-lm"])
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-            if proc.returncode == 0:
-                break
+        # with pthreads alone; the first set of flags the compiler takes is used, and an
+        # error in the sources is raised, not built around with fewer flags (which would
+        # drop the AVX2 paths without a word).
+        extra = next(x for x in EXTRA_FLAGS if x == [] or _accepts(cc, tuple(x)))
+        cmd = (cc.split() + list(FLAGS) + extra + ["-o", str(tmp)]
+               + [str(src) for src in sources] + ["-lm"])
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         if proc.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}): "
                                f"{(proc.stderr or proc.stdout).strip()[-1500:]}")
     return out
+
+
+EXTRA_FLAGS = (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], [])
+"""The flags tried after :data:`FLAGS`, in order: the first set the compiler accepts
+(:func:`_accepts`) builds the kernels."""
+
+
+@functools.lru_cache(maxsize=None)
+def _accepts(cc: str, extra: tuple[str, ...]) -> bool:
+    """Whether ``cc`` builds a trivial library with :data:`FLAGS` and ``extra``: a flag it
+    lacks, not an error in the kernels' sources, moves :func:`build` to the next set."""
+    with tempfile.TemporaryDirectory() as d:
+        src = Path(d) / "probe.c"
+        src.write_text("int torchrefract_probe(void) { return 0; }\n")
+        cmd = cc.split() + list(FLAGS) + list(extra) + ["-o", str(Path(d) / "probe.so"),
+                                                        str(src)]
+        try:
+            return subprocess.run(cmd, capture_output=True, timeout=60).returncode == 0
+        except (OSError, subprocess.TimeoutExpired):
+            return False
 
 
 def bind(lib: ctypes.CDLL, kernels: dict[str, type]) -> None:
