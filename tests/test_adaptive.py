@@ -590,12 +590,17 @@ def test_refine_kernel_equals_tensor_code():
     if not native.available():
         pytest.skip("native kernels unavailable")
     g = torch.Generator().manual_seed(5)
-    for trial in range(15):
+    wide = [(9, 133, 2), (6, 70, 1), (4, 65, 3), (7, 256, 1), (5, 203, 1), (3, 9, 1)]
+    for trial in range(12 + len(wide)):
         b, h, w, n = 2, 5 + trial % 3, 7 + trial % 2, 2
         if trial >= 12:
-            h, w, n = (9, 133, 2) if trial == 12 else (6, 70, 1) if trial == 13 else (4, 65, 3)
+            h, w, n = wide[trial - 12]
         uniform = torch.rand(b, h, w, generator=g) > 0.3
         radiance = torch.rand(b, h * n, w * n, 3, generator=g) ** 4 * 3
+        if trial >= 15:  # ties, zeros of both signs, a channel flat over a region
+            radiance[..., 1] = (radiance[..., 1] * 4).round() / 4
+            radiance[0, :, : w // 3] = -0.0
+            radiance[1, : h // 2, :, 2] = 0.5
         radiance[0, n, n, 1] = float("nan")  # pixel (1, 1)'s first sub-pixel
         radiance[1, 2 * n, 0, 0] = float("inf")  # pixel (2, 0)'s
         for rtol in (0.2, 0.8, 1.6):

@@ -402,29 +402,169 @@ static int refine_columns(const RefineJob *j, const Column *c) {
     return !nan && spread > j->rtol * mean;
 }
 
-/* Along a row the columns slide: one new column per pixel (a pixel not uniform, most of a
- * frame's background, skips its own and starts the window afresh after it). */
-static void refine_range(const void *job, int64_t begin, int64_t end) {
-    const RefineJob *j = (const RefineJob *)job;
-    Pos at = pos_at(begin, j->h, j->w);
+/* The pixels [x0, x1) of row y of view bi, one at a time: along the row the columns slide,
+ * one new column per pixel (a pixel not uniform, most of a frame's background, skips its
+ * own and starts the window afresh after it). */
+static void refine_segment(const RefineJob *j, int64_t bi, int64_t y, int64_t x0, int64_t x1) {
+    int64_t p = (bi * j->h + y) * j->w + x0;
     Column c[3];
     int fresh = 1;
-    for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
-        if (at.x == 0) fresh = 1;
+    for (int64_t x = x0; x < x1; x++, p++) {
         if (!j->uniform[p]) {
             j->more[p] = 0;
             fresh = 1;
             continue;
         }
         if (fresh) {
-            for (int i = 0; i < 3; i++) column_at(j, at.bi, at.y, at.x - 1 + i, &c[i]);
+            for (int i = 0; i < 3; i++) column_at(j, bi, y, x - 1 + i, &c[i]);
             fresh = 0;
         } else {
             c[0] = c[1];
             c[1] = c[2];
-            column_at(j, at.bi, at.y, at.x + 1, &c[2]);
+            column_at(j, bi, y, x + 1, &c[2]);
         }
         j->more[p] = (uint8_t)refine_columns(j, c);
+    }
+}
+
+#ifdef TR_HAVE_ENV8  /* AVX2 lanes (lighting.h) */
+#define REFINE_TILE 64
+
+/* A tile's columns (column_at's values) as lanes' arrays: slot i is column x0 - 1 + i;
+ * counts as floats, a non-finite value as an all-ones mask. */
+typedef struct {
+    float hi[3][REFINE_TILE + 16], lo[3][REFINE_TILE + 16], sum[REFINE_TILE + 16];
+    float count[REFINE_TILE + 16], nan[REFINE_TILE + 16];
+} Columns;
+
+/* column_at of the 8 columns from c0 (all inside the frame; n = 1) into slot i of cs, in
+ * lanes: the same selects and sums, top to bottom. */
+static void refine_cols8(const RefineJob *j, int64_t bi, int64_t y, int64_t c0, Columns *cs,
+                     int i) {
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+    const __m256 inf = _mm256_set1_ps(INFINITY);
+    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    __m256 hi[3] = {zero, zero, zero}, lo[3] = {zero, zero, zero};
+    __m256 sum = zero, count = zero, nan = zero;
+    for (int64_t yy = y - 1; yy <= y + 1; yy++) {
+        if (yy < 0 || yy >= j->h) continue;
+        int64_t q = (bi * j->h + yy) * j->w + c0;
+        __m256 u = _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+            _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->uniform + q))),
+            _mm256_setzero_si256()));
+        __m256 v[3];
+        tr_load_xyz8(j->radiance + 3 * q, &v[0], &v[1], &v[2]);
+        __m256 any = _mm256_cmp_ps(count, zero, _CMP_GT_OQ);  /* count before this row */
+        for (int k = 0; k < 3; k++) {
+            __m256 fin = _mm256_cmp_ps(_mm256_and_ps(v[k], absm), inf, _CMP_LT_OQ);
+            nan = _mm256_or_ps(nan, _mm256_andnot_ps(fin, u));
+            __m256 keep_hi = _mm256_and_ps(any, _mm256_cmp_ps(hi[k], v[k], _CMP_GT_OQ));
+            __m256 keep_lo = _mm256_and_ps(any, _mm256_cmp_ps(lo[k], v[k], _CMP_LT_OQ));
+            hi[k] = _mm256_blendv_ps(hi[k], _mm256_blendv_ps(v[k], hi[k], keep_hi), u);
+            lo[k] = _mm256_blendv_ps(lo[k], _mm256_blendv_ps(v[k], lo[k], keep_lo), u);
+        }
+        __m256 lum = _mm256_div_ps(_mm256_add_ps(_mm256_add_ps(v[0], v[1]), v[2]),
+                                   _mm256_set1_ps(3.0f));
+        sum = _mm256_blendv_ps(sum, _mm256_add_ps(sum, lum), u);
+        count = _mm256_add_ps(count, _mm256_and_ps(u, one));
+    }
+    for (int k = 0; k < 3; k++) {
+        _mm256_storeu_ps(cs->hi[k] + i, hi[k]);
+        _mm256_storeu_ps(cs->lo[k] + i, lo[k]);
+    }
+    _mm256_storeu_ps(cs->sum + i, sum);
+    _mm256_storeu_ps(cs->count + i, count);
+    _mm256_storeu_ps(cs->nan + i, nan);
+}
+
+/* refine_columns for the 8 pixels whose windows start at slot i, in lanes; their decisions
+ * as a mask (the pixels' own uniformity not yet applied). */
+static __m256 refine_windows8(const RefineJob *j, const Columns *cs, int i) {
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 hi[3] = {zero, zero, zero}, lo[3] = {zero, zero, zero};
+    __m256 count = zero, nan = zero;
+    __m256 sum = _mm256_add_ps(_mm256_add_ps(_mm256_loadu_ps(cs->sum + i),
+                                             _mm256_loadu_ps(cs->sum + i + 1)),
+                               _mm256_loadu_ps(cs->sum + i + 2));
+    for (int c = 0; c < 3; c++) {
+        __m256 cc = _mm256_loadu_ps(cs->count + i + c);
+        __m256 has = _mm256_cmp_ps(cc, zero, _CMP_GT_OQ);
+        __m256 any = _mm256_cmp_ps(count, zero, _CMP_GT_OQ);
+        for (int k = 0; k < 3; k++) {
+            __m256 h = _mm256_loadu_ps(cs->hi[k] + i + c), l = _mm256_loadu_ps(cs->lo[k] + i + c);
+            __m256 keep_hi = _mm256_and_ps(any, _mm256_cmp_ps(hi[k], h, _CMP_GT_OQ));
+            __m256 keep_lo = _mm256_and_ps(any, _mm256_cmp_ps(lo[k], l, _CMP_LT_OQ));
+            hi[k] = _mm256_blendv_ps(hi[k], _mm256_blendv_ps(h, hi[k], keep_hi), has);
+            lo[k] = _mm256_blendv_ps(lo[k], _mm256_blendv_ps(l, lo[k], keep_lo), has);
+        }
+        count = _mm256_add_ps(count, cc);
+        nan = _mm256_or_ps(nan, _mm256_and_ps(has, _mm256_loadu_ps(cs->nan + i + c)));
+    }
+    /* tmax's choice (b > a ? b : a; a NaN spread only where nan is set) */
+    __m256 d0 = _mm256_sub_ps(hi[0], lo[0]), d1 = _mm256_sub_ps(hi[1], lo[1]);
+    __m256 d2 = _mm256_sub_ps(hi[2], lo[2]);
+    __m256 s01 = _mm256_blendv_ps(d0, d1, _mm256_cmp_ps(d1, d0, _CMP_GT_OQ));
+    __m256 spread = _mm256_blendv_ps(s01, d2, _mm256_cmp_ps(d2, s01, _CMP_GT_OQ));
+    __m256 mean = _mm256_add_ps(_mm256_div_ps(sum, count), _mm256_set1_ps(1e-3f));
+    __m256 more = _mm256_cmp_ps(spread, _mm256_mul_ps(_mm256_set1_ps(j->rtol), mean),
+                                _CMP_GT_OQ);
+    return _mm256_andnot_ps(nan, more);
+}
+
+/* refine_segment for n = 1 in tiles of REFINE_TILE pixels: each tile's columns (and the
+ * one past either end) in lanes where 8 of them lie inside the frame, else one by one
+ * (column_at), then its pixels' windows in lanes. */
+static void refine_segment8(const RefineJob *j, int64_t bi, int64_t y, int64_t x0,
+                            int64_t x1) {
+    Columns cs;
+    for (int64_t xa = x0; xa < x1; xa += REFINE_TILE) {
+        int64_t xb = xa + REFINE_TILE < x1 ? xa + REFINE_TILE : x1;
+        int ncol = (int)(xb - xa) + 2;  /* columns xa - 1 .. xb */
+        for (int i = 0; i < ncol;) {
+            int64_t c0 = xa - 1 + i;
+            if (c0 >= 0 && c0 + 8 <= j->w && i + 8 <= REFINE_TILE + 16) {
+                refine_cols8(j, bi, y, c0, &cs, i);
+                i += 8;
+                continue;
+            }
+            Column c;
+            column_at(j, bi, y, c0, &c);
+            for (int k = 0; k < 3; k++) {
+                cs.hi[k][i] = c.count ? c.hi[k] : 0.0f;
+                cs.lo[k][i] = c.count ? c.lo[k] : 0.0f;
+            }
+            cs.sum[i] = c.sum;
+            cs.count[i] = (float)c.count;
+            memset(cs.nan + i, c.nan ? 0xff : 0, sizeof(float));
+            i++;
+        }
+        int64_t p = (bi * j->h + y) * j->w + xa;
+        for (int64_t x = xa; x < xb; x += 8, p += 8) {
+            int i = (int)(x - xa), m = xb - x < 8 ? (int)(xb - x) : 8;
+            int own = 0;  /* the pixels' own uniformity (none read past the row) */
+            for (int l = 0; l < m; l++) own |= (j->uniform[p + l] != 0) << l;
+            int bits = own & _mm256_movemask_ps(refine_windows8(j, &cs, i));
+            for (int l = 0; l < m; l++) j->more[p + l] = (uint8_t)(bits >> l & 1);
+        }
+    }
+}
+#endif
+
+/* Row segment by row segment: in lanes where the radiance is the pixels' own (n = 1). */
+static void refine_range(const void *job, int64_t begin, int64_t end) {
+    const RefineJob *j = (const RefineJob *)job;
+    Pos at = pos_at(begin, j->h, j->w);
+    for (int64_t p = begin; p < end;) {
+        int64_t x1 = at.x + (end - p) < j->w ? at.x + (end - p) : j->w;
+#ifdef TR_HAVE_ENV8
+        if (j->n == 1) refine_segment8(j, at.bi, at.y, at.x, x1);
+        else refine_segment(j, at.bi, at.y, at.x, x1);
+#else
+        refine_segment(j, at.bi, at.y, at.x, x1);
+#endif
+        p += x1 - at.x;
+        at.x = x1 - 1;
+        pos_step(&at, j->h, j->w);
     }
 }
 
