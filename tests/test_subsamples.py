@@ -140,6 +140,35 @@ def test_samples_are_the_supersampled_gbuffer(name):
     assert sum(int((a != b).sum()) for a, b in zip(marched, tri)) == ties
 
 
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+def test_slots_kernel_lays_out_the_samples_as_the_tensor_code():
+    """csrc/index.c's ``sample_slots`` and ``put_ids`` against the tensor code: random picks
+    over three views (one with none, one with all), 2x2 and 3x3 samples, odd sizes."""
+    g = torch.Generator().manual_seed(3)
+    for n, (h, w) in ((2, (7, 9)), (3, (5, 6)), (2, (16, 33))):
+        picked = torch.rand(3, h, w, generator=g) > 0.6
+        picked[1] = False
+        picked[2] = True
+        ids = tuple(torch.randint(-1, 50, (3, n * h, n * w), generator=g, dtype=torch.int32)
+                    for _ in range(2))
+        got, want = subsamples._slots(picked, ids, n), subsamples._slots_torch(picked, ids, n)
+        for a, b in zip(got, want):
+            for x, y in (zip(a, b) if isinstance(a, tuple) else ((a, b),)):
+                assert x.dtype == y.dtype and torch.equal(x, y), n
+        pixels, _, _, _, flat, taken = got
+        tri = tuple(torch.randint(0, 99, (3, pixels.shape[1] * n * n), generator=g,
+                                  dtype=torch.int32) for _ in range(2))
+        put, ref = tuple(x.clone() for x in ids), tuple(x.clone() for x in ids)
+        assert native.put_ids(put, flat, taken, tri)
+        for x, t in zip(ref, tri):
+            x.view(-1).index_copy_(0, flat, t.view(-1).index_select(0, taken))
+        assert all(torch.equal(a, b) for a, b in zip(put, ref))
+    none = torch.zeros(2, 4, 4, dtype=torch.bool)
+    ids = tuple(torch.zeros(2, 8, 8, dtype=torch.int32) for _ in range(2))
+    assert subsamples._slots(none, ids, 2) is None and subsamples._slots_torch(none, ids, 2) \
+        is None
+
+
 def test_no_pixel_picked_gives_no_samples():
     s = _scene("slab_a02", 16)
     g, ids, _ = _one_sample([s])

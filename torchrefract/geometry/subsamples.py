@@ -164,6 +164,48 @@ def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Cam
     at n x n."""
     b, h, w = picked.shape
     n = ids[0].shape[1] // h
+    slots = _slots(picked, ids, n)
+    if slots is None:
+        return None
+    pixels, rows, cols, sids, flat, taken = slots
+    k = pixels.shape[1]
+    dirs = subpixel_rays(cameras, n, rows, cols).view(b, n * k, n, 3)
+    # the cameras as the one-sample frame's (g's): what a sample projects is in its pixels
+    # (the ``footprint`` pass); the march reads proj's scale only
+    eye, proj = g.eye, g.proj
+    fwd = proj[:, 9:12].contiguous()
+    layers = [_layer(x.view(b, n * k, n), eye, dirs, fwd, g.meshes, back=i == 1)
+              for i, x in enumerate(sids)]
+    # the marched ids: the samples' exact (repaired) ones where they are
+    if not native.put_ids(ids, flat, taken, (layers[0].tri, layers[1].tri)):
+        for x, lay in zip(ids, layers):
+            x.view(-1).index_copy_(0, flat, lay.tri.view(-1).index_select(0, taken).to(x.dtype))
+    return Samples(g=GBuffer(front=layers[0], back=layers[1], ray_dir=dirs, eye=eye, proj=proj,
+                             meshes=g.meshes, supersample=n, marched=g.marched),
+                   pixels=pixels)
+
+
+def _slots(picked: torch.Tensor, ids: tuple[torch.Tensor, torch.Tensor], n: int
+           ) -> tuple | None:
+    """:func:`gather`'s layout of the picked pixels in K slots a view (by csrc/index.c, or
+    :func:`_slots_torch`, the same values): ``pixels`` (B, K), -1 past a view's; each
+    slot's n x n samples' ``rows`` and ``cols`` on the n x n grid (B, K n n; pixel 0's
+    past a view's pixels), both layers' rasterized ids there (int64, -1 past), and the
+    samples of picked pixels' ``flat`` index in the ids and ``taken`` index in the slots.
+    None where no pixel is picked."""
+    made = native.sample_slots(picked, ids, n)
+    if made is None:
+        return _slots_torch(picked, ids, n)
+    if made["pixels"].shape[1] == 0:
+        return None
+    return (made["pixels"], made["rows"], made["cols"], (made["sid0"], made["sid1"]),
+            made["flat"], made["taken"])
+
+
+def _slots_torch(picked: torch.Tensor, ids: tuple[torch.Tensor, torch.Tensor], n: int
+                 ) -> tuple | None:
+    """:func:`_slots` in tensor operations (the reference)."""
+    b, h, w = picked.shape
     flat = picked.reshape(b, -1).nonzero()  # (N, 2): view, pixel, in order
     if flat.shape[0] == 0:
         return None
@@ -180,21 +222,9 @@ def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Cam
     at = rows * (n * w) + cols  # (B, K n n): the samples on the n x n grid
     empty = (pixels < 0)[:, :, None, None].expand(b, k, n, n).reshape(b, -1)
     taken = (~empty).view(-1).nonzero()[:, 0]  # the samples of picked pixels, flat
-    dirs = subpixel_rays(cameras, n, rows, cols).view(b, n * k, n, 3)
-    # the cameras as the one-sample frame's (g's): what a sample projects is in its pixels
-    # (the ``footprint`` pass); the march reads proj's scale only
-    eye, proj = g.eye, g.proj
-    fwd = proj[:, 9:12].contiguous()
-    layers = [_layer(x.reshape(b, -1).gather(1, at).masked_fill_(empty, -1).view(b, n * k, n)
-                     .long(), eye, dirs, fwd, g.meshes, back=i == 1)
-              for i, x in enumerate(ids)]
-    # the marched ids: the samples' exact (repaired) ones where they are
+    sids = tuple(x.reshape(b, -1).gather(1, at).masked_fill_(empty, -1).long() for x in ids)
     flat = (torch.arange(b)[:, None] * ids[0][0].numel() + at).view(-1).index_select(0, taken)
-    for x, lay in zip(ids, layers):
-        x.view(-1).index_copy_(0, flat, lay.tri.view(-1).index_select(0, taken).to(x.dtype))
-    return Samples(g=GBuffer(front=layers[0], back=layers[1], ray_dir=dirs, eye=eye, proj=proj,
-                             meshes=g.meshes, supersample=n, marched=g.marched),
-                   pixels=pixels)
+    return pixels, rows, cols, sids, flat, taken
 
 
 def marched(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor]) -> Marched:

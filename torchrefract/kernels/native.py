@@ -413,6 +413,21 @@ class _WaitJob(ctypes.Structure):
         ("status", _p), ("mask", _p)]
 
 
+class _SlotsJob(ctypes.Structure):
+    """ctypes mirror of ``SlotsJob`` in csrc/index.c."""
+
+    _fields_ = [(f, ctypes.c_int64) for f in ("b", "h", "w", "n", "k")] + [
+        (f, _p) for f in ("idx", "first", "count", "ids0", "ids1", "pixels", "rows", "cols",
+                          "sid0", "sid1", "flat", "taken")]
+
+
+class _PutIdsJob(ctypes.Structure):
+    """ctypes mirror of ``PutIdsJob`` in csrc/index.c."""
+
+    _fields_ = [("m", ctypes.c_int64)] + [
+        (f, _p) for f in ("flat", "taken", "tri0", "tri1", "ids0", "ids1")]
+
+
 class _ShadeLevel(ctypes.Structure):
     """ctypes mirror of ``ShadeLevel`` in csrc/lattice.c."""
 
@@ -455,7 +470,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob, "rays_at": _RaysAtJob,
             "put_rows": _PutRowsJob, "mask_count": _MaskJob, "mask_index": _MaskJob,
-            "clear_waiting": _WaitJob,
+            "clear_waiting": _WaitJob, "sample_slots": _SlotsJob, "put_ids": _PutIdsJob,
             "relight_reads": _RelightJob}
 """Entry point ``torchrefract_<name>(job*, threads)`` -> its job's ctypes mirror."""
 
@@ -1263,6 +1278,52 @@ def mask_index(mask: torch.Tensor, hw: int) -> tuple[torch.Tensor, torch.Tensor]
                                                                          dtype=torch.int64)
     job.idx, job.view = idx.data_ptr(), view.data_ptr()
     return (idx, view) if _call("mask_index", job) else None
+
+
+def sample_slots(picked: torch.Tensor, ids: tuple[torch.Tensor, torch.Tensor], n: int
+                 ) -> dict[str, torch.Tensor] | None:
+    """``subsamples.gather``'s slots of the (B, h, w) bool ``picked`` pixels and their n x n
+    samples on the (B, n h, n w) int32 rasterized ``ids`` (front, back), by csrc/index.c:
+    ``pixels`` (B, K), the samples' ``rows`` and ``cols`` (B, K n n), both layers' ids
+    there ``sid`` (2 x (B, K n n) int64, -1 past a view's pixels) and the taken samples'
+    ``flat`` index in the ids and ``taken`` index in the slots (N n n); ``None`` where the
+    kernels are unavailable or an input does not fit (the caller's tensor code runs)."""
+    if (not available() or picked.dtype != torch.bool or picked.device.type != "cpu"
+            or any(x.dtype != torch.int32 or not x.is_contiguous() or x.device.type != "cpu"
+                   or x.shape != (picked.shape[0], n * picked.shape[1], n * picked.shape[2])
+                   for x in ids)):
+        return None
+    b, h, w = picked.shape
+    made = mask_index(picked, h * w)
+    if made is None:
+        return None
+    idx, view = made
+    count = torch.bincount(view, minlength=b)
+    first = torch.cumsum(count, 0) - count
+    k, nn = int(count.max()) if b else 0, n * n
+    out = {"pixels": torch.empty(b, k, dtype=torch.int64),
+           **{f: torch.empty(b, k * nn, dtype=torch.int64)
+              for f in ("rows", "cols", "sid0", "sid1")},
+           "flat": torch.empty(idx.numel() * nn, dtype=torch.int64),
+           "taken": torch.empty(idx.numel() * nn, dtype=torch.int64)}
+    job = _SlotsJob(b=b, h=h, w=w, n=n, k=k, idx=idx.data_ptr(), first=first.data_ptr(),
+                    count=count.data_ptr(), ids0=ids[0].data_ptr(), ids1=ids[1].data_ptr(),
+                    **{f: x.data_ptr() for f, x in out.items()})
+    return out if _call("sample_slots", job) else None
+
+
+def put_ids(ids: tuple[torch.Tensor, torch.Tensor], flat: torch.Tensor, taken: torch.Tensor,
+            tri: tuple[torch.Tensor, torch.Tensor]) -> bool:
+    """In place: ``ids[l].view(-1)[flat] = tri[l].view(-1)[taken]`` for both layers (int32,
+    contiguous; :func:`sample_slots`' indices), by csrc/index.c; ``False``, nothing
+    written, where the kernels are unavailable or the tensors do not fit."""
+    if (not available() or any(x.dtype != torch.int32 or not x.is_contiguous()
+                               or x.device.type != "cpu" for x in (*ids, *tri))):
+        return False
+    job = _PutIdsJob(m=flat.numel(), flat=flat.data_ptr(), taken=taken.data_ptr(),
+                     tri0=tri[0].data_ptr(), tri1=tri[1].data_ptr(), ids0=ids[0].data_ptr(),
+                     ids1=ids[1].data_ptr())
+    return _call("put_ids", job)
 
 
 def clear_waiting(mask: torch.Tensor, status: torch.Tensor, stride: int) -> bool:

@@ -131,3 +131,79 @@ int torchrefract_clear_waiting(const WaitJob *job, int threads) {
 }
 
 int64_t torchrefract_clear_waiting_job_size(void) { return (int64_t)sizeof(WaitJob); }
+
+/* subsamples.gather's bookkeeping: the picked pixels (their flat indices, in order, and
+ * each view's count) laid out in K slots a view, and their n x n samples on the
+ * (B, n h, n w) grid of the rasterized ids, in the tensor code's order (slot, sample row,
+ * sample column): each slot's pixel (-1 past a view's), each sample's row and column
+ * (those of pixel 0 past a view's pixels), both layers' ids there (-1 past), and of the
+ * samples taken (every sample of a picked pixel) their flat index in the ids (view-major)
+ * and in the slots. */
+typedef struct {
+    int64_t b, h, w, n, k;
+    const int64_t *idx;         /* (N,) picked pixels, flat over (B, h, w), increasing */
+    const int64_t *first;       /* (B,) each view's first entry of idx */
+    const int64_t *count;       /* (B,) each view's entries */
+    const int32_t *ids0, *ids1; /* (B, n h, n w) rasterized ids, front and back */
+    int64_t *pixels;            /* out (B, k) */
+    int64_t *rows, *cols;       /* out (B, k n n) */
+    int64_t *sid0, *sid1;       /* out (B, k n n) the layers' ids, -1 past */
+    int64_t *flat, *taken;      /* out (N n n) */
+} SlotsJob;
+
+static void slots_range(const void *job, int64_t begin, int64_t end) {
+    const SlotsJob *j = (const SlotsJob *)job;
+    int64_t n = j->n, nn = n * n, hw = j->h * j->w, grid = hw * nn, nw = n * j->w;
+    for (int64_t bi = begin; bi < end; bi++) {
+        int64_t f0 = j->first[bi], c = j->count[bi];
+        for (int64_t s = 0; s < j->k; s++) {
+            int64_t pix = s < c ? j->idx[f0 + s] - bi * hw : -1, p = pix < 0 ? 0 : pix;
+            int64_t py = p / j->w, px = p % j->w;
+            j->pixels[bi * j->k + s] = pix;
+            for (int64_t i = 0; i < n; i++)
+                for (int64_t q = 0; q < n; q++) {
+                    int64_t o = (bi * j->k + s) * nn + i * n + q;
+                    int64_t r = n * py + i, col = n * px + q, at = r * nw + col;
+                    j->rows[o] = r;
+                    j->cols[o] = col;
+                    j->sid0[o] = pix < 0 ? -1 : (int64_t)j->ids0[bi * grid + at];
+                    j->sid1[o] = pix < 0 ? -1 : (int64_t)j->ids1[bi * grid + at];
+                    if (pix >= 0) {  /* slot s of view bi: taken entry (f0 + s) n n + ... */
+                        int64_t t = (f0 + s) * nn + i * n + q;
+                        j->flat[t] = bi * grid + at;
+                        j->taken[t] = o;
+                    }
+                }
+        }
+    }
+}
+
+/* Entry point (ctypes, native.py): the views on ``threads`` threads. */
+int torchrefract_sample_slots(const SlotsJob *job, int threads) {
+    return tr_parallel_for_grain(slots_range, job, job->b, 2, threads, 1);
+}
+
+int64_t torchrefract_sample_slots_job_size(void) { return (int64_t)sizeof(SlotsJob); }
+
+/* The write-back after the samples' layers: ids[flat[t]] = tri[taken[t]] for both layers
+ * (subsamples.gather: the samples' exact ids in the rasterized grid). */
+typedef struct {
+    int64_t m;
+    const int64_t *flat, *taken;
+    const int32_t *tri0, *tri1;  /* (B k n n) the samples' layers' ids */
+    int32_t *ids0, *ids1;        /* (B n h n w), in place */
+} PutIdsJob;
+
+static void put_ids_range(const void *job, int64_t begin, int64_t end) {
+    const PutIdsJob *j = (const PutIdsJob *)job;
+    for (int64_t t = begin; t < end; t++) {
+        j->ids0[j->flat[t]] = j->tri0[j->taken[t]];
+        j->ids1[j->flat[t]] = j->tri1[j->taken[t]];
+    }
+}
+
+int torchrefract_put_ids(const PutIdsJob *job, int threads) {
+    return tr_parallel_for(put_ids_range, job, job->m, 16384, threads);
+}
+
+int64_t torchrefract_put_ids_job_size(void) { return (int64_t)sizeof(PutIdsJob); }
