@@ -304,6 +304,25 @@ def test_an_error_under_the_machine_flags_is_raised_not_built_around(monkeypatch
     assert not list((tmp_path / "cache").rglob("*.so*"))
 
 
+def test_a_probe_that_cannot_run_builds_nothing(monkeypatch, tmp_path):
+    """A flag probe that times out (a loaded machine) fails the build: a library made with
+    fewer flags would stay in the cache for every later process."""
+    cc = tmp_path / "cc-slow"
+    cc.write_text("#!/bin/sh\nsleep 5\n")
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    real = subprocess.run
+
+    def hurried(cmd, *a, **k):
+        k["timeout"] = min(k.get("timeout") or 1, 1)
+        return real(cmd, *a, **k)
+
+    monkeypatch.setattr(native.subprocess, "run", hurried)
+    with pytest.raises(RuntimeError, match="did not run"):
+        native.build(tmp_path / "cache")
+    assert not list((tmp_path / "cache").rglob("*.so*"))
+
+
 @needs_native
 def test_a_compiler_without_openmp_builds_the_pthread_kernels(monkeypatch, tmp_path):
     """``-fopenmp`` is tried first (csrc/common.h: torch's thread pool); a compiler that

@@ -555,16 +555,19 @@ EXTRA_FLAGS = (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], [
 @functools.lru_cache(maxsize=None)
 def _accepts(cc: str, extra: tuple[str, ...]) -> bool:
     """Whether ``cc`` builds a trivial library with :data:`FLAGS` and ``extra``: a flag it
-    lacks, not an error in the kernels' sources, moves :func:`build` to the next set."""
+    lacks, not an error in the kernels' sources, moves :func:`build` to the next set. A
+    probe that could not run (a timeout on a loaded machine) raises: a library built with
+    fewer flags would stay in the cache."""
     with tempfile.TemporaryDirectory() as d:
         src = Path(d) / "probe.c"
         src.write_text("int torchrefract_probe(void) { return 0; }\n")
         cmd = cc.split() + list(FLAGS) + list(extra) + ["-o", str(Path(d) / "probe.so"),
                                                         str(src)]
         try:
-            return subprocess.run(cmd, capture_output=True, timeout=60).returncode == 0
-        except (OSError, subprocess.TimeoutExpired):
-            return False
+            return subprocess.run(cmd, capture_output=True, timeout=120).returncode == 0
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise RuntimeError(f"the compiler probe {' '.join(cmd)} did not run: {exc}") \
+                from exc
 
 
 def bind(lib: ctypes.CDLL, kernels: dict[str, type]) -> None:
