@@ -440,7 +440,7 @@ typedef struct {
 /* column_at of the 8 columns from c0 (all inside the frame; n = 1) into slot i of cs, in
  * lanes: the same selects and sums, top to bottom. */
 static void refine_cols8(const RefineJob *j, int64_t bi, int64_t y, int64_t c0, Columns *cs,
-                     int i) {
+                         int i) {
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
     const __m256 inf = _mm256_set1_ps(INFINITY);
     const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
@@ -537,6 +537,10 @@ static void refine_segment8(const RefineJob *j, int64_t bi, int64_t y, int64_t x
             cs.count[i] = (float)c.count;
             memset(cs.nan + i, c.nan ? 0xff : 0, sizeof(float));
             i++;
+        }
+        for (int i = ncol; i < ncol + 8; i++) {  /* read by a last, partial group's lanes */
+            for (int k = 0; k < 3; k++) cs.hi[k][i] = cs.lo[k][i] = 0.0f;
+            cs.sum[i] = cs.count[i] = cs.nan[i] = 0.0f;
         }
         int64_t p = (bi * j->h + y) * j->w + xa;
         for (int64_t x = xa; x < xb; x += 8, p += 8) {
