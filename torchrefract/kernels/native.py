@@ -1321,7 +1321,9 @@ def put_ids(ids: tuple[torch.Tensor, torch.Tensor], flat: torch.Tensor, taken: t
     contiguous; :func:`sample_slots`' indices), by csrc/index.c; ``False``, nothing
     written, where the kernels are unavailable or the tensors do not fit."""
     if (not available() or any(x.dtype != torch.int32 or not x.is_contiguous()
-                               or x.device.type != "cpu" for x in (*ids, *tri))):
+                               or x.device.type != "cpu" for x in (*ids, *tri))
+            or any(x.dtype != torch.int64 or not x.is_contiguous() or x.device.type != "cpu"
+                   or x.numel() != flat.numel() for x in (flat, taken))):
         return False
     job = _PutIdsJob(m=flat.numel(), flat=flat.data_ptr(), taken=taken.data_ptr(),
                      tri0=tri[0].data_ptr(), tri1=tri[1].data_ptr(), ids0=ids[0].data_ptr(),
