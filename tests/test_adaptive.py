@@ -264,7 +264,8 @@ def test_first_pass_mask_and_index_kernels_equal_tensor_code():
 
 def test_lattice_fill_kernel_equals_tensor_code():
     """The fill's decisions and means agree bit for bit, NaN and Inf neighbours included
-    (never interpolated from)."""
+    (never interpolated from), and huge and negative ones (spreads that overflow, negative
+    luminances: the kernel divides once, the tensor code per channel)."""
     _, args = _lattice_inputs(_scene("sphere_a03", 41, n=1))
     st, gap = adaptive._lattice_torch(*args, adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL,
                                       adaptive.DEPTH_TOL)
@@ -272,6 +273,11 @@ def test_lattice_fill_kernel_equals_tensor_code():
     rad = 1.0 + 0.08 * torch.rand(st.numel(), 3, generator=gen)  # spreads around the tol
     rad[::97] = float("nan")
     rad[5::131] = float("inf")
+    rad[7::23] = -1e38  # negative luminances
+    # spreads that overflow over a small luminance: lattice neighbours at +-1e38
+    some = (st.view(-1) == 2).nonzero()[:, 0][3:60:7]
+    nb, _, _ = adaptive._neighbours(some, *st.shape[1:])
+    rad[nb[:, 0]], rad[nb[:, 1]] = 1e38, -1e38
     s1, s2, r1, r2 = st.clone(), st.clone(), rad.clone(), rad.clone()
     w1, w2 = torch.zeros(st.shape), torch.zeros(st.shape)
     assert native.lattice_fill(s1, gap, w1, r1, adaptive.LATTICE_RTOL, adaptive.BLEND_FROM)

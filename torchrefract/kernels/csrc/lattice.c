@@ -225,7 +225,7 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
     }
     float mean[3], rel = 0.0f;
     for (int c = 0; c < 3; c++) mean[c] = lattice_mean(j->radiance, 3, nb, k, c);
-    float lum = ((mean[0] + mean[1]) + mean[2]) / 3.0f + 1e-3f;
+    float lum = ((mean[0] + mean[1]) + mean[2]) / 3.0f + 1e-3f, dmax = 0.0f;
     int finite = 1;
     for (int c = 0; c < 3; c++) {
         float lo = v[0][c], hi = v[0][c];
@@ -233,10 +233,16 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
             lo = v[i][c] < lo ? v[i][c] : lo;
             hi = v[i][c] > hi ? v[i][c] : hi;
         }
-        float r = (hi - lo) / lum;
-        finite &= isfinite(r);
-        rel = r > rel ? r : rel;
+        float d = hi - lo;  /* >= 0 where finite */
+        finite &= isfinite(d);
+        dmax = d > dmax ? d : dmax;
     }
+    /* the largest of the channels' (hi - lo) / lum, by one division: a correctly rounded
+     * division keeps the order of its numerators, so it is (max (hi - lo)) / lum, and
+     * finite exactly where every channel's is (the largest overflows first) */
+    float q = dmax / lum;
+    finite &= isfinite(q);
+    rel = q > 0.0f ? q : 0.0f;
     float t = tmax(j->gap[p], rel / j->rtol);
     if (finite && t < 1.0f) {  /* the mean, alone or to blend with the shaded value */
         for (int c = 0; c < 3; c++) j->radiance[3 * fp + c] = mean[c];
