@@ -153,3 +153,25 @@ def test_bench_spp_rows_render_the_supersampled_grid(tmp_path):
     assert plain.spp == 1 and plain.scenes[0].camera.samples_per_pixel == 1
     with pytest.raises(ValueError, match="rousiers:spp=x"):
         bench.OursRow(base, "rousiers:spp=x", 16, 1)
+
+
+def test_kernel_times_splits_a_frame_between_the_kernels_and_the_rest(tmp_path):
+    """scripts/kernel_times.py: each native kernel's ms a frame (the G-buffer's and the
+    method's among them), their sum and the time outside them within the frame's."""
+    from torchrefract.kernels import native  # noqa: PLC0415
+
+    if not native.available():
+        pytest.skip("native kernels unavailable")
+    out = tmp_path / "k.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "kernel_times.py"),
+         str(ROOT / "configs" / "demo.yaml"), "--method", "specular+adaptive", "--size", "32",
+         "--batch", "2", "--repeats", "3", "--threads", "1", "--json", str(out)],
+        capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads(out.read_text())
+    k = res["kernels"]
+    assert {"raster", "layer", "background"} <= set(k) and ({"specular", "lattice_shade"} & set(k))
+    assert all(v >= 0 for v in k.values()) and list(k.values()) == sorted(k.values())[::-1]
+    assert 0 < res["native"] <= res["total"] and res["other"] > 0
+    assert "native kernels" in proc.stdout and "layer" in proc.stdout
