@@ -10,9 +10,10 @@ runs in a fresh process (``--in-process``: all in this one, faster, but then the
 column is the peak so far), so its peak resident memory is its own: ``peakMB``, with the
 process's memory before the row's first render (torch, pyrender, the scene) in the JSON
 as ``baseline_rss_mb``. ``--interleave`` runs every row in this process in rounds, one
-render of each row per round, Mitsuba's rows among them: on a machine whose load drifts
-(other jobs, another session's) every row sees the same drift, so the ratios between rows
-hold where back-to-back rows can differ by 2x.
+render of each row per round, Mitsuba's rows among them, the order turned by one row each
+round (:func:`round_order`): on a machine whose load drifts (other jobs, another
+session's) every row sees the same drift, so the ratios between rows hold where
+back-to-back rows can differ by 2x.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]
@@ -378,6 +379,17 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
     return meta
 
 
+def round_order(rows: list, k: int) -> list:
+    """Round ``k``'s order of the interleaved rows: the list turned by k, so that no row runs
+    right after the same one every round (a short row timed right after Mitsuba's 4-spp +
+    OIDN pass ran up to ~10% slower than after a pause: docs/benchmarks.md, twenty-fifth
+    sitting); each row still runs once a round."""
+    if not rows:
+        return []
+    s = k % len(rows)
+    return rows[s:] + rows[:s]
+
+
 def interleaved(args: argparse.Namespace, base: tr.Scene, combos: list[tuple],
                 settings: tr.RenderSettings) -> tuple[list[dict], dict]:
     """``--interleave``: our rows (``combos``) and Mitsuba's (the scenes of the largest
@@ -415,7 +427,7 @@ def interleaved(args: argparse.Namespace, base: tr.Scene, combos: list[tuple],
             meta["skipped_rows"].append({"spp": row.spp, "denoise": row.denoise,
                                          "reason": str(exc)})
     for k in range(args.repeats):
-        for row in runnable:
+        for row in round_order(runnable, k):
             row.once()
         print(f"round {k + 1}/{args.repeats} done", file=sys.stderr, flush=True)
     meta["rows"] = [r.result() for r in theirs if r in runnable]

@@ -175,3 +175,18 @@ def test_kernel_times_splits_a_frame_between_the_kernels_and_the_rest(tmp_path):
     assert all(v >= 0 for v in k.values()) and list(k.values()) == sorted(k.values())[::-1]
     assert 0 < res["native"] <= res["total"] and res["other"] > 0
     assert "native kernels" in proc.stdout and "layer" in proc.stdout
+
+
+def test_interleaved_rounds_turn_the_order_of_the_rows():
+    """--interleave's rounds: every row once a round, and no row right after the same one
+    (Mitsuba's OIDN pass) every round."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench import round_order  # noqa: PLC0415
+
+    rows = ["specular", "rousiers", "mitsuba 1 spp", "mitsuba 4 spp + oidn"]
+    rounds = [round_order(rows, k) for k in range(5)]
+    assert all(sorted(r) == sorted(rows) for r in rounds)
+    seq = [row for r in rounds for row in r]  # as they run, round after round
+    after_oidn = {seq[i + 1] for i, row in enumerate(seq[:-1]) if row.endswith("oidn")}
+    assert len(after_oidn) > 1 and rounds[0] == rows and rounds[4] == rows
+    assert round_order([], 3) == []
