@@ -1260,6 +1260,13 @@ def box_mips(x: torch.Tensor, max_levels: int) -> tuple[torch.Tensor, ...] | Non
     return (x, *outs[1:]) if _call("mips", job) else None
 
 
+def _in_place(dtype: torch.dtype, *tensors: torch.Tensor) -> bool:
+    """Whether every tensor is a contiguous CPU tensor of ``dtype``: what a kernel reads or
+    writes where it lies, without a copy."""
+    return all(x.dtype == dtype and x.is_contiguous() and x.device.type == "cpu"
+               for x in tensors)
+
+
 MASK_BLOCK = 16384
 """The elements a block of :func:`mask_index` counts and writes (a thread's unit)."""
 
@@ -1292,8 +1299,8 @@ def sample_slots(picked: torch.Tensor, ids: tuple[torch.Tensor, torch.Tensor], n
     ``flat`` index in the ids and ``taken`` index in the slots (N n n); ``None`` where the
     kernels are unavailable or an input does not fit (the caller's tensor code runs)."""
     if (not available() or picked.dtype != torch.bool or picked.device.type != "cpu"
-            or any(x.dtype != torch.int32 or not x.is_contiguous() or x.device.type != "cpu"
-                   or x.shape != (picked.shape[0], n * picked.shape[1], n * picked.shape[2])
+            or not _in_place(torch.int32, *ids)
+            or any(x.shape != (picked.shape[0], n * picked.shape[1], n * picked.shape[2])
                    for x in ids)):
         return None
     b, h, w = picked.shape
@@ -1320,10 +1327,8 @@ def put_ids(ids: tuple[torch.Tensor, torch.Tensor], flat: torch.Tensor, taken: t
     """In place: ``ids[l].view(-1)[flat] = tri[l].view(-1)[taken]`` for both layers (int32,
     contiguous; :func:`sample_slots`' indices), by csrc/index.c; ``False``, nothing
     written, where the kernels are unavailable or the tensors do not fit."""
-    if (not available() or any(x.dtype != torch.int32 or not x.is_contiguous()
-                               or x.device.type != "cpu" for x in (*ids, *tri))
-            or any(x.dtype != torch.int64 or not x.is_contiguous() or x.device.type != "cpu"
-                   or x.numel() != flat.numel() for x in (flat, taken))):
+    if (not available() or not _in_place(torch.int32, *ids, *tri)
+            or not _in_place(torch.int64, flat, taken) or taken.numel() != flat.numel()):
         return False
     job = _PutIdsJob(m=flat.numel(), flat=flat.data_ptr(), taken=taken.data_ptr(),
                      tri0=tri[0].data_ptr(), tri1=tri[1].data_ptr(), ids0=ids[0].data_ptr(),
@@ -1336,9 +1341,7 @@ def clear_waiting(mask: torch.Tensor, status: torch.Tensor, stride: int) -> bool
     uint8 ``status`` over the contiguous (B, H, W) bool ``mask`` (csrc/index.c); ``False``,
     nothing written, where the kernels are unavailable or the tensors do not fit."""
     b, fh, fw = mask.shape
-    if (not available() or mask.dtype != torch.bool or status.dtype != torch.uint8
-            or not mask.is_contiguous() or not status.is_contiguous()
-            or mask.device.type != "cpu" or status.device.type != "cpu"
+    if (not available() or not _in_place(torch.bool, mask) or not _in_place(torch.uint8, status)
             or status.shape != mask[:, ::stride, ::stride].shape):
         return False
     _, h, w = status.shape
@@ -1497,9 +1500,7 @@ def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:
     outs = (f.position, f.dist, f.depth, f.bary, f.normal, f.uv, g.ray_dir)
     ins = (center_dirs, g.eye, g.proj, g.meshes.tri_vertices, g.meshes.tri_normals,
            g.meshes.tri_uvs)
-    ok = (available() and no_grad_through(*outs, *ins)
-          and all(x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
-                  for x in outs + ins)
+    ok = (available() and no_grad_through(*outs, *ins) and _in_place(torch.float32, *outs, *ins)
           and f.tri.dtype == torch.int32 and f.tri.is_contiguous()
           and uniform.dtype == torch.bool and uniform.is_contiguous())
     if not ok:
@@ -1524,9 +1525,7 @@ def lattice_fill(status: torch.Tensor, gap: torch.Tensor, weight: torch.Tensor,
     (float32, contiguous, on the CPU), with the plan's ``gap`` (B, H, W); ``False`` where
     the kernel did not run (nothing changed)."""
     arrays = (radiance, gap, weight, *passes)
-    if not (available() and status.is_contiguous() and all(
-            x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous()
-            for x in arrays)):
+    if not (available() and status.is_contiguous() and _in_place(torch.float32, *arrays)):
         return False
     b, h, w = status.shape
     ptrs = (ctypes.c_void_p * max(1, len(passes)))(*[x.data_ptr() for x in passes])
