@@ -112,26 +112,18 @@ static void exit_of(const Frame *j, const Rays *rays, int i, const float *d, con
 /* The Fresnel terms of a block's m exits' two interfaces (exit_of's cosines; the entry at
  * 1 / ior, the exit at ior), four at a time in lanes where built for it, the same bits. */
 static void block_fresnel(const Frame *j, Exit *ex, int64_t r0, int m) {
-    int i = 0;
-#if defined(__AVX2__) && defined(__FMA__)
-    for (; i + 4 <= m; i += 4) {
-        v4f c1, c2, eta;
-        for (int q = 0; q < 4; q++) {
-            c1[q] = ex[i + q].cos1;
-            c2[q] = ex[i + q].cos2;
-            eta[q] = j->ior[j->batch[r0 + i + q]];
-        }
-        v4f f1 = fresnel4f(c1, K4F(v4f, 1.0f) / eta), f2 = fresnel4f(c2, eta);
-        for (int q = 0; q < 4; q++) {
-            ex[i + q].f1 = f1[q];
-            ex[i + q].f2 = f2[q];
-        }
+    float c[2 * BLOCK], eta[2 * BLOCK], f[2 * BLOCK];
+    for (int i = 0; i < m; i++) {
+        float ior = j->ior[j->batch[r0 + i]];
+        c[i] = ex[i].cos1;
+        eta[i] = 1.0f / ior;
+        c[m + i] = ex[i].cos2;
+        eta[m + i] = ior;
     }
-#endif
-    for (; i < m; i++) {
-        float eta = j->ior[j->batch[r0 + i]];
-        ex[i].f1 = fresnel(ex[i].cos1, 1.0f / eta);
-        ex[i].f2 = fresnel(ex[i].cos2, eta);
+    fresnel_n(c, eta, 2 * m, f);
+    for (int i = 0; i < m; i++) {
+        ex[i].f1 = f[i];
+        ex[i].f2 = f[m + i];
     }
 }
 
