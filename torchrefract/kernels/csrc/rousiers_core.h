@@ -641,13 +641,6 @@ static void shade_pixel(const RousJob *rj, const SgAxes *view_axes, Block *k, in
     rj->footprint[px] = found ? k->major[i] : 0.0f;
 }
 
-/* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
- * _split, _leaving): the table's transmitted lobe leaves (widened by the lobe carried,
- * magnified by the refraction, at most 2x), its reflected lobe goes on along the mirror
- * direction; the ``tir`` rule at the budget's last interface, ``conserve``'s diffuse part
- * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
- * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
- * direction and variance of the reflected lobe. */
 /* Ray r's arrival at an interface from inside: the view direction, the view-facing
  * normal, the incident cosine (returned), the critical one, TIR, and the cosine its
  * transmitted lobe is read at (held just above the critical one under TIR where the rule
@@ -688,6 +681,13 @@ static void inside_coords(const void *job, Paths *ps, int64_t r0, int n, int las
         for (int q = 0; q < 5; q++) ps->coord[r][q] = z[5 * r + q];
 }
 
+/* A rough interface met from inside at a later bounce (rousiers.bounces.shade_inside,
+ * _split, _leaving): the table's transmitted lobe leaves (widened by the lobe carried,
+ * magnified by the refraction, at most 2x), its reflected lobe goes on along the mirror
+ * direction; the ``tir`` rule at the budget's last interface, ``conserve``'s diffuse part
+ * (DIFFUSE_VAR) at every other. A ray the march lost leaves along its own direction with
+ * the escape fraction. Adds the light leaving to ``acc``; returns the reflectance, the
+ * direction and variance of the reflected lobe. */
 static float shade_inside(const void *job, const SgAxes *view_axes, Paths *ps, int r,
                           int64_t b, int last, float *dir, float *var_out) {
     const RousJob *rj = (const RousJob *)job;
