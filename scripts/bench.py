@@ -382,8 +382,8 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
 def round_order(rows: list, k: int) -> list:
     """Round ``k``'s order of the interleaved rows: the list turned by k, so that no row runs
     right after the same one every round (a short row timed right after Mitsuba's 4-spp +
-    OIDN pass ran up to ~10% slower than after a pause: docs/benchmarks.md, twenty-fifth
-    sitting); each row still runs once a round."""
+    OIDN pass runs slower: docs/benchmarks.md, twenty-fifth sitting); each row still runs
+    once a round."""
     if not rows:
         return []
     s = k % len(rows)
