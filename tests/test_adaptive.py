@@ -228,6 +228,47 @@ def test_lattice_plan_kernel_equals_tensor_code():
     assert any(fewer), fewer
 
 
+def test_lattice_plan_lanes_equal_tensor_code_on_adversarial_layers():
+    """csrc/lattice.c's plan in AVX2 lanes (8 pixels of a row whose neighbours lie inside
+    the frame) decides as the tensor code does where the layers are not a mesh's: random
+    masks, normals with NaNs, back depths with NaNs, infinities and zeros, neighbours at
+    the tolerances, roughness per view and per pixel (zeros and NaNs), rows of 8 to 71
+    pixels (groups at every column parity, and the rest one by one)."""
+    assert native.available()
+    gen = torch.Generator().manual_seed(7)
+    tols = (adaptive.SMOOTH_ALPHA, adaptive.NORMAL_TOL, adaptive.DEPTH_TOL)
+    seen = set()
+    for b, h, w in ((2, 37, 71), (1, 12, 8), (3, 9, 26), (1, 2, 40)):
+        fm = torch.rand(b, h, w, generator=gen) > 0.15
+        bm = fm & (torch.rand(b, h, w, generator=gen) > 0.1)
+
+        def normals():
+            # near one direction (many within the tolerance of a neighbour), a few NaN
+            n = torch.tensor([0.0, 0.0, 1.0]) + 0.12 * torch.randn(b, h, w, 3, generator=gen)
+            n = n / n.norm(dim=-1, keepdim=True)
+            n[torch.rand(b, h, w, generator=gen) < 0.01] = float("nan")
+            return n
+
+        fn, bn = normals(), normals()
+        bd = 2.0 + 0.1 * torch.randn(b, h, w, generator=gen)
+        odd = torch.rand(b, h, w, generator=gen)
+        bd[odd < 0.01] = float("nan")
+        bd[(odd >= 0.01) & (odd < 0.02)] = float("inf")
+        bd[(odd >= 0.02) & (odd < 0.03)] = 0.0
+        for alpha in (torch.full((b, 1, 1), 0.3), torch.rand(b, h, w, generator=gen) * 0.4):
+            if alpha.dim() == 3 and alpha.shape[1] > 1:
+                alpha[torch.rand(b, h, w, generator=gen) < 0.02] = 0.0
+                alpha[torch.rand(b, h, w, generator=gen) < 0.01] = float("nan")
+            args = (fm, bm, fn, bn, bd, alpha)
+            a = native.lattice_plan(*args, *tols)
+            ref = adaptive._lattice_torch(*args, *tols)
+            assert torch.equal(a[0], ref[0]), (b, h, w, alpha.shape)
+            assert torch.equal(a[1], ref[1]), (b, h, w, alpha.shape)
+            assert torch.equal(a[2], adaptive._counts(ref[0])), (b, h, w)
+            seen.update(a[0].unique().tolist())
+    assert seen == {0, 1, 2}
+
+
 def test_first_pass_mask_and_index_kernels_equal_tensor_code():
     """csrc/index.c: the first pass's mask (a level's waiting pixels taken out at its stride)
     and the object pixels' flat indices and views are the tensor expressions', on real

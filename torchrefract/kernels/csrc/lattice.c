@@ -177,6 +177,127 @@ static inline __attribute__((always_inline)) int plan_pixel(const LatticeJob *j,
     return wait;
 }
 
+#ifdef TR_HAVE_ENV8  /* AVX2 lanes (lighting.h) */
+#define TR_PLAN8 1
+
+/* tmax in lanes: NaN where either is, else b where b > a, else a. */
+static inline __m256 tmax8(__m256 a, __m256 b) {
+    __m256 m = _mm256_blendv_ps(a, b, _mm256_cmp_ps(b, a, _CMP_GT_OQ));
+    return _mm256_blendv_ps(m, _mm256_set1_ps(NAN), _mm256_cmp_ps(a, b, _CMP_UNORD_Q));
+}
+
+/* 8 bytes of a mask as lanes (all bits set where nonzero). */
+static inline __m256 bytes8(const uint8_t *m) {
+    return _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+        _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)m)), _mm256_setzero_si256()));
+}
+
+/* inv_tol in lanes. */
+static inline __m256 inv_tol8(__m256 tol) {
+    const __m256 tiny = _mm256_set1_ps(1e-30f);
+    return _mm256_div_ps(_mm256_set1_ps(1.0f),
+                         _mm256_blendv_ps(tiny, tol, _mm256_cmp_ps(tol, tiny, _CMP_GT_OQ)));
+}
+
+/* 1 - dot3(a, b) (optics.h's sums) times s, in lanes. */
+static inline __m256 turn8(const __m256 *a, const __m256 *b, __m256 s) {
+    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
+                             _mm256_mul_ps(a[2], b[2]));
+    return _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(1.0f), d), s);
+}
+
+/* plan_pixel for the 8 pixels p .. p + 7 of row y (frame = level: stride 1, no uniform
+ * mask), all with both neighbours of their class inside the frame (x - 1 >= 0, x + 1 < w,
+ * and on an odd row y + 1 < h): each neighbour slot's tests in lanes, in the scalar
+ * loop's order, applied where the slot is one of the pixel's (a class-0 row's even
+ * columns are lattice pixels: none; an odd row's even columns have two, the odd ones
+ * four). The same values; the counts of object and waiting pixels added to ``counts``. */
+static void plan8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, PlanConst *pc,
+                  int64_t bi, int64_t *counts) {
+    __m256 fm = bytes8(j->front_mask + p);
+    int fbits = _mm256_movemask_ps(fm);
+    if (!fbits) {
+        memset(j->status + p, 0, 8);
+        _mm256_storeu_ps(j->gap + p, _mm256_setzero_ps());
+        return;
+    }
+    const int64_t w = j->w;
+    /* lanes whose column is odd */
+    __m256 odd = _mm256_castsi256_ps((x & 1) ? _mm256_setr_epi32(-1, 0, -1, 0, -1, 0, -1, 0)
+                                             : _mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
+    __m256 all = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), none = _mm256_setzero_ps();
+    int64_t off[4][2];  /* per slot: the offset of an even column's neighbour, an odd one's */
+    __m256 use[4];      /* per slot: the lanes it is a neighbour of */
+    int nslot;
+    if (!(y & 1)) {
+        int64_t o[4][2] = {{-1, -1}, {1, 1}};
+        memcpy(off, o, sizeof(o));
+        use[0] = use[1] = odd;
+        nslot = 2;
+    } else {
+        int64_t o[4][2] = {{-w, -w - 1}, {w, -w + 1}, {w - 1, w - 1}, {w + 1, w + 1}};
+        memcpy(off, o, sizeof(o));
+        use[0] = use[1] = all;
+        use[2] = use[3] = odd;
+        nslot = 4;
+    }
+    __m256 fn[3], bn[3], bm = bytes8(j->back_mask + p), bd = _mm256_loadu_ps(j->back_depth + p);
+    tr_load_xyz8(j->front_normal + 3 * p, &fn[0], &fn[1], &fn[2]);
+    tr_load_xyz8(j->back_normal + 3 * p, &bn[0], &bn[1], &bn[2]);
+    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    __m256 inv_n = _mm256_set1_ps(pc->inv_n);
+    __m256 inv_d = inv_tol8(_mm256_mul_ps(_mm256_set1_ps(j->depth_tol), _mm256_and_ps(bd, absm)));
+    __m256 amin = _mm256_set1_ps(j->alpha_min);
+    __m256 gap = j->per_pixel ? _mm256_mul_ps(amin, inv_tol8(_mm256_loadu_ps(j->alpha + p)))
+                              : _mm256_set1_ps(alpha_gap(j, pc, bi, p));
+    /* a lane with no slot (a lattice pixel) waits on none */
+    __m256 wait = use[0];
+    for (int s = 0; s < nslot; s++) {
+        __m256 u = use[s];
+        __m256 qfn[3], qbn[3], qfm, qbm, qbd, qa = none;
+        int64_t qe = p + off[s][0], qo = p + off[s][1];
+        tr_load_xyz8(j->front_normal + 3 * qe, &qfn[0], &qfn[1], &qfn[2]);
+        tr_load_xyz8(j->back_normal + 3 * qe, &qbn[0], &qbn[1], &qbn[2]);
+        qfm = bytes8(j->front_mask + qe);
+        qbm = bytes8(j->back_mask + qe);
+        qbd = _mm256_loadu_ps(j->back_depth + qe);
+        if (j->per_pixel) qa = _mm256_loadu_ps(j->alpha + qe);
+        if (qo != qe) {
+            __m256 ofn[3], obn[3];
+            tr_load_xyz8(j->front_normal + 3 * qo, &ofn[0], &ofn[1], &ofn[2]);
+            tr_load_xyz8(j->back_normal + 3 * qo, &obn[0], &obn[1], &obn[2]);
+            for (int c = 0; c < 3; c++) {
+                qfn[c] = _mm256_blendv_ps(qfn[c], ofn[c], odd);
+                qbn[c] = _mm256_blendv_ps(qbn[c], obn[c], odd);
+            }
+            qfm = _mm256_blendv_ps(qfm, bytes8(j->front_mask + qo), odd);
+            qbm = _mm256_blendv_ps(qbm, bytes8(j->back_mask + qo), odd);
+            qbd = _mm256_blendv_ps(qbd, _mm256_loadu_ps(j->back_depth + qo), odd);
+            if (j->per_pixel)
+                qa = _mm256_blendv_ps(qa, _mm256_loadu_ps(j->alpha + qo), odd);
+        }
+        __m256 ok = _mm256_and_ps(qfm, _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+            _mm256_castps_si256(qbm), _mm256_castps_si256(bm))));
+        wait = _mm256_and_ps(wait, _mm256_or_ps(_mm256_andnot_ps(u, all), ok));
+        __m256 g = gap;
+        if (j->per_pixel) g = tmax8(g, _mm256_mul_ps(amin, inv_tol8(qa)));
+        g = tmax8(g, turn8(qfn, fn, inv_n));
+        __m256 gb = tmax8(g, turn8(qbn, bn, inv_n));
+        gb = tmax8(gb, _mm256_mul_ps(_mm256_and_ps(_mm256_sub_ps(qbd, bd), absm), inv_d));
+        g = _mm256_blendv_ps(g, gb, bm);
+        gap = _mm256_blendv_ps(gap, g, u);
+    }
+    wait = _mm256_and_ps(_mm256_and_ps(wait, fm),
+                         _mm256_cmp_ps(gap, _mm256_set1_ps(1.0f), _CMP_LE_OQ));
+    int wbits = _mm256_movemask_ps(wait);
+    for (int l = 0; l < 8; l++)
+        j->status[p + l] = (uint8_t)(((fbits >> l) & 1) + ((wbits >> l) & 1));
+    _mm256_storeu_ps(j->gap + p, _mm256_and_ps(gap, wait));
+    counts[0] += __builtin_popcount((unsigned)fbits);
+    counts[1] += __builtin_popcount((unsigned)wbits);
+}
+#endif
+
 static void plan_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
     int64_t lo[3][4], fo[3][4];
@@ -184,12 +305,28 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
     Pos at = pos_at(begin, j->h, j->w);
     int64_t view = at.bi, objects = 0, waiting = 0;
     PlanConst pc = {inv_tol(j->normal_tol), 0.0f, -1};
+#ifdef TR_PLAN8
+    int lanes = j->stride <= 1 && !j->uniform;
+#endif
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
         if (at.bi != view) {
             add_counts(j, view, objects, waiting);
             view = at.bi;
             objects = waiting = 0;
         }
+#ifdef TR_PLAN8
+        /* 8 pixels of the row at once where all have their neighbours inside the frame */
+        if (lanes && at.x >= 1 && at.x + 9 <= j->w && p + 8 <= end &&
+            (!(at.y & 1) || at.y + 1 < j->h)) {
+            int64_t c[2] = {0, 0};
+            plan8(j, p, at.y, at.x, &pc, at.bi, c);
+            objects += c[0];
+            waiting += c[1];
+            p += 7;  /* the loop's step: the row's pixel after them */
+            at.x += 7;
+            continue;
+        }
+#endif
         int64_t fp = frame_at(j, p, at.bi, at.y, at.x);  /* the layers are the frame's */
         if (!j->front_mask[fp]) {
             j->status[p] = 0;
