@@ -330,6 +330,48 @@ def test_lattice_fill_kernel_equals_tensor_code():
     assert ((w1[s1 == 5] > 0) & (w1[s1 == 5] < 1)).all() and (w1[s1 != 5] == 0).all()
 
 
+def test_lattice_fill_lanes_equal_tensor_code_with_passes():
+    """csrc/lattice.c's fill in AVX2 lanes (8 pixels of a row whose neighbours lie inside
+    the frame) equals the tensor code with passes of 1 and 3 channels: radiance spreads
+    around the tolerance, NaN, Inf, huge and negative neighbours, gaps on both sides of
+    BLEND_FROM, rows of 8 to 71 pixels, several views."""
+    assert native.available()
+    gen = torch.Generator().manual_seed(11)
+    seen = set()
+    for b, h, w in ((2, 37, 71), (1, 12, 8), (3, 9, 26)):
+        lat = torch.zeros(b, h, w, dtype=torch.bool)
+        lat[:, ::2, ::2] = True
+        obj = torch.rand(b, h, w, generator=gen) > 0.1
+        st = torch.where(obj, torch.where(lat, 1, 2), 0).to(torch.uint8)
+        st[:, -1, :] = torch.where(obj[:, -1, :] & (st[:, -1, :] == 2), 1, st[:, -1, :])
+        if w % 2 == 0:  # a last odd column has no right neighbour: shaded, not waiting
+            st[:, :, -1] = torch.where(st[:, :, -1] == 2, 1, st[:, :, -1])
+        st[(st == 2) & (torch.rand(b, h, w, generator=gen) < 0.1)] = 1
+        gap = torch.where(st == 2, torch.rand(b, h, w, generator=gen), torch.zeros(()))
+        n = b * h * w
+        rad = 1.0 + 0.08 * torch.rand(n, 3, generator=gen)
+        rad[torch.rand(n, generator=gen) < 0.01] = float("nan")
+        rad[torch.rand(n, generator=gen) < 0.01] = float("inf")
+        rad[torch.rand(n, generator=gen) < 0.01] = -1e38
+        rad[torch.rand(n, generator=gen) < 0.01] = 1e38
+        passes = [torch.rand(n, 1, generator=gen), torch.rand(n, 3, generator=gen)]
+        outs = []
+        for run in ("kernel", "tensor"):
+            s, g, r = st.clone(), gap.clone(), rad.clone()
+            wt, ps = torch.zeros(b, h, w), [x.clone() for x in passes]
+            if run == "kernel":
+                assert native.lattice_fill(s, g, wt, r, adaptive.LATTICE_RTOL,
+                                           adaptive.BLEND_FROM, ps)
+            else:
+                adaptive._fill_torch(s, g, wt, r, adaptive.LATTICE_RTOL, adaptive.BLEND_FROM,
+                                     ps)
+            outs.append((s, wt, r.nan_to_num(7.0, 8.0, -8.0), *ps))
+        for x, y in zip(*outs):
+            assert torch.equal(x, y), (b, h, w)
+        seen.update(outs[0][0].unique().tolist())
+    assert {3, 4, 5} <= seen and 2 not in seen
+
+
 def test_fill_where_no_waiting_pixel_is_interpolated_keeps_the_passes():
     """A level whose waiting pixels all disagree with their neighbours (each is shaded)
     fills nothing, passes included: the tensor code and the kernel alike (the tensor code

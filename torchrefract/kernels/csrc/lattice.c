@@ -400,12 +400,144 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
     }
 }
 
+#ifdef TR_PLAN8
+/* Store the lanes of x, y, z where ``m`` is set as 8 interleaved xyz triples (the rest of
+ * the 24 floats untouched): tr_store_xyz8's permutations, on the values and the mask. */
+static inline void store_xyz8_where(float *p, __m256 m, __m256 x, __m256 y, __m256 z) {
+    const __m256i ix = _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5);
+    const __m256i iy = _mm256_setr_epi32(5, 0, 3, 6, 1, 4, 7, 2);
+    const __m256i iz = _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7);
+    __m256 tx = _mm256_permutevar8x32_ps(x, ix), ty = _mm256_permutevar8x32_ps(y, iy);
+    __m256 tz = _mm256_permutevar8x32_ps(z, iz);
+    __m256 mx = _mm256_permutevar8x32_ps(m, ix), my = _mm256_permutevar8x32_ps(m, iy);
+    __m256 mz = _mm256_permutevar8x32_ps(m, iz);
+#define TR_XYZ_PART(a, b, c) _mm256_blend_ps(_mm256_blend_ps(a, b, 0x92), c, 0x24)
+    _mm256_maskstore_ps(p, _mm256_castps_si256(TR_XYZ_PART(mx, my, mz)), TR_XYZ_PART(tx, ty, tz));
+    _mm256_maskstore_ps(p + 8, _mm256_castps_si256(TR_XYZ_PART(mz, mx, my)),
+                        TR_XYZ_PART(tz, tx, ty));
+    _mm256_maskstore_ps(p + 16, _mm256_castps_si256(TR_XYZ_PART(my, mz, mx)),
+                        TR_XYZ_PART(ty, tz, tx));
+#undef TR_XYZ_PART
+}
+
+/* fill_pixel for the waiting ones of the 8 pixels p .. p + 7 of row y (the level is the
+ * frame: stride 1), all with their neighbours inside the frame (plan8's condition): the
+ * means, spread and decision of each in lanes, by the scalar code's operations in its
+ * order (a two-neighbour pixel's slots 2 and 3 not applied); the means written where they
+ * are taken, then each waiting pixel's status, weight and passes one by one. ``off``:
+ * neighbour_offsets' frame offsets. */
+static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t off[3][4]) {
+    __m256i st = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->status + p)));
+    int wbits = _mm256_movemask_ps(_mm256_castsi256_ps(
+        _mm256_cmpeq_epi32(st, _mm256_set1_epi32(2))));
+    if (!wbits) return;
+    const int64_t w = j->w;
+    __m256 odd = _mm256_castsi256_ps((x & 1) ? _mm256_setr_epi32(-1, 0, -1, 0, -1, 0, -1, 0)
+                                             : _mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
+    /* lanes with four neighbours (an odd row's odd columns); slots as plan8's */
+    __m256 four = (y & 1) ? odd : _mm256_setzero_ps();
+    int64_t o[4][2] = {{-1, -1}, {1, 1}, {0, 0}, {0, 0}};
+    if (y & 1) {
+        int64_t od[4][2] = {{-w, -w - 1}, {w, -w + 1}, {w - 1, w - 1}, {w + 1, w + 1}};
+        memcpy(o, od, sizeof(o));
+    }
+    int nslot = (y & 1) ? 4 : 2;
+    __m256 v[4][3];
+    for (int s = 0; s < nslot; s++) {
+        tr_load_xyz8(j->radiance + 3 * (p + o[s][0]), &v[s][0], &v[s][1], &v[s][2]);
+        if (o[s][1] != o[s][0]) {
+            __m256 u[3];
+            tr_load_xyz8(j->radiance + 3 * (p + o[s][1]), &u[0], &u[1], &u[2]);
+            for (int c = 0; c < 3; c++) v[s][c] = _mm256_blendv_ps(v[s][c], u[c], odd);
+        }
+    }
+    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    const __m256 inf = _mm256_set1_ps(INFINITY), zero = _mm256_setzero_ps();
+    __m256 mean[3], finite = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), dmax = zero;
+    for (int c = 0; c < 3; c++) {  /* lattice_mean, k 2 or 4 */
+        __m256 sum = _mm256_add_ps(v[0][c], v[1][c]);
+        __m256 m2 = _mm256_mul_ps(sum, _mm256_set1_ps(0.5f));
+        if (nslot == 4) {
+            __m256 m4 = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(sum, v[2][c]), v[3][c]),
+                                      _mm256_set1_ps(0.25f));
+            m2 = _mm256_blendv_ps(m2, m4, four);
+        }
+        mean[c] = m2;
+    }
+    __m256 lum = _mm256_add_ps(_mm256_div_ps(_mm256_add_ps(_mm256_add_ps(mean[0], mean[1]),
+                                                           mean[2]), _mm256_set1_ps(3.0f)),
+                               _mm256_set1_ps(1e-3f));
+    for (int c = 0; c < 3; c++) {
+        __m256 lo = v[0][c], hi = v[0][c];
+        for (int s = 1; s < nslot; s++) {
+            __m256 use = s < 2 ? _mm256_castsi256_ps(_mm256_set1_epi32(-1)) : four;
+            lo = _mm256_blendv_ps(lo, v[s][c], _mm256_and_ps(use, _mm256_cmp_ps(v[s][c], lo,
+                                                                                _CMP_LT_OQ)));
+            hi = _mm256_blendv_ps(hi, v[s][c], _mm256_and_ps(use, _mm256_cmp_ps(v[s][c], hi,
+                                                                                _CMP_GT_OQ)));
+        }
+        __m256 d = _mm256_sub_ps(hi, lo);
+        finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(d, absm), inf, _CMP_LT_OQ));
+        dmax = _mm256_blendv_ps(dmax, d, _mm256_cmp_ps(d, dmax, _CMP_GT_OQ));
+    }
+    __m256 q = _mm256_div_ps(dmax, lum);
+    finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(q, absm), inf, _CMP_LT_OQ));
+    __m256 rel = _mm256_and_ps(q, _mm256_cmp_ps(q, zero, _CMP_GT_OQ));
+    __m256 t = tmax8(_mm256_loadu_ps(j->gap + p),
+                     _mm256_div_ps(rel, _mm256_set1_ps(j->rtol)));
+    __m256 take = _mm256_and_ps(finite, _mm256_cmp_ps(t, _mm256_set1_ps(1.0f), _CMP_LT_OQ));
+    int tbits = _mm256_movemask_ps(take) & wbits;
+    if (tbits)
+        store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+            _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
+                                                                         64, 128)),
+            _mm256_setzero_si256())), mean[0], mean[1], mean[2]);
+    float tv[8];
+    _mm256_storeu_ps(tv, t);
+    for (int l = 0; l < 8; l++) {
+        if (!(wbits >> l & 1)) continue;
+        if (!(tbits >> l & 1)) {
+            j->status[p + l] = 4;
+            continue;
+        }
+        int64_t fp = p + l;
+        int c = (y & 1) ? (int)((x + l) & 1) + 1 : 0, k = c == 2 ? 4 : 2;
+        int64_t nb[4];
+        for (int i = 0; i < k; i++) nb[i] = fp + off[c][i];
+        for (int qi = 0; qi < j->npass; qi++) {
+            float *xq = j->pass[qi];
+            int64_t ch = j->pass_ch[qi];
+            for (int64_t cc = 0; cc < ch; cc++) xq[fp * ch + cc] = lattice_mean(xq, ch, nb, k, cc);
+        }
+        if (tv[l] <= j->blend_from) {
+            j->status[p + l] = 3;
+        } else {
+            float u = (tv[l] - j->blend_from) / (1.0f - j->blend_from);
+            j->weight[p + l] = u * u * (3.0f - 2.0f * u);
+            j->status[p + l] = 5;
+        }
+    }
+}
+#endif
+
 static void fill_range(const void *job, int64_t begin, int64_t end) {
     const LatticeJob *j = (const LatticeJob *)job;
     int64_t lo[3][4], off[3][4];
     neighbour_offsets(j, lo, off);
     Pos at = pos_at(begin, j->h, j->w);
+#ifdef TR_PLAN8
+    int lanes = j->stride <= 1;
+#endif
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
+#ifdef TR_PLAN8
+        if (lanes && at.x >= 1 && at.x + 9 <= j->w && p + 8 <= end &&
+            (!(at.y & 1) || at.y + 1 < j->h)) {
+            fill8(j, p, at.y, at.x, off);
+            p += 7;  /* the loop's step: the row's pixel after them */
+            at.x += 7;
+            continue;
+        }
+#endif
         if (j->status[p] != 2) continue;  /* (the plan lets a pixel wait on all its k) */
         int64_t fp = frame_at(j, p, at.bi, at.y, at.x);
         int c = neighbour_class(j, &at);
