@@ -379,15 +379,14 @@ def mitsuba_rows(args: argparse.Namespace, base: tr.Scene) -> dict:
     return meta
 
 
-def round_order(rows: list, k: int) -> list:
-    """Round ``k``'s order of the interleaved rows: the list turned by k, so that no row runs
-    right after the same one every round (a short row timed right after Mitsuba's 4-spp +
-    OIDN pass runs slower: docs/benchmarks.md, twenty-fifth sitting); each row still runs
-    once a round."""
-    if not rows:
-        return []
-    s = k % len(rows)
-    return rows[s:] + rows[:s]
+def round_order(ours: list, theirs: list, k: int) -> list:
+    """Round ``k``'s order of the interleaved rows: our rows turned by k, then Mitsuba's, so
+    that a different one of ours runs right after Mitsuba's last pass each round (a short
+    row timed right after Mitsuba's 4-spp + OIDN pass runs slower: docs/benchmarks.md,
+    twenty-fifth and twenty-sixth sittings); each row runs once a round. (Turning the whole
+    list kept every row's neighbours: our first row followed the OIDN pass every round.)"""
+    s = k % len(ours) if ours else 0
+    return ours[s:] + ours[:s] + list(theirs)
 
 
 def interleaved(args: argparse.Namespace, base: tr.Scene, combos: list[tuple],
@@ -427,7 +426,8 @@ def interleaved(args: argparse.Namespace, base: tr.Scene, combos: list[tuple],
             meta["skipped_rows"].append({"spp": row.spp, "denoise": row.denoise,
                                          "reason": str(exc)})
     for k in range(args.repeats):
-        for row in round_order(runnable, k):
+        for row in round_order([r for r in runnable if r in ours],
+                               [r for r in runnable if r in theirs], k):
             row.once()
         print(f"round {k + 1}/{args.repeats} done", file=sys.stderr, flush=True)
     meta["rows"] = [r.result() for r in theirs if r in runnable]

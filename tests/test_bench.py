@@ -178,15 +178,18 @@ def test_kernel_times_splits_a_frame_between_the_kernels_and_the_rest(tmp_path):
 
 
 def test_interleaved_rounds_turn_the_order_of_the_rows():
-    """--interleave's rounds: every row once a round, and no row right after the same one
-    (Mitsuba's OIDN pass) every round."""
+    """--interleave's rounds: every row once a round, and a different one of our rows right
+    after Mitsuba's OIDN pass each round (turning the whole list kept our first row there
+    every round)."""
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench import round_order  # noqa: PLC0415
 
-    rows = ["specular", "rousiers", "mitsuba 1 spp", "mitsuba 4 spp + oidn"]
-    rounds = [round_order(rows, k) for k in range(5)]
-    assert all(sorted(r) == sorted(rows) for r in rounds)
-    seq = [row for r in rounds for row in r]  # as they run, round after round
-    after_oidn = {seq[i + 1] for i, row in enumerate(seq[:-1]) if row.endswith("oidn")}
-    assert len(after_oidn) > 1 and rounds[0] == rows and rounds[4] == rows
-    assert round_order([], 3) == []
+    ours = ["specular", "rousiers", "2 bounces", "specular 2x2", "rousiers 2x2", "sh"]
+    theirs = ["mitsuba 1 spp", "mitsuba 4 spp + oidn"]
+    rounds = [round_order(ours, theirs, k) for k in range(5)]
+    assert all(sorted(r) == sorted(ours + theirs) for r in rounds)
+    # as they run: the warm-ups (ours, then Mitsuba's), then round after round
+    seq = ours + theirs + [row for r in rounds for row in r]
+    after_oidn = [seq[i + 1] for i, row in enumerate(seq[:-1]) if row.endswith("oidn")]
+    assert len(after_oidn) == 5 and len(set(after_oidn)) == 5  # a different row each round
+    assert round_order([], theirs, 3) == theirs and round_order(ours, [], 2)[0] == "2 bounces"
