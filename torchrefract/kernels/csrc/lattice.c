@@ -206,12 +206,65 @@ static inline __m256 turn8(const __m256 *a, const __m256 *b, __m256 s) {
     return _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(1.0f), d), s);
 }
 
+/* The neighbour slots of 8 pixels of row y from column x (plan8, fill8): per slot the
+ * offset of an even column's neighbour and an odd one's (``off``), the lanes it is a
+ * neighbour of (``use``; slots past the returned count unused); ``odd``: the lanes whose
+ * column is odd. An even row's odd columns wait on (left, right), its even ones (the
+ * lattice) on none; an odd row's even columns on (up, down), its odd ones on the four
+ * diagonal pixels: neighbour_offsets' order, class by class. */
+typedef struct {
+    int64_t off[4][2];
+    __m256 use[4], odd;
+    int n;
+} Slots8;
+
+static inline Slots8 slots8(int64_t y, int64_t x, int64_t w) {
+    Slots8 sl;
+    sl.odd = _mm256_castsi256_ps((x & 1) ? _mm256_setr_epi32(-1, 0, -1, 0, -1, 0, -1, 0)
+                                         : _mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
+    __m256 all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+    if (!(y & 1)) {
+        int64_t o[4][2] = {{-1, -1}, {1, 1}, {0, 0}, {0, 0}};
+        memcpy(sl.off, o, sizeof(o));
+        sl.use[0] = sl.use[1] = sl.odd;
+        sl.use[2] = sl.use[3] = _mm256_setzero_ps();
+        sl.n = 2;
+    } else {
+        int64_t o[4][2] = {{-w, -w - 1}, {w, -w + 1}, {w - 1, w - 1}, {w + 1, w + 1}};
+        memcpy(sl.off, o, sizeof(o));
+        sl.use[0] = sl.use[1] = all;
+        sl.use[2] = sl.use[3] = sl.odd;
+        sl.n = 4;
+    }
+    return sl;
+}
+
+/* 8 floats from ``a`` at p + the slot's offsets: the even columns' where they differ. */
+static inline __m256 slot_ps(const float *a, int64_t p, const int64_t *off, __m256 odd) {
+    __m256 v = _mm256_loadu_ps(a + p + off[0]);
+    return off[1] == off[0] ? v : _mm256_blendv_ps(v, _mm256_loadu_ps(a + p + off[1]), odd);
+}
+
+/* The same for a mask (lanes all set where nonzero) and for xyz triples. */
+static inline __m256 slot_mask(const uint8_t *m, int64_t p, const int64_t *off, __m256 odd) {
+    __m256 v = bytes8(m + p + off[0]);
+    return off[1] == off[0] ? v : _mm256_blendv_ps(v, bytes8(m + p + off[1]), odd);
+}
+
+static inline void slot_xyz(const float *a, int64_t p, const int64_t *off, __m256 odd,
+                            __m256 *v) {
+    tr_load_xyz8(a + 3 * (p + off[0]), &v[0], &v[1], &v[2]);
+    if (off[1] == off[0]) return;
+    __m256 u[3];
+    tr_load_xyz8(a + 3 * (p + off[1]), &u[0], &u[1], &u[2]);
+    for (int c = 0; c < 3; c++) v[c] = _mm256_blendv_ps(v[c], u[c], odd);
+}
+
 /* plan_pixel for the 8 pixels p .. p + 7 of row y (frame = level: stride 1, no uniform
  * mask), all with both neighbours of their class inside the frame (x - 1 >= 0, x + 1 < w,
  * and on an odd row y + 1 < h): each neighbour slot's tests in lanes, in the scalar
- * loop's order, applied where the slot is one of the pixel's (a class-0 row's even
- * columns are lattice pixels: none; an odd row's even columns have two, the odd ones
- * four). The same values; the counts of object and waiting pixels added to ``counts``. */
+ * loop's order, applied where the slot is one of the pixel's. The same values; the counts
+ * of object and waiting pixels added to ``counts``. */
 static void plan8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, PlanConst *pc,
                   int64_t bi, int64_t *counts) {
     __m256 fm = bytes8(j->front_mask + p);
@@ -221,71 +274,36 @@ static void plan8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, PlanCons
         _mm256_storeu_ps(j->gap + p, _mm256_setzero_ps());
         return;
     }
-    const int64_t w = j->w;
-    /* lanes whose column is odd */
-    __m256 odd = _mm256_castsi256_ps((x & 1) ? _mm256_setr_epi32(-1, 0, -1, 0, -1, 0, -1, 0)
-                                             : _mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
-    __m256 all = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), none = _mm256_setzero_ps();
-    int64_t off[4][2];  /* per slot: the offset of an even column's neighbour, an odd one's */
-    __m256 use[4];      /* per slot: the lanes it is a neighbour of */
-    int nslot;
-    if (!(y & 1)) {
-        int64_t o[4][2] = {{-1, -1}, {1, 1}};
-        memcpy(off, o, sizeof(o));
-        use[0] = use[1] = odd;
-        nslot = 2;
-    } else {
-        int64_t o[4][2] = {{-w, -w - 1}, {w, -w + 1}, {w - 1, w - 1}, {w + 1, w + 1}};
-        memcpy(off, o, sizeof(o));
-        use[0] = use[1] = all;
-        use[2] = use[3] = odd;
-        nslot = 4;
-    }
+    Slots8 sl = slots8(y, x, j->w);
+    const __m256 all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
     __m256 fn[3], bn[3], bm = bytes8(j->back_mask + p), bd = _mm256_loadu_ps(j->back_depth + p);
     tr_load_xyz8(j->front_normal + 3 * p, &fn[0], &fn[1], &fn[2]);
     tr_load_xyz8(j->back_normal + 3 * p, &bn[0], &bn[1], &bn[2]);
-    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
-    __m256 inv_n = _mm256_set1_ps(pc->inv_n);
+    __m256 inv_n = _mm256_set1_ps(pc->inv_n), amin = _mm256_set1_ps(j->alpha_min);
     __m256 inv_d = inv_tol8(_mm256_mul_ps(_mm256_set1_ps(j->depth_tol), _mm256_and_ps(bd, absm)));
-    __m256 amin = _mm256_set1_ps(j->alpha_min);
     __m256 gap = j->per_pixel ? _mm256_mul_ps(amin, inv_tol8(_mm256_loadu_ps(j->alpha + p)))
                               : _mm256_set1_ps(alpha_gap(j, pc, bi, p));
-    /* a lane with no slot (a lattice pixel) waits on none */
-    __m256 wait = use[0];
-    for (int s = 0; s < nslot; s++) {
-        __m256 u = use[s];
-        __m256 qfn[3], qbn[3], qfm, qbm, qbd, qa = none;
-        int64_t qe = p + off[s][0], qo = p + off[s][1];
-        tr_load_xyz8(j->front_normal + 3 * qe, &qfn[0], &qfn[1], &qfn[2]);
-        tr_load_xyz8(j->back_normal + 3 * qe, &qbn[0], &qbn[1], &qbn[2]);
-        qfm = bytes8(j->front_mask + qe);
-        qbm = bytes8(j->back_mask + qe);
-        qbd = _mm256_loadu_ps(j->back_depth + qe);
-        if (j->per_pixel) qa = _mm256_loadu_ps(j->alpha + qe);
-        if (qo != qe) {
-            __m256 ofn[3], obn[3];
-            tr_load_xyz8(j->front_normal + 3 * qo, &ofn[0], &ofn[1], &ofn[2]);
-            tr_load_xyz8(j->back_normal + 3 * qo, &obn[0], &obn[1], &obn[2]);
-            for (int c = 0; c < 3; c++) {
-                qfn[c] = _mm256_blendv_ps(qfn[c], ofn[c], odd);
-                qbn[c] = _mm256_blendv_ps(qbn[c], obn[c], odd);
-            }
-            qfm = _mm256_blendv_ps(qfm, bytes8(j->front_mask + qo), odd);
-            qbm = _mm256_blendv_ps(qbm, bytes8(j->back_mask + qo), odd);
-            qbd = _mm256_blendv_ps(qbd, _mm256_loadu_ps(j->back_depth + qo), odd);
-            if (j->per_pixel)
-                qa = _mm256_blendv_ps(qa, _mm256_loadu_ps(j->alpha + qo), odd);
-        }
-        __m256 ok = _mm256_and_ps(qfm, _mm256_castsi256_ps(_mm256_cmpeq_epi32(
-            _mm256_castps_si256(qbm), _mm256_castps_si256(bm))));
-        wait = _mm256_and_ps(wait, _mm256_or_ps(_mm256_andnot_ps(u, all), ok));
+    __m256 wait = sl.use[0];  /* a lane with no slot (a lattice pixel) waits on none */
+    for (int s = 0; s < sl.n; s++) {
+        const int64_t *off = sl.off[s];
+        __m256 qfn[3], qbn[3];
+        slot_xyz(j->front_normal, p, off, sl.odd, qfn);
+        slot_xyz(j->back_normal, p, off, sl.odd, qbn);
+        __m256 qbm = slot_mask(j->back_mask, p, off, sl.odd);
+        __m256 ok = _mm256_and_ps(slot_mask(j->front_mask, p, off, sl.odd),
+                                  _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+                                      _mm256_castps_si256(qbm), _mm256_castps_si256(bm))));
+        wait = _mm256_and_ps(wait, _mm256_or_ps(_mm256_andnot_ps(sl.use[s], all), ok));
         __m256 g = gap;
-        if (j->per_pixel) g = tmax8(g, _mm256_mul_ps(amin, inv_tol8(qa)));
+        if (j->per_pixel)
+            g = tmax8(g, _mm256_mul_ps(amin, inv_tol8(slot_ps(j->alpha, p, off, sl.odd))));
         g = tmax8(g, turn8(qfn, fn, inv_n));
         __m256 gb = tmax8(g, turn8(qbn, bn, inv_n));
-        gb = tmax8(gb, _mm256_mul_ps(_mm256_and_ps(_mm256_sub_ps(qbd, bd), absm), inv_d));
-        g = _mm256_blendv_ps(g, gb, bm);
-        gap = _mm256_blendv_ps(gap, g, u);
+        __m256 dd = _mm256_sub_ps(slot_ps(j->back_depth, p, off, sl.odd), bd);
+        gb = tmax8(gb, _mm256_mul_ps(_mm256_and_ps(dd, absm), inv_d));
+        g = _mm256_blendv_ps(g, gb, bm);  /* the back tests where the pixel has a back */
+        gap = _mm256_blendv_ps(gap, g, sl.use[s]);
     }
     wait = _mm256_and_ps(_mm256_and_ps(wait, fm),
                          _mm256_cmp_ps(gap, _mm256_set1_ps(1.0f), _CMP_LE_OQ));
@@ -420,78 +438,11 @@ static inline void store_xyz8_where(float *p, __m256 m, __m256 x, __m256 y, __m2
 #undef TR_XYZ_PART
 }
 
-/* fill_pixel for the waiting ones of the 8 pixels p .. p + 7 of row y (the level is the
- * frame: stride 1), all with their neighbours inside the frame (plan8's condition): the
- * means, spread and decision of each in lanes, by the scalar code's operations in its
- * order (a two-neighbour pixel's slots 2 and 3 not applied); the means written where they
- * are taken, then each waiting pixel's status, weight and passes one by one. ``off``:
- * neighbour_offsets' frame offsets. */
-static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t off[3][4]) {
-    __m256i st = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->status + p)));
-    int wbits = _mm256_movemask_ps(_mm256_castsi256_ps(
-        _mm256_cmpeq_epi32(st, _mm256_set1_epi32(2))));
-    if (!wbits) return;
-    const int64_t w = j->w;
-    __m256 odd = _mm256_castsi256_ps((x & 1) ? _mm256_setr_epi32(-1, 0, -1, 0, -1, 0, -1, 0)
-                                             : _mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
-    /* lanes with four neighbours (an odd row's odd columns); slots as plan8's */
-    __m256 four = (y & 1) ? odd : _mm256_setzero_ps();
-    int64_t o[4][2] = {{-1, -1}, {1, 1}, {0, 0}, {0, 0}};
-    if (y & 1) {
-        int64_t od[4][2] = {{-w, -w - 1}, {w, -w + 1}, {w - 1, w - 1}, {w + 1, w + 1}};
-        memcpy(o, od, sizeof(o));
-    }
-    int nslot = (y & 1) ? 4 : 2;
-    __m256 v[4][3];
-    for (int s = 0; s < nslot; s++) {
-        tr_load_xyz8(j->radiance + 3 * (p + o[s][0]), &v[s][0], &v[s][1], &v[s][2]);
-        if (o[s][1] != o[s][0]) {
-            __m256 u[3];
-            tr_load_xyz8(j->radiance + 3 * (p + o[s][1]), &u[0], &u[1], &u[2]);
-            for (int c = 0; c < 3; c++) v[s][c] = _mm256_blendv_ps(v[s][c], u[c], odd);
-        }
-    }
-    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
-    const __m256 inf = _mm256_set1_ps(INFINITY), zero = _mm256_setzero_ps();
-    __m256 mean[3], finite = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), dmax = zero;
-    for (int c = 0; c < 3; c++) {  /* lattice_mean, k 2 or 4 */
-        __m256 sum = _mm256_add_ps(v[0][c], v[1][c]);
-        __m256 m2 = _mm256_mul_ps(sum, _mm256_set1_ps(0.5f));
-        if (nslot == 4) {
-            __m256 m4 = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(sum, v[2][c]), v[3][c]),
-                                      _mm256_set1_ps(0.25f));
-            m2 = _mm256_blendv_ps(m2, m4, four);
-        }
-        mean[c] = m2;
-    }
-    __m256 lum = _mm256_add_ps(_mm256_div_ps(_mm256_add_ps(_mm256_add_ps(mean[0], mean[1]),
-                                                           mean[2]), _mm256_set1_ps(3.0f)),
-                               _mm256_set1_ps(1e-3f));
-    for (int c = 0; c < 3; c++) {
-        __m256 lo = v[0][c], hi = v[0][c];
-        for (int s = 1; s < nslot; s++) {
-            __m256 use = s < 2 ? _mm256_castsi256_ps(_mm256_set1_epi32(-1)) : four;
-            lo = _mm256_blendv_ps(lo, v[s][c], _mm256_and_ps(use, _mm256_cmp_ps(v[s][c], lo,
-                                                                                _CMP_LT_OQ)));
-            hi = _mm256_blendv_ps(hi, v[s][c], _mm256_and_ps(use, _mm256_cmp_ps(v[s][c], hi,
-                                                                                _CMP_GT_OQ)));
-        }
-        __m256 d = _mm256_sub_ps(hi, lo);
-        finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(d, absm), inf, _CMP_LT_OQ));
-        dmax = _mm256_blendv_ps(dmax, d, _mm256_cmp_ps(d, dmax, _CMP_GT_OQ));
-    }
-    __m256 q = _mm256_div_ps(dmax, lum);
-    finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(q, absm), inf, _CMP_LT_OQ));
-    __m256 rel = _mm256_and_ps(q, _mm256_cmp_ps(q, zero, _CMP_GT_OQ));
-    __m256 t = tmax8(_mm256_loadu_ps(j->gap + p),
-                     _mm256_div_ps(rel, _mm256_set1_ps(j->rtol)));
-    __m256 take = _mm256_and_ps(finite, _mm256_cmp_ps(t, _mm256_set1_ps(1.0f), _CMP_LT_OQ));
-    int tbits = _mm256_movemask_ps(take) & wbits;
-    if (tbits)
-        store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
-            _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
-                                                                         64, 128)),
-            _mm256_setzero_si256())), mean[0], mean[1], mean[2]);
+/* fill8's last step: each waiting pixel's status (3, 5: its mean taken, 4: shaded),
+ * weight and passes' means, one by one (``tbits``: the lanes whose means were taken; t:
+ * their measures). */
+static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
+                       int64_t off[3][4], int wbits, int tbits, __m256 t) {
     float tv[8];
     _mm256_storeu_ps(tv, t);
     for (int l = 0; l < 8; l++) {
@@ -500,9 +451,8 @@ static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t 
             j->status[p + l] = 4;
             continue;
         }
-        int64_t fp = p + l;
+        int64_t fp = p + l, nb[4];
         int c = (y & 1) ? (int)((x + l) & 1) + 1 : 0, k = c == 2 ? 4 : 2;
-        int64_t nb[4];
         for (int i = 0; i < k; i++) nb[i] = fp + off[c][i];
         for (int qi = 0; qi < j->npass; qi++) {
             float *xq = j->pass[qi];
@@ -517,6 +467,60 @@ static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t 
             j->status[p + l] = 5;
         }
     }
+}
+
+/* fill_pixel for the waiting ones of the 8 pixels p .. p + 7 of row y (the level is the
+ * frame: stride 1), all with their neighbours inside the frame (plan8's condition): the
+ * means, spread and decision of each in lanes, by the scalar code's operations in its
+ * order (a two-neighbour pixel's slots 2 and 3 not applied); the means written where they
+ * are taken (masked stores), then fill_tail8. ``off``: neighbour_offsets' frame offsets. */
+static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t off[3][4]) {
+    __m256i st = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->status + p)));
+    int wbits = _mm256_movemask_ps(_mm256_castsi256_ps(
+        _mm256_cmpeq_epi32(st, _mm256_set1_epi32(2))));
+    if (!wbits) return;
+    Slots8 sl = slots8(y, x, j->w);
+    __m256 four = sl.use[2];  /* the lanes with four neighbours: an odd row's odd columns */
+    __m256 v[4][3];
+    for (int s = 0; s < sl.n; s++) slot_xyz(j->radiance, p, sl.off[s], sl.odd, v[s]);
+    const __m256 absm = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    const __m256 inf = _mm256_set1_ps(INFINITY), zero = _mm256_setzero_ps();
+    __m256 mean[3], finite = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), dmax = zero;
+    for (int c = 0; c < 3; c++) {  /* lattice_mean, k 2 or 4 */
+        __m256 sum = _mm256_add_ps(v[0][c], v[1][c]);
+        mean[c] = _mm256_mul_ps(sum, _mm256_set1_ps(0.5f));
+        if (sl.n == 4)
+            mean[c] = _mm256_blendv_ps(mean[c], _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(
+                sum, v[2][c]), v[3][c]), _mm256_set1_ps(0.25f)), four);
+    }
+    __m256 lum = _mm256_add_ps(_mm256_div_ps(_mm256_add_ps(_mm256_add_ps(mean[0], mean[1]),
+                                                           mean[2]), _mm256_set1_ps(3.0f)),
+                               _mm256_set1_ps(1e-3f));
+    for (int c = 0; c < 3; c++) {
+        __m256 lo = v[0][c], hi = v[0][c];
+        for (int s = 1; s < sl.n; s++) {
+            __m256 lt = _mm256_cmp_ps(v[s][c], lo, _CMP_LT_OQ);
+            __m256 gt = _mm256_cmp_ps(v[s][c], hi, _CMP_GT_OQ);
+            lo = _mm256_blendv_ps(lo, v[s][c], s < 2 ? lt : _mm256_and_ps(four, lt));
+            hi = _mm256_blendv_ps(hi, v[s][c], s < 2 ? gt : _mm256_and_ps(four, gt));
+        }
+        __m256 d = _mm256_sub_ps(hi, lo);
+        finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(d, absm), inf, _CMP_LT_OQ));
+        dmax = _mm256_blendv_ps(dmax, d, _mm256_cmp_ps(d, dmax, _CMP_GT_OQ));
+    }
+    __m256 q = _mm256_div_ps(dmax, lum);  /* fill_pixel's one division */
+    finite = _mm256_and_ps(finite, _mm256_cmp_ps(_mm256_and_ps(q, absm), inf, _CMP_LT_OQ));
+    __m256 rel = _mm256_and_ps(q, _mm256_cmp_ps(q, zero, _CMP_GT_OQ));
+    __m256 t = tmax8(_mm256_loadu_ps(j->gap + p),
+                     _mm256_div_ps(rel, _mm256_set1_ps(j->rtol)));
+    __m256 take = _mm256_and_ps(finite, _mm256_cmp_ps(t, _mm256_set1_ps(1.0f), _CMP_LT_OQ));
+    int tbits = _mm256_movemask_ps(take) & wbits;
+    if (tbits)
+        store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+            _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
+                                                                         64, 128)),
+            _mm256_setzero_si256())), mean[0], mean[1], mean[2]);
+    fill_tail8(j, p, y, x, off, wbits, tbits, t);
 }
 #endif
 
