@@ -10,8 +10,8 @@ runs in a fresh process (``--in-process``: all in this one, faster, but then the
 column is the peak so far), so its peak resident memory is its own: ``peakMB``, with the
 process's memory before the row's first render (torch, pyrender, the scene) in the JSON
 as ``baseline_rss_mb``. ``--interleave`` runs every row in this process in rounds, one
-render of each row per round, Mitsuba's rows among them, the order turned by one row each
-round (:func:`round_order`): on a machine whose load drifts (other jobs, another
+render of each row per round, our rows turned by one each round and Mitsuba's after them
+(:func:`round_order`): on a machine whose load drifts (other jobs, another
 session's) every row sees the same drift, so the ratios between rows hold where
 back-to-back rows can differ by 2x.
 
