@@ -420,6 +420,24 @@ def test_triangle_plane_table_matches_the_tensor_code(monkeypatch):
     assert torch.allclose(fast[:, :3].norm(dim=-1), torch.ones(1))
 
 
+@needs_native
+def test_triangle_plane_rows_do_not_depend_on_their_place_in_the_table():
+    """csrc/march.c's plane rows in AVX2 lanes (four at a time) and one by one (a view's
+    last rows) are the same bits: the bunny's rows computed from a shifted start, and its
+    first three as a view of their own, equal its rows computed in place."""
+    suite = ASSETS.parent / "configs" / "suite"
+    s = tr.load_scene(str(suite / "bunny_a01.yaml"))
+    tv = load_mesh(s.mesh, s.transform).tri_vertices.contiguous()
+    t = tv.shape[0]
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(5)))
+    eye, basis = torch.tensor([[0.3, 0.4, 3.0]]), q.T.reshape(1, 9).float().contiguous()
+    a = native.tri_planes(tv, torch.tensor([0]), torch.tensor([t]), eye, basis)
+    b = native.tri_planes(tv, torch.tensor([1, 0]), torch.tensor([t - 1, 3]),
+                          eye.repeat(2, 1), basis.repeat(2, 1))
+    assert a is not None and b is not None and t % 4 == 0  # a: every row in lanes
+    assert torch.equal(b[:t - 1], a[1:]) and torch.equal(b[t - 1:], a[:3])
+
+
 @pytest.mark.skipif(not native.available(), reason="no native build here")
 def test_the_built_kernels_keep_their_prefetches():
     """The lookups ask for their texels before they read them (csrc/lighting.h). GCC
