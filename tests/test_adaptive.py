@@ -370,6 +370,13 @@ def test_lattice_fill_lanes_equal_tensor_code_with_passes():
             assert torch.equal(x, y), (b, h, w)
         seen.update(outs[0][0].unique().tolist())
     assert {3, 4, 5} <= seen and 2 not in seen
+    # a lattice pixel set waiting (no plan does) is shaded, not filled, in lanes as one by one
+    st = torch.ones(1, 6, 40, dtype=torch.uint8)
+    st[0, 2, 10] = st[0, 2, 39] = 2  # an even row's even column: inside a lane group, last
+    rad = torch.ones(6 * 40, 3)
+    assert native.lattice_fill(st, torch.zeros(1, 6, 40), torch.zeros(1, 6, 40), rad,
+                               adaptive.LATTICE_RTOL, adaptive.BLEND_FROM)
+    assert st[0, 2, 10] == 4 and st[0, 2, 39] == 4 and torch.equal(rad, torch.ones(6 * 40, 3))
 
 
 def test_fill_where_no_waiting_pixel_is_interpolated_keeps_the_passes():

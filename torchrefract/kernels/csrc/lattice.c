@@ -447,7 +447,7 @@ static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
     _mm256_storeu_ps(tv, t);
     for (int l = 0; l < 8; l++) {
         if (!(wbits >> l & 1)) continue;
-        if (!(tbits >> l & 1)) {
+        if (!(tbits >> l & 1)) {  /* (a lattice pixel set waiting: shaded, as fill_range) */
             j->status[p + l] = 4;
             continue;
         }
@@ -514,7 +514,9 @@ static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t 
     __m256 t = tmax8(_mm256_loadu_ps(j->gap + p),
                      _mm256_div_ps(rel, _mm256_set1_ps(j->rtol)));
     __m256 take = _mm256_and_ps(finite, _mm256_cmp_ps(t, _mm256_set1_ps(1.0f), _CMP_LT_OQ));
-    int tbits = _mm256_movemask_ps(take) & wbits;
+    /* no lattice pixel (an even row's even column) is filled: no plan lets one wait */
+    int lattice = (y & 1) ? 0 : _mm256_movemask_ps(sl.odd) ^ 0xff;
+    int tbits = _mm256_movemask_ps(take) & wbits & ~lattice;
     if (tbits)
         store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
             _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
