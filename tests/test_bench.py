@@ -177,6 +177,23 @@ def test_kernel_times_splits_a_frame_between_the_kernels_and_the_rest(tmp_path):
     assert "native kernels" in proc.stdout and "layer" in proc.stdout
 
 
+def test_direction_fill_study_fills_nothing_at_a_negative_tolerance():
+    """scripts/direction_fill.py: filling no pixel by directions shades every waiting one
+    (the full render, FLIP 0); the radiance rule and "either" at that tolerance agree; a
+    tolerance that fills shades fewer pixels than all, with a finite error."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from direction_fill import study  # noqa: PLC0415
+
+    rows = study(ROOT / "configs" / "suite" / "sphere_a03.yaml", 48,
+                 [("radiance", 0.0), ("direction", -1.0), ("either", -1.0),
+                  ("direction", 0.1)])
+    rad, none, either, some = rows
+    assert none["shaded"] == 1.0 and none["flip"] == 0.0
+    assert 0 < rad["shaded"] < 1 and rad["flip"] > 0
+    assert either["shaded"] == rad["shaded"] and either["flip"] == rad["flip"]
+    assert 0 < some["shaded"] < 1 and 0 < some["flip"] < 0.1
+
+
 def test_interleaved_rounds_turn_the_order_of_the_rows():
     """--interleave's rounds: every row once a round, and a different one of our rows right
     after Mitsuba's OIDN pass each round (turning the whole list kept our first row there
