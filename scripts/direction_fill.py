@@ -3,14 +3,17 @@ sitting): fill a waiting pixel from its lattice neighbours' exit and reflection 
 (and weights, points), then look the environment up there, instead of from their
 radiances. Tensor code only, outside the renderer: `specular` without bounces, each scene's
 own view at one sample, its full render's per-pixel paths (``shading.paths.trace_paths``)
-and its lattice (``adaptive.lattice``: the coarse level first, then the fine one, each
+and its lattice (``adaptive.lattice``, ``--smooth-alpha`` its roughness floor: the coarse level first,
+then the fine one, each
 filled pixel's means carried on as the renderer's passes are; no blending).
 
     .venv/bin/python scripts/direction_fill.py SCENE.yaml [SCENE.yaml ...] [--size 256]
-        [--tols 0.05 0.1] [--json OUT.json]
+        [--tols 0.05 0.1] [--truth outputs/truth --truth-spp 1024] [--json OUT.json]
 
 Per scene and rule: the share of object pixels shaded and the FLIP on object pixels
-against the full render. Rules: ``radiance`` (the renderer's test: the neighbours'
+against the full render; with ``--truth``, where the folder holds the scene's cached
+Mitsuba truth at this size (``scripts/accuracy.py``'s names), also the FLIP against it,
+the full render's beside it. Rules: ``radiance`` (the renderer's test: the neighbours'
 spread over their luminance, with the plan's gap), ``direction TOL`` (every neighbour's
 exit and reflection direction within TOL radians of their normalized mean, all with
 their exit found alike), ``either TOL`` (the direction test, else the radiance test).
@@ -24,6 +27,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -35,6 +39,7 @@ from torchrefract.geometry import adaptive  # noqa: E402
 from torchrefract.geometry.gbuffer import build_gbuffer  # noqa: E402
 from torchrefract.geometry.mesh import load_mesh  # noqa: E402
 from torchrefract.lighting.lights import Lighting, incident_radiance  # noqa: E402
+from torchrefract.output.images import read_exr  # noqa: E402
 from torchrefract.methods.specular import SpecularOptions  # noqa: E402
 from torchrefract.optics.materials import MaterialBatch  # noqa: E402
 from torchrefract.result import front_roughness  # noqa: E402
@@ -109,9 +114,23 @@ def fill_level(level, w: int, data: dict, rad: torch.Tensor, shaded: torch.Tenso
     rad[fidx[~filled]] = full[fidx[~filled]]
 
 
-def study(path: Path, size: int, rules: list[tuple[str, float]]) -> list[dict]:
+def truth_image(scene: tr.Scene, folder: Path | None, spp: int):
+    """The scene's cached truth (H, W, 3) in ``folder`` (seed 0, max_depth 64), or None."""
+    if folder is None:
+        return None
+    c = scene.camera
+    path = folder / f"{scene.name}_{c.width}x{c.height}_d64_spp{spp}_s0.exr"
+    if not path.exists():
+        return None
+    ch = read_exr(path)
+    return np.stack([ch["R"], ch["G"], ch["B"]], -1)
+
+
+def study(path: Path, size: int, rules: list[tuple[str, float]],
+          truth: Path | None = None, truth_spp: int = 1024,
+          smooth_alpha: float = adaptive.SMOOTH_ALPHA) -> list[dict]:
     """Per rule: the share of the view's object pixels shaded, FLIP against the full
-    render on them."""
+    render on them (and against the cached truth where ``truth`` holds it)."""
     s = tr.load_scene(path)
     s = s.replace(camera=dataclasses.replace(s.camera, width=size, height=size,
                                              samples_per_pixel=1), method="specular",
@@ -119,8 +138,11 @@ def study(path: Path, size: int, rules: list[tuple[str, float]]) -> list[dict]:
     full = tr.render([s], settings=RenderSettings(adaptive=False)).radiance[0]
     g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
     materials, lighting = MaterialBatch.from_scenes([s]), Lighting.from_scenes([s])
-    _, lattice = adaptive.lattice(g, front_roughness(g, materials))
+    _, lattice = adaptive.lattice(g, front_roughness(g, materials), smooth_alpha=smooth_alpha)
     obj = g.front.mask.reshape(-1)
+    ref = truth_image(s, truth, truth_spp)
+    on = g.front.mask[0].numpy()
+    full_truth = None if ref is None else float(flip_map(full.numpy(), ref)[on].mean())
     rows = []
     for rule, tol in rules:
         data = pixel_data(g, lighting, materials)
@@ -132,10 +154,14 @@ def study(path: Path, size: int, rules: list[tuple[str, float]]) -> list[dict]:
         for level in levels:
             fill_level(level, size, data, rad, shaded, full.reshape(-1, 3), lighting, rule,
                        tol)
-        flip = flip_map(full.numpy(), rad.view(size, size, 3).numpy())
-        rows.append({"scene": path.stem, "rule": rule, "tol": tol,
-                     "shaded": float(shaded[obj].float().mean()),
-                     "flip": float(flip[g.front.mask[0].numpy()].mean())})
+        img = rad.view(size, size, 3).numpy()
+        row = {"scene": path.stem, "rule": rule, "tol": tol,
+               "shaded": float(shaded[obj].float().mean()),
+               "flip": float(flip_map(img, full.numpy())[on].mean())}
+        if ref is not None:
+            row["flip_truth"] = float(flip_map(img, ref)[on].mean())
+            row["full_flip_truth"] = full_truth
+        rows.append(row)
     return rows
 
 
@@ -144,16 +170,24 @@ def main() -> None:
     ap.add_argument("scenes", nargs="+", type=Path)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--tols", type=float, nargs="+", default=[0.05, 0.1])
+    ap.add_argument("--truth", type=Path, help="a folder of cached truth (scripts/accuracy.py)")
+    ap.add_argument("--truth-spp", type=int, default=1024)
+    ap.add_argument("--smooth-alpha", type=float, default=adaptive.SMOOTH_ALPHA,
+                    help="the roughness below which no pixel waits (the renderer's: "
+                         f"{adaptive.SMOOTH_ALPHA}; 0: smooth glass waits too)")
     ap.add_argument("--json", type=Path, help="also write the rows here")
     args = ap.parse_args()
     rules = [("radiance", 0.0)] + [(r, t) for t in args.tols for r in ("direction", "either")]
     out = []
     for path in args.scenes:
-        for row in study(path, args.size, rules):
+        for row in study(path, args.size, rules, args.truth, args.truth_spp,
+                         args.smooth_alpha):
             out.append(row)
             tol = "" if row["rule"] == "radiance" else f" {row['tol']:g} rad"
+            vs_truth = (f"  vs truth {row['flip_truth']:.4f} (full {row['full_flip_truth']:.4f})"
+                        if "flip_truth" in row else "")
             print(f"{row['scene']:<20} {row['rule'] + tol:<18} shaded {row['shaded']:.3f}  "
-                  f"FLIP vs full {row['flip']:.4f}", flush=True)
+                  f"FLIP vs full {row['flip']:.4f}{vs_truth}", flush=True)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
