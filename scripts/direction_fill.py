@@ -3,12 +3,13 @@ sitting): fill a waiting pixel from its lattice neighbours' exit and reflection 
 (and weights, points), then look the environment up there, instead of from their
 radiances. Tensor code only, outside the renderer: `specular` without bounces, each scene's
 own view at one sample, its full render's per-pixel paths (``shading.paths.trace_paths``)
-and its lattice (``adaptive.lattice``, ``--smooth-alpha`` its roughness floor: the coarse level first,
-then the fine one, each
-filled pixel's means carried on as the renderer's passes are; no blending).
+and its lattice (``adaptive.lattice``, ``--smooth-alpha`` its roughness floor: the coarse
+level first, then the fine one, each filled pixel's means carried on as the renderer's
+passes are; no blending).
 
     .venv/bin/python scripts/direction_fill.py SCENE.yaml [SCENE.yaml ...] [--size 256]
-        [--tols 0.05 0.1] [--truth outputs/truth --truth-spp 1024] [--json OUT.json]
+        [--tols 0.05 0.1] [--truth outputs/truth --truth-spp 1024] [--smooth-alpha A]
+        [--json OUT.json]
 
 Per scene and rule: the share of object pixels shaded and the FLIP on object pixels
 against the full render; with ``--truth``, where the folder holds the scene's cached
