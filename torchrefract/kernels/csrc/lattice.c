@@ -186,11 +186,13 @@ static inline __m256 tmax8(__m256 a, __m256 b) {
     return _mm256_blendv_ps(m, _mm256_set1_ps(NAN), _mm256_cmp_ps(a, b, _CMP_UNORD_Q));
 }
 
-/* 8 bytes of a mask as lanes (all bits set where nonzero). */
-static inline __m256 bytes8(const uint8_t *m) {
-    return _mm256_castsi256_ps(_mm256_cmpgt_epi32(
-        _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)m)), _mm256_setzero_si256()));
+/* 8 bytes of a mask (0 or 1) as lanes of all ones or zeros; bytes8: as float lanes. */
+static inline __m256i mask8(const uint8_t *m) {
+    __m256i v = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)m));
+    return _mm256_cmpgt_epi32(v, _mm256_setzero_si256());
 }
+
+static inline __m256 bytes8(const uint8_t *m) { return _mm256_castsi256_ps(mask8(m)); }
 
 /* inv_tol in lanes. */
 static inline __m256 inv_tol8(__m256 tol) {
@@ -199,11 +201,11 @@ static inline __m256 inv_tol8(__m256 tol) {
                          _mm256_blendv_ps(tiny, tol, _mm256_cmp_ps(tol, tiny, _CMP_GT_OQ)));
 }
 
-/* 1 - dot3(a, b) (optics.h's sums) times s, in lanes. */
-static inline __m256 turn8(const __m256 *a, const __m256 *b, __m256 s) {
-    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
-                             _mm256_mul_ps(a[2], b[2]));
-    return _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(1.0f), d), s);
+/* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 lanes' vectors (x, y, z). */
+static inline __m256 one_minus_dot_lanes(const __m256 *u, const __m256 *v) {
+    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(u[0], v[0]), _mm256_mul_ps(u[1], v[1])),
+                             _mm256_mul_ps(u[2], v[2]));
+    return _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
 }
 
 /* The neighbour slots of 8 pixels of row y from column x (plan8, fill8): per slot the
@@ -298,8 +300,8 @@ static void plan8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, PlanCons
         __m256 g = gap;
         if (j->per_pixel)
             g = tmax8(g, _mm256_mul_ps(amin, inv_tol8(slot_ps(j->alpha, p, off, sl.odd))));
-        g = tmax8(g, turn8(qfn, fn, inv_n));
-        __m256 gb = tmax8(g, turn8(qbn, bn, inv_n));
+        g = tmax8(g, _mm256_mul_ps(one_minus_dot_lanes(qfn, fn), inv_n));
+        __m256 gb = tmax8(g, _mm256_mul_ps(one_minus_dot_lanes(qbn, bn), inv_n));
         __m256 dd = _mm256_sub_ps(slot_ps(j->back_depth, p, off, sl.odd), bd);
         gb = tmax8(gb, _mm256_mul_ps(_mm256_and_ps(dd, absm), inv_d));
         g = _mm256_blendv_ps(g, gb, bm);  /* the back tests where the pixel has a back */
@@ -730,9 +732,7 @@ static void refine_cols8(const RefineJob *j, int64_t bi, int64_t y, int64_t c0, 
     for (int64_t yy = y - 1; yy <= y + 1; yy++) {
         if (yy < 0 || yy >= j->h) continue;
         int64_t q = (bi * j->h + yy) * j->w + c0;
-        __m256 u = _mm256_castsi256_ps(_mm256_cmpgt_epi32(
-            _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->uniform + q))),
-            _mm256_setzero_si256()));
+        __m256 u = bytes8(j->uniform + q);
         __m256 v[3];
         tr_load_xyz8(j->radiance + 3 * q, &v[0], &v[1], &v[2]);
         __m256 any = _mm256_cmp_ps(count, zero, _CMP_GT_OQ);  /* count before this row */
@@ -1147,25 +1147,12 @@ static int pixel_pairs(const EdgesJob *j, int64_t p, const Pos *at) {
 #ifdef TR_HAVE_ENV8  /* AVX2 lanes (lighting.h) */
 #define TR_EDGES8 1
 
-/* 1 - dot3 (optics.dot's order: (x x' + y y') + z z') of 8 lanes' vectors (x, y, z). */
-static inline __m256 one_minus_dot_lanes(const __m256 *u, const __m256 *v) {
-    __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(u[0], v[0]), _mm256_mul_ps(u[1], v[1])),
-                             _mm256_mul_ps(u[2], v[2]));
-    return _mm256_sub_ps(_mm256_set1_ps(1.0f), d);
-}
-
 /* one_minus_dot_lanes of 8 pixels' normals from p and q. */
 static inline __m256 one_minus_dot8(const float *np, const float *nq) {
     __m256 p[3], q[3];
     tr_load_xyz8(np, &p[0], &p[1], &p[2]);
     tr_load_xyz8(nq, &q[0], &q[1], &q[2]);
     return one_minus_dot_lanes(q, p);
-}
-
-/* 8 bytes of a mask (0 or 1) as lanes of all ones or zeros. */
-static inline __m256i mask8(const uint8_t *m) {
-    __m256i v = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)m));
-    return _mm256_cmpgt_epi32(v, _mm256_setzero_si256());
 }
 
 /* The ids of sub-pixels (0, 0) and (0, 1) of 8 pixels from the row at r (n = 2: 16 ids),
