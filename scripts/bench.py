@@ -11,9 +11,9 @@ column is the peak so far), so its peak resident memory is its own: ``peakMB``, 
 process's memory before the row's first render (torch, pyrender, the scene) in the JSON
 as ``baseline_rss_mb``. ``--interleave`` runs every row in this process in rounds, one
 render of each row per round, our rows turned by one each round and Mitsuba's after them
-(:func:`round_order`): on a machine whose load drifts (other jobs, another
-session's) every row sees the same drift, so the ratios between rows hold where
-back-to-back rows can differ by 2x.
+(:func:`round_order`): on a machine whose load drifts (other jobs, another session's)
+every row sees the same drift, so the ratios between rows hold where back-to-back rows
+can differ by 2x.
 
     .venv/bin/python scripts/bench.py [--methods specular rousiers rousiers:cone_rays=plane]
         [--sizes 256 512] [--batches 1 8] [--repeats 5] [--threads N] [--compile]

@@ -28,25 +28,26 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torchrefract as tr  # noqa: E402
 from torchrefract.geometry import adaptive  # noqa: E402
 from torchrefract.geometry.gbuffer import build_gbuffer  # noqa: E402
 from torchrefract.geometry.mesh import load_mesh  # noqa: E402
 from torchrefract.lighting.lights import Lighting, incident_radiance  # noqa: E402
-from torchrefract.output.images import read_exr  # noqa: E402
 from torchrefract.methods.specular import SpecularOptions  # noqa: E402
 from torchrefract.optics.materials import MaterialBatch  # noqa: E402
 from torchrefract.result import front_roughness  # noqa: E402
 from torchrefract.settings import RenderSettings, using  # noqa: E402
 from torchrefract.shading.paths import trace_paths  # noqa: E402
 from torchrefract.truth.metrics import flip_map  # noqa: E402
+from accuracy import truth as cached_truth  # noqa: E402  (the one truth cache)
+from pareto import truth_cached  # noqa: E402
 
 
 def pixel_data(g, lighting, materials) -> dict[str, torch.Tensor]:
@@ -116,15 +117,12 @@ def fill_level(level, w: int, data: dict, rad: torch.Tensor, shaded: torch.Tenso
 
 
 def truth_image(scene: tr.Scene, folder: Path | None, spp: int):
-    """The scene's cached truth (H, W, 3) in ``folder`` (seed 0, max_depth 64), or None."""
-    if folder is None:
+    """The scene's cached truth (H, W, 3) in ``folder`` (seed 0, max_depth 64: the chart's,
+    read through scripts/accuracy.py's cache), or None where it is not there (never
+    rendered here)."""
+    if folder is None or not truth_cached(scene, spp, folder):
         return None
-    c = scene.camera
-    path = folder / f"{scene.name}_{c.width}x{c.height}_d64_spp{spp}_s0.exr"
-    if not path.exists():
-        return None
-    ch = read_exr(path)
-    return np.stack([ch["R"], ch["G"], ch["B"]], -1)
+    return cached_truth(scene, spp, 64, 0, folder)[0]
 
 
 def study(path: Path, size: int, rules: list[tuple[str, float]],
@@ -144,9 +142,10 @@ def study(path: Path, size: int, rules: list[tuple[str, float]],
     ref = truth_image(s, truth, truth_spp)
     on = g.front.mask[0].numpy()
     full_truth = None if ref is None else float(flip_map(full.numpy(), ref)[on].mean())
+    paths = pixel_data(g, lighting, materials)  # each rule fills a copy of them
     rows = []
     for rule, tol in rules:
-        data = pixel_data(g, lighting, materials)
+        data = {key: x.clone() for key, x in paths.items()}
         rad, shaded = full.reshape(-1, 3).clone(), obj.clone()
         levels = lattice.levels if lattice is not None else ()
         for level in levels:  # every level's waiting pixels start unshaded
