@@ -241,6 +241,13 @@ static inline Slots8 slots8(int64_t y, int64_t x, int64_t w) {
     return sl;
 }
 
+/* Whether the 8 pixels of the range [p, end) from ``at`` lie in one row and all have the
+ * neighbours of their class inside the frame (x - 1 >= 0, x + 8 < w; below, on an odd
+ * row): plan8's and fill8's condition. */
+static inline int slots8_fit(const LatticeJob *j, const Pos *at, int64_t p, int64_t end) {
+    return at->x >= 1 && at->x + 9 <= j->w && p + 8 <= end && (!(at->y & 1) || at->y + 1 < j->h);
+}
+
 /* 8 floats from ``a`` at p + the slot's offsets: the even columns' where they differ. */
 static inline __m256 slot_ps(const float *a, int64_t p, const int64_t *off, __m256 odd) {
     __m256 v = _mm256_loadu_ps(a + p + off[0]);
@@ -335,9 +342,7 @@ static void plan_range(const void *job, int64_t begin, int64_t end) {
             objects = waiting = 0;
         }
 #ifdef TR_PLAN8
-        /* 8 pixels of the row at once where all have their neighbours inside the frame */
-        if (lanes && at.x >= 1 && at.x + 9 <= j->w && p + 8 <= end &&
-            (!(at.y & 1) || at.y + 1 < j->h)) {
+        if (lanes && slots8_fit(j, &at, p, end)) {
             int64_t c[2] = {0, 0};
             plan8(j, p, at.y, at.x, &pc, at.bi, c);
             objects += c[0];
@@ -421,25 +426,6 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
 }
 
 #ifdef TR_PLAN8
-/* Store the lanes of x, y, z where ``m`` is set as 8 interleaved xyz triples (the rest of
- * the 24 floats untouched): tr_store_xyz8's permutations, on the values and the mask. */
-static inline void store_xyz8_where(float *p, __m256 m, __m256 x, __m256 y, __m256 z) {
-    const __m256i ix = _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5);
-    const __m256i iy = _mm256_setr_epi32(5, 0, 3, 6, 1, 4, 7, 2);
-    const __m256i iz = _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7);
-    __m256 tx = _mm256_permutevar8x32_ps(x, ix), ty = _mm256_permutevar8x32_ps(y, iy);
-    __m256 tz = _mm256_permutevar8x32_ps(z, iz);
-    __m256 mx = _mm256_permutevar8x32_ps(m, ix), my = _mm256_permutevar8x32_ps(m, iy);
-    __m256 mz = _mm256_permutevar8x32_ps(m, iz);
-#define TR_XYZ_PART(a, b, c) _mm256_blend_ps(_mm256_blend_ps(a, b, 0x92), c, 0x24)
-    _mm256_maskstore_ps(p, _mm256_castps_si256(TR_XYZ_PART(mx, my, mz)), TR_XYZ_PART(tx, ty, tz));
-    _mm256_maskstore_ps(p + 8, _mm256_castps_si256(TR_XYZ_PART(mz, mx, my)),
-                        TR_XYZ_PART(tz, tx, ty));
-    _mm256_maskstore_ps(p + 16, _mm256_castps_si256(TR_XYZ_PART(my, mz, mx)),
-                        TR_XYZ_PART(ty, tz, tx));
-#undef TR_XYZ_PART
-}
-
 /* fill8's last step: each waiting pixel's status (3, 5: its mean taken, 4: shaded),
  * weight and passes' means, one by one (``tbits``: the lanes whose means were taken; t:
  * their measures). */
@@ -520,7 +506,7 @@ static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t 
     int lattice = (y & 1) ? 0 : _mm256_movemask_ps(sl.odd) ^ 0xff;
     int tbits = _mm256_movemask_ps(take) & wbits & ~lattice;
     if (tbits)
-        store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+        tr_store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
             _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
                                                                          64, 128)),
             _mm256_setzero_si256())), mean[0], mean[1], mean[2]);
@@ -538,8 +524,7 @@ static void fill_range(const void *job, int64_t begin, int64_t end) {
 #endif
     for (int64_t p = begin; p < end; p++, pos_step(&at, j->h, j->w)) {
 #ifdef TR_PLAN8
-        if (lanes && at.x >= 1 && at.x + 9 <= j->w && p + 8 <= end &&
-            (!(at.y & 1) || at.y + 1 < j->h)) {
+        if (lanes && slots8_fit(j, &at, p, end)) {
             fill8(j, p, at.y, at.x, off);
             p += 7;  /* the loop's step: the row's pixel after them */
             at.x += 7;

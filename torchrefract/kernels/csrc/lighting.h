@@ -305,13 +305,28 @@ static inline void tr_load_xyz8(const float *p, __m256 *x, __m256 *y, __m256 *z)
     *z = _mm256_permutevar8x32_ps(tz, _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
 }
 
-static inline void tr_store_xyz8(float *p, __m256 x, __m256 y, __m256 z) {
+/* x, y, z lanes as the three vectors of 8 interleaved triples (floats 0-7, 8-15, 16-23). */
+static inline void tr_xyz8_parts(__m256 x, __m256 y, __m256 z, __m256 *out) {
     __m256 tx = _mm256_permutevar8x32_ps(x, _mm256_setr_epi32(0, 3, 6, 1, 4, 7, 2, 5));
     __m256 ty = _mm256_permutevar8x32_ps(y, _mm256_setr_epi32(5, 0, 3, 6, 1, 4, 7, 2));
     __m256 tz = _mm256_permutevar8x32_ps(z, _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
-    _mm256_storeu_ps(p, _mm256_blend_ps(_mm256_blend_ps(tx, ty, 0x92), tz, 0x24));
-    _mm256_storeu_ps(p + 8, _mm256_blend_ps(_mm256_blend_ps(tz, tx, 0x92), ty, 0x24));
-    _mm256_storeu_ps(p + 16, _mm256_blend_ps(_mm256_blend_ps(ty, tz, 0x92), tx, 0x24));
+    out[0] = _mm256_blend_ps(_mm256_blend_ps(tx, ty, 0x92), tz, 0x24);
+    out[1] = _mm256_blend_ps(_mm256_blend_ps(tz, tx, 0x92), ty, 0x24);
+    out[2] = _mm256_blend_ps(_mm256_blend_ps(ty, tz, 0x92), tx, 0x24);
+}
+
+static inline void tr_store_xyz8(float *p, __m256 x, __m256 y, __m256 z) {
+    __m256 v[3];
+    tr_xyz8_parts(x, y, z, v);
+    for (int k = 0; k < 3; k++) _mm256_storeu_ps(p + 8 * k, v[k]);
+}
+
+/* tr_store_xyz8 of the lanes where ``m`` is set only (the other triples untouched). */
+static inline void tr_store_xyz8_where(float *p, __m256 m, __m256 x, __m256 y, __m256 z) {
+    __m256 v[3], mk[3];
+    tr_xyz8_parts(x, y, z, v);
+    tr_xyz8_parts(m, m, m, mk);
+    for (int k = 0; k < 3; k++) _mm256_maskstore_ps(p + 8 * k, _mm256_castps_si256(mk[k]), v[k]);
 }
 #endif
 
