@@ -481,6 +481,69 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere(monkeypatch):
     assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact
 
 
+def test_coarser_levels_while_enough_pixels_can_wait(monkeypatch):
+    """Levels go on coarsening (strides 4, 8, ...) while COARSE_SHARE of a level's lattice
+    pixels could wait (0: wherever any can). The rough sphere then gets three levels or
+    more, each at twice the next one's stride; csrc/lattice.c's driver gives the images of
+    the levels run from Python bit for bit; every pixel shaded is the full render's and
+    the image stays close to it, but further from it than with two levels."""
+    from torchrefract.shading import fused
+
+    s = _scene("sphere_a03", 128, n=1, method="rousiers")
+    g, args = _lattice_inputs(s)
+    two = adaptive.lattice(g, args[-1])[1]
+    monkeypatch.setattr(adaptive, "COARSE_SHARE", 0.0)
+    made, lattice = [], adaptive.lattice
+    monkeypatch.setattr(adaptive, "lattice", lambda *a, **k: made.append(lattice(*a, **k))
+                        or made[-1])
+    a = tr.render(s, settings=ADAPTIVE)
+    lat = made[-1][1]  # its levels' statuses as the fill left them
+    strides = [lv.stride for lv in lat.levels]
+    assert len(strides) >= 3 and strides == [2 ** k for k in range(len(strides))][::-1]
+    assert len(two.levels) < len(strides)
+    run = fused._run
+    monkeypatch.setattr(fused, "_run", lambda n, job, *rest: run(n, job))
+    b = tr.render(s, settings=ADAPTIVE)
+    monkeypatch.setattr(fused, "_run", run)
+    assert torch.equal(a.radiance, b.radiance)
+    full = tr.render(s, settings=UNIFORM)
+    m = g.front.mask[0]
+    shaded = m.clone()  # no level interpolated it (status 3) nor blended it (5)
+    for lv in lat.levels:
+        st = lv.status[0]
+        shaded[::lv.stride, ::lv.stride] &= (st != 3) & (st != 5)
+    assert 0.03 < float(shaded[m].float().mean()) < 0.25
+    assert torch.equal(a.radiance[0][shaded], full.radiance[0][shaded])
+    fl = float(flip_map(a.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
+    monkeypatch.undo()
+    fl2 = float(flip_map(tr.render(s, settings=ADAPTIVE).radiance[0].numpy(),
+                         full.radiance[0].numpy())[m.numpy()].mean())
+    assert fl2 < fl < 0.03, (fl2, fl)
+
+
+def test_coarser_levels_over_a_plan_refine_every_level(monkeypatch):
+    """Over a 2x2 plan's center samples (a method that reads the frame around a sample)
+    the levels coarsen too, and the refine pass shades again the center samples any level
+    interpolated where the radiance spreads: the image stays close to the uniform 2x2."""
+    monkeypatch.setattr(adaptive, "COARSE_SHARE", 0.0)
+    s = _scene("sphere_a03", 64, n=2, method="lean")
+    levels = []
+    lattice = adaptive.lattice
+
+    def seen(*a, **k):
+        out = lattice(*a, **k)
+        levels.append(None if out[1] is None else len(out[1].levels))
+        return out
+
+    monkeypatch.setattr(adaptive, "lattice", seen)
+    a = tr.render(s, settings=ADAPTIVE)
+    monkeypatch.undo()
+    assert levels and levels[0] >= 3, levels
+    u = tr.render(s, settings=UNIFORM)
+    obj = a.coverage[0].numpy() > 0
+    assert flip_map(a.radiance[0].numpy(), u.radiance[0].numpy())[obj].mean() < 0.02
+
+
 @pytest.mark.parametrize("n", [1, 2])
 def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch, n):
     """csrc/lattice.c's driver (the fused methods fill and shade every level after their

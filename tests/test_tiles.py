@@ -106,8 +106,11 @@ def test_tiles_give_the_untiled_pixels(counted, name, method, options, spp, sett
     through both layers), roughness maps (coverage mips), the fused kernels and the tensor
     code, adaptive sampling (supersampling, and the lattice's passes at one sample) and a
     sphere light."""
-    # (adaptive: the lattice's first pass shades a quarter or so: a larger frame to tile)
-    size = (128, 112) if spp == 1 or settings.get("adaptive") else (64, 56)
+    # (adaptive at one sample: the lattice's first pass shades a sixteenth or so on the
+    # sphere (three levels): a larger frame to tile)
+    size = (64, 56) if spp > 1 and not settings.get("adaptive") else (128, 112)
+    if spp == 1 and settings.get("adaptive"):
+        size = (192, 168)
     scene = _scene(name, size, spp, method, options)
     whole = tr.render(scene, settings=RenderSettings(**settings))
     assert counted == []  # the default budget: one pass

@@ -34,11 +34,12 @@ first; a pixel between lattice pixels whose G-buffer agrees with theirs (the tes
 and roughness at least ``smooth_alpha``) waits, and is then the mean of their radiances
 where those agree within ``LATTICE_RTOL``, else it is shaded in a further pass over the
 image so far; near the tolerances it is shaded and blended with the mean
-(``BLEND_FROM``), so the image changes continuously with the scene. Where the image is smooth over several pixels the even pixels are first a
-level of their own on the pixels of stride 4 (``COARSE_SHARE``); where little could wait
-there is no lattice (``FINE_SHARE``). The shaded pixels are the full render's; the others
-are interpolated where the image is smooth (measured: docs/decisions.md, "Adaptive shading
-at one sample per pixel").
+(``BLEND_FROM``), so the image changes continuously with the scene. Where the image is
+smooth over several pixels the even pixels are first a level of their own on the pixels
+of stride 4, and so on (strides 4, 8, ...) while enough of a level's pixels could wait
+(``COARSE_SHARE``); where little could wait there is no lattice (``FINE_SHARE``). The
+shaded pixels are the full render's; the others are interpolated where the image is smooth
+(measured: docs/decisions.md, "Adaptive shading at one sample per pixel").
 """
 
 from __future__ import annotations
@@ -78,8 +79,9 @@ pass). 0: a view switches only where no pixel could wait, so that its image does
 as the share crosses a threshold (a view's camera or object moving); 0.4 saved ~5% on a
 detailed view (the bunny at 256x256, 0.35 waiting)."""
 COARSE_SHARE = 0.5
-"""The share of a view's even object pixels that must be able to wait on the pixels of
-stride 4 for that coarser level to be planned (0: wherever any can; see FINE_SHARE)."""
+"""The share of a view's object pixels at a level's lattice (stride 2 s for the level at
+stride s) that must be able to wait on the pixels of stride 4 s for that coarser level to
+be planned (0: wherever any can; see FINE_SHARE)."""
 REFINE_RTOL = 1.6
 """With n x n samples: a pixel shaded once whose 3x3 neighbourhood of such pixels'
 radiances spreads (max - min in a channel) by more than this times their mean luminance
@@ -189,11 +191,10 @@ def refine(plan: Plan, radiance: torch.Tensor, rtol: float | None = None
     for v in _subs(rest, n)[1:]:
         v |= more  # (strided views: in place)
     if plan.lattice is not None:  # center samples the lattice interpolated: shaded now
-        fine = plan.lattice.levels[-1].status
-        interpolated = (fine == 3) | (fine == 5)
-        if len(plan.lattice.levels) > 1:
-            coarse = plan.lattice.levels[0].status
-            interpolated[:, ::2, ::2] |= (coarse == 3) | (coarse == 5)
+        interpolated = torch.zeros_like(more)
+        for level in plan.lattice.levels:
+            s = level.stride
+            interpolated[:, ::s, ::s] |= (level.status == 3) | (level.status == 5)
         rest[:, ::n, ::n] |= more & interpolated
     return more, rest
 
@@ -277,7 +278,7 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
 class Level:
     """One level of adaptive shading at one sample per pixel (or over a supersampled
     plan's center samples: ``sub``), on the pixels of stride ``stride`` (1: every pixel;
-    2: the even rows and columns): ``status`` (B, H/s, W/s)
+    2: the even rows and columns; 4, 8, ...: coarser levels): ``status`` (B, H/s, W/s)
     uint8 on them, 0 not the object, 1 shaded before the level is filled, 2 waiting for its
     lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, 4,
     shaded in the level's own pass, or 5, shaded there and blended with the
@@ -412,8 +413,9 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     FINE_SHARE of the object pixels could wait shades every pixel at once; every other
     view's pixels wait on its even pixels, and where at least ``coarse_share`` (default
     COARSE_SHARE) of its even object pixels can themselves wait on the pixels of stride 4
-    (smooth regions spanning several pixels), a level on the even pixels comes first. The
-    first pass shades what no level lets wait; ``g`` and None where no view waits at all.
+    (smooth regions spanning several pixels), a level on the even pixels comes first; and
+    so on, a level at stride 4 where enough of those can wait on stride 8, ... The first
+    pass shades what no level lets wait; ``g`` and None where no view waits at all.
     A waiting pixel is rough and so are its lattice neighbours, which an earlier pass
     shades: each pass has a rough pixel where the full pass has one (the methods' switch
     of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
@@ -446,21 +448,23 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     if not bool(fine_views.any()):  # every pixel shaded (in the region only)
         return (g if region is None else replace(g, shade=shaded)), None
     _no_wait(status, fine_views)
-    fine = Level(1, status, gap, sub=n)
-    coarse_status, coarse_gap, coarse = _plan(
-        *layers, alpha, *tol, stride=2 * n,
-        uniform=None if uniform is None else uniform[:, ::2, ::2])
-    coarse_waiting = coarse[:, 1]
-    coarse_views = fine_views & (coarse_waiting > 0) & (coarse_waiting >= share * coarse[:, 0])
+    levels = [Level(1, status, gap, sub=n)]
+    views, stride = fine_views, 2
+    while True:  # a coarser level on the lattice pixels of the last, where it pays
+        status, gap, counts = _plan(*layers, alpha, *tol, stride=stride * n, uniform=None
+                                    if uniform is None else uniform[:, ::stride, ::stride])
+        waiting = counts[:, 1]
+        views = views & (waiting > 0) & (waiting >= share * counts[:, 0])
+        if not bool(views.any()):
+            break
+        _no_wait(status, views)
+        levels.insert(0, Level(stride, status, gap, sub=n))
+        stride *= 2
     # the first pass: the (sub-)pixels shaded so far, less the levels' waiting pixels
     first = shaded.clone(memory_format=torch.contiguous_format)
-    _clear_waiting(first, fine.status, n)
-    if not bool(coarse_views.any()):
-        return replace(g, shade=first), Lattice(levels=(fine,))
-    _no_wait(coarse_status, coarse_views)
-    _clear_waiting(first, coarse_status, 2 * n)
-    return replace(g, shade=first), Lattice(levels=(Level(2, coarse_status, coarse_gap, sub=n),
-                                                    fine))
+    for level in levels:
+        _clear_waiting(first, level.status, level.frame_stride)
+    return replace(g, shade=first), Lattice(levels=tuple(levels))
 
 
 def _clear_waiting(first: torch.Tensor, status: torch.Tensor, stride: int) -> None:
