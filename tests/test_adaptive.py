@@ -544,6 +544,29 @@ def test_coarser_levels_over_a_plan_refine_every_level(monkeypatch):
     assert flip_map(a.radiance[0].numpy(), u.radiance[0].numpy())[obj].mean() < 0.02
 
 
+def test_refine_reads_every_level():
+    """refine() shades again a center sample that any level interpolated (status 3 or 5
+    at that level's stride) where the radiance spreads, and none that no level did:
+    each level alone marked, on a plan with four levels."""
+    h = w = 16
+    uniform = torch.ones(1, h, w, dtype=torch.bool)
+    levels = tuple(adaptive.Level(s, torch.ones(1, h // s, w // s, dtype=torch.uint8),
+                                  torch.zeros(1, h // s, w // s), sub=2) for s in (8, 4, 2, 1))
+    plan = adaptive.Plan(uniform=uniform, n=2, lattice=adaptive.Lattice(levels))
+    yy, xx = torch.meshgrid(torch.arange(2 * h), torch.arange(2 * w), indexing="ij")
+    rad = (10.0 * ((yy // 2 + xx // 2) % 2))[None, ..., None].expand(1, 2 * h, 2 * w, 3)
+    for k, lv in enumerate(levels):
+        for other in levels:
+            other.status.fill_(1)
+        lv.status.view(-1)[::3] = 3 if k % 2 else 5  # some of its pixels interpolated
+        more, rest = adaptive.refine(plan, rad)
+        assert bool(more.all())  # (a checkerboard: every uniform pixel spreads)
+        want = torch.zeros(1, h, w, dtype=torch.bool)
+        want[:, ::lv.stride, ::lv.stride] = lv.status >= 3
+        assert torch.equal(rest[:, ::2, ::2], want), lv.stride
+        assert bool(rest[:, 1::2].all() and rest[:, :, 1::2].all())
+
+
 @pytest.mark.parametrize("n", [1, 2])
 def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch, n):
     """csrc/lattice.c's driver (the fused methods fill and shade every level after their
