@@ -427,8 +427,8 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
 
 #ifdef TR_PLAN8
 /* fill8's last step: each waiting pixel's status (3, 5: its mean taken, 4: shaded),
- * weight and passes' means, one by one (``tbits``: the lanes whose means were taken; t:
- * their measures). */
+ * weight and passes' means of several channels, one by one (``tbits``: the lanes whose
+ * means were taken; t: their measures). */
 static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
                        int64_t off[3][4], int wbits, int tbits, __m256 t) {
     float tv[8];
@@ -442,9 +442,10 @@ static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
         int64_t fp = p + l, nb[4];
         int c = (y & 1) ? (int)((x + l) & 1) + 1 : 0, k = c == 2 ? 4 : 2;
         for (int i = 0; i < k; i++) nb[i] = fp + off[c][i];
-        for (int qi = 0; qi < j->npass; qi++) {
+        for (int qi = 0; qi < j->npass; qi++) {  /* (one-channel ones: fill8's lanes) */
             float *xq = j->pass[qi];
             int64_t ch = j->pass_ch[qi];
+            if (ch == 1) continue;
             for (int64_t cc = 0; cc < ch; cc++) xq[fp * ch + cc] = lattice_mean(xq, ch, nb, k, cc);
         }
         if (tv[l] <= j->blend_from) {
@@ -455,6 +456,19 @@ static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
             j->status[p + l] = 5;
         }
     }
+}
+
+/* lattice_mean of a one-channel array over the 8 pixels from p in lanes (the slots' k = 2
+ * or 4 neighbours, the same operations). */
+static inline __m256 slots_mean(const float *a, int64_t p, const Slots8 *sl) {
+    __m256 sum = _mm256_add_ps(slot_ps(a, p, sl->off[0], sl->odd),
+                               slot_ps(a, p, sl->off[1], sl->odd));
+    __m256 m = _mm256_mul_ps(sum, _mm256_set1_ps(0.5f));
+    if (sl->n < 4) return m;
+    __m256 four = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(
+        sum, slot_ps(a, p, sl->off[2], sl->odd)), slot_ps(a, p, sl->off[3], sl->odd)),
+        _mm256_set1_ps(0.25f));
+    return _mm256_blendv_ps(m, four, sl->use[2]);
 }
 
 /* fill_pixel for the waiting ones of the 8 pixels p .. p + 7 of row y (the level is the
@@ -505,11 +519,17 @@ static void fill8(const LatticeJob *j, int64_t p, int64_t y, int64_t x, int64_t 
     /* no lattice pixel (an even row's even column) is filled: no plan lets one wait */
     int lattice = (y & 1) ? 0 : _mm256_movemask_ps(sl.odd) ^ 0xff;
     int tbits = _mm256_movemask_ps(take) & wbits & ~lattice;
-    if (tbits)
-        tr_store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+    if (tbits) {
+        __m256i tm = _mm256_cmpgt_epi32(
             _mm256_and_si256(_mm256_set1_epi32(tbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32,
                                                                          64, 128)),
-            _mm256_setzero_si256())), mean[0], mean[1], mean[2]);
+            _mm256_setzero_si256());
+        tr_store_xyz8_where(j->radiance + 3 * p, _mm256_castsi256_ps(tm), mean[0], mean[1],
+                            mean[2]);
+        for (int qi = 0; qi < j->npass; qi++)  /* one-channel passes: their means here */
+            if (j->pass_ch[qi] == 1)
+                _mm256_maskstore_ps(j->pass[qi] + p, tm, slots_mean(j->pass[qi], p, &sl));
+    }
     fill_tail8(j, p, y, x, off, wbits, tbits, t);
 }
 #endif
