@@ -481,44 +481,49 @@ def test_two_levels_where_smooth_over_several_pixels_one_elsewhere(monkeypatch):
     assert float((one.radiance[0] == full.radiance[0]).all(-1)[m].float().mean()) > exact
 
 
-def test_coarser_levels_while_enough_pixels_can_wait(monkeypatch):
-    """Levels go on coarsening (strides 4, 8, ...) while COARSE_SHARE of a level's lattice
-    pixels could wait (0: wherever any can). The rough sphere then gets three levels or
-    more, each at twice the next one's stride; csrc/lattice.c's driver gives the images of
-    the levels run from Python bit for bit; every pixel shaded is the full render's and
-    the image stays close to it, but further from it than with two levels."""
+def test_coarser_levels_up_to_the_coarsest_stride(monkeypatch):
+    """Levels coarsen (strides 2, then 4) where COARSE_SHARE of a level's lattice pixels
+    could wait, up to COARSEST: the rough sphere at 128 pixels takes three. csrc/lattice.c's
+    driver gives the images of the levels run from Python bit for bit; every pixel shaded
+    is the full render's, and the image stays close to it, but further than with two
+    levels. With COARSEST raised (and COARSE_SHARE 0) the loop goes on at stride 8."""
     from torchrefract.shading import fused
 
     s = _scene("sphere_a03", 128, n=1, method="rousiers")
-    g, args = _lattice_inputs(s)
-    two = adaptive.lattice(g, args[-1])[1]
-    monkeypatch.setattr(adaptive, "COARSE_SHARE", 0.0)
     made, lattice = [], adaptive.lattice
     monkeypatch.setattr(adaptive, "lattice", lambda *a, **k: made.append(lattice(*a, **k))
                         or made[-1])
-    a = tr.render(s, settings=ADAPTIVE)
-    lat = made[-1][1]  # its levels' statuses as the fill left them
-    strides = [lv.stride for lv in lat.levels]
-    assert len(strides) >= 3 and strides == [2 ** k for k in range(len(strides))][::-1]
-    assert len(two.levels) < len(strides)
+
+    def rendered(**consts):
+        for k, v in consts.items():
+            monkeypatch.setattr(adaptive, k, v)
+        out = tr.render(s, settings=ADAPTIVE)
+        return out, made[-1][1]  # its levels' statuses as the fill left them
+
+    a, lat = rendered()
+    assert [lv.stride for lv in lat.levels] == [4, 2, 1]
     run = fused._run
     monkeypatch.setattr(fused, "_run", lambda n, job, *rest: run(n, job))
     b = tr.render(s, settings=ADAPTIVE)
     monkeypatch.setattr(fused, "_run", run)
     assert torch.equal(a.radiance, b.radiance)
     full = tr.render(s, settings=UNIFORM)
-    m = g.front.mask[0]
+    m = full.coverage[0] > 0
     shaded = m.clone()  # no level interpolated it (status 3) nor blended it (5)
     for lv in lat.levels:
         st = lv.status[0]
         shaded[::lv.stride, ::lv.stride] &= (st != 3) & (st != 5)
     assert 0.03 < float(shaded[m].float().mean()) < 0.25
     assert torch.equal(a.radiance[0][shaded], full.radiance[0][shaded])
-    fl = float(flip_map(a.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
-    monkeypatch.undo()
-    fl2 = float(flip_map(tr.render(s, settings=ADAPTIVE).radiance[0].numpy(),
-                         full.radiance[0].numpy())[m.numpy()].mean())
-    assert fl2 < fl < 0.03, (fl2, fl)
+
+    def flip(r) -> float:
+        return float(flip_map(r.radiance[0].numpy(), full.radiance[0].numpy())[m.numpy()].mean())
+
+    two, lat2 = rendered(COARSEST=2)
+    assert [lv.stride for lv in lat2.levels] == [2, 1]
+    assert flip(two) < flip(a) < 0.03, (flip(two), flip(a))
+    _, lat8 = rendered(COARSEST=8, COARSE_SHARE=0.0)
+    assert [lv.stride for lv in lat8.levels] == [8, 4, 2, 1]
 
 
 def test_coarser_levels_over_a_plan_refine_every_level(monkeypatch):

@@ -106,8 +106,8 @@ def test_tiles_give_the_untiled_pixels(counted, name, method, options, spp, sett
     through both layers), roughness maps (coverage mips), the fused kernels and the tensor
     code, adaptive sampling (supersampling, and the lattice's passes at one sample) and a
     sphere light."""
-    # (adaptive at one sample: the lattice's first pass shades a sixteenth or so on the
-    # sphere (three levels): a larger frame to tile)
+    # (adaptive at one sample: the lattice's first pass shades a small share of the
+    # sphere, three levels' lattice at stride 8: a larger frame to tile)
     size = (64, 56) if spp > 1 and not settings.get("adaptive") else (128, 112)
     if spp == 1 and settings.get("adaptive"):
         size = (192, 168)

@@ -35,9 +35,10 @@ and roughness at least ``smooth_alpha``) waits, and is then the mean of their ra
 where those agree within ``LATTICE_RTOL``, else it is shaded in a further pass over the
 image so far; near the tolerances it is shaded and blended with the mean
 (``BLEND_FROM``), so the image changes continuously with the scene. Where the image is
-smooth over several pixels the even pixels are first a level of their own on the pixels
-of stride 4, and so on (strides 4, 8, ...) while enough of a level's pixels could wait
-(``COARSE_SHARE``); where little could wait there is no lattice (``FINE_SHARE``). The
+smooth over several pixels the even pixels are first a level of their own, waiting on the
+pixels of stride 4, and before it those on the pixels of stride 8 (``COARSEST``), where
+enough of a level's pixels could wait (``COARSE_SHARE``); where little could wait there is
+no lattice (``FINE_SHARE``). The
 shaded pixels are the full render's; the others are interpolated where the image is smooth
 (measured: docs/decisions.md, "Adaptive shading at one sample per pixel").
 """
@@ -82,6 +83,12 @@ COARSE_SHARE = 0.5
 """The share of a view's object pixels at a level's lattice (stride 2 s for the level at
 stride s) that must be able to wait on the pixels of stride 4 s for that coarser level to
 be planned (0: wherever any can; see FINE_SHARE)."""
+COARSEST = 4
+"""The stride of the coarsest level planned (the levels: strides COARSEST, ..., 2, 1). A
+level at stride 8 interpolates over 16 pixels: on the rough sphere at 512 and 1024 pixels
+it bought under 2% of the frame and doubled the interpolation's error against the full
+render (docs/decisions.md, "The lattice's levels coarsen while enough pixels can
+wait")."""
 REFINE_RTOL = 1.6
 """With n x n samples: a pixel shaded once whose 3x3 neighbourhood of such pixels'
 radiances spreads (max - min in a channel) by more than this times their mean luminance
@@ -278,7 +285,7 @@ def _center_samples(g: GBuffer, sel: torch.Tensor, tris: torch.Tensor, d: torch.
 class Level:
     """One level of adaptive shading at one sample per pixel (or over a supersampled
     plan's center samples: ``sub``), on the pixels of stride ``stride`` (1: every pixel;
-    2: the even rows and columns; 4, 8, ...: coarser levels): ``status`` (B, H/s, W/s)
+    2: the even rows and columns; 4: a coarser level, COARSEST): ``status`` (B, H/s, W/s)
     uint8 on them, 0 not the object, 1 shaded before the level is filled, 2 waiting for its
     lattice neighbours (csrc/lattice.c; :func:`fill` turns 2 into 3, interpolated, 4,
     shaded in the level's own pass, or 5, shaded there and blended with the
@@ -414,8 +421,8 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     view's pixels wait on its even pixels, and where at least ``coarse_share`` (default
     COARSE_SHARE) of its even object pixels can themselves wait on the pixels of stride 4
     (smooth regions spanning several pixels), a level on the even pixels comes first; and
-    so on, a level at stride 4 where enough of those can wait on stride 8, ... The first
-    pass shades what no level lets wait; ``g`` and None where no view waits at all.
+    so on up to COARSEST (a level at stride 4 where enough of those can wait on stride 8).
+    The first pass shades what no level lets wait; ``g`` and None where no view waits at all.
     A waiting pixel is rough and so are its lattice neighbours, which an earlier pass
     shades: each pass has a rough pixel where the full pass has one (the methods' switch
     of the rough interfaces' energies, :func:`torchrefract.tiles.shade`).
@@ -450,7 +457,7 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     _no_wait(status, fine_views)
     levels = [Level(1, status, gap, sub=n)]
     views, stride = fine_views, 2
-    while True:  # a coarser level on the lattice pixels of the last, where it pays
+    while stride <= COARSEST:  # a coarser level on the last one's lattice, where it pays
         status, gap, counts = _plan(*layers, alpha, *tol, stride=stride * n, uniform=None
                                     if uniform is None else uniform[:, ::stride, ::stride])
         waiting = counts[:, 1]
@@ -627,6 +634,6 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
     return mean + weight[:, None] * (shaded - mean)
 
 
-__all__ = ["BLEND_FROM", "COARSE_SHARE", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL", "NORMAL_TOL",
-           "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level", "Plan", "fill", "fill_rtol",
+__all__ = ["BLEND_FROM", "COARSE_SHARE", "COARSEST", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL",
+           "NORMAL_TOL", "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level", "Plan", "fill", "fill_rtol",
            "lattice", "merge", "plan", "refine", "spread", "waiting"]
