@@ -634,6 +634,7 @@ def _blend(mean: torch.Tensor, shaded: torch.Tensor, weight: torch.Tensor) -> to
     return mean + weight[:, None] * (shaded - mean)
 
 
-__all__ = ["BLEND_FROM", "COARSE_SHARE", "COARSEST", "DEPTH_TOL", "FINE_SHARE", "LATTICE_RTOL",
-           "NORMAL_TOL", "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level", "Plan", "fill", "fill_rtol",
-           "lattice", "merge", "plan", "refine", "spread", "waiting"]
+__all__ = ["BLEND_FROM", "COARSE_SHARE", "COARSEST", "DEPTH_TOL", "FINE_SHARE",
+           "LATTICE_RTOL", "NORMAL_TOL", "REFINE_RTOL", "SMOOTH_ALPHA", "Lattice", "Level",
+           "Plan", "fill", "fill_rtol", "lattice", "merge", "plan", "refine", "spread",
+           "waiting"]
