@@ -1385,11 +1385,8 @@ def put_rows(dst: torch.Tensor, pairs: list[tuple[torch.Tensor, torch.Tensor]]) 
     where the kernel does not run: unavailable, a gradient wanted, or a tensor that does
     not fit."""
     n = dst.numel()
-    if (not available() or dst.dtype != torch.int64 or not dst.is_contiguous()
-            or dst.device.type != "cpu") or not all(
-            o.dtype == torch.float32 and x.dtype == torch.float32 and o.dim() == 2
-            and x.shape == (n, o.shape[1]) and o.is_contiguous() and x.is_contiguous()
-            and o.device.type == "cpu" and x.device.type == "cpu"
+    if not (available() and _in_place(torch.int64, dst)) or not all(
+            _in_place(torch.float32, o, x) and o.dim() == 2 and x.shape == (n, o.shape[1])
             and not (o.requires_grad or x.requires_grad) for o, x in pairs):
         return False
     if n == 0 or not pairs:
@@ -1501,8 +1498,7 @@ def center_samples(g, uniform: torch.Tensor, center_dirs: torch.Tensor) -> bool:
     ins = (center_dirs, g.eye, g.proj, g.meshes.tri_vertices, g.meshes.tri_normals,
            g.meshes.tri_uvs)
     ok = (available() and no_grad_through(*outs, *ins) and _in_place(torch.float32, *outs, *ins)
-          and f.tri.dtype == torch.int32 and f.tri.is_contiguous()
-          and uniform.dtype == torch.bool and uniform.is_contiguous())
+          and _in_place(torch.int32, f.tri) and _in_place(torch.bool, uniform))
     if not ok:
         return False
     b, h, w = uniform.shape

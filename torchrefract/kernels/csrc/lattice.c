@@ -374,6 +374,18 @@ int torchrefract_lattice_plan(LatticeJob *job, int threads) {
     return tr_parallel_for(plan_range, job, job->b * job->h * job->w, 4096, threads);
 }
 
+/* A waiting pixel p whose mean was taken at measure t < 1: its mean alone (status 3) up
+ * to blend_from, else blended with its shaded value by smoothstep's weight (status 5). */
+static inline void mean_taken(const LatticeJob *j, int64_t p, float t) {
+    if (t <= j->blend_from) {
+        j->status[p] = 3;
+        return;
+    }
+    float u = (t - j->blend_from) / (1.0f - j->blend_from);
+    j->weight[p] = u * u * (3.0f - 2.0f * u);
+    j->status[p] = 5;
+}
+
 /* One waiting pixel p (frame index fp) of the fill, its k lattice neighbours at the frame
  * offsets ``off`` (k a constant where inlined: the neighbours' indices stay in registers). */
 static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j, int64_t p,
@@ -413,13 +425,7 @@ static inline __attribute__((always_inline)) void fill_pixel(const LatticeJob *j
             int64_t ch = j->pass_ch[q];
             for (int64_t c = 0; c < ch; c++) x[fp * ch + c] = lattice_mean(x, ch, nb, k, c);
         }
-        if (t <= j->blend_from) {
-            j->status[p] = 3;
-        } else {
-            float u = (t - j->blend_from) / (1.0f - j->blend_from);
-            j->weight[p] = u * u * (3.0f - 2.0f * u);
-            j->status[p] = 5;
-        }
+        mean_taken(j, p, t);
     } else {
         j->status[p] = 4;
     }
@@ -448,13 +454,7 @@ static void fill_tail8(const LatticeJob *j, int64_t p, int64_t y, int64_t x,
             if (ch == 1) continue;
             for (int64_t cc = 0; cc < ch; cc++) xq[fp * ch + cc] = lattice_mean(xq, ch, nb, k, cc);
         }
-        if (tv[l] <= j->blend_from) {
-            j->status[p + l] = 3;
-        } else {
-            float u = (tv[l] - j->blend_from) / (1.0f - j->blend_from);
-            j->weight[p + l] = u * u * (3.0f - 2.0f * u);
-            j->status[p + l] = 5;
-        }
+        mean_taken(j, p + l, tv[l]);
     }
 }
 
