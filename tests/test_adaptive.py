@@ -607,6 +607,46 @@ def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch, n):
             assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
 
 
+def test_tensor_code_levels_in_the_kernels_driver_equal_the_levels_in_python(monkeypatch):
+    """After a first pass by a method's tensor code (the fused kernels off here; ``sh``,
+    ``lean``'s tensor code), csrc/lattice.c's driver fills every level and calls the
+    method back for each level's pass (``fused.lattice_levels``): the images and passes of
+    adaptive.fill and adaptive.merge bit for bit, three levels at one sample and over a
+    2x2 plan; it is the path taken; an error in a level's pass reaches the caller as it
+    was raised."""
+    from torchrefract import result
+    from torchrefract.shading import fused
+
+    tensor = RenderSettings(adaptive=True, fused=False)
+    levels, driven = fused.lattice_levels, []
+    for name, method, n in (("sphere_a03", "rousiers", 1), ("sphere_a03", "specular", 1),
+                            ("globe_jump", "lean", 2)):
+        s = _scene(name, 128 // n, n=n, method=method)
+        monkeypatch.setattr(fused, "lattice_levels", lambda lv, *rest: driven.append(
+            len(lv)) or levels(lv, *rest))
+        a = tr.render(s, settings=tensor)
+        assert driven and driven[-1] >= 2, (name, method, driven)
+        monkeypatch.setattr(fused, "lattice_levels", lambda *a: False)
+        b = tr.render(s, settings=tensor)
+        monkeypatch.undo()
+        assert torch.equal(a.radiance, b.radiance), (name, method)
+        assert set(a.passes) == set(b.passes)
+        for k in a.passes:
+            assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
+    shade, passes = result.tiles.shade, []
+
+    def failing(entry, g, *rest):
+        passes.append(g.canvas is not None)
+        if g.canvas is not None:  # a level's pass
+            raise ArithmeticError("a level's pass failed")
+        return shade(entry, g, *rest)
+
+    monkeypatch.setattr(result.tiles, "shade", failing)
+    with pytest.raises(ArithmeticError, match="a level's pass failed"):
+        tr.render(_scene("sphere_a03", 128, n=1, method="rousiers"), settings=tensor)
+    assert passes == [False, True]
+
+
 def test_supersampled_plan_interpolates_only_uniform_center_samples():
     """Over a 2x2 plan the levels wait on the uniform pixels' center samples (their first
     sub-pixels): never a non-uniform pixel (shaded at every sub-pixel) nor on one; the

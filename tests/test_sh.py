@@ -429,6 +429,11 @@ def test_shading_refuses_a_mesh_that_is_not_the_prepared_one(tmp_path, one_threa
     from torchrefract.lighting.lights import Lighting
     from torchrefract.optics.materials import MaterialBatch
 
+    # the prepared mesh shades (its verdict kept: check_mesh compares a face table once)
+    ga = build_gbuffer([load_mesh(str(a))], [cam])
+    for _ in range(2):
+        method.shade(ga, Lighting.from_scenes([sa]), MaterialBatch.from_scenes([sa]), opts,
+                     state)
     gb = build_gbuffer([load_mesh(str(b))], [cam])
     with pytest.raises(ValueError, match="differs from its precomputed"):
         method.shade(gb, Lighting.from_scenes([sb]), MaterialBatch.from_scenes([sb]), opts,

@@ -17,9 +17,11 @@ from torchrefract import tiles
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels import native
+from torchrefract.kernels.index import put_, take
 from torchrefract.matte import render_hook
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.scene import Scene
+from torchrefract.shading import fused
 from torchrefract.stages import collect
 
 
@@ -267,6 +269,41 @@ def _refine(entry, g, plan, radiance: torch.Tensor, passes: dict, args: tuple):
     return dataclasses.replace(plan, uniform=plan.uniform & ~more), radiance, passes
 
 
+def _levels(entry, g, lattice, radiance: torch.Tensor, passes: dict, native_ok: bool,
+            args: tuple) -> tuple[torch.Tensor, dict]:
+    """After a first pass by the method's tensor code, each level of ``lattice``: its
+    waiting pixels interpolated, or shaded over the image so far (``tiles.shade``). In
+    csrc/lattice.c's driver (``fused.lattice_levels``, the fused methods' loop) where
+    ``native_ok`` (no matte recording) and no gradient flows, else by adaptive.fill and
+    adaptive.merge: the same values."""
+    b, h, w = g.shape
+    if native_ok and native.no_grad_through(radiance, *passes.values()):
+        flat = radiance.view(-1, 3) if radiance.is_contiguous() else None
+
+        def shade(idx: torch.Tensor) -> None:
+            rest = torch.zeros(b * h * w, dtype=torch.bool)
+            rest[idx] = True
+            again = tiles.shade(entry, dataclasses.replace(
+                g, shade=rest.view(b, h, w), canvas=flat), *args)
+            put_(flat, idx, take(again.radiance.reshape(-1, 3), idx))
+            for k, v in passes.items():
+                if k in again.passes:
+                    c = v.shape[-1]
+                    put_(v.view(-1, c), idx, take(again.passes[k].reshape(-1, c), idx))
+
+        if flat is not None and fused.lattice_levels(lattice.levels, (b, h, w), radiance,
+                                                     passes, shade):
+            return radiance, passes
+    for level in lattice.levels:  # interpolated, or shaded over the image so far
+        radiance, passes, rest, soft = adaptive.fill(level, radiance, passes)
+        if rest is None:
+            continue
+        again = tiles.shade(entry, dataclasses.replace(
+            g, shade=rest, canvas=radiance.view(-1, 3)), *args)
+        radiance, passes = adaptive.merge(radiance, passes, again, rest, soft)
+    return radiance, passes
+
+
 def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, plan,
                  t_start: float) -> RenderResult:
     """The method's shading of a built G-buffer and the passes, on the tensors' device
@@ -280,17 +317,10 @@ def finish_pass(scenes, entry, g, lighting, materials, options, state, budget, p
                              materials, options, state, budget)
         radiance, method_passes = shaded.radiance, shaded.passes
         if lattice is not None and adaptive.waiting(lattice.levels[0]):  # (else the fused
-            # kernel ran every level: g.lattice) level by level, the waiting pixels:
-            for level in lattice.levels:  # interpolated, or shaded over the image so far
-                radiance, method_passes, rest, soft = adaptive.fill(level, radiance,
-                                                                    method_passes)
-                if rest is None:
-                    continue
-                again = tiles.shade(entry, dataclasses.replace(
-                    g, shade=rest, canvas=radiance.view(-1, 3)), lighting, materials,
-                    options, state, budget)
-                radiance, method_passes = adaptive.merge(radiance, method_passes, again,
-                                                         rest, soft)
+            # kernel ran every level: g.lattice) level by level, the waiting pixels
+            radiance, method_passes = _levels(entry, g, lattice, radiance, method_passes,
+                                              rec is None, (lighting, materials, options,
+                                                            state, budget))
         if isinstance(plan, adaptive.Plan) and rec is None:  # pixels shaded once after all
             plan, radiance, method_passes = _refine(entry, g, plan, radiance, method_passes,
                                                     (lighting, materials, options, state,

@@ -392,13 +392,71 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
     while not isinstance(frame, native._Frame):  # the job's Frame: its first field, nested
         frame = getattr(frame, frame._fields_[0][0])
     assert ctypes.addressof(frame) == ctypes.addressof(job)
-    b, h, w = g.shape
     levels = g.lattice.levels
-    # the kernel writes the level statuses and the passes in place: no copies
+    ran = _drive(native.entry(name), ctypes.addressof(job), levels, g.shape, radiance,
+                 passes)
+    if ran is None or ran:
+        return bool(ran)
+    if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
+        raise MemoryError(f"adaptive shading ({name}): no memory for a level's pass")
+    return False  # the first pass failed: nothing written, the tensor code runs
+
+
+_PASS_FN = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_int)
+"""csrc/lattice.c's ``tr_kernel_fn``: a level's pass, ``(job, threads) -> 0`` (ok) or -1."""
+
+
+def lattice_levels(levels, shape: tuple[int, int, int], radiance: torch.Tensor,
+                   passes: dict, shade) -> bool:
+    """adaptive.fill and adaptive.merge of every level of a lattice after a first pass
+    run by a method's tensor code, in csrc/lattice.c's driver (the fused methods' own
+    loop; the same values) with ``shade(idx)`` as each level's pass: it shades the frame's
+    pixels ``idx`` ((N,) int64, frame order) over ``radiance`` (B, H, W, 3) and writes
+    their radiance and ``passes`` (B, H, W, C each) there, in place. ``False`` where the
+    driver does not run (nothing changed: the caller loops in Python); an exception of
+    ``shade`` is raised here."""
+    if not native.available():
+        return False
+    failed: list[BaseException] = []
+
+    @_PASS_FN
+    def run(job: int, threads: int) -> int:
+        try:
+            f = native._Frame.from_address(job)
+            shade(torch.frombuffer((ctypes.c_int64 * f.n).from_address(f.idx),
+                                   dtype=torch.int64).clone())
+            return 0
+        except BaseException as exc:  # noqa: BLE001 (raised below, after the driver)
+            failed.append(exc)
+            return -1
+
+    frame = native._Frame(n=0)  # no first pass: the tensor code's is done
+    ran = _drive(ctypes.cast(run, ctypes.c_void_p).value, ctypes.addressof(frame), levels,
+                 shape, radiance, passes)
+    if failed:
+        raise failed[0]
+    if ran is None or ran:
+        return bool(ran)
+    if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
+        raise MemoryError("adaptive shading: no memory for a level's pass")
+    return False
+
+
+def _drive(run: int, job: int, levels, shape: tuple[int, int, int], radiance: torch.Tensor,
+           passes: dict) -> bool | None:
+    """csrc/lattice.c's ``lattice_shade``: ``run`` (a ``tr_kernel_fn``'s address) on
+    ``job`` (a ``Frame`` first) for the first pass and each level's; ``None`` where the
+    buffers do not suit it (nothing run), else whether it returned 0. The kernel writes
+    the level statuses, radiance and passes in place: no copies."""
+    b, h, w = shape
     if not all(x.is_contiguous() for lv in levels for x in (lv.status, lv.gap)):
-        return False
-    if not all(v.is_contiguous() and v.dtype == torch.float32 for v in passes.values()):
-        return False
+        return None
+    if not (radiance.is_contiguous() and radiance.dtype == torch.float32
+            and radiance.device.type == "cpu"):
+        return None
+    if not all(v.is_contiguous() and v.dtype == torch.float32 and v.device.type == "cpu"
+               for v in passes.values()):
+        return None
     rows = (native._ShadeLevel * len(levels))(*[native._ShadeLevel(
         stride=lv.frame_stride, h=lv.status.shape[1], w=lv.status.shape[2],
         status=lv.status.data_ptr(), gap=lv.gap.data_ptr(),
@@ -407,15 +465,11 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
     ptrs = (ctypes.c_void_p * max(1, len(bufs)))(*[x.data_ptr() for x in bufs])
     chans = torch.tensor([x.shape[1] for x in bufs] or [0], dtype=torch.int64)
     drv = native._LatticeShadeJob(
-        run=native.entry(name), job=ctypes.addressof(job), b=b, h=h, w=w,
+        run=run, job=job, b=b, h=h, w=w,
         nlevels=len(levels), levels=ctypes.cast(rows, ctypes.c_void_p),
         blend_from=adaptive.BLEND_FROM, radiance=radiance.data_ptr(), npass=len(bufs),
         pass_ptr=ctypes.cast(ptrs, ctypes.c_void_p), pass_ch=chans.data_ptr())
-    if native._call("lattice_shade", drv):
-        return True
-    if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
-        raise MemoryError(f"adaptive shading ({name}): no memory for a level's pass")
-    return False  # the first pass failed: nothing written, the tensor code runs
+    return native._call("lattice_shade", drv)
 
 
 def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool):
@@ -485,5 +539,5 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     return frame, keep, radiance, passes
 
 
-__all__ = ["background", "exit_lobes", "front_lobes", "incident_sg", "prefiltered",
-           "rousiers", "specular"]
+__all__ = ["background", "exit_lobes", "front_lobes", "incident_sg", "lattice_levels",
+           "prefiltered", "rousiers", "specular"]

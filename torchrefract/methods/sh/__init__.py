@@ -42,7 +42,6 @@ def prepare_tables(scenes: Sequence, options: SHOptions) -> tuple[SceneTable, ..
     """Per scene, the precomputed mapping of its mesh at its IOR (loaded or computed and
     cached: :func:`.cache.get_table`) and its transform."""
     out = []
-    checked: dict = {}  # check_mesh's memo, shared by the batch
     for s in scenes:
         mesh = load_mesh(s.mesh)  # object space: the table is pose-independent
         ior = float(np.float32(s.material.ior))
@@ -53,7 +52,7 @@ def prepare_tables(scenes: Sequence, options: SHOptions) -> tuple[SceneTable, ..
                                 branch=options.branch, branches=options.branches)
             table, _ = get_table(mesh, settings, cache_folder(), options.tracer,
                                  name=str(s.mesh).rsplit("/", 1)[-1])
-        out.append(scene_table(table, mesh, s.transform, checked))
+        out.append(scene_table(table, mesh, s.transform))
     return tuple(out)
 
 

@@ -41,6 +41,7 @@ import torch
 
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.geometry.mesh import MeshData, rotation_matrix
+from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_in, where_true
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
@@ -81,10 +82,7 @@ class SceneTable:
         table: the precomputed mapping, or None (IOR 1: nothing to map).
         mesh: the object-space mesh the table was made for.
         rotation: (3, 3) float32 object-to-world rotation; scale, translate: the rest of
-            the scene's transform.
-        checked: the G-buffer faces found to be this mesh under this transform
-            (:func:`check_mesh`), shared by the items of one ``prepare``: each batch's
-            faces are compared once per render, not once per view and pass.
+            the scene's transform; pose: the three as one hashable key.
     """
 
     table: SHTable | None
@@ -92,22 +90,29 @@ class SceneTable:
     rotation: torch.Tensor
     scale: float
     translate: torch.Tensor
-    checked: dict = field(default_factory=dict, compare=False, repr=False)
+    pose: tuple = field(default=(), compare=False, repr=False)
 
 
-def scene_table(table: SHTable | None, mesh: MeshData, transform,
-                checked: dict | None = None) -> SceneTable:
+def scene_table(table: SHTable | None, mesh: MeshData, transform) -> SceneTable:
     """A :class:`SceneTable` for a scene's ``transform`` (SCENE_SPEC: scale, rotate,
-    translate); ``checked``: the memo it shares with the other items of a batch."""
+    translate)."""
     r = torch.from_numpy(rotation_matrix(transform.rotate_deg).astype(np.float32))
+    t = torch.tensor(transform.translate, dtype=torch.float32)
     return SceneTable(table=table, mesh=mesh, rotation=r, scale=float(transform.scale),
-                      translate=torch.tensor(transform.translate, dtype=torch.float32),
-                      checked={} if checked is None else checked)
+                      translate=t, pose=(float(transform.scale), tuple(r.flatten().tolist()),
+                                         tuple(t.tolist())))
+
+
+_MATCHED = KeptByIdentity(64)
+"""check_mesh's verdicts: per batch face table (the mesh cache's tensor of a posed mesh,
+the same object render after render) and (face offset, face count, pose), the object-space
+mesh found there."""
 
 
 def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
     """Static by design: the G-buffer's mesh of batch item ``b`` must be the precomputed
-    mesh under the scene's transform (once per faces and transform: ``item.checked``).
+    mesh under the scene's transform (compared once per face table, offset and pose:
+    the faces of a posed mesh are read only, so a verdict holds while they live).
 
     Raises:
         ValueError: another mesh (face count or positions differ), naming both.
@@ -119,12 +124,10 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
                          f"precomputed table is for {mesh.num_faces}; re-run prepare() on "
                          "the scenes rendered (a deformed or other mesh needs its own table)")
     off = int(g.meshes.face_offset[b])
-    world = g.meshes.tri_vertices[off:off + nf]  # (F, 3, 3)
-    # (the faces tensor is held as the value: its id is not reused while in the memo)
-    key = (id(g.meshes.tri_vertices), off, id(mesh), item.scale,
-           tuple(item.rotation.flatten().tolist()), tuple(item.translate.tolist()))
-    if key in item.checked:
+    key = (off, nf, item.pose)
+    if _MATCHED.get(g.meshes.tri_vertices, key) is mesh:
         return
+    world = g.meshes.tri_vertices[off:off + nf]  # (F, 3, 3)
     expect = (mesh.vertices[mesh.faces] * item.scale) @ item.rotation.T + item.translate
     err = float((world - expect).abs().max())
     tol = 1e-4 * max(1.0, float(expect.abs().max()))
@@ -132,7 +135,7 @@ def check_mesh(g: GBuffer, b: int, item: SceneTable) -> None:
         raise ValueError(f"method 'sh': batch item {b}'s mesh differs from its precomputed "
                          f"table's by up to {err:.3g} (tolerance {tol:.3g}); re-run prepare() "
                          "on the scenes rendered (a deformed mesh needs its own table)")
-    item.checked[key] = g.meshes.tri_vertices
+    _MATCHED.put(g.meshes.tri_vertices, key, mesh)
 
 
 def evaluate(table: SHTable, faces: torch.Tensor, bary: torch.Tensor, omega: torch.Tensor,
@@ -326,11 +329,12 @@ def _tables_of(g: GBuffer, px: Pixels, items: tuple[SceneTable, ...],
     IOR, the branch channels); an item without a table (IOR 1) has its pixels marked
     ``matched`` and their ``length`` the layers' gap instead."""
     mapped: dict[int, list[int]] = {}
+    counts = torch.bincount(px.bi, minlength=len(items)).tolist()
     for bi, item in enumerate(items):
-        sel = where_true(px.bi == bi)
-        if sel.numel() == 0:
+        if counts[bi] == 0:
             continue
         if item.table is None:  # IOR 1: no interface
+            sel = where_true(px.bi == bi)
             put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
             put_(length, sel, take(length_fallback, sel))
             continue
