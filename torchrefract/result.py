@@ -269,15 +269,15 @@ def _refine(entry, g, plan, radiance: torch.Tensor, passes: dict, args: tuple):
     return dataclasses.replace(plan, uniform=plan.uniform & ~more), radiance, passes
 
 
-def _levels(entry, g, lattice, radiance: torch.Tensor, passes: dict, native_ok: bool,
+def _levels(entry, g, lattice, radiance: torch.Tensor, passes: dict, may_drive: bool,
             args: tuple) -> tuple[torch.Tensor, dict]:
     """After a first pass by the method's tensor code, each level of ``lattice``: its
     waiting pixels interpolated, or shaded over the image so far (``tiles.shade``). In
     csrc/lattice.c's driver (``fused.lattice_levels``, the fused methods' loop) where
-    ``native_ok`` (no matte recording) and no gradient flows, else by adaptive.fill and
+    ``may_drive`` (no matte recording) and no gradient flows, else by adaptive.fill and
     adaptive.merge: the same values."""
     b, h, w = g.shape
-    if native_ok and native.no_grad_through(radiance, *passes.values()):
+    if may_drive and native.no_grad_through(radiance, *passes.values()):
         flat = radiance.view(-1, 3) if radiance.is_contiguous() else None
 
         def shade(idx: torch.Tensor) -> None:

@@ -393,8 +393,13 @@ def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> boo
         frame = getattr(frame, frame._fields_[0][0])
     assert ctypes.addressof(frame) == ctypes.addressof(job)
     levels = g.lattice.levels
-    ran = _drive(native.entry(name), ctypes.addressof(job), levels, g.shape, radiance,
-                 passes)
+    return _settled(_drive(native.entry(name), ctypes.addressof(job), levels, g.shape,
+                           radiance, passes), levels, name)
+
+
+def _settled(ran: bool | None, levels, name: str) -> bool:
+    """Whether :func:`_drive` ran (``None``: it did not start: ``False``); a failure after
+    a level changed the image raises (the caller cannot fall back to its tensor code)."""
     if ran is None or ran:
         return bool(ran)
     if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
@@ -435,11 +440,7 @@ def lattice_levels(levels, shape: tuple[int, int, int], radiance: torch.Tensor,
                  shape, radiance, passes)
     if failed:
         raise failed[0]
-    if ran is None or ran:
-        return bool(ran)
-    if not all(adaptive.waiting(lv) for lv in levels):  # failed after a level
-        raise MemoryError("adaptive shading: no memory for a level's pass")
-    return False
+    return _settled(ran, levels, "a level's pass in Python")
 
 
 def _drive(run: int, job: int, levels, shape: tuple[int, int, int], radiance: torch.Tensor,
