@@ -428,8 +428,9 @@ def lattice_levels(levels, shape: tuple[int, int, int], radiance: torch.Tensor,
     def run(job: int, threads: int) -> int:
         try:
             f = native._Frame.from_address(job)
-            shade(torch.frombuffer((ctypes.c_int64 * f.n).from_address(f.idx),
-                                   dtype=torch.int64).clone())
+            if f.n > 0:  # (the driver calls with pixels left only)
+                shade(torch.frombuffer((ctypes.c_int64 * f.n).from_address(f.idx),
+                                       dtype=torch.int64).clone())
             return 0
         except BaseException as exc:  # noqa: BLE001 (raised below, after the driver)
             failed.append(exc)
