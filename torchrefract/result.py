@@ -284,8 +284,9 @@ def _levels(entry, g, lattice, radiance: torch.Tensor, passes: dict, may_drive: 
             rest = torch.zeros(b * h * w, dtype=torch.bool)
             rest[idx] = True
             again = tiles.shade(entry, dataclasses.replace(
-                g, shade=rest.view(b, h, w), canvas=flat), *args)
-            put_(flat, idx, take(again.radiance.reshape(-1, 3), idx))
+                g, shade=rest.view(b, h, w), canvas=flat, draw_in_place=True), *args)
+            if again.radiance.data_ptr() != flat.data_ptr():  # (else drawn there)
+                put_(flat, idx, take(again.radiance.reshape(-1, 3), idx))
             for k, v in passes.items():
                 if k in again.passes:
                     c = v.shape[-1]

@@ -138,8 +138,8 @@ class GBuffer:
         back: nearest back faces (first exit of a convex object).
         ray_dir: (B, H, W, 3) unit camera ray per (sub-)pixel center.
         eye: (B, 3) camera positions.
-        proj: (B, 16) packed cameras for :func:`torchrefract.geometry.camera.project`, with width and
-            height of the rendered (supersampled) grid.
+        proj: (B, 16) packed cameras for :func:`torchrefract.geometry.camera.project`,
+            with width and height of the rendered (supersampled) grid.
         meshes: the batch's triangles.
         supersample: n; (H, W) = n * (camera height, camera width).
         shade: (B, H, W) bool, the object (sub-)pixels a method shades (None: all of
@@ -147,6 +147,9 @@ class GBuffer:
         canvas: (B*H*W, 3) radiance a method shades its pixels over in place of the
             background (None: the background; adaptive shading's second pass: the
             first pass's image, :func:`torchrefract.shading.background.background`).
+        draw_in_place: the method draws over ``canvas`` itself, not over a copy (the
+            caller keeps nothing of it: csrc/lattice.c's driver has read the means it
+            blends).
         lattice: adaptive shading's levels after this first pass (a
             :class:`torchrefract.geometry.adaptive.Lattice`) that a fused kernel may fill
             and shade itself after shading ``shade`` (:func:`torchrefract.shading.fused._run`;
@@ -170,6 +173,7 @@ class GBuffer:
     supersample: int
     shade: torch.Tensor | None = None
     canvas: torch.Tensor | None = None
+    draw_in_place: bool = False
     lattice: object | None = None
     marched: object | None = None
     derived: dict = field(default_factory=dict, compare=False, repr=False)

@@ -18,9 +18,10 @@ def background(g: GBuffer, lighting: Lighting) -> torch.Tensor:
     Without sphere lights nothing can hide the object, so every object pixel's value is
     replaced by the method's and the pixels the object covers are left at zero (not looked
     up); with lights, every pixel is looked up (a light in front of the object shows).
-    A G-buffer with a ``canvas`` (adaptive shading's second pass) gets a copy of it."""
+    A G-buffer with a ``canvas`` (adaptive shading's second pass) gets a copy of it, or
+    the canvas itself where it is drawn in place (``GBuffer.draw_in_place``)."""
     if g.canvas is not None:
-        return g.canvas.clone()
+        return g.canvas if g.draw_in_place else g.canvas.clone()
     done = fused.background(g, lighting)
     if done is not None:  # the fused kernel ran
         return done
