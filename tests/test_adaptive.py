@@ -30,6 +30,14 @@ def _scene(name: str, size: int = 48, n: int = 2, **changes) -> tr.Scene:
                                                 samples_per_pixel=n), **changes)
 
 
+def _assert_same_render(a, b, *label) -> None:
+    """Two renders' radiance and passes equal bit for bit (``label`` names the case)."""
+    assert torch.equal(a.radiance, b.radiance), label
+    assert set(a.passes) == set(b.passes), label
+    for k in a.passes:
+        assert torch.equal(a.passes[k], b.passes[k]), (*label, k)
+
+
 def _plan(s: tr.Scene):
     g = build_gbuffer([load_mesh(s.mesh, s.transform)], [s.camera])
     alpha = torch.full(g.shape, s.material.roughness)
@@ -601,10 +609,7 @@ def test_fused_levels_in_the_kernel_equal_the_levels_in_python(monkeypatch, n):
         monkeypatch.setattr(fused, "_run", lambda n, job, *rest: run(n, job))
         b = tr.render(s, settings=ADAPTIVE)
         monkeypatch.undo()
-        assert torch.equal(a.radiance, b.radiance), (name, method)
-        assert set(a.passes) == set(b.passes)
-        for k in a.passes:
-            assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
+        _assert_same_render(a, b, name, method)
 
 
 def test_tensor_code_levels_in_the_kernels_driver_equal_the_levels_in_python(monkeypatch):
@@ -629,10 +634,7 @@ def test_tensor_code_levels_in_the_kernels_driver_equal_the_levels_in_python(mon
         monkeypatch.setattr(fused, "lattice_levels", lambda *a: False)
         b = tr.render(s, settings=tensor)
         monkeypatch.undo()
-        assert torch.equal(a.radiance, b.radiance), (name, method)
-        assert set(a.passes) == set(b.passes)
-        for k in a.passes:
-            assert torch.equal(a.passes[k], b.passes[k]), (name, method, k)
+        _assert_same_render(a, b, name, method)
     shade, passes = result.tiles.shade, []
 
     def failing(entry, g, *rest):
