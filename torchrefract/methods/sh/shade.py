@@ -34,7 +34,8 @@ An index-matched object (IOR 1) has no interface: it is invisible (no table need
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import functools
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -82,7 +83,7 @@ class SceneTable:
         table: the precomputed mapping, or None (IOR 1: nothing to map).
         mesh: the object-space mesh the table was made for.
         rotation: (3, 3) float32 object-to-world rotation; scale, translate: the rest of
-            the scene's transform; pose: the three as one hashable key.
+            the scene's transform.
     """
 
     table: SHTable | None
@@ -90,17 +91,21 @@ class SceneTable:
     rotation: torch.Tensor
     scale: float
     translate: torch.Tensor
-    pose: tuple = field(default=(), compare=False, repr=False)
+
+    @functools.cached_property
+    def pose(self) -> tuple:
+        """The transform (scale, rotation, translation) as one hashable key, made once
+        (:func:`check_mesh` asks for it per view and pass)."""
+        return (self.scale, tuple(self.rotation.flatten().tolist()),
+                tuple(self.translate.tolist()))
 
 
 def scene_table(table: SHTable | None, mesh: MeshData, transform) -> SceneTable:
     """A :class:`SceneTable` for a scene's ``transform`` (SCENE_SPEC: scale, rotate,
     translate)."""
     r = torch.from_numpy(rotation_matrix(transform.rotate_deg).astype(np.float32))
-    t = torch.tensor(transform.translate, dtype=torch.float32)
     return SceneTable(table=table, mesh=mesh, rotation=r, scale=float(transform.scale),
-                      translate=t, pose=(float(transform.scale), tuple(r.flatten().tolist()),
-                                         tuple(t.tolist())))
+                      translate=torch.tensor(transform.translate, dtype=torch.float32))
 
 
 _MATCHED = KeptByIdentity(64)
