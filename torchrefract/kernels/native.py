@@ -624,17 +624,18 @@ def no_grad_through(*tensors: torch.Tensor) -> bool:
     return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
 
 
-def _call(name: str, job: ctypes.Structure) -> bool:
-    """Run kernel ``torchrefract_<name>`` on ``job`` with torch's thread count; ``False``
-    where a thread could not be started (the caller then runs its tensor code)."""
-    return getattr(_LIB, f"torchrefract_{name}")(ctypes.byref(job),
-                                                 torch.get_num_threads()) == 0
+def _call(name: str, job: ctypes.Structure, lib: ctypes.CDLL | None = None) -> bool:
+    """Run kernel ``torchrefract_<name>`` of ``lib`` (None: these kernels) on ``job`` with
+    torch's thread count; ``False`` where a thread could not be started (the caller then
+    runs its tensor code)."""
+    return getattr(lib or _LIB, f"torchrefract_{name}")(ctypes.byref(job),
+                                                        torch.get_num_threads()) == 0
 
 
-def entry(name: str) -> int:
-    """The address of kernel ``torchrefract_<name>`` (loaded: :func:`available`), for a job
-    that calls it (csrc/lattice.c's driver)."""
-    return ctypes.cast(getattr(_LIB, f"torchrefract_{name}"), ctypes.c_void_p).value
+def entry(name: str, lib: ctypes.CDLL | None = None) -> int:
+    """The address of kernel ``torchrefract_<name>`` of ``lib`` (None: these kernels,
+    loaded: :func:`available`), for a job that calls it (csrc/lattice.c's driver)."""
+    return ctypes.cast(getattr(lib or _LIB, f"torchrefract_{name}"), ctypes.c_void_p).value
 
 
 def _inputs(f32: tuple[torch.Tensor, ...], i64: tuple[torch.Tensor, ...],

@@ -9,7 +9,9 @@ tensor is on the CPU, and the kernel covers the scene's features. Today: at most
 lights; ``rousiers`` with its default spread (``spread: rays``; either ``cone_rays``),
 roughness maps and internal bounces; ``specular`` (internal bounces included)
 and ``prefiltered``. Elsewhere these functions return ``None`` and the
-method runs its tensor code; tests/test_fused.py holds the two to the same images.
+method runs its tensor code; tests/test_fused.py holds the two to the same images. A
+method whose kernel lives in its own library (``sh``: methods/sh/csrc/sh_shade.c, on this
+frame) builds its frame here (:func:`_frame`) and runs through :func:`run_kernel`.
 """
 
 from __future__ import annotations
@@ -374,26 +376,32 @@ def _paths(g, lighting, materials, options, radiance: torch.Tensor, blur: bool
 
 
 def _run(name: str, job, g=None, radiance: torch.Tensor | None = None,
-         passes: dict | None = None) -> bool:
-    """Run fused kernel ``name`` on ``job``, timed as the stage ``fused``. Where ``g``
+         passes: dict | None = None, lib=None) -> bool:
+    """Run fused kernel ``name`` (of ``lib``, a ctypes library built with this package's
+    frame.h; None: these kernels) on ``job``, timed as the stage ``fused``. Where ``g``
     carries the later levels of adaptive shading (``g.lattice``), the kernel's pixels are
     the first pass and csrc/lattice.c then fills and shades every level in place on
     ``radiance`` (B*H*W, 3) and ``passes`` (adaptive.fill and adaptive.merge, the same
     values), so the level statuses are left with no waiting pixel."""
     with stage("fused"):
         if g is None or g.lattice is None:
-            return native._call(name, job)
-        return _run_lattice(name, job, g, radiance, passes)
+            return native._call(name, job) if lib is None else native._call(name, job, lib)
+        return _run_lattice(name, job, g, radiance, passes, lib)
 
 
-def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict) -> bool:
+run_kernel = _run
+"""The fused kernels' run (:func:`_run`) for a method whose kernel lives in its own library
+(``sh``: methods/sh/csrc/sh_shade.c)."""
+
+
+def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict, lib=None) -> bool:
     """csrc/lattice.c's ``lattice_shade`` around kernel ``name`` (:func:`_run`)."""
     frame = job
     while not isinstance(frame, native._Frame):  # the job's Frame: its first field, nested
         frame = getattr(frame, frame._fields_[0][0])
     assert ctypes.addressof(frame) == ctypes.addressof(job)
     levels = g.lattice.levels
-    return _settled(_drive(native.entry(name), ctypes.addressof(job), levels, g.shape,
+    return _settled(_drive(native.entry(name, lib), ctypes.addressof(job), levels, g.shape,
                            radiance, passes), levels, name)
 
 
@@ -474,10 +482,12 @@ def _drive(run: int, job: int, levels, shape: tuple[int, int, int], radiance: to
     return native._call("lattice_shade", drv)
 
 
-def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool):
+def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool,
+           march: bool = True):
     """The ``Frame`` of csrc/frame.h for a batch, shading over ``radiance`` (B*H*W, 3, the
     background), the tensors it points into, the radiance and the passes every method
-    writes; ``None`` where no fused kernel runs for it."""
+    writes; ``None`` where no fused kernel runs for it. ``march`` False: without the
+    march's fields (a kernel that marches nothing: ``sh``'s)."""
     if (options.tir not in TIR_RULES or radiance.dtype != torch.float32
             or not radiance.is_contiguous() or not _runs(g, lighting, materials)):
         return None
@@ -505,20 +515,9 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
         if options.tir == "conserve" or options.bounces.enabled else torch.ones(b, 2)
-    # the marched layers (the front's too where bounces march between them), the frame's
-    # where g is a strip of it; the bounces' march sets pw 8 itself
-    mf = native.march_fields(camera_planes(g, both=options.bounces.enabled),
-                             options.bounces.enabled)
-    if mf is None:
+    march = _march_job(g, options, keep) if march else native._Job()
+    if march is None:
         return None
-    keep.extend(mf.pop("keep"))
-    mf["pw"] = 4
-    mh, mw = mf["h"], mf["w"]
-    march = native._Job(
-        steps=options.march_steps, refine=options.refine_steps,
-        sx_v=ptr(0.5 * mw / g.proj[:, 12]), sy_v=ptr(0.5 * mh / g.proj[:, 13]),
-        tv=ptr(g.meshes.tri_vertices), across=ptr(g.meshes.tri_across, torch.int64),
-        walk_steps=16, tn=ptr(g.meshes.tri_normals), **mf)
     frame = native._Frame(
         n=idx.numel(), nb=b, idx=ptr(idx, torch.int64), batch=ptr(bi, torch.int64),
         ray_dir=ptr(g.ray_dir), front_pos=ptr(g.front.position),
@@ -541,5 +540,24 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     return frame, keep, radiance, passes
 
 
+def _march_job(g, options, keep: _Keep) -> native._Job | None:
+    """The ``Job`` of csrc/march_core.h a frame's marches share: the marched layers (the
+    front's too where bounces march between them), the frame's where g is a strip of it;
+    the bounces' march sets pw 8 itself. ``None`` where the layers do not suit it."""
+    mf = native.march_fields(camera_planes(g, both=options.bounces.enabled),
+                             options.bounces.enabled)
+    if mf is None:
+        return None
+    keep.extend(mf.pop("keep"))
+    mf["pw"] = 4
+    mh, mw = mf["h"], mf["w"]
+    ptr = keep.ptr
+    return native._Job(
+        steps=options.march_steps, refine=options.refine_steps,
+        sx_v=ptr(0.5 * mw / g.proj[:, 12]), sy_v=ptr(0.5 * mh / g.proj[:, 13]),
+        tv=ptr(g.meshes.tri_vertices), across=ptr(g.meshes.tri_across, torch.int64),
+        walk_steps=16, tn=ptr(g.meshes.tri_normals), **mf)
+
+
 __all__ = ["background", "exit_lobes", "front_lobes", "incident_sg", "lattice_levels",
-           "prefiltered", "rousiers", "specular"]
+           "prefiltered", "rousiers", "run_kernel", "specular"]

@@ -18,6 +18,11 @@ compact, with the tensor code's float operations in its order and torch's own sq
 tensor code's on embreex (tests/test_sh.py), ~3-4x faster where the tensor path step
 dominated (teapot) and Embree-bound elsewhere (docs/decisions_sh.md).
 
+The fused shading (``csrc/sh_shade.c``, :func:`shade_job`) does the whole of
+:func:`.shade.render_sh` per pixel on the package kernels' frame
+(``kernels/csrc/frame.h``: the table lobes and lookups written once, there), calling the
+map of ``csrc/sh_eval.c`` per block of pixels.
+
 Built by :func:`torchrefract.kernels.native.build` (its compiler, flags, CPU key and thread
 split, ``csrc/common.h``) into the same cache folder, as its own small library, with
 ``-O3 -march=native`` where the compiler takes it and ``-ffp-contract=off`` (no
@@ -38,9 +43,10 @@ from torchrefract import settings
 from torchrefract.kernels import native as _native
 
 SOURCE = Path(__file__).with_name("csrc") / "sh_eval.c"
-SOURCES = (SOURCE, SOURCE.with_name("sh_paths.c"))
-"""Compiled together into one library: eq. 2's evaluation and the precomputation's paths."""
-HEADER = Path(_native.__file__).with_name("csrc") / "common.h"
+SOURCES = (SOURCE, SOURCE.with_name("sh_paths.c"), SOURCE.with_name("sh_shade.c"))
+"""Compiled together into one library: eq. 2's evaluation, the precomputation's paths and
+the fused shading (which includes the package kernels' headers: frame.h and its own)."""
+HEADERS = (SOURCE.with_name("sh_jobs.h"), *_native.HEADERS)
 CPAD = 8
 """Channels per coefficient in the kernel's table (the 6 stored, zero-padded to a vector)."""
 MAX_DIRECTIONS = 5
@@ -72,6 +78,14 @@ class _ShMapJob(ctypes.Structure):
                 ("var_geo", _p)]
 
 
+class _ShShadeJob(ctypes.Structure):
+    """ctypes mirror of ``ShShadeJob`` in csrc/sh_shade.c."""
+
+    _fields_ = [("f", _native._Frame), ("map", _ShMapJob), ("branch", _ShMapJob),
+                ("two", ctypes.c_int), ("conserve", ctypes.c_int), ("lobe_sigma", _p),
+                ("path_length", _p)]
+
+
 class _ShPathJob(ctypes.Structure):
     """ctypes mirror of ``ShPathJob`` in csrc/sh_paths.c."""
 
@@ -93,7 +107,7 @@ _FAILED: str | None = None
 
 def library_path() -> Path:
     """Where the built kernels live for these sources, flags and platform."""
-    return _native.library_path(name="sh", sources=SOURCES, headers=(HEADER,))
+    return _native.library_path(name="sh", sources=SOURCES, headers=HEADERS)
 
 
 def build() -> Path:
@@ -103,7 +117,7 @@ def build() -> Path:
     Raises:
         RuntimeError: no C compiler, or the compile failed (its output quoted).
     """
-    return _native.build(name="sh", sources=SOURCES, headers=(HEADER,))
+    return _native.build(name="sh", sources=SOURCES, headers=HEADERS)
 
 
 def _load() -> ctypes.CDLL | None:
@@ -115,7 +129,7 @@ def _load() -> ctypes.CDLL | None:
             try:
                 lib = ctypes.CDLL(str(build()))
                 _native.bind(lib, {"sh_eval": _ShEvalJob, "sh_map": _ShMapJob,
-                                   "sh_paths": _ShPathJob})
+                                   "sh_paths": _ShPathJob, "sh_shade": _ShShadeJob})
                 lib.torchrefract_sh_eval_half.restype = ctypes.c_int
                 _LIB = lib
             except Exception as exc:  # noqa: BLE001  (any build or load failure: fall back)
@@ -266,6 +280,55 @@ def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor,
     return _LIB.torchrefract_sh_map(ctypes.byref(job), torch.get_num_threads()) == 0
 
 
+def library() -> ctypes.CDLL | None:
+    """The loaded library (its fused shading's entry for ``shading.fused.run_kernel``), or
+    None where it is unavailable."""
+    return _load()
+
+
+def shade_job(frame, padded: torch.Tensor, branch: torch.Tensor | None,
+              table_frame: torch.Tensor, lattice: torch.Tensor, rate: int, order: int,
+              weights: torch.Tensor, radius: float, max_spread: float,
+              items: dict[str, torch.Tensor], front: dict[str, torch.Tensor], conserve: bool,
+              passes: dict[str, torch.Tensor], keep: list) -> "_ShShadeJob | None":
+    """The job of csrc/sh_shade.c's fused shading over ``frame`` (``shading.fused._frame``'s,
+    without the march): the table (``padded`` as :func:`map_pixels`'s, and ``branch``, the
+    reflected branch's channels, or None: one branch), ``items`` (as there), the
+    G-buffer's ``front`` faces ``tri`` (int32) and barycentrics ``bary``, the exit rule
+    and the ``lobe_sigma`` and ``path_length`` passes (B*H*W float32, written in place);
+    the tensors it points into appended to ``keep``. None where the kernel cannot run."""
+    tables = (padded,) if branch is None else (padded, branch)
+    if _load() is None or order > 8 or any(
+            tuple(t.shape[1:]) != (45, CPAD) or (t.dtype == torch.float16) != table_half()
+            for t in tables):
+        return None
+    held = {"frame": table_frame.float().contiguous(), "lattice": lattice.long().contiguous(),
+            "weights": weights.detach().float().contiguous(),
+            "face_offset": items["face_offset"].long().contiguous(),
+            "rotation": items["rotation"].float().contiguous(),
+            "scale": items["scale"].float().contiguous(),
+            "rough": items["rough"].to(torch.uint8).contiguous(),
+            "tri": front["tri"].to(torch.int32).contiguous(),
+            "gbary": front["bary"].float().contiguous()}
+    keep.extend(held.values())
+
+    def map_job(coeffs: torch.Tensor) -> _ShMapJob:
+        coeffs = coeffs.contiguous()
+        keep.append(coeffs)
+        ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
+                        coeffs=coeffs.data_ptr(),
+                        **{k: held[k].data_ptr() for k in ("frame", "weights", "lattice")})
+        return _ShMapJob(eval=ev, radius=_f32(radius), max_spread=_f32(max_spread),
+                         **{k: held[k].data_ptr() for k in ("tri", "gbary", "face_offset",
+                                                              "rotation", "scale", "rough")})
+
+    return _ShShadeJob(f=frame, map=map_job(padded),
+                       branch=map_job(branch) if branch is not None else _ShMapJob(),
+                       two=int(branch is not None), conserve=int(conserve),
+                       lobe_sigma=passes["lobe_sigma"].data_ptr(),
+                       path_length=passes["path_length"].data_ptr())
+
+
 _VSQRT: list = []
 
 
@@ -352,5 +415,6 @@ def trace_paths(embree, tri_normals: torch.Tensor, g_normals: torch.Tensor, p: t
 
 
 __all__ = ["CPAD", "MAP_CHANNELS", "SOURCES", "available", "build", "evaluate",
-           "evaluate_points", "library_path", "map_pixels", "padded_coeffs", "table_half",
+           "evaluate_points", "library", "library_path", "map_pixels", "padded_coeffs",
+           "shade_job", "table_half",
            "torch_sqrt_function", "trace_paths"]

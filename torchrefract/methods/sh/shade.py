@@ -30,12 +30,18 @@ Per object pixel (all pixels of a batch, compacted):
    stays at 1; ``path``: W2 the main path's throughput, W2' = 1).
 
 An index-matched object (IOR 1) has no interface: it is invisible (no table needed).
+
+Steps 1-5 run as one fused kernel where it can (csrc/sh_shade.c, :func:`_render_fused`: the
+fused methods' frame, and the adaptive lattice's levels in their driver); this tensor code
+is the reference, the differentiable path and the rest (roughness maps, index-matched
+items).
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -55,6 +61,7 @@ from torchrefract.methods.sh.layout import interpolation
 from torchrefract.methods.sh.options import SHOptions
 from torchrefract.methods.sh.precompute import CHANNELS, SHTable
 from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
+from torchrefract.optics import microfacet as mf
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
 from torchrefract.optics.smooth import normalize, tangent_frame
@@ -330,8 +337,8 @@ def _map_items(g: GBuffer, px: Pixels, bis: list[int], items: tuple[SceneTable, 
 def _tables_of(g: GBuffer, px: Pixels, items: tuple[SceneTable, ...],
                materials: MaterialBatch, two: bool, matched: torch.Tensor,
                length: torch.Tensor, length_fallback: torch.Tensor) -> list[list[int]]:
-    """The batch items with object pixels grouped by their table (checked: the mesh, the
-    IOR, the branch channels); an item without a table (IOR 1) has its pixels marked
+    """The batch items with object pixels grouped by their table (checked:
+    :func:`_check_item`); an item without a table (IOR 1) has its pixels marked
     ``matched`` and their ``length`` the layers' gap instead."""
     mapped: dict[int, list[int]] = {}
     counts = torch.bincount(px.bi, minlength=len(items)).tolist()
@@ -343,16 +350,81 @@ def _tables_of(g: GBuffer, px: Pixels, items: tuple[SceneTable, ...],
             put_(matched, sel, torch.ones(sel.numel(), dtype=torch.bool))
             put_(length, sel, take(length_fallback, sel))
             continue
-        check_mesh(g, bi, item)
-        if float(materials.ior[bi]) != item.table.settings.ior:
-            raise ValueError(f"method 'sh': batch item {bi} has IOR "
-                             f"{float(materials.ior[bi])}, its table "
-                             f"{item.table.settings.ior}; re-run prepare()")
-        if two and item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
-            raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
-                             "channels (branches: 1); re-run prepare()")
+        _check_item(g, bi, item, materials, two)
         mapped.setdefault(id(item.table), []).append(bi)
     return list(mapped.values())
+
+
+def _check_item(g: GBuffer, bi: int, item: SceneTable, materials: MaterialBatch,
+                two: bool) -> None:
+    """Batch item ``bi``'s table is for its mesh (:func:`check_mesh`), its IOR and, with
+    ``two`` (``branches: 2``), has the branch channels.
+
+    Raises:
+        ValueError: naming what differs.
+    """
+    check_mesh(g, bi, item)
+    if float(materials.ior[bi]) != item.table.settings.ior:
+        raise ValueError(f"method 'sh': batch item {bi} has IOR "
+                         f"{float(materials.ior[bi])}, its table "
+                         f"{item.table.settings.ior}; re-run prepare()")
+    if two and item.table.coeffs.shape[-1] < 2 * len(CHANNELS):
+        raise ValueError(f"method 'sh': batch item {bi}'s table has no branch "
+                         "channels (branches: 1); re-run prepare()")
+
+
+_FRAME_OPTIONS = SimpleNamespace(tir="conserve", bounces=SimpleNamespace(enabled=False))
+"""What ``shading.fused._frame`` reads of a method's options, for ``sh``'s frame: the escape
+fraction's grid (read under ``exit_weight: conserve``), no internal bounces."""
+
+
+def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
+                  options: SHOptions, items: tuple[SceneTable, ...], radiance: torch.Tensor
+                  ) -> tuple[torch.Tensor, dict[str, torch.Tensor]] | None:
+    """:func:`render_sh` by csrc/sh_shade.c over ``radiance`` (B*H*W, 3, the background;
+    written in place), the adaptive lattice's levels too where ``g`` carries them; None
+    where it does not run (the fused kernels off, a gradient wanted, roughness maps, an
+    item without a table, items of several tables, more than 64 lights): the tensor code
+    then runs."""
+    if (materials.has_maps or lighting.light_pos.shape[1] > 64
+            or not sh_native.available()):
+        return None
+    b, h, w = g.shape
+    counts = torch.bincount(g.object_views(), minlength=b).tolist()
+    shown = [bi for bi in range(b) if counts[bi]]
+    if any(items[bi].table is None for bi in shown) or \
+            len({id(items[bi].table) for bi in shown}) > 1:
+        return None
+    made = fused._frame(g, lighting, materials, _FRAME_OPTIONS, radiance, sg_env=True,
+                        march=False)
+    if made is None:
+        return None
+    frame, keep, radiance, _ = made
+    passes = {k: torch.zeros(b * h * w) for k in PASSES}
+    views = {k: v.view(b, h, w, 1) for k, v in passes.items()}
+    if not shown:
+        return radiance.view(b, h, w, 3), views
+    two = options.branches == 2
+    for bi in shown:
+        _check_item(g, bi, items[bi], materials, two)
+    table = items[shown[0]].table
+    eye = torch.eye(3)
+    per_item = {"face_offset": g.meshes.face_offset,
+                "rotation": torch.stack([it.rotation if it.table is not None else eye
+                                         for it in items]),
+                "scale": torch.tensor([it.scale for it in items], dtype=torch.float32),
+                "rough": materials.roughness.clamp(min=mf.ALPHA_MIN) > ROUGH}
+    job = sh_native.shade_job(
+        frame, _padded(table, 0), _padded(table, len(CHANNELS)) if two else None,
+        table.layout.frame, table.layout.lattice, table.layout.rate,
+        options.order, window(options.order, options.window, options.window_width),
+        table.radius, MAX_SPREAD, per_item,
+        {"tri": g.front.tri.reshape(-1), "bary": g.front.bary.reshape(-1, 3)},
+        options.exit_weight == "conserve", passes, keep)
+    if job is None or not fused.run_kernel("sh_shade", job, g, radiance, views,
+                                           lib=sh_native.library()):
+        return None
+    return radiance.view(b, h, w, 3), views
 
 
 def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
@@ -388,6 +460,9 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
     if len(items) != b:
         raise ValueError(f"method 'sh': {len(items)} prepared tables for {b} views")
     radiance = background(g, lighting)
+    done = _render_fused(g, lighting, materials, options, items, radiance)
+    if done is not None:
+        return done
     idx = g.object_index()
     values = {k: torch.zeros(b * h * w) for k in PASSES}
     if idx.numel() > 0:

@@ -1,0 +1,173 @@
+/* Fused shading of method sh (shade.render_sh, Genevaux et al. 2006 secs. 3 and 5; the
+ * rough lobes ours): per object pixel, in one pass, the front interface's lobes (de
+ * Rousiers' eqs. 8-9 from the SG table), the view spread carried through Snell's law,
+ * eq. 2's mapping at the view and four views around it (sh_eval.c's, through
+ * torchrefract_sh_map_range), the exit's lobe and the ``exit_weight`` rule, the absorption,
+ * the two environment lookups (SG pyramids, sphere lights), the pixel and its passes.
+ *
+ * The fused methods' frame (kernels/csrc/frame.h) carries the G-buffer, materials, table
+ * and lighting, so the adaptive lattice's driver (kernels/csrc/lattice.c) runs this entry
+ * for the first pass and every level as it runs theirs. With ``branches: 2`` the reflected
+ * branch's channels are mapped and its lobe added the same way (step 5 of shade.py). The
+ * tensor code (render_sh) is the reference and the differentiable path; the same formulas
+ * in float32, in its order (tests/test_sh.py holds the two together). Not here (shade.py
+ * runs the tensor code): roughness maps, index-matched items (no table). */
+
+#include "../../../kernels/csrc/frame.h"
+#include "sh_jobs.h"
+
+typedef struct {
+    Frame f;                 /* first: the lattice driver sets its pixels per pass */
+    ShMapJob map;            /* the table and each item's pose (its per-pixel arrays,
+                              * positions and outputs are the block's own) */
+    ShMapJob branch;         /* the same over the branch's channels (with ``two``) */
+    int two;                 /* branches: 2 */
+    int conserve;            /* exit_weight: 1 conserve, 0 path */
+    float *lobe_sigma;       /* (B*H*W,) out: the transmitted lobe's k^-1/2 */
+    float *path_length;      /* (B*H*W,) out: the world length inside */
+} ShShadeJob;
+
+enum { IN, IN0, OUT, OUT0, SH_AXES };
+
+#define CRITICAL_MARGIN 1e-4f /* optics.exit_rule.CRITICAL_MARGIN */
+
+/* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces at its roughness
+ * (at least ALPHA_MIN, as object_pixels takes it) and at the table's smallest. */
+static int sh_axes(const Frame *f, int64_t b, SgAxes *out) {
+    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+    float a0 = f->table.alpha_min;
+    sg_axes(&f->table, ior, a, out + IN);
+    sg_axes(&f->table, ior, a0, out + IN0);
+    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
+    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
+    return SH_AXES;
+}
+
+static const int64_t POSITIONS[BLOCK] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14,
+                                         15};
+
+/* nan_to_num(nan=0, posinf=0, neginf=0) */
+static inline float finite_or_zero(float x) { return isfinite(x) ? x : 0.0f; }
+
+/* Per-pixel outputs of the map (shade._map_pixels) over a block. */
+typedef struct {
+    float dir[3 * BLOCK], len[BLOCK], cos_x[BLOCK], thr[BLOCK], var_geo[BLOCK];
+} Mapped;
+
+/* shade._map_pixels over the block's m pixels from r0 (``tpl``: the table's job). */
+static void map_block(const ShMapJob *tpl, const Frame *j, int64_t r0, int m,
+                      const float *view, const float *var_view, const float *alpha,
+                      Mapped *out) {
+    ShMapJob mj = *tpl;
+    mj.n = m;
+    mj.sel = POSITIONS;
+    mj.pix = j->idx + r0;
+    mj.item = j->batch + r0;
+    mj.view = view;
+    mj.var_view = var_view;
+    mj.alpha = alpha;
+    mj.direction = out->dir;
+    mj.length = out->len;
+    mj.cos_exit = out->cos_x;
+    mj.throughput = out->thr;
+    mj.var_geo = out->var_geo;
+    torchrefract_sh_map_range(&mj, 0, m);
+}
+
+/* The exit's lobe sharpness k (exit_lobe: held just outside TIR at the stored exit cosine,
+ * widened by the path's variance) and, under ``conserve``, its leaving weight (else *w is
+ * left as it is). */
+static float exit_lobe(const ShShadeJob *sj, const SgAxes *ax, int64_t b, float alpha,
+                       float cos_exit, float var_g, float var1, float *w) {
+    const Frame *j = &sj->f;
+    int64_t d = j->dist[b];
+    float ior = j->ior[b], c2 = 1.0f - 1.0f / (ior * ior);
+    float crit = sqrtf(c2 > 0.0f ? c2 : 0.0f) + CRITICAL_MARGIN;
+    float cos_in = cos_exit > crit ? cos_exit : crit;
+    cos_in = cos_in < 1.0f ? cos_in : 1.0f;
+    float k_t2, ang, e;
+    sg_lobe_at(&j->table, ax + OUT, ax + OUT0, d, 0, sg_theta(cos_in), &k_t2, &ang, &e);
+    float inv = 1.0f / k_t2 + var_g;
+    if (sj->conserve) {
+        float e_t2, e_r2;
+        spread_table_energies(&j->table, ax + OUT, ax + OUT0, d, cos_in, var1, &e_t2, &e_r2);
+        float lw = e_t2 + e_r2 * escape(j, b, alpha);
+        *w = lw < 1.0f ? lw : 1.0f;
+    }
+    return 1.0f / (inv > 1e-12f ? inv : 1e-12f);
+}
+
+static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
+    const ShShadeJob *sj = (const ShShadeJob *)vjob;
+    const Frame *j = &sj->f;
+    float view[3 * BLOCK], var_view[BLOCK], alpha[BLOCK], var1[BLOCK];
+    float e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK], e_t1[BLOCK];
+    /* 1. object_pixels and the front lobes (lobes.front_lobes), 2. the view's spread */
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i], d = j->dist[b];
+        const SgAxes *ax = axes + SH_AXES * b;
+        float n1[3], *v = view + 3 * i;
+        for (int c = 0; c < 3; c++) v[c] = -j->ray_dir[3 * px + c];
+        face_forward(j->front_normal + 3 * px, j->ray_dir + 3 * px, n1);
+        float cos1 = clampf(dot3(v, n1), 0.0f, 1.0f), eta = j->ior[b], ang, k_t1;
+        alpha[i] = j->alpha[b] > 1e-4f ? j->alpha[b] : 1e-4f;
+        float z = sg_theta(cos1);
+        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 1, z, k_r + i, &ang, e_r + i);
+        lobe_axis(v, n1, ang, 1.0f, axis_r + 3 * i);
+        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 0, z, &k_t1, &ang, e_t1 + i);
+        var1[i] = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+        /* _snell_spread: d theta_o / d theta_t = eta cos_t / cos_o in the plane, eta
+         * across it */
+        float cos_o = cos1 > 0.05f ? cos1 : 0.05f;
+        float sin2_t = (1.0f - cos_o * cos_o) / (eta * eta), ct2 = 1.0f - sin2_t;
+        float cos_t = sqrtf(ct2 > 0.0f ? ct2 : 0.0f), m1 = eta * cos_t / cos_o;
+        var_view[i] = var1[i] * 0.5f * (m1 * m1 + eta * eta);
+    }
+    /* 3. eq. 2 over the block (and the branch's): the exit direction, length, exit
+     * cosine, throughput and the geometric variance */
+    Mapped mp, br;
+    map_block(&sj->map, j, r0, m, view, var_view, alpha, &mp);
+    if (sj->two) map_block(&sj->branch, j, r0, m, view, var_view, alpha, &br);
+    /* 4. the exit's lobe and weight, the absorption, the lookups; 5. the branch's */
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i];
+        const SgAxes *ax = axes + SH_AXES * b;
+        float w2 = mp.thr[i], wb = 1.0f, kb = 0.0f, eb = 0.0f;
+        float k = exit_lobe(sj, ax, b, alpha[i], mp.cos_x[i], mp.var_geo[i], var1[i], &w2);
+        if (sj->two) {  /* the branch carries its energy; conserve: the main path's share
+                         * less it */
+            eb = br.thr[i];
+            kb = exit_lobe(sj, ax, b, alpha[i], br.cos_x[i], br.var_geo[i], var1[i], &wb);
+            wb = wb * eb;
+            if (sj->conserve) w2 = w2 * (1.0f - eb);
+        }
+        const float *p1 = j->front_pos + 3 * px;
+        float l_refl[3], l_trans[3], l_b[3];
+        incident_sg(&j->lights, &j->env, b, p1, axis_r + 3 * i, k_r[i], l_refl);
+        incident_sg(&j->lights, &j->env, b, p1, mp.dir + 3 * i, k, l_trans);
+        if (sj->two) incident_sg(&j->lights, &j->env, b, p1, br.dir + 3 * i, kb, l_b);
+        int64_t l;
+        int hidden = j->lights.nl > 0 &&
+                     hit_light(&j->lights, b, j->eye + 3 * b, j->ray_dir + 3 * px, &l) <
+                         j->front_dist[px];
+        if (!hidden)
+            for (int c = 0; c < 3; c++) {
+                float a = j->absorption[3 * b + c];
+                float v = e_r[i] * l_refl[c] + e_t1[i] * w2 * expf(-a * mp.len[i]) * l_trans[c];
+                if (sj->two) v = v + e_t1[i] * wb * expf(-a * br.len[i]) * l_b[c];
+                v = finite_or_zero(v);
+                j->radiance[3 * px + c] = v > 0.0f ? v : 0.0f;
+            }
+        float kk = k > 1e-12f ? k : 1e-12f;
+        sj->lobe_sigma[px] = finite_or_zero(1.0f / sqrtf(kk));
+        sj->path_length[px] = finite_or_zero(mp.len[i]);
+    }
+}
+
+/* Entry point (ctypes, methods/sh/shade.py; the lattice driver's tr_kernel_fn): shade the
+ * frame's pixels on ``threads`` threads (frame.h's run_shading). */
+int torchrefract_sh_shade(ShShadeJob *job, int threads) {
+    return run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
+}
+
+int64_t torchrefract_sh_shade_job_size(void) { return (int64_t)sizeof(ShShadeJob); }
