@@ -83,7 +83,7 @@ class _ShShadeJob(ctypes.Structure):
 
     _fields_ = [("f", _native._Frame), ("map", _ShMapJob), ("branch", _ShMapJob),
                 ("two", ctypes.c_int), ("conserve", ctypes.c_int), ("lobe_sigma", _p),
-                ("path_length", _p)]
+                ("path_length", _p), ("shared", _p)]
 
 
 class _ShPathJob(ctypes.Structure):

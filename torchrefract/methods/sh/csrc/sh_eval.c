@@ -429,11 +429,10 @@ static inline void map_samples(const void *vjob, int64_t q, int64_t *smp, float 
                       job->gbary + pix * 3, smp, sw);
 }
 
-static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
-    const ShMapJob *job = (const ShMapJob *)vjob;
+/* The positions [begin, end) of ``job`` with the call's shared constants ``shp``. */
+static void sh_map_points(const ShMapJob *job, const ShShared *shp, int64_t begin,
+                          int64_t end) {
     const ShEvalJob *ev = &job->eval;
-    ShShared sh;
-    shared_init(ev, &sh);
     float dirs[SH_MAXE][3];
     v8f acc[SH_MAXE];
     SampleRing rg;
@@ -456,7 +455,7 @@ static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
         } else {
             for (int t = 0; t < 3; t++) dirs[0][t] = om[t];
         }
-        eval_point(ev, &sh, smp, swt, rough ? SH_MAXE : 1, dirs, acc);
+        eval_point(ev, shp, smp, swt, rough ? SH_MAXE : 1, dirs, acc);
         const float *v0 = (const float *)&acc[0];
         float center[3] = {v0[0], v0[1], v0[2]};
         normalize3(center);
@@ -492,8 +491,22 @@ static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
     }
 }
 
-void torchrefract_sh_map_range(const ShMapJob *job, int64_t begin, int64_t end) {
-    sh_map_range(job, begin, end);
+static void sh_map_range(const void *vjob, int64_t begin, int64_t end) {
+    const ShMapJob *job = (const ShMapJob *)vjob;
+    ShShared sh;
+    shared_init(&job->eval, &sh);
+    sh_map_points(job, &sh, begin, end);
+}
+
+int64_t torchrefract_sh_shared_size(void) { return (int64_t)sizeof(ShShared); }
+
+void torchrefract_sh_shared_init(const ShMapJob *job, void *shared) {
+    shared_init(&job->eval, (ShShared *)shared);
+}
+
+void torchrefract_sh_map_range(const ShMapJob *job, const void *shared, int64_t begin,
+                               int64_t end) {
+    sh_map_points(job, (const ShShared *)shared, begin, end);
 }
 
 int64_t torchrefract_sh_map_job_size(void) { return (int64_t)sizeof(ShMapJob); }

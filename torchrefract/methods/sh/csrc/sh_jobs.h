@@ -55,7 +55,14 @@ typedef struct {
     float *length, *cos_exit, *throughput, *var_geo; /* (N,) */
 } ShMapJob;
 
-/* shade._map_pixels for the positions [begin, end) of ``job`` (sh_eval.c), one thread. */
-void torchrefract_sh_map_range(const ShMapJob *job, int64_t begin, int64_t end);
+/* What every point of a call shares (the basis's constants and the window: sh_eval.c's
+ * ShShared, 32-byte aligned), its size and its making for ``job``'s order and window. */
+int64_t torchrefract_sh_shared_size(void);
+void torchrefract_sh_shared_init(const ShMapJob *job, void *shared);
+
+/* shade._map_pixels for the positions [begin, end) of ``job`` (sh_eval.c), one thread,
+ * with ``shared`` made for it. */
+void torchrefract_sh_map_range(const ShMapJob *job, const void *shared, int64_t begin,
+                               int64_t end);
 
 #endif

@@ -25,6 +25,7 @@ typedef struct {
     int conserve;            /* exit_weight: 1 conserve, 0 path */
     float *lobe_sigma;       /* (B*H*W,) out: the transmitted lobe's k^-1/2 */
     float *path_length;      /* (B*H*W,) out: the world length inside */
+    const void *shared;      /* the map's constants, made by the entry (NULL from Python) */
 } ShShadeJob;
 
 enum { IN, IN0, OUT, OUT0, SH_AXES };
@@ -55,8 +56,8 @@ typedef struct {
 } Mapped;
 
 /* shade._map_pixels over the block's m pixels from r0 (``tpl``: the table's job). */
-static void map_block(const ShMapJob *tpl, const Frame *j, int64_t r0, int m,
-                      const float *view, const float *var_view, const float *alpha,
+static void map_block(const ShMapJob *tpl, const void *shared, const Frame *j, int64_t r0,
+                      int m, const float *view, const float *var_view, const float *alpha,
                       Mapped *out) {
     ShMapJob mj = *tpl;
     mj.n = m;
@@ -71,7 +72,7 @@ static void map_block(const ShMapJob *tpl, const Frame *j, int64_t r0, int m,
     mj.cos_exit = out->cos_x;
     mj.throughput = out->thr;
     mj.var_geo = out->var_geo;
-    torchrefract_sh_map_range(&mj, 0, m);
+    torchrefract_sh_map_range(&mj, shared, 0, m);
 }
 
 /* The exit's lobe sharpness k (exit_lobe: held just outside TIR at the stored exit cosine,
@@ -126,26 +127,38 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
     /* 3. eq. 2 over the block (and the branch's): the exit direction, length, exit
      * cosine, throughput and the geometric variance */
     Mapped mp, br;
-    map_block(&sj->map, j, r0, m, view, var_view, alpha, &mp);
-    if (sj->two) map_block(&sj->branch, j, r0, m, view, var_view, alpha, &br);
-    /* 4. the exit's lobe and weight, the absorption, the lookups; 5. the branch's */
+    map_block(&sj->map, sj->shared, j, r0, m, view, var_view, alpha, &mp);
+    if (sj->two) map_block(&sj->branch, sj->shared, j, r0, m, view, var_view, alpha, &br);
+    /* 4. the exit's lobe and weight; 5. the branch's */
+    float k[BLOCK], w2[BLOCK], wb[BLOCK], kb[BLOCK];
     for (int i = 0; i < m; i++) {
-        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i];
+        int64_t b = j->batch[r0 + i];
         const SgAxes *ax = axes + SH_AXES * b;
-        float w2 = mp.thr[i], wb = 1.0f, kb = 0.0f, eb = 0.0f;
-        float k = exit_lobe(sj, ax, b, alpha[i], mp.cos_x[i], mp.var_geo[i], var1[i], &w2);
+        w2[i] = mp.thr[i];
+        k[i] = exit_lobe(sj, ax, b, alpha[i], mp.cos_x[i], mp.var_geo[i], var1[i], w2 + i);
         if (sj->two) {  /* the branch carries its energy; conserve: the main path's share
                          * less it */
-            eb = br.thr[i];
-            kb = exit_lobe(sj, ax, b, alpha[i], br.cos_x[i], br.var_geo[i], var1[i], &wb);
-            wb = wb * eb;
-            if (sj->conserve) w2 = w2 * (1.0f - eb);
+            float eb = br.thr[i];
+            wb[i] = 1.0f;
+            kb[i] = exit_lobe(sj, ax, b, alpha[i], br.cos_x[i], br.var_geo[i], var1[i],
+                              wb + i);
+            wb[i] = wb[i] * eb;
+            if (sj->conserve) w2[i] = w2[i] * (1.0f - eb);
         }
+    }
+    /* the lookups of the block, their texels asked for at once (8 in lanes), then read;
+     * the absorption, the pixel and its passes */
+    SgTap t_refl[BLOCK], t_trans[BLOCK], t_b[BLOCK];
+    block_taps(j, r0, m, axis_r, k_r, t_refl);
+    block_taps(j, r0, m, mp.dir, k, t_trans);
+    if (sj->two) block_taps(j, r0, m, br.dir, kb, t_b);
+    for (int i = 0; i < m; i++) {
+        int64_t px = j->idx[r0 + i], b = j->batch[r0 + i];
         const float *p1 = j->front_pos + 3 * px;
         float l_refl[3], l_trans[3], l_b[3];
-        incident_sg(&j->lights, &j->env, b, p1, axis_r + 3 * i, k_r[i], l_refl);
-        incident_sg(&j->lights, &j->env, b, p1, mp.dir + 3 * i, k, l_trans);
-        if (sj->two) incident_sg(&j->lights, &j->env, b, p1, br.dir + 3 * i, kb, l_b);
+        incident_sg_at(&j->lights, b, p1, axis_r + 3 * i, k_r[i], t_refl + i, l_refl);
+        incident_sg_at(&j->lights, b, p1, mp.dir + 3 * i, k[i], t_trans + i, l_trans);
+        if (sj->two) incident_sg_at(&j->lights, b, p1, br.dir + 3 * i, kb[i], t_b + i, l_b);
         int64_t l;
         int hidden = j->lights.nl > 0 &&
                      hit_light(&j->lights, b, j->eye + 3 * b, j->ray_dir + 3 * px, &l) <
@@ -153,12 +166,13 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
         if (!hidden)
             for (int c = 0; c < 3; c++) {
                 float a = j->absorption[3 * b + c];
-                float v = e_r[i] * l_refl[c] + e_t1[i] * w2 * expf(-a * mp.len[i]) * l_trans[c];
-                if (sj->two) v = v + e_t1[i] * wb * expf(-a * br.len[i]) * l_b[c];
+                float v = e_r[i] * l_refl[c] + e_t1[i] * w2[i] * expf(-a * mp.len[i]) *
+                                                   l_trans[c];
+                if (sj->two) v = v + e_t1[i] * wb[i] * expf(-a * br.len[i]) * l_b[c];
                 v = finite_or_zero(v);
                 j->radiance[3 * px + c] = v > 0.0f ? v : 0.0f;
             }
-        float kk = k > 1e-12f ? k : 1e-12f;
+        float kk = k[i] > 1e-12f ? k[i] : 1e-12f;
         sj->lobe_sigma[px] = finite_or_zero(1.0f / sqrtf(kk));
         sj->path_length[px] = finite_or_zero(mp.len[i]);
     }
@@ -167,7 +181,16 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
 /* Entry point (ctypes, methods/sh/shade.py; the lattice driver's tr_kernel_fn): shade the
  * frame's pixels on ``threads`` threads (frame.h's run_shading). */
 int torchrefract_sh_shade(ShShadeJob *job, int threads) {
-    return run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
+    /* the map's constants once per call (the branch's order and window are the same) */
+    size_t size = (size_t)torchrefract_sh_shared_size();
+    void *shared = aligned_alloc(64, (size + 63) / 64 * 64);
+    if (!shared) return -1;
+    torchrefract_sh_shared_init(&job->map, shared);
+    job->shared = shared;
+    int rc = run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
+    job->shared = NULL;
+    free(shared);
+    return rc;
 }
 
 int64_t torchrefract_sh_shade_job_size(void) { return (int64_t)sizeof(ShShadeJob); }
