@@ -11,7 +11,8 @@ roughness maps and internal bounces; ``specular`` (internal bounces included)
 and ``prefiltered``. Elsewhere these functions return ``None`` and the
 method runs its tensor code; tests/test_fused.py holds the two to the same images. A
 method whose kernel lives in its own library (``sh``: methods/sh/csrc/sh_shade.c, on this
-frame) builds its frame here (:func:`_frame`) and runs through :func:`run_kernel`.
+frame) builds its frame here (:func:`_frame`) and runs through :func:`_run`, as
+shading/fused_lean.py does.
 """
 
 from __future__ import annotations
@@ -389,11 +390,6 @@ def _run(name: str, job, g=None, radiance: torch.Tensor | None = None,
         return _run_lattice(name, job, g, radiance, passes, lib)
 
 
-run_kernel = _run
-"""The fused kernels' run (:func:`_run`) for a method whose kernel lives in its own library
-(``sh``: methods/sh/csrc/sh_shade.c)."""
-
-
 def _run_lattice(name: str, job, g, radiance: torch.Tensor, passes: dict, lib=None) -> bool:
     """csrc/lattice.c's ``lattice_shade`` around kernel ``name`` (:func:`_run`)."""
     frame = job
@@ -560,4 +556,4 @@ def _march_job(g, options, keep: _Keep) -> native._Job | None:
 
 
 __all__ = ["background", "exit_lobes", "front_lobes", "incident_sg", "lattice_levels",
-           "prefiltered", "rousiers", "run_kernel", "specular"]
+           "prefiltered", "rousiers", "specular"]

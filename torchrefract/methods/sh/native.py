@@ -281,8 +281,8 @@ def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor,
 
 
 def library() -> ctypes.CDLL | None:
-    """The loaded library (its fused shading's entry for ``shading.fused.run_kernel``), or
-    None where it is unavailable."""
+    """The loaded library (its fused shading's entry for ``shading.fused._run``), or None
+    where it is unavailable."""
     return _load()
 
 

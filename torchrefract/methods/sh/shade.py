@@ -60,8 +60,8 @@ from torchrefract.methods.sh.basis import num_even, real_sh_even, window
 from torchrefract.methods.sh.layout import interpolation
 from torchrefract.methods.sh.options import SHOptions
 from torchrefract.methods.sh.precompute import CHANNELS, SHTable
-from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
 from torchrefract.optics import microfacet as mf
+from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
 from torchrefract.optics.smooth import normalize, tangent_frame
@@ -421,8 +421,8 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
         table.radius, MAX_SPREAD, per_item,
         {"tri": g.front.tri.reshape(-1), "bary": g.front.bary.reshape(-1, 3)},
         options.exit_weight == "conserve", passes, keep)
-    if job is None or not fused.run_kernel("sh_shade", job, g, radiance, views,
-                                           lib=sh_native.library()):
+    if job is None or not fused._run("sh_shade", job, g, radiance, views,
+                                     lib=sh_native.library()):
         return None
     return radiance.view(b, h, w, 3), views
 
