@@ -825,7 +825,8 @@ def test_fused_kernel_gives_the_tensor_codes_image(one_thread):
     rule, the absorption, the lookups and the passes in one kernel; with adaptive shading
     every lattice level in the same driver) against the tensor code (`fused=False`): rough,
     smooth and GGX glass, absorption, a sphere light, both exit rules, both branches of a
-    path, three poses of one table in a batch, with and without the lattice; the same
+    path, three poses of one table in a batch, a roughness map beside a uniform view,
+    with and without the lattice; the same
     image and passes within float32 rounding (1e-4 relative on 99.9% of object pixels).
     An item without a table (IOR 1) runs the tensor code."""
     _tracer_or_skip()
@@ -869,7 +870,16 @@ def test_fused_kernel_gives_the_tensor_codes_image(one_thread):
         for opts in ({"exit_weight": "path"}, {"branches": 2},
                      {"branches": 2, "exit_weight": "path"}):
             compare([s.replace(method_options={**SMALL, **opts}) for s in scenes], True)
-        assert len(made) == 5 and all(j is not None for j in made)
+        # a roughness map (from 0: smooth and rough pixels) beside a uniform view
+        globe = tr.Scene(mesh=str(ASSETS / "meshes" / "globe.obj"),
+                         material=tr.Material(ior=1.5, roughness_range=(0.0, 0.4),
+                                              roughness_map=str(ASSETS / "textures" /
+                                                                "gradient_roughness.png")),
+                         camera=cam, envmap=tr.EnvMap(path=ENV, rotate_deg=60.0),
+                         transform=tr.Transform(rotate_deg=(0, 75, 0)), method="sh",
+                         method_options=SMALL)
+        compare([globe, globe.replace(material=tr.Material(ior=1.5, roughness=0.1))], True)
+        assert len(made) == 6 and all(j is not None for j in made)
         made.clear()
         compare([scenes[0].replace(material=tr.Material(ior=1.0, roughness=0.1))], False)
         assert made == []

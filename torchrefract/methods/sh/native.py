@@ -293,7 +293,8 @@ def shade_job(frame, padded: torch.Tensor, branch: torch.Tensor | None,
               passes: dict[str, torch.Tensor], keep: list) -> "_ShShadeJob | None":
     """The job of csrc/sh_shade.c's fused shading over ``frame`` (``shading.fused._frame``'s,
     without the march): the table (``padded`` as :func:`map_pixels`'s, and ``branch``, the
-    reflected branch's channels, or None: one branch), ``items`` (as there), the
+    reflected branch's channels, or None: one branch), ``items`` (as there, but for
+    ``rough``: the kernel decides it per pass from its pixels, as the tensor code), the
     G-buffer's ``front`` faces ``tri`` (int32) and barycentrics ``bary``, the exit rule
     and the ``lobe_sigma`` and ``path_length`` passes (B*H*W float32, written in place);
     the tensors it points into appended to ``keep``. None where the kernel cannot run."""
@@ -307,7 +308,6 @@ def shade_job(frame, padded: torch.Tensor, branch: torch.Tensor | None,
             "face_offset": items["face_offset"].long().contiguous(),
             "rotation": items["rotation"].float().contiguous(),
             "scale": items["scale"].float().contiguous(),
-            "rough": items["rough"].to(torch.uint8).contiguous(),
             "tri": front["tri"].to(torch.int32).contiguous(),
             "gbary": front["bary"].float().contiguous()}
     keep.extend(held.values())
@@ -320,7 +320,7 @@ def shade_job(frame, padded: torch.Tensor, branch: torch.Tensor | None,
                         **{k: held[k].data_ptr() for k in ("frame", "weights", "lattice")})
         return _ShMapJob(eval=ev, radius=_f32(radius), max_spread=_f32(max_spread),
                          **{k: held[k].data_ptr() for k in ("tri", "gbary", "face_offset",
-                                                              "rotation", "scale", "rough")})
+                                                              "rotation", "scale")})
 
     return _ShShadeJob(f=frame, map=map_job(padded),
                        branch=map_job(branch) if branch is not None else _ShMapJob(),

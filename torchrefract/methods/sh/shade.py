@@ -33,8 +33,7 @@ An index-matched object (IOR 1) has no interface: it is invisible (no table need
 
 Steps 1-5 run as one fused kernel where it can (csrc/sh_shade.c, :func:`_render_fused`: the
 fused methods' frame, and the adaptive lattice's levels in their driver); this tensor code
-is the reference, the differentiable path and the rest (roughness maps, index-matched
-items).
+is the reference, the differentiable path and the rest (index-matched items).
 """
 
 from __future__ import annotations
@@ -60,7 +59,6 @@ from torchrefract.methods.sh.basis import num_even, real_sh_even, window
 from torchrefract.methods.sh.layout import interpolation
 from torchrefract.methods.sh.options import SHOptions
 from torchrefract.methods.sh.precompute import CHANNELS, SHTable
-from torchrefract.optics import microfacet as mf
 from torchrefract.optics.exit_rule import CRITICAL_MARGIN, critical_cosine, leaving_weight
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import load_sg_table
@@ -383,11 +381,9 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                   ) -> tuple[torch.Tensor, dict[str, torch.Tensor]] | None:
     """:func:`render_sh` by csrc/sh_shade.c over ``radiance`` (B*H*W, 3, the background;
     written in place), the adaptive lattice's levels too where ``g`` carries them; None
-    where it does not run (the fused kernels off, a gradient wanted, roughness maps, an
-    item without a table, items of several tables, more than 64 lights): the tensor code
-    then runs."""
-    if (materials.has_maps or lighting.light_pos.shape[1] > 64
-            or not sh_native.available()):
+    where it does not run (the fused kernels off, a gradient wanted, an item without a
+    table, items of several tables, more than 64 lights): the tensor code then runs."""
+    if lighting.light_pos.shape[1] > 64 or not sh_native.available():
         return None
     b, h, w = g.shape
     counts = torch.bincount(g.object_views(), minlength=b).tolist()
@@ -412,8 +408,7 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     per_item = {"face_offset": g.meshes.face_offset,
                 "rotation": torch.stack([it.rotation if it.table is not None else eye
                                          for it in items]),
-                "scale": torch.tensor([it.scale for it in items], dtype=torch.float32),
-                "rough": materials.roughness.clamp(min=mf.ALPHA_MIN) > ROUGH}
+                "scale": torch.tensor([it.scale for it in items], dtype=torch.float32)}
     job = sh_native.shade_job(
         frame, _padded(table, 0), _padded(table, len(CHANNELS)) if two else None,
         table.layout.frame, table.layout.lattice, table.layout.rate,

@@ -10,8 +10,9 @@
  * for the first pass and every level as it runs theirs. With ``branches: 2`` the reflected
  * branch's channels are mapped and its lobe added the same way (step 5 of shade.py). The
  * tensor code (render_sh) is the reference and the differentiable path; the same formulas
- * in float32, in its order (tests/test_sh.py holds the two together). Not here (shade.py
- * runs the tensor code): roughness maps, index-matched items (no table). */
+ * in float32, in its order (tests/test_sh.py holds the two together). A roughness map is
+ * read at the front hit (both interfaces' roughness, as there). Not here (shade.py runs the
+ * tensor code): index-matched items (no table). */
 
 #include "../../../kernels/csrc/frame.h"
 #include "sh_jobs.h"
@@ -31,11 +32,20 @@ typedef struct {
 enum { IN, IN0, OUT, OUT0, SH_AXES };
 
 #define CRITICAL_MARGIN 1e-4f /* optics.exit_rule.CRITICAL_MARGIN */
+#define ALPHA_MIN 1e-4f       /* optics.microfacet.ALPHA_MIN */
+#define ROUGH 1e-3f           /* shade.ROUGH */
+
+/* object_pixels' roughness of pixel px in view b: the map at its front UV, else the
+ * view's; at least ALPHA_MIN. */
+static inline float front_alpha(const Frame *f, int64_t b, int64_t px) {
+    float a = roughness_at(f, b, f->front_uv + 2 * px);
+    return a > ALPHA_MIN ? a : ALPHA_MIN;
+}
 
 /* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces at its roughness
  * (at least ALPHA_MIN, as object_pixels takes it) and at the table's smallest. */
 static int sh_axes(const Frame *f, int64_t b, SgAxes *out) {
-    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+    float ior = f->ior[b], a = f->alpha[b] > ALPHA_MIN ? f->alpha[b] : ALPHA_MIN;
     float a0 = f->table.alpha_min;
     sg_axes(&f->table, ior, a, out + IN);
     sg_axes(&f->table, ior, a0, out + IN0);
@@ -46,6 +56,19 @@ static int sh_axes(const Frame *f, int64_t b, SgAxes *out) {
 
 static const int64_t POSITIONS[BLOCK] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14,
                                          15};
+
+/* The axes of a pixel of roughness ``alpha`` in view b: the view's where its roughness is
+ * uniform, else ``own`` at alpha (the alpha_min ones the view's). */
+static const SgAxes *axes_of(const Frame *f, const SgAxes *view, int64_t b, float alpha,
+                             SgAxes *own) {
+    if (!f->rmap[b]) return view;
+    float ior = f->ior[b];
+    sg_axes(&f->table, ior, alpha, own + IN);
+    own[IN0] = view[IN0];
+    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
+    own[OUT0] = view[OUT0];
+    return own;
+}
 
 /* nan_to_num(nan=0, posinf=0, neginf=0) */
 static inline float finite_or_zero(float x) { return isfinite(x) ? x : 0.0f; }
@@ -103,15 +126,17 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
     const Frame *j = &sj->f;
     float view[3 * BLOCK], var_view[BLOCK], alpha[BLOCK], var1[BLOCK];
     float e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK], e_t1[BLOCK];
+    SgAxes own[BLOCK][SH_AXES];
+    const SgAxes *axp[BLOCK];
     /* 1. object_pixels and the front lobes (lobes.front_lobes), 2. the view's spread */
     for (int i = 0; i < m; i++) {
         int64_t px = j->idx[r0 + i], b = j->batch[r0 + i], d = j->dist[b];
-        const SgAxes *ax = axes + SH_AXES * b;
         float n1[3], *v = view + 3 * i;
         for (int c = 0; c < 3; c++) v[c] = -j->ray_dir[3 * px + c];
         face_forward(j->front_normal + 3 * px, j->ray_dir + 3 * px, n1);
         float cos1 = clampf(dot3(v, n1), 0.0f, 1.0f), eta = j->ior[b], ang, k_t1;
-        alpha[i] = j->alpha[b] > 1e-4f ? j->alpha[b] : 1e-4f;
+        alpha[i] = front_alpha(j, b, px);
+        const SgAxes *ax = axp[i] = axes_of(j, axes + SH_AXES * b, b, alpha[i], own[i]);
         float z = sg_theta(cos1);
         sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 1, z, k_r + i, &ang, e_r + i);
         lobe_axis(v, n1, ang, 1.0f, axis_r + 3 * i);
@@ -133,7 +158,7 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
     float k[BLOCK], w2[BLOCK], wb[BLOCK], kb[BLOCK];
     for (int i = 0; i < m; i++) {
         int64_t b = j->batch[r0 + i];
-        const SgAxes *ax = axes + SH_AXES * b;
+        const SgAxes *ax = axp[i];
         w2[i] = mp.thr[i];
         k[i] = exit_lobe(sj, ax, b, alpha[i], mp.cos_x[i], mp.var_geo[i], var1[i], w2 + i);
         if (sj->two) {  /* the branch carries its energy; conserve: the main path's share
@@ -181,15 +206,32 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
 /* Entry point (ctypes, methods/sh/shade.py; the lattice driver's tr_kernel_fn): shade the
  * frame's pixels on ``threads`` threads (frame.h's run_shading). */
 int torchrefract_sh_shade(ShShadeJob *job, int threads) {
+    const Frame *f = &job->f;
     /* the map's constants once per call (the branch's order and window are the same) */
     size_t size = (size_t)torchrefract_sh_shared_size();
     void *shared = aligned_alloc(64, (size + 63) / 64 * 64);
-    if (!shared) return -1;
+    /* per view whether its pixels of this pass read the four offset views (render_sh: any
+     * of them rougher than ROUGH; a view's own roughness where it has no map) */
+    uint8_t *rough = (uint8_t *)calloc((size_t)(f->nb > 0 ? f->nb : 1), 1);
+    if (!shared || !rough) {
+        free(shared);
+        free(rough);
+        return -1;
+    }
+    for (int64_t b = 0; b < f->nb; b++)
+        rough[b] = !f->rmap[b] && (f->alpha[b] > ALPHA_MIN ? f->alpha[b] : ALPHA_MIN) > ROUGH;
+    for (int64_t i = 0; i < f->n; i++) {
+        int64_t b = f->batch[i];
+        if (f->rmap[b] && !rough[b]) rough[b] = front_alpha(f, b, f->idx[i]) > ROUGH;
+    }
     torchrefract_sh_shared_init(&job->map, shared);
     job->shared = shared;
+    job->map.rough = job->branch.rough = rough;
     int rc = run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
     job->shared = NULL;
+    job->map.rough = job->branch.rough = NULL;
     free(shared);
+    free(rough);
     return rc;
 }
 
