@@ -825,8 +825,8 @@ def test_fused_kernel_gives_the_tensor_codes_image(one_thread):
     rule, the absorption, the lookups and the passes in one kernel; with adaptive shading
     every lattice level in the same driver) against the tensor code (`fused=False`): rough,
     smooth and GGX glass, absorption, a sphere light, both exit rules, both branches of a
-    path, three poses of one table in a batch, a roughness map beside a uniform view,
-    with and without the lattice; the same
+    path, three poses of one table in a batch, a roughness map beside a uniform view, a
+    batch of three tables, with and without the lattice; the same
     image and passes within float32 rounding (1e-4 relative on 99.9% of object pixels).
     An item without a table (IOR 1) runs the tensor code."""
     _tracer_or_skip()
@@ -879,7 +879,11 @@ def test_fused_kernel_gives_the_tensor_codes_image(one_thread):
                          transform=tr.Transform(rotate_deg=(0, 75, 0)), method="sh",
                          method_options=SMALL)
         compare([globe, globe.replace(material=tr.Material(ior=1.5, roughness=0.1))], True)
-        assert len(made) == 6 and all(j is not None for j in made)
+        # views of several tables in one batch: each mapped with its own
+        monkey = scenes[1].replace(mesh=str(ASSETS / "meshes" / "suzanne.ply"),
+                                   material=tr.Material(ior=1.8, roughness=0.15))
+        compare([scenes[0], monkey, scenes[2], globe], True)
+        assert len(made) == 7 and all(j is not None for j in made)
         made.clear()
         compare([scenes[0].replace(material=tr.Material(ior=1.0, roughness=0.1))], False)
         assert made == []

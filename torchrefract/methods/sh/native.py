@@ -81,9 +81,9 @@ class _ShMapJob(ctypes.Structure):
 class _ShShadeJob(ctypes.Structure):
     """ctypes mirror of ``ShShadeJob`` in csrc/sh_shade.c."""
 
-    _fields_ = [("f", _native._Frame), ("map", _ShMapJob), ("branch", _ShMapJob),
-                ("two", ctypes.c_int), ("conserve", ctypes.c_int), ("lobe_sigma", _p),
-                ("path_length", _p), ("shared", _p)]
+    _fields_ = [("f", _native._Frame), ("maps", _p), ("branches", _p), ("table_of", _p),
+                ("ntables", ctypes.c_int64), ("two", ctypes.c_int), ("conserve", ctypes.c_int),
+                ("lobe_sigma", _p), ("path_length", _p), ("shared", _p)]
 
 
 class _ShPathJob(ctypes.Structure):
@@ -286,45 +286,52 @@ def library() -> ctypes.CDLL | None:
     return _load()
 
 
-def shade_job(frame, padded: torch.Tensor, branch: torch.Tensor | None,
-              table_frame: torch.Tensor, lattice: torch.Tensor, rate: int, order: int,
-              weights: torch.Tensor, radius: float, max_spread: float,
-              items: dict[str, torch.Tensor], front: dict[str, torch.Tensor], conserve: bool,
+def shade_job(frame, tables: list[dict], table_of: torch.Tensor, order: int,
+              weights: torch.Tensor, max_spread: float, items: dict[str, torch.Tensor],
+              front: dict[str, torch.Tensor], two: bool, conserve: bool,
               passes: dict[str, torch.Tensor], keep: list) -> "_ShShadeJob | None":
     """The job of csrc/sh_shade.c's fused shading over ``frame`` (``shading.fused._frame``'s,
-    without the march): the table (``padded`` as :func:`map_pixels`'s, and ``branch``, the
-    reflected branch's channels, or None: one branch), ``items`` (as there, but for
-    ``rough``: the kernel decides it per pass from its pixels, as the tensor code), the
-    G-buffer's ``front`` faces ``tri`` (int32) and barycentrics ``bary``, the exit rule
-    and the ``lobe_sigma`` and ``path_length`` passes (B*H*W float32, written in place);
-    the tensors it points into appended to ``keep``. None where the kernel cannot run."""
-    tables = (padded,) if branch is None else (padded, branch)
-    if _load() is None or order > 8 or any(
-            tuple(t.shape[1:]) != (45, CPAD) or (t.dtype == torch.float16) != table_half()
-            for t in tables):
+    without the march): per table of the batch its ``padded`` coefficients (as
+    :func:`map_pixels`'), with ``two`` its ``branch``'s (the reflected branch's channels),
+    and its layout's ``frame``, ``lattice``, ``rate`` and ``radius``; ``table_of`` (B,) each
+    view's table; ``items`` (as :func:`map_pixels`', but for ``rough``: the kernel decides
+    it per pass from its pixels, as the tensor code), the G-buffer's ``front`` faces
+    ``tri`` (int32) and barycentrics ``bary``, the exit rule and the ``lobe_sigma`` and
+    ``path_length`` passes (B*H*W float32, written in place); the tensors it points into
+    appended to ``keep``. None where the kernel cannot run."""
+    coeffs = [t["padded"] for t in tables] + ([t["branch"] for t in tables] if two else [])
+    if _load() is None or order > 8 or not tables or any(
+            tuple(c.shape[1:]) != (45, CPAD) or (c.dtype == torch.float16) != table_half()
+            for c in coeffs):
         return None
-    held = {"frame": table_frame.float().contiguous(), "lattice": lattice.long().contiguous(),
-            "weights": weights.detach().float().contiguous(),
+    held = {"weights": weights.detach().float().contiguous(),
             "face_offset": items["face_offset"].long().contiguous(),
             "rotation": items["rotation"].float().contiguous(),
             "scale": items["scale"].float().contiguous(),
             "tri": front["tri"].to(torch.int32).contiguous(),
-            "gbary": front["bary"].float().contiguous()}
+            "gbary": front["bary"].float().contiguous(),
+            "table_of": table_of.long().contiguous()}
     keep.extend(held.values())
 
-    def map_job(coeffs: torch.Tensor) -> _ShMapJob:
-        coeffs = coeffs.contiguous()
-        keep.append(coeffs)
-        ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
-                        coeffs=coeffs.data_ptr(),
-                        **{k: held[k].data_ptr() for k in ("frame", "weights", "lattice")})
-        return _ShMapJob(eval=ev, radius=_f32(radius), max_spread=_f32(max_spread),
+    def map_job(t: dict, key: str) -> _ShMapJob:
+        own = {"coeffs": t[key].contiguous(), "frame": t["frame"].float().contiguous(),
+               "lattice": t["lattice"].long().contiguous()}
+        keep.extend(own.values())
+        ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3,
+                        rate=int(t["rate"]), weights=held["weights"].data_ptr(),
+                        **{k: v.data_ptr() for k, v in own.items()})
+        return _ShMapJob(eval=ev, radius=_f32(t["radius"]), max_spread=_f32(max_spread),
                          **{k: held[k].data_ptr() for k in ("tri", "gbary", "face_offset",
                                                               "rotation", "scale")})
 
-    return _ShShadeJob(f=frame, map=map_job(padded),
-                       branch=map_job(branch) if branch is not None else _ShMapJob(),
-                       two=int(branch is not None), conserve=int(conserve),
+    maps = (_ShMapJob * len(tables))(*[map_job(t, "padded") for t in tables])
+    branches = (_ShMapJob * len(tables))(*[map_job(t, "branch") for t in tables]) \
+        if two else None
+    keep.extend([maps, branches])
+    return _ShShadeJob(f=frame, maps=ctypes.cast(maps, _p),
+                       branches=ctypes.cast(branches, _p) if two else None,
+                       table_of=held["table_of"].data_ptr(), ntables=len(tables),
+                       two=int(two), conserve=int(conserve),
                        lobe_sigma=passes["lobe_sigma"].data_ptr(),
                        path_length=passes["path_length"].data_ptr())
 

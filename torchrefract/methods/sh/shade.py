@@ -382,14 +382,13 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     """:func:`render_sh` by csrc/sh_shade.c over ``radiance`` (B*H*W, 3, the background;
     written in place), the adaptive lattice's levels too where ``g`` carries them; None
     where it does not run (the fused kernels off, a gradient wanted, an item without a
-    table, items of several tables, more than 64 lights): the tensor code then runs."""
+    table, more than 64 lights): the tensor code then runs."""
     if lighting.light_pos.shape[1] > 64 or not sh_native.available():
         return None
     b, h, w = g.shape
     counts = torch.bincount(g.object_views(), minlength=b).tolist()
     shown = [bi for bi in range(b) if counts[bi]]
-    if any(items[bi].table is None for bi in shown) or \
-            len({id(items[bi].table) for bi in shown}) > 1:
+    if any(items[bi].table is None for bi in shown):
         return None
     made = fused._frame(g, lighting, materials, _FRAME_OPTIONS, radiance, sg_env=True,
                         march=False)
@@ -401,21 +400,24 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     if not shown:
         return radiance.view(b, h, w, 3), views
     two = options.branches == 2
+    tables: dict[int, SHTable] = {}  # the shown items' tables, in order
     for bi in shown:
         _check_item(g, bi, items[bi], materials, two)
-    table = items[shown[0]].table
+        tables.setdefault(id(items[bi].table), items[bi].table)
+    index = {key: i for i, key in enumerate(tables)}
     eye = torch.eye(3)
     per_item = {"face_offset": g.meshes.face_offset,
                 "rotation": torch.stack([it.rotation if it.table is not None else eye
                                          for it in items]),
                 "scale": torch.tensor([it.scale for it in items], dtype=torch.float32)}
+    specs = [{"padded": _padded(t, 0), "branch": _padded(t, len(CHANNELS)) if two else None,
+              "frame": t.layout.frame, "lattice": t.layout.lattice, "rate": t.layout.rate,
+              "radius": t.radius} for t in tables.values()]
     job = sh_native.shade_job(
-        frame, _padded(table, 0), _padded(table, len(CHANNELS)) if two else None,
-        table.layout.frame, table.layout.lattice, table.layout.rate,
+        frame, specs, torch.tensor([index.get(id(it.table), 0) for it in items]),
         options.order, window(options.order, options.window, options.window_width),
-        table.radius, MAX_SPREAD, per_item,
-        {"tri": g.front.tri.reshape(-1), "bary": g.front.bary.reshape(-1, 3)},
-        options.exit_weight == "conserve", passes, keep)
+        MAX_SPREAD, per_item, {"tri": g.front.tri.reshape(-1), "bary": g.front.bary.reshape(-1, 3)},
+        two, options.exit_weight == "conserve", passes, keep)
     if job is None or not fused._run("sh_shade", job, g, radiance, views,
                                      lib=sh_native.library()):
         return None

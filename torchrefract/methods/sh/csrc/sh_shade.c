@@ -12,16 +12,21 @@
  * tensor code (render_sh) is the reference and the differentiable path; the same formulas
  * in float32, in its order (tests/test_sh.py holds the two together). A roughness map is
  * read at the front hit (both interfaces' roughness, as there). Not here (shade.py runs the
- * tensor code): index-matched items (no table). */
+ * tensor code): index-matched items (no table). The batch's views may show meshes of
+ * several tables, each mapped with its own. */
 
 #include "../../../kernels/csrc/frame.h"
 #include "sh_jobs.h"
 
 typedef struct {
     Frame f;                 /* first: the lattice driver sets its pixels per pass */
-    ShMapJob map;            /* the table and each item's pose (its per-pixel arrays,
-                              * positions and outputs are the block's own) */
-    ShMapJob branch;         /* the same over the branch's channels (with ``two``) */
+    ShMapJob *maps;          /* (ntables,) each table's job: its table and the items' poses
+                              * (the per-pixel arrays, positions and outputs are a block's
+                              * own; ``rough`` is set by the entry) */
+    ShMapJob *branches;      /* (ntables,) the same over the branch's channels (with
+                              * ``two``), else NULL */
+    const int64_t *table_of; /* (B,) each view's table */
+    int64_t ntables;
     int two;                 /* branches: 2 */
     int conserve;            /* exit_weight: 1 conserve, 0 path */
     float *lobe_sigma;       /* (B*H*W,) out: the transmitted lobe's k^-1/2 */
@@ -78,24 +83,29 @@ typedef struct {
     float dir[3 * BLOCK], len[BLOCK], cos_x[BLOCK], thr[BLOCK], var_geo[BLOCK];
 } Mapped;
 
-/* shade._map_pixels over the block's m pixels from r0 (``tpl``: the table's job). */
-static void map_block(const ShMapJob *tpl, const void *shared, const Frame *j, int64_t r0,
-                      int m, const float *view, const float *var_view, const float *alpha,
-                      Mapped *out) {
-    ShMapJob mj = *tpl;
-    mj.n = m;
-    mj.sel = POSITIONS;
-    mj.pix = j->idx + r0;
-    mj.item = j->batch + r0;
-    mj.view = view;
-    mj.var_view = var_view;
-    mj.alpha = alpha;
-    mj.direction = out->dir;
-    mj.length = out->len;
-    mj.cos_exit = out->cos_x;
-    mj.throughput = out->thr;
-    mj.var_geo = out->var_geo;
-    torchrefract_sh_map_range(&mj, shared, 0, m);
+/* shade._map_pixels over the block's m pixels from r0, each run of pixels whose views share
+ * a table with that table's job (``maps``, per table; ``table_of``, per view). */
+static void map_block(const ShMapJob *maps, const int64_t *table_of, const void *shared,
+                      const Frame *j, int64_t r0, int m, const float *view,
+                      const float *var_view, const float *alpha, Mapped *out) {
+    for (int s = 0, e; s < m; s = e) {
+        int64_t t = table_of[j->batch[r0 + s]];
+        for (e = s + 1; e < m && table_of[j->batch[r0 + e]] == t; e++) {}
+        ShMapJob mj = maps[t];
+        mj.n = e - s;
+        mj.sel = POSITIONS;
+        mj.pix = j->idx + r0 + s;
+        mj.item = j->batch + r0 + s;
+        mj.view = view + 3 * s;
+        mj.var_view = var_view + s;
+        mj.alpha = alpha + s;
+        mj.direction = out->dir + 3 * s;
+        mj.length = out->len + s;
+        mj.cos_exit = out->cos_x + s;
+        mj.throughput = out->thr + s;
+        mj.var_geo = out->var_geo + s;
+        torchrefract_sh_map_range(&mj, shared, 0, e - s);
+    }
 }
 
 /* The exit's lobe sharpness k (exit_lobe: held just outside TIR at the stored exit cosine,
@@ -152,8 +162,10 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
     /* 3. eq. 2 over the block (and the branch's): the exit direction, length, exit
      * cosine, throughput and the geometric variance */
     Mapped mp, br;
-    map_block(&sj->map, sj->shared, j, r0, m, view, var_view, alpha, &mp);
-    if (sj->two) map_block(&sj->branch, sj->shared, j, r0, m, view, var_view, alpha, &br);
+    map_block(sj->maps, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha, &mp);
+    if (sj->two)
+        map_block(sj->branches, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha,
+                  &br);
     /* 4. the exit's lobe and weight; 5. the branch's */
     float k[BLOCK], w2[BLOCK], wb[BLOCK], kb[BLOCK];
     for (int i = 0; i < m; i++) {
@@ -224,12 +236,18 @@ int torchrefract_sh_shade(ShShadeJob *job, int threads) {
         int64_t b = f->batch[i];
         if (f->rmap[b] && !rough[b]) rough[b] = front_alpha(f, b, f->idx[i]) > ROUGH;
     }
-    torchrefract_sh_shared_init(&job->map, shared);
+    torchrefract_sh_shared_init(job->maps, shared);  /* one order and window per pass */
     job->shared = shared;
-    job->map.rough = job->branch.rough = rough;
+    for (int64_t t = 0; t < job->ntables; t++) {
+        job->maps[t].rough = rough;
+        if (job->two) job->branches[t].rough = rough;
+    }
     int rc = run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
     job->shared = NULL;
-    job->map.rough = job->branch.rough = NULL;
+    for (int64_t t = 0; t < job->ntables; t++) {
+        job->maps[t].rough = NULL;
+        if (job->two) job->branches[t].rough = NULL;
+    }
     free(shared);
     free(rough);
     return rc;
