@@ -33,7 +33,7 @@ An index-matched object (IOR 1) has no interface: it is invisible (no table need
 
 Steps 1-5 run as one fused kernel where it can (csrc/sh_shade.c, :func:`_render_fused`: the
 fused methods' frame, and the adaptive lattice's levels in their driver); this tensor code
-is the reference, the differentiable path and the rest (index-matched items).
+is the reference, the differentiable path and the rest (more than 64 lights).
 """
 
 from __future__ import annotations
@@ -381,15 +381,15 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
                   ) -> tuple[torch.Tensor, dict[str, torch.Tensor]] | None:
     """:func:`render_sh` by csrc/sh_shade.c over ``radiance`` (B*H*W, 3, the background;
     written in place), the adaptive lattice's levels too where ``g`` carries them; None
-    where it does not run (the fused kernels off, a gradient wanted, an item without a
-    table, more than 64 lights): the tensor code then runs."""
+    where it does not run (the fused kernels off, a gradient wanted, more than 64 lights,
+    no shown item with a table): the tensor code then runs."""
     if lighting.light_pos.shape[1] > 64 or not sh_native.available():
         return None
     b, h, w = g.shape
     counts = torch.bincount(g.object_views(), minlength=b).tolist()
     shown = [bi for bi in range(b) if counts[bi]]
-    if any(items[bi].table is None for bi in shown):
-        return None
+    if shown and all(items[bi].table is None for bi in shown):
+        return None  # (nothing to map: the tensor code's few ops)
     made = fused._frame(g, lighting, materials, _FRAME_OPTIONS, radiance, sg_env=True,
                         march=False)
     if made is None:
@@ -402,8 +402,9 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
     two = options.branches == 2
     tables: dict[int, SHTable] = {}  # the shown items' tables, in order
     for bi in shown:
-        _check_item(g, bi, items[bi], materials, two)
-        tables.setdefault(id(items[bi].table), items[bi].table)
+        if items[bi].table is not None:
+            _check_item(g, bi, items[bi], materials, two)
+            tables.setdefault(id(items[bi].table), items[bi].table)
     index = {key: i for i, key in enumerate(tables)}
     eye = torch.eye(3)
     per_item = {"face_offset": g.meshes.face_offset,
@@ -414,7 +415,7 @@ def _render_fused(g: GBuffer, lighting: Lighting, materials: MaterialBatch,
               "frame": t.layout.frame, "lattice": t.layout.lattice, "rate": t.layout.rate,
               "radius": t.radius} for t in tables.values()]
     job = sh_native.shade_job(
-        frame, specs, torch.tensor([index.get(id(it.table), 0) for it in items]),
+        frame, specs, torch.tensor([index.get(id(it.table), -1) for it in items]),
         options.order, window(options.order, options.window, options.window_width),
         MAX_SPREAD, per_item, {"tri": g.front.tri.reshape(-1), "bary": g.front.bary.reshape(-1, 3)},
         two, options.exit_weight == "conserve", passes, keep)

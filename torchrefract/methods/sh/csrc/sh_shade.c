@@ -11,9 +11,9 @@
  * branch's channels are mapped and its lobe added the same way (step 5 of shade.py). The
  * tensor code (render_sh) is the reference and the differentiable path; the same formulas
  * in float32, in its order (tests/test_sh.py holds the two together). A roughness map is
- * read at the front hit (both interfaces' roughness, as there). Not here (shade.py runs the
- * tensor code): index-matched items (no table). The batch's views may show meshes of
- * several tables, each mapped with its own. */
+ * read at the front hit (both interfaces' roughness, as there). Not here (shade.py runs its
+ * tensor code): more than 64 lights. The batch's views may show meshes of several
+ * tables, each mapped with its own, and index-matched ones (no table). */
 
 #include "../../../kernels/csrc/frame.h"
 #include "sh_jobs.h"
@@ -25,7 +25,7 @@ typedef struct {
                               * own; ``rough`` is set by the entry) */
     ShMapJob *branches;      /* (ntables,) the same over the branch's channels (with
                               * ``two``), else NULL */
-    const int64_t *table_of; /* (B,) each view's table */
+    const int64_t *table_of; /* (B,) each view's table; -1: none (IOR 1, index-matched) */
     int64_t ntables;
     int two;                 /* branches: 2 */
     int conserve;            /* exit_weight: 1 conserve, 0 path */
@@ -84,13 +84,27 @@ typedef struct {
 } Mapped;
 
 /* shade._map_pixels over the block's m pixels from r0, each run of pixels whose views share
- * a table with that table's job (``maps``, per table; ``table_of``, per view). */
+ * a table with that table's job (``maps``, per table; ``table_of``, per view). A view
+ * without a table (index-matched) gets render_sh's values there: the camera ray, and the
+ * layers' gap as the length (the main path), or no energy (the ``branch``). */
 static void map_block(const ShMapJob *maps, const int64_t *table_of, const void *shared,
                       const Frame *j, int64_t r0, int m, const float *view,
-                      const float *var_view, const float *alpha, Mapped *out) {
+                      const float *var_view, const float *alpha, int branch, Mapped *out) {
     for (int s = 0, e; s < m; s = e) {
         int64_t t = table_of[j->batch[r0 + s]];
         for (e = s + 1; e < m && table_of[j->batch[r0 + e]] == t; e++) {}
+        if (t < 0) {
+            for (int i = s; i < e; i++) {
+                int64_t px = j->idx[r0 + i];
+                float gap = j->back_dist[px] - j->front_dist[px];
+                for (int c = 0; c < 3; c++) out->dir[3 * i + c] = j->ray_dir[3 * px + c];
+                out->len[i] = branch ? 0.0f : (gap > 0.0f ? gap : 0.0f);
+                out->cos_x[i] = 1.0f;
+                out->thr[i] = branch ? 0.0f : 1.0f;
+                out->var_geo[i] = 0.0f;
+            }
+            continue;
+        }
         ShMapJob mj = maps[t];
         mj.n = e - s;
         mj.sel = POSITIONS;
@@ -162,9 +176,9 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
     /* 3. eq. 2 over the block (and the branch's): the exit direction, length, exit
      * cosine, throughput and the geometric variance */
     Mapped mp, br;
-    map_block(sj->maps, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha, &mp);
+    map_block(sj->maps, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha, 0, &mp);
     if (sj->two)
-        map_block(sj->branches, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha,
+        map_block(sj->branches, sj->table_of, sj->shared, j, r0, m, view, var_view, alpha, 1,
                   &br);
     /* 4. the exit's lobe and weight; 5. the branch's */
     float k[BLOCK], w2[BLOCK], wb[BLOCK], kb[BLOCK];
@@ -181,6 +195,13 @@ static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
                               wb + i);
             wb[i] = wb[i] * eb;
             if (sj->conserve) w2[i] = w2[i] * (1.0f - eb);
+        }
+        if (sj->table_of[b] < 0) {  /* index-matched: invisible (the straight ray,
+                                     * unblurred, all the light) */
+            e_r[i] = 0.0f;
+            e_t1[i] = 1.0f;
+            w2[i] = 1.0f;
+            k[i] = INFINITY;
         }
     }
     /* the lookups of the block, their texels asked for at once (8 in lanes), then read;
