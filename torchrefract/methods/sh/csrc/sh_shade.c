@@ -145,34 +145,48 @@ static float exit_lobe(const ShShadeJob *sj, const SgAxes *ax, int64_t b, float 
     return 1.0f / (inv > 1e-12f ? inv : 1e-12f);
 }
 
-static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
-    const ShShadeJob *sj = (const ShShadeJob *)vjob;
-    const Frame *j = &sj->f;
+/* Steps 1-2 of a block's pixels: what the front interface gives each. */
+typedef struct {
     float view[3 * BLOCK], var_view[BLOCK], alpha[BLOCK], var1[BLOCK];
     float e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK], e_t1[BLOCK];
     SgAxes own[BLOCK][SH_AXES];
-    const SgAxes *axp[BLOCK];
-    /* 1. object_pixels and the front lobes (lobes.front_lobes), 2. the view's spread */
+    const SgAxes *ax[BLOCK];  /* each pixel's table axes (its view's, or own) */
+} Front;
+
+/* 1. object_pixels and the front lobes (lobes.front_lobes), 2. the view's spread, of the
+ * block's m pixels from r0. */
+static void front_block(const Frame *j, const SgAxes *axes, int64_t r0, int m, Front *fr) {
     for (int i = 0; i < m; i++) {
         int64_t px = j->idx[r0 + i], b = j->batch[r0 + i], d = j->dist[b];
-        float n1[3], *v = view + 3 * i;
+        float n1[3], *v = fr->view + 3 * i;
         for (int c = 0; c < 3; c++) v[c] = -j->ray_dir[3 * px + c];
         face_forward(j->front_normal + 3 * px, j->ray_dir + 3 * px, n1);
         float cos1 = clampf(dot3(v, n1), 0.0f, 1.0f), eta = j->ior[b], ang, k_t1;
-        alpha[i] = front_alpha(j, b, px);
-        const SgAxes *ax = axp[i] = axes_of(j, axes + SH_AXES * b, b, alpha[i], own[i]);
+        fr->alpha[i] = front_alpha(j, b, px);
+        const SgAxes *ax = fr->ax[i] = axes_of(j, axes + SH_AXES * b, b, fr->alpha[i],
+                                               fr->own[i]);
         float z = sg_theta(cos1);
-        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 1, z, k_r + i, &ang, e_r + i);
-        lobe_axis(v, n1, ang, 1.0f, axis_r + 3 * i);
-        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 0, z, &k_t1, &ang, e_t1 + i);
-        var1[i] = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
+        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 1, z, fr->k_r + i, &ang, fr->e_r + i);
+        lobe_axis(v, n1, ang, 1.0f, fr->axis_r + 3 * i);
+        sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 0, z, &k_t1, &ang, fr->e_t1 + i);
+        fr->var1[i] = 1.0f / (k_t1 > 1e-12f ? k_t1 : 1e-12f);
         /* _snell_spread: d theta_o / d theta_t = eta cos_t / cos_o in the plane, eta
          * across it */
         float cos_o = cos1 > 0.05f ? cos1 : 0.05f;
         float sin2_t = (1.0f - cos_o * cos_o) / (eta * eta), ct2 = 1.0f - sin2_t;
         float cos_t = sqrtf(ct2 > 0.0f ? ct2 : 0.0f), m1 = eta * cos_t / cos_o;
-        var_view[i] = var1[i] * 0.5f * (m1 * m1 + eta * eta);
+        fr->var_view[i] = fr->var1[i] * 0.5f * (m1 * m1 + eta * eta);
     }
+}
+
+static void sh_block(const void *vjob, const SgAxes *axes, int64_t r0, int m) {
+    const ShShadeJob *sj = (const ShShadeJob *)vjob;
+    const Frame *j = &sj->f;
+    Front fr;
+    front_block(j, axes, r0, m, &fr);
+    float *view = fr.view, *var_view = fr.var_view, *alpha = fr.alpha, *var1 = fr.var1;
+    float *e_r = fr.e_r, *k_r = fr.k_r, *axis_r = fr.axis_r, *e_t1 = fr.e_t1;
+    const SgAxes *const *axp = fr.ax;
     /* 3. eq. 2 over the block (and the branch's): the exit direction, length, exit
      * cosine, throughput and the geometric variance */
     Mapped mp, br;
