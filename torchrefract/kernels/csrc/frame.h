@@ -132,6 +132,36 @@ static inline float escape(const Frame *f, int64_t b, float alpha) {
     return e[i0] * (1.0f - w) + e[i0 + 1] * w;
 }
 
+/* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
+ * (eta = ior) and leaving (eta = 1 / ior): the first AXES of a view's axes (rousiers_core.h
+ * adds its roughness levels after them). */
+enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
+
+/* A view's four interfaces on the table (``out``: IN .. OUT0), at its roughness (at least
+ * microfacet.ALPHA_MIN) and at the table's smallest (sg_lobe's fade). */
+static inline void view_axes(const Frame *f, int64_t b, SgAxes *out) {
+    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
+    float a0 = f->table.alpha_min;
+    sg_axes(&f->table, ior, a, out + IN);
+    sg_axes(&f->table, ior, a0, out + IN0);
+    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
+    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
+}
+
+/* The axes of a point of roughness ``alpha`` (at least ALPHA_MIN) in view b: the view's
+ * where its roughness is uniform, else ``own`` filled at alpha (the alpha_min ones are the
+ * view's). */
+static inline const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b,
+                                    float alpha, SgAxes *own) {
+    if (!f->rmap[b]) return view;
+    float ior = f->ior[b];
+    sg_axes(&f->table, ior, alpha, own + IN);
+    own[IN0] = view[IN0];
+    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
+    own[OUT0] = view[OUT0];
+    return own;
+}
+
 /* sg_env_tap of a block's m lookups (view of pixel i: the job's batch[r0 + i]; directions
  * dirs[3 i ...], sharpness ks[i]), eight at a time in lanes, their texels asked for (the
  * same taps as incident_sg's, read by incident_sg_at). */

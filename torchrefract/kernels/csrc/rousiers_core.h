@@ -59,26 +59,10 @@ static inline int exit_mode(const RousJob *rj) {
     return rj->bo.limit > 0 ? SPLIT : rj->f.tir_mode;
 }
 
-/* Per view: the table's interfaces at (eta, alpha) and (eta, alpha_min), entering
- * (eta = ior) and leaving (eta = 1 / ior). */
-enum { IN = 0, IN0 = 1, OUT = 2, OUT0 = 3, AXES = 4 };
-/* ... followed by the leaving interface (eta = 1 / ior) at each roughness level */
+/* ... the view's interfaces (frame.h's IN .. OUT0) followed by the leaving interface
+ * (eta = 1 / ior) at each roughness level */
 #define MAX_LEVELS 16
 #define NAXES (AXES + MAX_LEVELS)
-
-/* The axes of a point of roughness ``alpha`` (at least ALPHA_MIN) in view b: the view's
- * where its roughness is uniform, else ``own`` filled at alpha (the alpha_min ones are the
- * view's). */
-static const SgAxes *axes_at(const Frame *f, const SgAxes *view, int64_t b, float alpha,
-                             SgAxes *own) {
-    if (!f->rmap[b]) return view;
-    float ior = f->ior[b];
-    sg_axes(&f->table, ior, alpha, own + IN);
-    own[IN0] = view[IN0];
-    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
-    own[OUT0] = view[OUT0];
-    return own;
-}
 
 
 /* cone.bounding_angle: theta_b = 2 asin(x), x = sqrt(-expm1(-ln 4 / (k + 1)) / 2) (eq. 12),
@@ -810,12 +794,8 @@ static void shade_block(const void *job, const SgAxes *axes, int64_t r0, int m) 
 /* Each view's interfaces on the table: entering (eta = ior) and leaving (1 / ior), at its
  * roughness (at least microfacet.ALPHA_MIN) and at the table's smallest (sg_lobe's fade). */
 static int rous_axes(const Frame *f, int64_t b, SgAxes *out) {
-    float ior = f->ior[b], a = f->alpha[b] > 1e-4f ? f->alpha[b] : 1e-4f;
-    float a0 = f->table.alpha_min;
-    sg_axes(&f->table, ior, a, out + IN);
-    sg_axes(&f->table, ior, a0, out + IN0);
-    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
-    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
+    float ior = f->ior[b];
+    view_axes(f, b, out);
     const RousJob *rj = (const RousJob *)f;  /* f is the job's first member */
     for (int q = 0; q < rj->levels; q++)
         sg_axes(&f->table, 1.0f / ior, rj->level_alpha[b * rj->levels + q], out + AXES + q);

@@ -34,8 +34,6 @@ typedef struct {
     const void *shared;      /* the map's constants, made by the entry (NULL from Python) */
 } ShShadeJob;
 
-enum { IN, IN0, OUT, OUT0, SH_AXES };
-
 #define CRITICAL_MARGIN 1e-4f /* optics.exit_rule.CRITICAL_MARGIN */
 #define ALPHA_MIN 1e-4f       /* optics.microfacet.ALPHA_MIN */
 #define ROUGH 1e-3f           /* shade.ROUGH */
@@ -47,33 +45,14 @@ static inline float front_alpha(const Frame *f, int64_t b, int64_t px) {
     return a > ALPHA_MIN ? a : ALPHA_MIN;
 }
 
-/* Each view's entry (eta = ior) and exit (eta = 1 / ior) interfaces at its roughness
- * (at least ALPHA_MIN, as object_pixels takes it) and at the table's smallest. */
+/* Each view's entry and exit interfaces (frame.h's view_axes). */
 static int sh_axes(const Frame *f, int64_t b, SgAxes *out) {
-    float ior = f->ior[b], a = f->alpha[b] > ALPHA_MIN ? f->alpha[b] : ALPHA_MIN;
-    float a0 = f->table.alpha_min;
-    sg_axes(&f->table, ior, a, out + IN);
-    sg_axes(&f->table, ior, a0, out + IN0);
-    sg_axes(&f->table, 1.0f / ior, a, out + OUT);
-    sg_axes(&f->table, 1.0f / ior, a0, out + OUT0);
-    return SH_AXES;
+    view_axes(f, b, out);
+    return AXES;
 }
 
 static const int64_t POSITIONS[BLOCK] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14,
                                          15};
-
-/* The axes of a pixel of roughness ``alpha`` in view b: the view's where its roughness is
- * uniform, else ``own`` at alpha (the alpha_min ones the view's). */
-static const SgAxes *axes_of(const Frame *f, const SgAxes *view, int64_t b, float alpha,
-                             SgAxes *own) {
-    if (!f->rmap[b]) return view;
-    float ior = f->ior[b];
-    sg_axes(&f->table, ior, alpha, own + IN);
-    own[IN0] = view[IN0];
-    sg_axes(&f->table, 1.0f / ior, alpha, own + OUT);
-    own[OUT0] = view[OUT0];
-    return own;
-}
 
 /* nan_to_num(nan=0, posinf=0, neginf=0) */
 static inline float finite_or_zero(float x) { return isfinite(x) ? x : 0.0f; }
@@ -149,7 +128,7 @@ static float exit_lobe(const ShShadeJob *sj, const SgAxes *ax, int64_t b, float 
 typedef struct {
     float view[3 * BLOCK], var_view[BLOCK], alpha[BLOCK], var1[BLOCK];
     float e_r[BLOCK], k_r[BLOCK], axis_r[3 * BLOCK], e_t1[BLOCK];
-    SgAxes own[BLOCK][SH_AXES];
+    SgAxes own[BLOCK][AXES];
     const SgAxes *ax[BLOCK];  /* each pixel's table axes (its view's, or own) */
 } Front;
 
@@ -163,7 +142,7 @@ static void front_block(const Frame *j, const SgAxes *axes, int64_t r0, int m, F
         face_forward(j->front_normal + 3 * px, j->ray_dir + 3 * px, n1);
         float cos1 = clampf(dot3(v, n1), 0.0f, 1.0f), eta = j->ior[b], ang, k_t1;
         fr->alpha[i] = front_alpha(j, b, px);
-        const SgAxes *ax = fr->ax[i] = axes_of(j, axes + SH_AXES * b, b, fr->alpha[i],
+        const SgAxes *ax = fr->ax[i] = axes_at(j, axes + AXES * b, b, fr->alpha[i],
                                                fr->own[i]);
         float z = sg_theta(cos1);
         sg_lobe_at(&j->table, ax + IN, ax + IN0, d, 1, z, fr->k_r + i, &ang, fr->e_r + i);
@@ -277,7 +256,7 @@ int torchrefract_sh_shade(ShShadeJob *job, int threads) {
         job->maps[t].rough = rough;
         if (job->two) job->branches[t].rough = rough;
     }
-    int rc = run_shading(job, &job->f, SH_AXES, sh_axes, sh_block, threads);
+    int rc = run_shading(job, &job->f, AXES, sh_axes, sh_block, threads);
     job->shared = NULL;
     for (int64_t t = 0; t < job->ntables; t++) {
         job->maps[t].rough = NULL;
