@@ -231,6 +231,36 @@ def _f32(x: float) -> float:
     return float(torch.tensor(x, dtype=torch.float32))
 
 
+def _suits(coeffs: torch.Tensor) -> bool:
+    """Whether a padded table (:func:`padded_coeffs`) is in the layout the built kernel
+    reads."""
+    return (tuple(coeffs.shape[1:]) == (45, CPAD)
+            and (coeffs.dtype == torch.float16) == table_half())
+
+
+def _map_job(coeffs: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor, rate: int,
+             order: int, weights: torch.Tensor, radius: float, max_spread: float,
+             items: dict[str, torch.Tensor], tri: torch.Tensor, bary: torch.Tensor,
+             keep: list) -> _ShMapJob:
+    """A ``ShMapJob``'s table, window, items' poses (``face_offset``, ``rotation``,
+    ``scale``) and the G-buffer's front faces and barycentrics; its positions, per-pixel
+    arrays, ``rough`` and outputs left unset. The tensors it points into go to ``keep``."""
+    held = {"coeffs": coeffs.contiguous(), "frame": frame.float().contiguous(),
+            "lattice": lattice.long().contiguous(),
+            "weights": weights.detach().float().contiguous(),
+            "face_offset": items["face_offset"].long().contiguous(),
+            "rotation": items["rotation"].float().contiguous(),
+            "scale": items["scale"].float().contiguous(),
+            "tri": tri.to(torch.int32).contiguous(), "gbary": bary.float().contiguous()}
+    keep.extend(held.values())
+    ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
+                    **{k: held[k].data_ptr() for k in ("coeffs", "frame", "lattice",
+                                                         "weights")})
+    return _ShMapJob(eval=ev, radius=_f32(radius), max_spread=_f32(max_spread),
+                     **{k: held[k].data_ptr() for k in ("tri", "gbary", "face_offset",
+                                                          "rotation", "scale")})
+
+
 def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor, rate: int,
                order: int, weights: torch.Tensor, radius: float, max_spread: float,
                sel: torch.Tensor, pixels: dict[str, torch.Tensor], items: dict[str, torch.Tensor],
@@ -247,36 +277,26 @@ def map_pixels(padded: torch.Tensor, frame: torch.Tensor, lattice: torch.Tensor,
         items: per batch item ``face_offset``, ``rotation`` (B, 3, 3), ``scale`` (B,) and
             ``rough`` (B,) bool: whether its four offset views are read.
     """
-    if _load() is None or padded.shape[-1] != CPAD or tuple(padded.shape[1:]) != (45, CPAD):
-        return False
-    if (padded.dtype == torch.float16) != table_half() or not all(
+    if _load() is None or padded.shape[-1] != CPAD or not _suits(padded) or not all(
             out[k].is_contiguous() and out[k].dtype == torch.float32 for k in out):
         return False
     n = int(sel.numel())
     if n == 0:
         return True
+    keep: list = []
+    job = _map_job(padded, frame, lattice, rate, order, weights, radius, max_spread, items,
+                   pixels["tri"], pixels["bary"], keep)
     held = {"sel": sel.long().contiguous(), "pix": pixels["pix"].long().contiguous(),
             "item": pixels["item"].long().contiguous(),
-            "tri": pixels["tri"].to(torch.int32).contiguous(),
-            "gbary": pixels["bary"].float().contiguous(),
             "view": pixels["view"].detach().float().contiguous(),
             "var_view": pixels["var_view"].detach().float().contiguous(),
             "alpha": pixels["alpha"].detach().float().contiguous(),
-            "face_offset": items["face_offset"].long().contiguous(),
-            "rotation": items["rotation"].float().contiguous(),
-            "scale": items["scale"].float().contiguous(),
-            "rough": items["rough"].to(torch.uint8).contiguous(),
-            "frame": frame.contiguous(), "lattice": lattice.long().contiguous(),
-            "weights": weights.detach().float().contiguous(), "coeffs": padded.contiguous()}
-    ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3, rate=int(rate),
-                    frame=held["frame"].data_ptr(), coeffs=held["coeffs"].data_ptr(),
-                    weights=held["weights"].data_ptr(), lattice=held["lattice"].data_ptr())
-    job = _ShMapJob(eval=ev, n=n, radius=_f32(radius), max_spread=_f32(max_spread),
-                    **{k: held[k].data_ptr() for k in (
-                        "sel", "pix", "item", "tri", "gbary", "view", "var_view", "alpha",
-                        "face_offset", "rotation", "scale", "rough")},
-                    **{k: out[k].data_ptr() for k in (
-                        "direction", "length", "cos_exit", "throughput", "var_geo")})
+            "rough": items["rough"].to(torch.uint8).contiguous()}
+    job.n = n
+    for k, v in held.items():
+        setattr(job, k, v.data_ptr())
+    for k in ("direction", "length", "cos_exit", "throughput", "var_geo"):
+        setattr(job, k, out[k].data_ptr())
     return _LIB.torchrefract_sh_map(ctypes.byref(job), torch.get_num_threads()) == 0
 
 
@@ -300,39 +320,22 @@ def shade_job(frame, tables: list[dict], table_of: torch.Tensor, order: int,
     ``path_length`` passes (B*H*W float32, written in place); the tensors it points into
     appended to ``keep``. None where the kernel cannot run."""
     coeffs = [t["padded"] for t in tables] + ([t["branch"] for t in tables] if two else [])
-    if _load() is None or order > 8 or not tables or any(
-            tuple(c.shape[1:]) != (45, CPAD) or (c.dtype == torch.float16) != table_half()
-            for c in coeffs):
+    if _load() is None or order > 8 or not tables or not all(_suits(c) for c in coeffs):
         return None
-    held = {"weights": weights.detach().float().contiguous(),
-            "face_offset": items["face_offset"].long().contiguous(),
-            "rotation": items["rotation"].float().contiguous(),
-            "scale": items["scale"].float().contiguous(),
-            "tri": front["tri"].to(torch.int32).contiguous(),
-            "gbary": front["bary"].float().contiguous(),
-            "table_of": table_of.long().contiguous()}
-    keep.extend(held.values())
 
-    def map_job(t: dict, key: str) -> _ShMapJob:
-        own = {"coeffs": t[key].contiguous(), "frame": t["frame"].float().contiguous(),
-               "lattice": t["lattice"].long().contiguous()}
-        keep.extend(own.values())
-        ev = _ShEvalJob(n=0, e=1, order=int(order), c=MAP_CHANNELS, c_rest=3,
-                        rate=int(t["rate"]), weights=held["weights"].data_ptr(),
-                        **{k: v.data_ptr() for k, v in own.items()})
-        return _ShMapJob(eval=ev, radius=_f32(t["radius"]), max_spread=_f32(max_spread),
-                         **{k: held[k].data_ptr() for k in ("tri", "gbary", "face_offset",
-                                                              "rotation", "scale")})
+    def maps(key: str):
+        """The C array of each table's ``ShMapJob`` over its ``key`` coefficients."""
+        made = (_ShMapJob * len(tables))(*[
+            _map_job(t[key], t["frame"], t["lattice"], t["rate"], order, weights, t["radius"],
+                     max_spread, items, front["tri"], front["bary"], keep) for t in tables])
+        keep.append(made)
+        return ctypes.cast(made, _p)
 
-    maps = (_ShMapJob * len(tables))(*[map_job(t, "padded") for t in tables])
-    branches = (_ShMapJob * len(tables))(*[map_job(t, "branch") for t in tables]) \
-        if two else None
-    keep.extend([maps, branches])
-    return _ShShadeJob(f=frame, maps=ctypes.cast(maps, _p),
-                       branches=ctypes.cast(branches, _p) if two else None,
-                       table_of=held["table_of"].data_ptr(), ntables=len(tables),
-                       two=int(two), conserve=int(conserve),
-                       lobe_sigma=passes["lobe_sigma"].data_ptr(),
+    table_of = table_of.long().contiguous()
+    keep.append(table_of)
+    return _ShShadeJob(f=frame, maps=maps("padded"), branches=maps("branch") if two else None,
+                       table_of=table_of.data_ptr(), ntables=len(tables), two=int(two),
+                       conserve=int(conserve), lobe_sigma=passes["lobe_sigma"].data_ptr(),
                        path_length=passes["path_length"].data_ptr())
 
 
