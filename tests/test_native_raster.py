@@ -360,3 +360,18 @@ def test_the_cli_sets_the_rasterizer():
     assert _settings(args).rasterizer == "native"
     with pytest.raises(SystemExit):
         _parser().parse_args(["render", "x.yaml", "--out", "o", "--rasterizer", "gl"])
+
+
+@pytest.mark.parametrize("eye,up", [((0.0, 0.3, 3.4), (0, 1, 0)), ((2.0, -1.5, 0.7), (0, 0, 1)),
+                                     ((-0.3, 4.0, 0.01), (1, 0, 0))])
+def test_view_matrix_is_the_inverse_of_the_camera_pose(eye, up):
+    """The passes' view matrix (built from the camera frame, not by a 4x4 inverse) takes
+    the camera pose to the identity, and P V maps the target to the image center."""
+    from torchrefract.geometry.camera import camera_pose  # noqa: PLC0415
+
+    cam = Camera(eye=eye, target=(0.1, -0.2, 0.3), up=up, width=64, height=48)
+    proj, view, znear, zfar = raster._view_matrices(cam, (np.zeros(3), 1.0))
+    assert np.abs(view @ camera_pose(cam) - np.eye(4)).max() < 1e-14
+    clip = raster.view_projection(cam, (np.zeros(3), 1.0)) @ np.array([0.1, -0.2, 0.3, 1.0])
+    assert abs(clip[0] / clip[3]) < 1e-12 and abs(clip[1] / clip[3]) < 1e-12
+    assert 0.0 < znear < zfar

@@ -9,6 +9,7 @@ import dataclasses
 import importlib
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -234,3 +235,28 @@ def test_bad_budget_is_named():
         RenderSettings(memory_budget_mb=0)
     with pytest.raises(tr.ConfigError, match="memory_budget_mb"):
         RenderSettings(memory_budget_mb=1.5)
+
+
+@pytest.mark.skipif(not Path("/proc/meminfo").exists(), reason="Linux /proc only")
+def test_memory_budget_reads_meminfo_once_per_max_age(monkeypatch):
+    """Renders in quick succession share one reading of MemAvailable; an older one is read
+    again (80% of it is the budget)."""
+    import builtins  # noqa: PLC0415
+
+    reads, real_open, now = [], builtins.open, [1000.0]
+
+    def counting(path, *args, **kwargs):
+        if path == "/proc/meminfo":
+            reads.append(path)
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(tiles, "_meminfo", None)
+    monkeypatch.setattr(builtins, "open", counting)
+    monkeypatch.setattr(tiles.time, "monotonic", lambda: now[0])
+    first = tiles.memory_budget()
+    now[0] += 0.5 * tiles.MEMINFO_MAX_AGE_S
+    assert tiles.memory_budget() == first and len(reads) == 1
+    now[0] += tiles.MEMINFO_MAX_AGE_S
+    tiles.memory_budget()
+    assert len(reads) == 2
+    assert 0 < first <= 0.8 * tiles._meminfo[1] + 1

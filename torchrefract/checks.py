@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from numbers import Real
 from pathlib import Path
 from typing import Any, Sequence
@@ -134,12 +135,12 @@ def load_yaml_file(path: str | Path, what: str) -> Any:
 def file_version(path: str | Path, what: str) -> tuple[str, int, int]:
     """(resolved path, mtime in ns, size) of an existing file: the key of the per-file caches,
     so a file rewritten in place is read again. Missing file: ConfigError naming ``what``."""
-    p = Path(path)
+    name = os.fspath(path)
     try:
-        st = p.stat()
-    except OSError:
+        st = os.stat(name)  # (not a Path object: this runs for every file of every render)
+    except (OSError, ValueError):
         raise ConfigError(f"{what} {str(path)!r}: file not found") from None
-    return _resolved(str(p)), st.st_mtime_ns, st.st_size
+    return _resolved(name), st.st_mtime_ns, st.st_size
 
 
 @functools.lru_cache(maxsize=1024)

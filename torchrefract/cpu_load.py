@@ -13,6 +13,7 @@ is not load.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 
@@ -68,10 +69,16 @@ def recent_busy_cores(max_age_s: float = MAX_AGE_S) -> int:
     return _last[1]
 
 
+@functools.lru_cache(maxsize=1)
+def _cores() -> int:
+    """The machine's cores (``os.cpu_count`` reads /sys on every call: ~0.1 ms a render)."""
+    return os.cpu_count() or 1
+
+
 def threads_for(requested: int, cores: int | None = None, busy: int | None = None) -> int:
     """The threads a render takes when it asked for ``requested``: at most the cores other
     processes leave free (:func:`recent_busy_cores` unless ``busy`` is given), at least 1."""
-    cores = cores if cores is not None else (os.cpu_count() or 1)
+    cores = cores if cores is not None else _cores()
     busy = busy if busy is not None else recent_busy_cores()
     return max(1, min(requested, cores - busy))
 

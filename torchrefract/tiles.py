@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from typing import TYPE_CHECKING
 
 import torch
@@ -61,6 +62,32 @@ MIN_TILE = 1 << 12
 (the background, the marched planes) would cost more than its shading."""
 
 
+MEMINFO_MAX_AGE_S = 1.0
+"""How long a reading of ``MemAvailable`` serves the renders after it (as cpu_load's
+readings: renders in quick succession read /proc once a second, not every call)."""
+
+_meminfo: tuple[float, int] | None = None  # (monotonic time, bytes) of the last reading
+
+
+def _available_bytes() -> int:
+    """The memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where
+    unknown), read anew where the last reading is older than MEMINFO_MAX_AGE_S."""
+    global _meminfo
+    now = time.monotonic()
+    if _meminfo is None or now - _meminfo[0] > MEMINFO_MAX_AGE_S:
+        found = 4 << 30
+        try:
+            with open("/proc/meminfo") as f:
+                for line in f:
+                    if line.startswith("MemAvailable:"):
+                        found = int(line.split()[1]) * 1024
+                        break
+        except (OSError, ValueError, IndexError):
+            pass
+        _meminfo = (now, found)
+    return _meminfo[1]
+
+
 def memory_budget() -> int:
     """The bytes a render pass may take: ``RenderSettings.memory_budget_mb``, else 80% of
     the memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where unknown),
@@ -69,15 +96,7 @@ def memory_budget() -> int:
     s = current()
     if s.memory_budget_mb is not None:
         return s.memory_budget_mb << 20
-    budget = 4 << 30
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    budget = int(int(line.split()[1]) * 1024 * 0.8)
-                    break
-    except OSError:
-        pass
+    budget = int(_available_bytes() * 0.8)
     dev = s.torch_device()
     if dev.type == "cuda":
         import torch  # noqa: PLC0415

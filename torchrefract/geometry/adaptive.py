@@ -450,19 +450,17 @@ def lattice(g: GBuffer, alpha: torch.Tensor, normal_tol: float = NORMAL_TOL,
     # the plan's tolerances: where blending ends (BLEND_FROM)
     tol = (smooth_alpha * BLEND_FROM, normal_tol / BLEND_FROM, depth_tol / BLEND_FROM)
     status, gap, counts = _plan(*layers, alpha, *tol, stride=n, uniform=uniform)
-    objects, waiting = counts.unbind(1)  # (B,) per view
-    fine_views = (waiting > 0) & (waiting >= FINE_SHARE * objects)
-    if not bool(fine_views.any()):  # every pixel shaded (in the region only)
+    views = _waits(counts, FINE_SHARE)
+    if not any(views):  # every pixel shaded (in the region only)
         return (g if region is None else replace(g, shade=shaded)), None
-    _no_wait(status, fine_views)
+    _no_wait(status, views)
     levels = [Level(1, status, gap, sub=n)]
-    views, stride = fine_views, 2
+    stride = 2
     while stride <= COARSEST:  # a coarser level on the last one's lattice, where it pays
         status, gap, counts = _plan(*layers, alpha, *tol, stride=stride * n, uniform=None
                                     if uniform is None else uniform[:, ::stride, ::stride])
-        waiting = counts[:, 1]
-        views = views & (waiting > 0) & (waiting >= share * counts[:, 0])
-        if not bool(views.any()):
+        views = [v and w for v, w in zip(views, _waits(counts, share))]
+        if not any(views):
             break
         _no_wait(status, views)
         levels.insert(0, Level(stride, status, gap, sub=n))
@@ -490,12 +488,19 @@ def waiting(level: Level) -> bool:
     return level.status.numel() > 0 and int(level.status.max()) == 2
 
 
-def _no_wait(status: torch.Tensor, views: torch.Tensor) -> None:
-    """In place: the (B, H, W) status of every view not in ``views`` (B,) bool without
+def _waits(counts: torch.Tensor, share: float) -> list[bool]:
+    """Per view, from a level's (B, 2) counts of object and waiting pixels: whether some
+    pixels wait, and at least ``share`` of its object pixels (Python numbers: a render
+    takes these decisions a few times, and tiny tensor ops cost ~5 us each)."""
+    return [waiting > 0 and waiting >= share * objects for objects, waiting in counts.tolist()]
+
+
+def _no_wait(status: torch.Tensor, views: list[bool]) -> None:
+    """In place: the (B, H, W) status of every view not in ``views`` (B bools) without
     waiting pixels (its object pixels shaded in the first pass)."""
-    off = ~views
-    if bool(off.any()):
-        status[off] = status[off].clamp(max=1)
+    for i, v in enumerate(views):
+        if not v:
+            status[i].clamp_(max=1)
 
 
 def _mean(v: torch.Tensor, four: torch.Tensor) -> torch.Tensor:

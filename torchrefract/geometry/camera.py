@@ -26,6 +26,12 @@ def camera_frame(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     return tuple(np.array(a) for a in _camera_frame_cached(cam))  # callers may write to theirs
 
 
+def camera_frame_floats(cam: Camera) -> tuple[tuple[float, float, float], ...]:
+    """:func:`camera_frame` as tuples of Python floats (kept for the last cameras; the
+    same values)."""
+    return _camera_frame_cached(cam)
+
+
 def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
     """v over its length, the length as ``np.linalg.norm`` takes it for a float64 (3,)."""
     n = math.sqrt((v[0] * v[0] + v[1] * v[1]) + v[2] * v[2])

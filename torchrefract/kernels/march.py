@@ -122,10 +122,13 @@ def _views_planes(tv: torch.Tensor, views: list[tuple[int, int, int]], eye: torc
     """:func:`plane_table`'s rows of the distinct ``views`` (batch item, first face, faces),
     one after the other: the native kernel in one call where it runs (the same operations
     in double), else view by view."""
-    items = torch.tensor([i for i, _, _ in views], dtype=torch.int64)
-    fast = native.tri_planes(tv, torch.tensor([fo for _, fo, _ in views], dtype=torch.int64),
-                             torch.tensor([nf for _, _, nf in views], dtype=torch.int64),
-                             eye.index_select(0, items), proj[:, 3:12].index_select(0, items))
+    rows = [i for i, _, _ in views]
+    eyes, bases = eye, proj[:, 3:12]
+    if rows != list(range(eye.shape[0])):  # (every view distinct, in order: no copies)
+        items = torch.tensor(rows, dtype=torch.int64)
+        eyes, bases = eye.index_select(0, items), bases.index_select(0, items)
+    fast = native.tri_planes(tv, [fo for _, fo, _ in views], [nf for _, _, nf in views],
+                             eyes, bases)
     if fast is not None:
         return fast
     return torch.cat([_view_planes(tv[fo:fo + nf], eye[i], proj[i, 3:12])

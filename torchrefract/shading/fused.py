@@ -54,7 +54,7 @@ class _Keep(list):
     """The tensors a job points into, kept alive until the call returns."""
 
     def ptr(self, t: torch.Tensor, dtype: torch.dtype = torch.float32) -> int:
-        t = t.detach().to(dtype).contiguous()
+        t = native.as_input(t).to(dtype)
         self.append(t)
         return t.data_ptr()
 
@@ -467,9 +467,9 @@ def _drive(run: int, job: int, levels, shape: tuple[int, int, int], radiance: to
         stride=lv.frame_stride, h=lv.status.shape[1], w=lv.status.shape[2],
         status=lv.status.data_ptr(), gap=lv.gap.data_ptr(),
         rtol=adaptive.fill_rtol(lv)) for lv in levels])
-    bufs = [v.view(b * h * w, -1) for v in passes.values()]
+    bufs = list(passes.values())  # (B, H, W, C) each, contiguous: (B*H*W, C)
     ptrs = (ctypes.c_void_p * max(1, len(bufs)))(*[x.data_ptr() for x in bufs])
-    chans = torch.tensor([x.shape[1] for x in bufs] or [0], dtype=torch.int64)
+    chans = torch.tensor([x.numel() // (b * h * w) for x in bufs] or [0], dtype=torch.int64)
     drv = native._LatticeShadeJob(
         run=run, job=job, b=b, h=h, w=w,
         nlevels=len(levels), levels=ctypes.cast(rows, ctypes.c_void_p),
@@ -503,10 +503,13 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         rough = bool((materials.roughness_at(
             bi, g.front.uv.reshape(-1, 2).index_select(0, idx)) > 0).any())
     else:
-        # the views holding a shaded pixel: idx is sorted, so where it crosses view ends
-        ends = torch.searchsorted(idx, torch.arange(1, b + 1, dtype=idx.dtype) * (h * w))
-        shaded = torch.diff(ends, prepend=ends.new_zeros(1)) > 0
-        rough = bool((shaded & (materials.roughness > 0)).any())
+        rough_views = [a > 0 for a in materials.roughness.tolist()]
+        rough = any(rough_views)
+        if rough and not all(rough_views):  # the views holding a shaded pixel decide:
+            # idx is sorted, so where it crosses view ends
+            ends = torch.searchsorted(idx, torch.arange(1, b + 1, dtype=idx.dtype) * (h * w))
+            shaded = torch.diff(ends, prepend=ends.new_zeros(1)) > 0
+            rough = bool((shaded & (materials.roughness > 0)).any())
     dist = torch.tensor([_DIST[d] for d in materials.distribution], dtype=torch.int64)
     # the escape fraction: ``conserve``'s, and with internal bounces a lost ray's
     esc = escape_grid(load_sg_table(), materials.ior, dist, torch.float32) \
