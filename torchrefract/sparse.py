@@ -90,13 +90,15 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
     fulls = [result.radiance, result.coverage, *(result.passes[k] for k in names)]
     pieces = [part.radiance, part.coverage, *(part.passes[k] for k in names)]
 
+    def channels(x: torch.Tensor) -> int:  # (B, H, W[, C]): C or 1
+        return x.shape[3] if x.dim() == 4 else 1
+
     def rows(x: torch.Tensor) -> torch.Tensor:  # (B, H, W[, C]) -> (B H W, C or 1)
-        return x.reshape(-1, x.shape[3] if x.dim() == 4 else 1)
+        return x.reshape(-1, channels(x))
 
     into = torch.arange(b)[:, None] * (h * w) + pixels
-    if all(f.is_contiguous() for f in fulls) and native.put_rows(  # (views: written in place)
-            torch.where(pixels >= 0, into, -1).reshape(-1),
-            [(rows(f), rows(x)) for f, x in zip(fulls, pieces)]):
+    if native.put_rows(torch.where(pixels >= 0, into, -1).reshape(-1),  # (in place)
+                       [(f, x, channels(f)) for f, x in zip(fulls, pieces)]):
         return result
     ok = (pixels >= 0).reshape(-1).nonzero()[:, 0]  # the slots holding a pixel, once
     dst = into.reshape(-1).index_select(0, ok)

@@ -1392,25 +1392,27 @@ def one_sample_passes(front_mask: torch.Tensor, back_mask: torch.Tensor,
     return tuple(out.unbind(0)) if _call("one_sample", job) else None
 
 
-def put_rows(dst: torch.Tensor, pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> bool:
-    """For each ``(out, src)`` of ``pairs``, ``out``'s rows ``dst[s]`` := ``src``'s row s
-    where ``dst[s] >= 0`` (csrc/box.c's ``put_rows``, in place): ``out`` (R, C) and ``src``
-    (N, C) float32 contiguous CPU tensors, ``dst`` (N,) int64. ``False`` (nothing written)
-    where the kernel does not run: unavailable, a gradient wanted, or a tensor that does
-    not fit."""
+def put_rows(dst: torch.Tensor, pairs: list[tuple[torch.Tensor, torch.Tensor, int]]) -> bool:
+    """For each ``(out, src, c)`` of ``pairs``, ``out``'s rows ``dst[s]`` := ``src``'s row
+    s where ``dst[s] >= 0`` (csrc/box.c's ``put_rows``, in place): ``out`` (R rows of ``c``)
+    and ``src`` (N rows of ``c``) float32 contiguous CPU tensors of any shape, read as rows
+    of their last ``c`` values (no views made), ``dst`` (N,) int64. ``False`` (nothing
+    written) where the kernel does not run: unavailable, a gradient wanted, or a tensor
+    that does not fit."""
     n = dst.numel()
     if not (available() and _in_place(torch.int64, dst)) or not all(
-            _in_place(torch.float32, o, x) and o.dim() == 2 and x.shape == (n, o.shape[1])
-            and not (o.requires_grad or x.requires_grad) for o, x in pairs):
+            _in_place(torch.float32, o, x) and c > 0 and o.numel() % c == 0
+            and x.numel() == n * c and not (o.requires_grad or x.requires_grad)
+            for o, x, c in pairs):
         return False
     if n == 0 or not pairs:
         return True
-    if int(dst.max()) >= min(o.shape[0] for o, _ in pairs):
-        raise IndexError(f"put_rows: a row {int(dst.max())} past the buffers' "
-                         f"{min(o.shape[0] for o, _ in pairs)}")
-    outs = (ctypes.c_void_p * len(pairs))(*[o.data_ptr() for o, _ in pairs])
-    srcs = (ctypes.c_void_p * len(pairs))(*[x.data_ptr() for _, x in pairs])
-    ch = torch.tensor([o.shape[1] for o, _ in pairs], dtype=torch.int64)
+    rows = min(o.numel() // c for o, _, c in pairs)
+    if int(dst.max()) >= rows:
+        raise IndexError(f"put_rows: a row {int(dst.max())} past the buffers' {rows}")
+    outs = (ctypes.c_void_p * len(pairs))(*[o.data_ptr() for o, _, _ in pairs])
+    srcs = (ctypes.c_void_p * len(pairs))(*[x.data_ptr() for _, x, _ in pairs])
+    ch = torch.tensor([c for _, _, c in pairs], dtype=torch.int64)
     job = _PutRowsJob(n=n, nbuf=len(pairs), dst=dst.data_ptr(),
                       out=ctypes.cast(outs, ctypes.c_void_p),
                       src=ctypes.cast(srcs, ctypes.c_void_p), ch=ch.data_ptr())

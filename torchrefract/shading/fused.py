@@ -483,13 +483,17 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
     """The ``Frame`` of csrc/frame.h for a batch, shading over ``radiance`` (B*H*W, 3, the
     background), the tensors it points into, the radiance and the passes every method
     writes; ``None`` where no fused kernel runs for it. ``march`` False: without the
-    march's fields (a kernel that marches nothing: ``sh``'s)."""
+    march's fields and the passes it writes, ``exit_found`` and ``tir`` (a kernel that
+    marches nothing: ``sh``'s)."""
     if (options.tir not in TIR_RULES or radiance.dtype != torch.float32
             or not radiance.is_contiguous() or not _runs(g, lighting, materials)):
         return None
     b, h, w = g.shape
-    exit_found, tir = torch.zeros(b * h * w), torch.zeros(b * h * w)
-    passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
+    exit_found = tir = None
+    passes = {}
+    if march:
+        exit_found, tir = torch.zeros(b * h * w), torch.zeros(b * h * w)
+        passes = {"exit_found": exit_found.view(b, h, w, 1), "tir": tir.view(b, h, w, 1)}
     idx = g.object_index()
     keep = _Keep()
     if idx.numel() == 0:
@@ -534,8 +538,9 @@ def _frame(g, lighting, materials, options, radiance: torch.Tensor, sg_env: bool
         front_uv=ptr(g.front.uv), tri_uvs=ptr(g.meshes.tri_uvs),
         table=_table(keep), esc=ptr(esc), esc_n=esc.shape[1],
         lights=_lights(lighting, keep), env=_sg_env(lighting, keep) if sg_env else
-        native._SgEnv(), radiance=radiance.data_ptr(), exit_found=exit_found.data_ptr(),
-        tir=tir.data_ptr())
+        native._SgEnv(), radiance=radiance.data_ptr(),
+        exit_found=None if exit_found is None else exit_found.data_ptr(),
+        tir=None if tir is None else tir.data_ptr())
     return frame, keep, radiance, passes
 
 
