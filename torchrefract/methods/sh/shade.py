@@ -435,6 +435,55 @@ def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
         else out
 
 
+def _exit_lobe(table, px, materials: MaterialBatch, options: SHOptions, var1: torch.Tensor,
+               esc: list, cos_out: torch.Tensor, var_g: torch.Tensor, thr_path: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`render_sh`'s exit interface (leaving: eta = 1 / ior): its lobe sharpness at
+    the exit cosine ``cos_out`` (held just outside TIR, where interpolation may dip below
+    the critical angle), widened by the path's ``var_g``, and the leaving weight
+    (``exit_weight``: the path's ``thr_path``, or ``conserve``'s with the escape fraction,
+    made on first use and kept in ``esc``)."""
+    eta2 = 1.0 / px.ior
+    cos_in = torch.maximum(cos_out, critical_cosine(px.ior) + CRITICAL_MARGIN).clamp(max=1.0)
+    conserve = options.exit_weight == "conserve"
+    made = fused.exit_lobes(cos_in, eta2, px.alpha, px.dist, var1 if conserve else None)
+    if made is None:  # the tensor code: gradients, the fused kernels off
+        k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
+        e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist) \
+            if conserve else (None, None)
+    else:
+        k_t2, e_t2, e_r2 = made
+    k_out = 1.0 / (1.0 / k_t2 + var_g).clamp(min=1e-12)
+    if not conserve:
+        return k_out, thr_path
+    if not esc:
+        esc.append(escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi))
+    no_tir = torch.zeros_like(cos_out, dtype=torch.bool)
+    return k_out, leaving_weight("conserve", no_tir, e_t2, e_r2, esc[0])
+
+
+def _object_light(lighting: Lighting, materials: MaterialBatch, px, front,
+                  matched: torch.Tensor, path: tuple, branch: tuple | None) -> torch.Tensor:
+    """(N, 3) light of the object pixels ``px``: the front reflection and the transmitted
+    lobe of ``path`` (exit direction, length inside, sharpness, weight), absorbed over its
+    length (sec. 5.4), and ``branch``'s alike where given; an index-matched pixel
+    (``matched``) reflects nothing and lets all the light through. Finite, >= 0."""
+    direction, length, k, weight = path
+    e_r = torch.where(matched, torch.zeros_like(front.e_r), front.e_r)
+    e_t1 = torch.where(matched, torch.ones_like(front.e_t1), front.e_t1)
+    absorption = take(materials.absorption, px.bi)
+    att = torch.exp(-absorption * length[:, None])  # (N, 3)
+    l_refl = _incident(lighting, px.bi, px.p1, front.axis_r, front.k_r)
+    l_trans = _incident(lighting, px.bi, px.p1, direction, k)
+    l_obj = e_r[:, None] * l_refl + (e_t1 * weight)[:, None] * att * l_trans
+    if branch is not None:
+        direction_b, length_b, k_b, weight_b = branch
+        att_b = torch.exp(-absorption * length_b[:, None])
+        l_b = _incident(lighting, px.bi, px.p1, direction_b, k_b)
+        l_obj = l_obj + (e_t1 * weight_b)[:, None] * att_b * l_b
+    return torch.nan_to_num(l_obj, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
+
+
 def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options: SHOptions,
               items: tuple[SceneTable, ...]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Shade a G-buffer with the precomputed refracted-path mapping (module docstring).
@@ -489,55 +538,21 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
             if two:
                 _map_items(g, px, bis, items, options, var_view, rough, outs_b,
                            len(CHANNELS))
-        # The exit interface (leaving: eta = 1 / ior), its lobe at the exit cosine (held
-        # just outside TIR, where interpolation may dip below the critical angle).
-        eta2 = 1.0 / px.ior
-        esc = None
-
-        def exit_lobe(cos_out, var_g, thr_path):
-            """The exit's lobe sharpness and leaving weight (``exit_weight``)."""
-            nonlocal esc
-            cos_in = torch.maximum(cos_out, critical_cosine(px.ior) + CRITICAL_MARGIN
-                                   ).clamp(max=1.0)
-            conserve = options.exit_weight == "conserve"
-            made = fused.exit_lobes(cos_in, eta2, px.alpha, px.dist, var1 if conserve else None)
-            if made is None:  # the tensor code: gradients, the fused kernels off
-                k_t2 = sg_lobe(table, cos_in, eta2, px.alpha, px.dist, "transmit")[1]
-                e_t2, e_r2 = spread_energies(table, cos_in, var1, eta2, px.alpha, px.dist) \
-                    if conserve else (None, None)
-            else:
-                k_t2, e_t2, e_r2 = made
-            k_out = 1.0 / (1.0 / k_t2 + var_g).clamp(min=1e-12)
-            if not conserve:
-                return k_out, thr_path
-            if esc is None:
-                esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi)
-            return k_out, leaving_weight("conserve", torch.zeros_like(matched), e_t2, e_r2, esc)
-
-        k, weight2 = exit_lobe(cos_exit, var_geo, thr)
+        exit_args = (table, px, materials, options, var1, [])  # (the escape fraction, kept)
+        k, weight2 = _exit_lobe(*exit_args, cos_exit, var_geo, thr)
+        branch = None
         if two:
             # the branch carries its energy; conserve: the main path's share less it
             energy_b = torch.where(matched, torch.zeros_like(energy_b), energy_b)
-            k_b, weight_b = exit_lobe(cos_b, var_geo_b, torch.ones_like(thr))
-            weight_b = weight_b * energy_b
+            k_b, weight_b = _exit_lobe(*exit_args, cos_b, var_geo_b, torch.ones_like(thr))
+            branch = (direction_b, length_b, k_b, weight_b * energy_b)
             if options.exit_weight == "conserve":
                 weight2 = weight2 * (1.0 - energy_b)
-        e_r, e_t1 = front.e_r, front.e_t1
         # Index-matched: invisible (the straight ray, unblurred, all the light).
-        e_r = torch.where(matched, torch.zeros_like(e_r), e_r)
-        e_t1 = torch.where(matched, torch.ones_like(e_t1), e_t1)
         weight2 = torch.where(matched, torch.ones_like(weight2), weight2)
         k = torch.where(matched, torch.full_like(k, float("inf")), k)
-        absorption = take(materials.absorption, px.bi)
-        att = torch.exp(-absorption * length[:, None])  # (N, 3), sec. 5.4
-        l_refl = _incident(lighting, px.bi, px.p1, front.axis_r, front.k_r)
-        l_trans = _incident(lighting, px.bi, px.p1, direction, k)
-        l_obj = e_r[:, None] * l_refl + (e_t1 * weight2)[:, None] * att * l_trans
-        if two:
-            att_b = torch.exp(-absorption * length_b[:, None])
-            l_b = _incident(lighting, px.bi, px.p1, direction_b, k_b)
-            l_obj = l_obj + (e_t1 * weight_b)[:, None] * att_b * l_b
-        l_obj = torch.nan_to_num(l_obj, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
+        l_obj = _object_light(lighting, materials, px, front, matched,
+                              (direction, length, k, weight2), branch)
         composite(g, lighting, px, radiance, l_obj)
         put_(values["lobe_sigma"], idx,
              torch.nan_to_num(torch.rsqrt(k.clamp(min=1e-12)), nan=0.0, posinf=0.0))
