@@ -95,6 +95,97 @@ def geometric_normals(tri_vertices: torch.Tensor) -> torch.Tensor:
     return normalize(g_n)
 
 
+@dataclass
+class _Rays:
+    """:func:`trace_paths`' per-row state (rows ``count..`` hold the reflected branches
+    with ``branches=2``, live once split off): where each ray is and what its path has
+    gathered so far."""
+
+    origin: torch.Tensor       # (R, 3)
+    direction: torch.Tensor    # (R, 3) unit
+    inside: torch.Tensor       # (R,) bool
+    length: torch.Tensor       # (R,) inside so far
+    cos_exit: torch.Tensor     # (R,) at the last exit so far
+    throughput: torch.Tensor   # (R,)
+    events: torch.Tensor       # (R,) int64
+    gain: torch.Tensor         # (R,) G so far
+    gain_exit: torch.Tensor    # (R,) G at the last exit so far
+
+    @classmethod
+    def entering(cls, rows: int, count: int, p: torch.Tensor, n: torch.Tensor,
+                 omega: torch.Tensor, ior: float, eps: float) -> "_Rays":
+        """The ``count`` view rays refracted in at their entry points (just inside)."""
+        d0 = -omega
+        t1, _ = refract(d0, face_forward(n, d0), 1.0 / ior)
+        direction, origin = torch.zeros(rows, 3), torch.zeros(rows, 3)
+        direction[:count] = t1
+        origin[:count] = p - eps * n
+        return cls(origin=origin, direction=direction, inside=torch.ones(rows, dtype=torch.bool),
+                   length=torch.zeros(rows), cos_exit=torch.ones(rows),
+                   throughput=torch.ones(rows), events=torch.zeros(rows, dtype=torch.int64),
+                   gain=torch.zeros(rows), gain_exit=torch.zeros(rows))
+
+
+def _interface(d: torch.Tensor, t: torch.Tensor, face: torch.Tensor, uv: torch.Tensor,
+               g_n: torch.Tensor, tri_normals: torch.Tensor, ior: float
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The interface rays ``d`` hit on ``face`` at ``uv``: whether they leave (the side of
+    the flat triangle decides), its geometric and shading normals facing against ``d``
+    (the shading one replaced by the geometric one where it lies behind) and the relative
+    index ``eta``."""
+    ng = g_n[face]  # (L, 3) outward by winding
+    w = torch.cat([1.0 - uv.sum(1, keepdim=True), uv], 1)  # (L, 3)
+    ns = normalize((w[:, :, None] * tri_normals[face]).sum(1))
+    leaving = dot(d, ng) > 0
+    ng_f = torch.where(leaving[:, None], -ng, ng)
+    ns_f = torch.where((dot(ns, ng_f) < 0)[:, None], -ns, ns)
+    ns_f = torch.where((dot(d, ns_f) >= 0)[:, None], ng_f, ns_f)
+    eta = torch.where(leaving, torch.full_like(t, ior), torch.full_like(t, 1.0 / ior))
+    return leaving, ng_f, ns_f, eta
+
+
+def _split_off(r: _Rays, split: torch.Tensor, live: torch.Tensor, count: int,
+               exits: torch.Tensor, x: torch.Tensor, ng_f: torch.Tensor, r_dir: torch.Tensor,
+               f: torch.Tensor, g_r: torch.Tensor, ins: torch.Tensor, eps: float
+               ) -> torch.Tensor:
+    """``branches=2``: at the first refraction out of a main path, its reflected branch
+    starts in row ``count`` further (before the main path moves on). Returns the live
+    positions that split."""
+    main = live < count
+    fork = (exits & main & ~split[live.clamp(max=count - 1)]).nonzero(as_tuple=True)[0]
+    src = live[fork]
+    br = src + count
+    split[src] = True
+    r.origin[br] = x[fork] + (eps * -1.0) * -ng_f[fork]
+    r.direction[br] = normalize(r_dir[fork])
+    r.throughput[br] = r.throughput[src] * f[fork]
+    r.gain[br] = r.gain[src] + g_r[fork]
+    r.gain_exit[br] = r.gain_exit[src]
+    r.length[br] = r.length[src]
+    r.cos_exit[br] = r.cos_exit[src]
+    r.inside[br] = ins[fork]
+    return fork
+
+
+def _ends(r: _Rays, count: int, split: torch.Tensor | None) -> PathEnds:
+    """The main paths' ends (rows ``:count``), with their branches' where ``split`` is
+    given (``branches=2``)."""
+    m = slice(0, count)
+    if split is None:
+        return PathEnds(direction=r.direction[m], length=r.length[m], cos_exit=r.cos_exit[m],
+                        throughput=r.throughput[m], events=r.events[m], gain=r.gain_exit[m])
+    b, s1 = slice(count, 2 * count), split[:, None]
+    fork_ends = PathEnds(direction=torch.where(s1, r.direction[b], r.direction[m]),
+                         length=torch.where(split, r.length[b], r.length[m]),
+                         cos_exit=torch.where(split, r.cos_exit[b], r.cos_exit[m]),
+                         throughput=torch.where(split, r.throughput[b], 0.0),
+                         events=r.events[b],
+                         gain=torch.where(split, r.gain_exit[b], r.gain_exit[m]))
+    return PathEnds(direction=r.direction[m], length=r.length[m], cos_exit=r.cos_exit[m],
+                    throughput=r.throughput[m], events=r.events[m], branch=fork_ends,
+                    gain=r.gain_exit[m])
+
+
 def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals: torch.Tensor,
                 p: torch.Tensor, n: torch.Tensor, omega: torch.Tensor, ior: float,
                 max_events: int, eps: float, branch: str = "greedy", branches: int = 1
@@ -118,48 +209,25 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         :class:`PathEnds`.
     """
     count = p.shape[0]
-    # rows count.. hold the reflected branches (branches=2), live once split off
-    rows = count * (2 if branches == 2 else 1)
-    d0 = -omega
-    n_in = face_forward(n, d0)
-    t1, _ = refract(d0, n_in, 1.0 / ior)
-    direction = torch.zeros(rows, 3)
-    direction[:count] = t1
-    origin = torch.zeros(rows, 3)
-    origin[:count] = p - eps * n  # just inside the surface
-    inside = torch.ones(rows, dtype=torch.bool)
-    length = torch.zeros(rows)
-    cos_exit = torch.ones(rows)
-    throughput = torch.ones(rows)
-    events = torch.zeros(rows, dtype=torch.int64)
-    gain = torch.zeros(rows)  # G so far; at the last exit so far
-    gain_exit = torch.zeros(rows)
+    r = _Rays.entering(count * (2 if branches == 2 else 1), count, p, n, omega, ior, eps)
     split = torch.zeros(count, dtype=torch.bool)  # the main path has split off its branch
     live = torch.arange(count)
     g_n = geometric_normals(tri_vertices)
     for k in range(max_events + 1):
         if live.numel() == 0:
             break
-        o, d = origin[live], direction[live]
+        o, d = r.origin[live], r.direction[live]
         t, face, uv = intersect(o, d)
-        hit = face >= 0
         # Misses end: outside, the path has left for good; inside, the mesh leaks (an open
         # mesh): it leaves as it goes.
-        keep = hit.nonzero(as_tuple=True)[0]
+        keep = (face >= 0).nonzero(as_tuple=True)[0]
         live, o, d, t, face, uv = live[keep], o[keep], d[keep], t[keep], face[keep], uv[keep]
         if live.numel() == 0:
             break
-        ins = inside[live]
-        length[live] += torch.where(ins, t, torch.zeros_like(t))
+        ins = r.inside[live]
+        r.length[live] += torch.where(ins, t, torch.zeros_like(t))
         x = o + t[:, None] * d
-        ng = g_n[face]  # (L, 3) outward by winding
-        w = torch.cat([1.0 - uv.sum(1, keepdim=True), uv], 1)  # (L, 3)
-        ns = normalize((w[:, :, None] * tri_normals[face]).sum(1))
-        leaving = dot(d, ng) > 0  # the side of the flat triangle decides
-        ng_f = torch.where(leaving[:, None], -ng, ng)  # facing against d
-        ns_f = torch.where((dot(ns, ng_f) < 0)[:, None], -ns, ns)
-        ns_f = torch.where((dot(d, ns_f) >= 0)[:, None], ng_f, ns_f)  # shading normal behind
-        eta = torch.where(leaving, torch.full_like(t, ior), torch.full_like(t, 1.0 / ior))
+        leaving, ng_f, ns_f, eta = _interface(d, t, face, uv, g_n, tri_normals, ior)
         cos_i = (-dot(d, ns_f)).clamp(0.0, 1.0)
         f = fresnel_dielectric(cos_i, eta)
         t_dir, tir = refract(d, ns_f, eta)
@@ -174,48 +242,23 @@ def trace_paths(intersect: Intersector, tri_vertices: torch.Tensor, tri_normals:
         exits = ~take_r & leaving
         fork = None
         if branches == 2 and not last:  # the first refraction out of a main path: split
-            main = live < count
-            fork = (exits & main & ~split[live.clamp(max=count - 1)]).nonzero(as_tuple=True)[0]
-            src = live[fork]
-            br = src + count
-            split[src] = True
-            origin[br] = x[fork] + (eps * -1.0) * -ng_f[fork]
-            direction[br] = normalize(r_dir[fork])
-            throughput[br] = throughput[src] * f[fork]
-            gain[br] = gain[src] + g_r[fork]
-            gain_exit[br] = gain_exit[src]
-            length[br] = length[src]
-            cos_exit[br] = cos_exit[src]
-            inside[br] = ins[fork]
+            fork = _split_off(r, split, live, count, exits, x, ng_f, r_dir, f, g_r, ins, eps)
         # the reflected branch stays on the incident side, the refracted crosses
         side = torch.where(take_r, -1.0, 1.0)
-        origin[live] = x + (eps * side)[:, None] * -ng_f
-        direction[live] = normalize(new_d)
-        throughput[live] *= torch.where(take_r, f, 1.0 - f)
-        events[live] += 1
-        cos_exit[live] = torch.where(exits, cos_i, cos_exit[live])
-        g_live = gain[live]
-        gain_exit[live] = torch.where(exits, g_live, gain_exit[live])
-        gain[live] = g_live + torch.where(take_r, g_r, g_t)
-        inside[live] = torch.where(take_r, ins, ~ins)
+        r.origin[live] = x + (eps * side)[:, None] * -ng_f
+        r.direction[live] = normalize(new_d)
+        r.throughput[live] *= torch.where(take_r, f, 1.0 - f)
+        r.events[live] += 1
+        r.cos_exit[live] = torch.where(exits, cos_i, r.cos_exit[live])
+        g_live = r.gain[live]
+        r.gain_exit[live] = torch.where(exits, g_live, r.gain_exit[live])
+        r.gain[live] = g_live + torch.where(take_r, g_r, g_t)
+        r.inside[live] = torch.where(take_r, ins, ~ins)
         if last:
             break
         if fork is not None and fork.numel() > 0:
             live = torch.cat([live, live[fork] + count])
-    if branches != 2:
-        return PathEnds(direction=direction, length=length, cos_exit=cos_exit,
-                        throughput=throughput, events=events, gain=gain_exit)
-    m, b = slice(0, count), slice(count, rows)
-    s1 = split[:, None]
-    fork_ends = PathEnds(direction=torch.where(s1, direction[b], direction[m]),
-                         length=torch.where(split, length[b], length[m]),
-                         cos_exit=torch.where(split, cos_exit[b], cos_exit[m]),
-                         throughput=torch.where(split, throughput[b], 0.0),
-                         events=events[b],
-                         gain=torch.where(split, gain_exit[b], gain_exit[m]))
-    return PathEnds(direction=direction[m], length=length[m], cos_exit=cos_exit[m],
-                    throughput=throughput[m], events=events[m], branch=fork_ends,
-                    gain=gain_exit[m])
+    return _ends(r, count, split if branches == 2 else None)
 
 
 __all__ = ["GRAZING_COS", "PathEnds", "geometric_normals", "interface_gains", "trace_paths"]
