@@ -19,10 +19,8 @@ from pathlib import Path
 from torchrefract.checks import ConfigError
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="torchrefract",
-                                description="Render rough glass objects with PyTorch.")
-    sub = p.add_subparsers(dest="command", required=True)
+def _add_render(sub) -> None:
+    """The ``render`` command's arguments."""
     r = sub.add_parser("render", help="render scene YAML files (SCENE_SPEC.md form)")
     r.add_argument("scenes", nargs="+", help="scene YAML files")
     r.add_argument("--out", required=True, help="output folder (created if missing)")
@@ -57,6 +55,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="what draws the G-buffer's triangle ids: the native rasterizer or "
                         "pyrender's OpenGL passes (RenderSettings.rasterizer; default auto)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _add_compare(sub) -> None:
+    """The ``compare`` command's arguments."""
     c = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     c.add_argument("test", help="the image to score (EXR with R, G, B)")
     c.add_argument("reference", help="the reference (EXR; its A channel selects object "
@@ -64,6 +66,10 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--error-map", default=None, help="write the FLIP error map (PNG)")
     c.add_argument("--exposure", type=float, default=0.0, help="preview exposure (stops)")
     c.add_argument("--json", default=None, help="also write the metrics as JSON")
+
+
+def _add_sweep(sub) -> None:
+    """The ``sweep`` command's arguments."""
     w = sub.add_parser("sweep", help="render a sweep config into a dataset (docs/datasets.md)")
     w.add_argument("config", help="sweep YAML file (configs/sweep_*.yaml)")
     w.add_argument("--out", required=True,
@@ -104,6 +110,15 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--verify", action="store_true",
                    help="on resume, check existing files' sha256 (default: their sizes)")
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="torchrefract",
+                                description="Render rough glass objects with PyTorch.")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_render(sub)
+    _add_compare(sub)
+    _add_sweep(sub)
     return p
 
 

@@ -200,6 +200,24 @@ def _clip_range(scene: Scene) -> tuple[float, float]:
     return near, max(1e4, 4.0 * far)
 
 
+def _interior(mi, absorption) -> Any:
+    """The glass's absorbing medium (a loaded ``homogeneous`` medium), or None without
+    absorption.
+
+    sigma_t as an RGB "reflectance" must lie in [0, 1]: it stores absorption / max and puts
+    the max into the medium's scale. Albedo 0: pure Beer-Lambert absorption. A channel of
+    exactly 0 makes volpath return NaN (free-flight sampling in that channel never ends;
+    measured with Mitsuba 3.9.1), so channels are floored at 1e-7 of the largest: a
+    transmittance error of at most 1e-7 * max(absorption) * path length."""
+    absorption = np.asarray(absorption, np.float64)
+    if not absorption.max() > 0.0:
+        return None
+    amax = float(absorption.max())
+    rel = np.maximum(absorption / amax, 1e-7)
+    return mi.load_dict({"type": "homogeneous", "sigma_t": {"type": "rgb", "value": rel.tolist()},
+                         "scale": amax, "albedo": 0.0})
+
+
 def to_mitsuba_dict(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int = 64) -> dict:
     """Convert a scene into a Mitsuba 3 scene dictionary (for ``mi.load_dict``).
 
@@ -232,25 +250,8 @@ def to_mitsuba_dict(scene: Scene, spp: int = 64, seed: int = 0, max_depth: int =
     mi = mitsuba()
     T = mi.ScalarTransform4f
     cam = scene.camera
-    m = scene.material
     bsdf = mi.load_dict(_bsdf_dict(scene))
-
-    absorption = np.asarray(m.absorption, np.float64)
-    interior = None
-    if absorption.max() > 0.0:
-        # sigma_t as an RGB "reflectance" must lie in [0, 1]: store absorption / max and put
-        # the max into the medium's scale. Albedo 0: pure Beer-Lambert absorption. A channel
-        # of exactly 0 makes volpath return NaN (free-flight sampling in that channel never
-        # ends; measured with Mitsuba 3.9.1), so channels are floored at 1e-7 of the largest:
-        # a transmittance error of at most 1e-7 * max(absorption) * path length.
-        amax = float(absorption.max())
-        rel = np.maximum(absorption / amax, 1e-7)
-        interior = mi.load_dict({
-            "type": "homogeneous",
-            "sigma_t": {"type": "rgb", "value": rel.tolist()},
-            "scale": amax,
-            "albedo": 0.0,
-        })
+    interior = _interior(mi, scene.material.absorption)
     integrator = {"type": "volpath" if interior is not None else "path",
                   "max_depth": int(max_depth), "rr_depth": int(max_depth) + 1,
                   "hide_emitters": False}
