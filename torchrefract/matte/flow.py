@@ -68,6 +68,48 @@ def main_lobes(entries: Entries, g: GBuffer) -> tuple[torch.Tensor, torch.Tensor
     return s[first], cand[first]
 
 
+def _plane_points(entries: Entries, j: torch.Tensor, bi: torch.Tensor, cameras,
+                  distance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where the lookups ``j`` (of views ``bi``) meet each view's plane, in its pixels (S, 2),
+    the covariance (S, 3: xx, xy, yy) their lobes' spread maps to there (the projection's
+    Jacobian by central differences across the lobe axis), and whether they meet it
+    (S,) bool: in front of the origin, not parallel."""
+    o = entries.origin[j].double()
+    wdir = torch.nn.functional.normalize(entries.direction[j].double(), dim=-1)
+    k = entries.sharpness[j].double()
+    frames = [camera_frame(c) for c in cameras]
+    f = torch.tensor(np.stack([fr[3] for fr in frames]), dtype=torch.float64)[bi]  # (S, 3)
+    p0 = torch.tensor([list(c.target) for c in cameras], dtype=torch.float64)[bi] \
+        + distance * f
+    params = torch.stack([projection_params(c) for c in cameras]).double()[bi]  # (S, 16)
+
+    def hit(dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        den = (dirs * f).sum(-1)
+        ok = den > 1e-6
+        sdist = ((p0 - o) * f).sum(-1) / torch.where(ok, den, torch.ones_like(den))
+        ok = ok & (sdist > 0)
+        xw = o + sdist[:, None] * dirs
+        xy, _ = project(xw[:, None, :], params)  # (S, 1, 2): one point per row's camera
+        return xy[:, 0], ok
+
+    pos, ok = hit(wdir)
+    u, v = tangent_frame(wdir)
+    eps = 1e-4
+    var = torch.where(torch.isfinite(k) & (k < 1e29), 1.0 / k.clamp(min=1e-12),
+                      torch.zeros_like(k))
+    cols = []
+    for t in (u, v):
+        xp, okp = hit(torch.nn.functional.normalize(wdir + eps * t, dim=-1))
+        xm, okm = hit(torch.nn.functional.normalize(wdir - eps * t, dim=-1))
+        ok = ok & okp & okm
+        cols.append((xp - xm) / (2 * eps))  # (S, 2)
+    ju, jv = cols
+    cov = var[:, None] * torch.stack([ju[:, 0] ** 2 + jv[:, 0] ** 2,
+                                      ju[:, 0] * ju[:, 1] + jv[:, 0] * jv[:, 1],
+                                      ju[:, 1] ** 2 + jv[:, 1] ** 2], -1)  # (S, 3)
+    return pos, cov, ok
+
+
 def plane_flow(entries: Entries, g: GBuffer, cameras, distance: float,
                shape: tuple[int, int, int]) -> dict[str, torch.Tensor]:
     """The ``flow``, ``flow_cov`` and ``flow_valid`` passes (module docstring).
@@ -93,39 +135,7 @@ def plane_flow(entries: Entries, g: GBuffer, cameras, distance: float,
         bi = s // (hs * ws)
         y, x = (s // ws) % hs, s % ws
         pix = bi * h * w + (y // n) * w + (x // n)
-        o = entries.origin[j].double()
-        wdir = torch.nn.functional.normalize(entries.direction[j].double(), dim=-1)
-        k = entries.sharpness[j].double()
-        frames = [camera_frame(c) for c in cameras]
-        f = torch.tensor(np.stack([fr[3] for fr in frames]), dtype=torch.float64)[bi]  # (S, 3)
-        p0 = torch.tensor([list(c.target) for c in cameras], dtype=torch.float64)[bi] \
-            + distance * f
-        params = torch.stack([projection_params(c) for c in cameras]).double()[bi]  # (S, 16)
-
-        def hit(dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            den = (dirs * f).sum(-1)
-            ok = den > 1e-6
-            sdist = ((p0 - o) * f).sum(-1) / torch.where(ok, den, torch.ones_like(den))
-            ok = ok & (sdist > 0)
-            xw = o + sdist[:, None] * dirs
-            xy, _ = project(xw[:, None, :], params)  # (S, 1, 2): one point per row's camera
-            return xy[:, 0], ok
-
-        pos, ok = hit(wdir)
-        u, v = tangent_frame(wdir)
-        eps = 1e-4
-        var = torch.where(torch.isfinite(k) & (k < 1e29), 1.0 / k.clamp(min=1e-12),
-                          torch.zeros_like(k))
-        cols = []
-        for t in (u, v):
-            xp, okp = hit(torch.nn.functional.normalize(wdir + eps * t, dim=-1))
-            xm, okm = hit(torch.nn.functional.normalize(wdir - eps * t, dim=-1))
-            ok = ok & okp & okm
-            cols.append((xp - xm) / (2 * eps))  # (S, 2)
-        ju, jv = cols
-        cov = var[:, None] * torch.stack([ju[:, 0] ** 2 + jv[:, 0] ** 2,
-                                          ju[:, 0] * ju[:, 1] + jv[:, 0] * jv[:, 1],
-                                          ju[:, 1] ** 2 + jv[:, 1] ** 2], -1)  # (S, 3)
+        pos, cov, ok = _plane_points(entries, j, bi, cameras, distance)
         okf = ok.double()
         pos = torch.where(ok[:, None], pos, torch.zeros_like(pos))
         cov = torch.where(ok[:, None], cov, torch.zeros_like(cov))
