@@ -161,7 +161,7 @@ def test_threads_adapt_to_cores_other_processes_keep_busy(monkeypatch):
     n = torch.get_num_threads()
     cores = os.cpu_count() or 1
     monkeypatch.setattr(cpu_load, "busy_cores", lambda *a, **k: cores)  # every core taken
-    monkeypatch.setattr(cpu_load, "_last", None)  # no reading from before the patch
+    monkeypatch.setattr(cpu_load._busy, "last", None)  # no reading from before the patch
     with using(RenderSettings()):
         assert torch.get_num_threads() == 1
         with using(RenderSettings()):  # a nested block keeps the outer count
@@ -186,11 +186,12 @@ def test_load_is_read_at_most_once_a_second(monkeypatch):
 
     calls = []
     monkeypatch.setattr(cpu_load, "busy_cores", lambda *a, **k: calls.append(1) or 0)
-    monkeypatch.setattr(cpu_load, "_last", None)
+    monkeypatch.setattr(cpu_load._busy, "last", None)
     for _ in range(3):
         cpu_load.threads_for(2, cores=2)
     assert len(calls) == 1
-    monkeypatch.setattr(cpu_load, "_last", (cpu_load._last[0] - 2 * cpu_load.MAX_AGE_S, 0))
+    monkeypatch.setattr(cpu_load._busy, "last",
+                        (cpu_load._busy.last[0] - 2 * cpu_load.MAX_AGE_S, 0))
     cpu_load.threads_for(2, cores=2)
     assert len(calls) == 2
 

@@ -242,6 +242,7 @@ def test_memory_budget_reads_meminfo_once_per_max_age(monkeypatch):
     """Renders in quick succession share one reading of MemAvailable; an older one is read
     again (80% of it is the budget)."""
     import builtins  # noqa: PLC0415
+    import time  # noqa: PLC0415
 
     reads, real_open, now = [], builtins.open, [1000.0]
 
@@ -250,13 +251,13 @@ def test_memory_budget_reads_meminfo_once_per_max_age(monkeypatch):
             reads.append(path)
         return real_open(path, *args, **kwargs)
 
-    monkeypatch.setattr(tiles, "_meminfo", None)
+    monkeypatch.setattr(tiles._available, "last", None)
     monkeypatch.setattr(builtins, "open", counting)
-    monkeypatch.setattr(tiles.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(time, "monotonic", lambda: now[0])
     first = tiles.memory_budget()
     now[0] += 0.5 * tiles.MEMINFO_MAX_AGE_S
     assert tiles.memory_budget() == first and len(reads) == 1
     now[0] += tiles.MEMINFO_MAX_AGE_S
     tiles.memory_budget()
     assert len(reads) == 2
-    assert 0 < first <= 0.8 * tiles._meminfo[1] + 1
+    assert 0 < first <= 0.8 * tiles._available.last[1] + 1

@@ -17,6 +17,8 @@ import functools
 import os
 import time
 
+from torchrefract.kept import Recent
+
 
 def _running_here() -> int:
     """This process's threads in state R (running or ready to run)."""
@@ -56,17 +58,13 @@ MAX_AGE_S = 1.0
 quick succession (a training loop's batches) read /proc once a second, not every call
 (under load a reading waits between its samples: docs/benchmarks.md)."""
 
-_last: tuple[float, int] | None = None  # (monotonic time, busy cores) of the last reading
+_busy = Recent(lambda: busy_cores(), MAX_AGE_S)  # (looked up per reading: patchable)
 
 
 def recent_busy_cores(max_age_s: float = MAX_AGE_S) -> int:
     """:func:`busy_cores`, read anew only where the last reading is older than
     ``max_age_s`` seconds."""
-    global _last
-    now = time.monotonic()
-    if _last is None or now - _last[0] > max_age_s:
-        _last = (now, busy_cores())
-    return _last[1]
+    return _busy.get(max_age_s)
 
 
 @functools.lru_cache(maxsize=1)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from typing import TYPE_CHECKING
 
 import torch
@@ -41,6 +40,7 @@ import torch
 from torchrefract.checks import ConfigError
 from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels.index import put_, take
+from torchrefract.kept import Recent
 from torchrefract.scene import Camera
 from torchrefract.settings import current
 
@@ -66,26 +66,20 @@ MEMINFO_MAX_AGE_S = 1.0
 """How long a reading of ``MemAvailable`` serves the renders after it (as cpu_load's
 readings: renders in quick succession read /proc once a second, not every call)."""
 
-_meminfo: tuple[float, int] | None = None  # (monotonic time, bytes) of the last reading
-
-
 def _available_bytes() -> int:
     """The memory the kernel reports available (Linux ``MemAvailable``; 4 GiB where
-    unknown), read anew where the last reading is older than MEMINFO_MAX_AGE_S."""
-    global _meminfo
-    now = time.monotonic()
-    if _meminfo is None or now - _meminfo[0] > MEMINFO_MAX_AGE_S:
-        found = 4 << 30
-        try:
-            with open("/proc/meminfo") as f:
-                for line in f:
-                    if line.startswith("MemAvailable:"):
-                        found = int(line.split()[1]) * 1024
-                        break
-        except (OSError, ValueError, IndexError):
-            pass
-        _meminfo = (now, found)
-    return _meminfo[1]
+    unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 4 << 30
+
+
+_available = Recent(lambda: _available_bytes(), MEMINFO_MAX_AGE_S)
 
 
 def memory_budget() -> int:
@@ -96,7 +90,7 @@ def memory_budget() -> int:
     s = current()
     if s.memory_budget_mb is not None:
         return s.memory_budget_mb << 20
-    budget = int(_available_bytes() * 0.8)
+    budget = int(_available.get() * 0.8)
     dev = s.torch_device()
     if dev.type == "cuda":
         import torch  # noqa: PLC0415
