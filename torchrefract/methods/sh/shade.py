@@ -435,14 +435,14 @@ def _incident(lighting: Lighting, bi: torch.Tensor, origin: torch.Tensor,
         else out
 
 
-def _exit_lobe(table, px, materials: MaterialBatch, options: SHOptions, var1: torch.Tensor,
-               esc: list, cos_out: torch.Tensor, var_g: torch.Tensor, thr_path: torch.Tensor
+def _exit_lobe(table, px, options: SHOptions, var1: torch.Tensor, esc: torch.Tensor | None,
+               cos_out: torch.Tensor, var_g: torch.Tensor, thr_path: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_sh`'s exit interface (leaving: eta = 1 / ior): its lobe sharpness at
     the exit cosine ``cos_out`` (held just outside TIR, where interpolation may dip below
     the critical angle), widened by the path's ``var_g``, and the leaving weight
-    (``exit_weight``: the path's ``thr_path``, or ``conserve``'s with the escape fraction,
-    made on first use and kept in ``esc``)."""
+    (``exit_weight``: the path's ``thr_path``, or ``conserve``'s with the escape fraction
+    ``esc``)."""
     eta2 = 1.0 / px.ior
     cos_in = torch.maximum(cos_out, critical_cosine(px.ior) + CRITICAL_MARGIN).clamp(max=1.0)
     conserve = options.exit_weight == "conserve"
@@ -456,10 +456,8 @@ def _exit_lobe(table, px, materials: MaterialBatch, options: SHOptions, var1: to
     k_out = 1.0 / (1.0 / k_t2 + var_g).clamp(min=1e-12)
     if not conserve:
         return k_out, thr_path
-    if not esc:
-        esc.append(escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi))
     no_tir = torch.zeros_like(cos_out, dtype=torch.bool)
-    return k_out, leaving_weight("conserve", no_tir, e_t2, e_r2, esc[0])
+    return k_out, leaving_weight("conserve", no_tir, e_t2, e_r2, esc)
 
 
 def _object_light(lighting: Lighting, materials: MaterialBatch, px, front,
@@ -538,7 +536,9 @@ def render_sh(g: GBuffer, lighting: Lighting, materials: MaterialBatch, options:
             if two:
                 _map_items(g, px, bis, items, options, var_view, rough, outs_b,
                            len(CHANNELS))
-        exit_args = (table, px, materials, options, var1, [])  # (the escape fraction, kept)
+        esc = escape_fraction(table, materials.ior, px.dist_b, px.alpha, px.bi) \
+            if options.exit_weight == "conserve" else None
+        exit_args = (table, px, options, var1, esc)
         k, weight2 = _exit_lobe(*exit_args, cos_exit, var_geo, thr)
         branch = None
         if two:
