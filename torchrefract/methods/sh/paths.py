@@ -170,17 +170,15 @@ def _split_off(r: _Rays, split: torch.Tensor, live: torch.Tensor, count: int,
 def _ends(r: _Rays, count: int, split: torch.Tensor | None) -> PathEnds:
     """The main paths' ends (rows ``:count``), with their branches' where ``split`` is
     given (``branches=2``)."""
-    m = slice(0, count)
-    if split is None:
-        return PathEnds(direction=r.direction[m], length=r.length[m], cos_exit=r.cos_exit[m],
-                        throughput=r.throughput[m], events=r.events[m], gain=r.gain_exit[m])
-    b, s1 = slice(count, 2 * count), split[:, None]
-    fork_ends = PathEnds(direction=torch.where(s1, r.direction[b], r.direction[m]),
-                         length=torch.where(split, r.length[b], r.length[m]),
-                         cos_exit=torch.where(split, r.cos_exit[b], r.cos_exit[m]),
-                         throughput=torch.where(split, r.throughput[b], 0.0),
-                         events=r.events[b],
-                         gain=torch.where(split, r.gain_exit[b], r.gain_exit[m]))
+    m, fork_ends = slice(0, count), None
+    if split is not None:
+        b, s1 = slice(count, 2 * count), split[:, None]
+        fork_ends = PathEnds(direction=torch.where(s1, r.direction[b], r.direction[m]),
+                             length=torch.where(split, r.length[b], r.length[m]),
+                             cos_exit=torch.where(split, r.cos_exit[b], r.cos_exit[m]),
+                             throughput=torch.where(split, r.throughput[b], 0.0),
+                             events=r.events[b],
+                             gain=torch.where(split, r.gain_exit[b], r.gain_exit[m]))
     return PathEnds(direction=r.direction[m], length=r.length[m], cos_exit=r.cos_exit[m],
                     throughput=r.throughput[m], events=r.events[m], branch=fork_ends,
                     gain=r.gain_exit[m])
