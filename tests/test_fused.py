@@ -29,11 +29,12 @@ pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="the native kernels do not build here")
 
 
-def _small(path: Path, size: int = 48, **changes) -> tr.Scene:
+def _small(path: Path, size: int = 48, spp: int = 1, **changes) -> tr.Scene:
     s = tr.load_scene(path)
     c = s.camera
     return s.replace(camera=tr.Camera(eye=c.eye, target=c.target, up=c.up,
-                                      yfov_deg=c.yfov_deg, width=size, height=size), **changes)
+                                      yfov_deg=c.yfov_deg, width=size, height=size,
+                                      samples_per_pixel=spp), **changes)
 
 
 def _compare(a: tr.RenderResult, b: tr.RenderResult) -> dict:
@@ -443,18 +444,14 @@ def test_lobes_in_one_call_match_the_tensor_code():
 
 @pytest.mark.parametrize("spp", [1, 2])
 def test_a_fused_render_dispatches_few_torch_ops(spp):
-    """The Python between the kernels stays small: a torch op costs ~5-20 us cache-cold
-    after a kernel, so a fused render (one view, adaptive, the lattice and at 2x2 the
-    sparse samples) dispatches few of them (the thirtieth sitting's code: 97 and 222 here;
-    a detach per kernel input again: 177 at one sample). Counted with a
+    """The Python between the kernels stays small: a torch op is costly cache-cold after a
+    kernel, so a fused render (one view, adaptive, the lattice and at 2x2 the sparse
+    samples) dispatches few of them (the counts, and what a detach per kernel input
+    again gives: docs/benchmarks.md, thirtieth sitting). Counted with a
     TorchDispatchMode, the second render (caches warm)."""
     from torch.utils._python_dispatch import TorchDispatchMode  # noqa: PLC0415
 
-    s = tr.load_scene(SUITE[[p.stem for p in SUITE].index("sphere_a03")])
-    c = s.camera
-    scene = s.replace(camera=tr.Camera(eye=c.eye, target=c.target, up=c.up,
-                                       yfov_deg=c.yfov_deg, width=64, height=64,
-                                       samples_per_pixel=spp))
+    scene = _small(SUITE[[p.stem for p in SUITE].index("sphere_a03")], 64, spp=spp)
     count = [0]
 
     class Count(TorchDispatchMode):
