@@ -176,12 +176,21 @@ def test_no_pixel_picked_gives_no_samples():
         is None
 
 
-@pytest.mark.parametrize("method", ["rousiers", "specular"])
+SH_SMALL = {"view_rings": 10, "surface_samples": 2048}
+"""An ``sh`` table of ~1 s (tests/test_sh.py's)."""
+
+
+def _options(method: str) -> dict:
+    """A method's options for the tests below: internal bounces, or a small ``sh`` table."""
+    return dict(SH_SMALL) if method == "sh" else {"internal_bounces": 2}
+
+
+@pytest.mark.parametrize("method", ["rousiers", "specular", "sh"])
 def test_smooth_glass_is_the_uniform_render_on_the_object(method):
     """Below SMOOTH_ALPHA every object pixel is picked: there the image is the uniform
     n x n render's, bit for bit; a pixel where no sample sees the object is its center's
     environment lookup (close to the n x n mean)."""
-    s = _scene("sphere_a0", 32, method=method, method_options={"internal_bounces": 2})
+    s = _scene("sphere_a0", 32, method=method, method_options=_options(method))
     a, b = tr.render(s, settings=UNIFORM), tr.render(s)
     obj = a.coverage[0] > 0
     assert torch.equal(a.coverage, b.coverage)
@@ -190,13 +199,16 @@ def test_smooth_glass_is_the_uniform_render_on_the_object(method):
         < 0.03  # (0.018 at 32 px, a pixel spanning many texels; 0.002-0.01 at 256 px)
 
 
-@pytest.mark.parametrize("name", ["bunny_a01", "vgroove_back_a01", "slab_light"])
-def test_sparse_render_is_close_to_the_uniform_one(name):
+@pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"),
+                                         ("vgroove_back_a01", "rousiers"),
+                                         ("slab_light", "rousiers"), ("teapot_a01", "sh")])
+def test_sparse_render_is_close_to_the_uniform_one(name, method):
     """The default 2x2 render: the uniform one's coverage exactly, its image closer to the
     uniform one's than the one-sample image is, every pass present and finite."""
-    s = _scene(name, 64, method="rousiers")
+    opts = SH_SMALL if method == "sh" else {}
+    s = _scene(name, 64, method=method, method_options=opts)
     a, b = tr.render(s, settings=UNIFORM), tr.render(s)
-    one = tr.render(_scene(name, 64, 1, method="rousiers"))
+    one = tr.render(_scene(name, 64, 1, method=method, method_options=opts))
     assert torch.equal(a.coverage, b.coverage)
     obj = (a.coverage[0] > 0).numpy()
     near = float(flip_map(a.radiance[0].numpy(), b.radiance[0].numpy())[obj].mean())
@@ -207,10 +219,11 @@ def test_sparse_render_is_close_to_the_uniform_one(name):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
-def test_sparse_fused_matches_the_tensor_code():
+@pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"), ("slab_light", "sh")])
+def test_sparse_fused_matches_the_tensor_code(name, method):
     """The samples' G-buffer shaded by the fused kernel and by the tensor code: as
     tests/test_fused.py holds them on full frames."""
-    s = _scene("bunny_a01", 48, method="rousiers")
+    s = _scene(name, 48, method=method, method_options=SH_SMALL if method == "sh" else {})
     a = tr.render(s, settings=RenderSettings(fused=False))
     b = tr.render(s, settings=RenderSettings(fused=True))
     obj = a.coverage[0] > 0
@@ -233,6 +246,8 @@ def test_which_passes_are_sparse():
     assert not sparse.applies([s], entry, plane, mat)
     lean = registry.get("lean")
     assert not sparse.applies([s], lean, lean.parse({}), mat)
+    sh = registry.get("sh")  # reads its table at each sample's own front hit
+    assert sparse.applies([s], sh, sh.parse({}), mat)
 
 
 def test_sparse_passes_in_tiles_give_the_untiled_pixels(monkeypatch):

@@ -66,6 +66,11 @@ class SH(Method):
     def prepare(self, scenes, options):
         return prepare_tables(scenes, options)
 
+    def shades_samples(self, options, materials) -> bool:
+        # each sample's own front hit and view direction read the table (eq. 2); nothing
+        # is marched and no neighbour is read
+        return True
+
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_sh(g, lighting, materials, options, state))
 
