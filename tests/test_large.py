@@ -21,6 +21,8 @@ from torchrefract.settings import RenderSettings
 render_mod = importlib.import_module("torchrefract.render")  # the module, not tr.render
 SUITE = ROOT / "configs" / "suite"
 needs_native = pytest.mark.skipif(not native.available(), reason="native kernels unavailable")
+SH_SMALL = {"view_rings": 10, "surface_samples": 2048}
+"""An ``sh`` table of ~1 s (tests/test_sh.py's)."""
 
 
 def _scene(name: str, size: tuple[int, int], spp: int, method: str | None = None,
@@ -66,6 +68,8 @@ def strips(monkeypatch):
     ("torus_a01", "prefiltered", {}, 1),
     ("suzanne_a01", "rousiers", {"internal_bounces": 2}, 1),
     ("wingnut_a01", "specular", {"internal_bounces": 2}, 2),
+    ("teapot_a01", "sh", SH_SMALL, 2),
+    ("globe_2rough", "sh", SH_SMALL, 1),  # a roughness map, read at the front hit
 ])
 def test_strips_give_the_whole_render(strips, name, method, options, spp):
     """Under a budget below the view's G-buffer (tiles.fits_whole False) the render runs

@@ -22,10 +22,10 @@ the output (:data:`OUT_BYTES` per pixel) and one strip (:data:`STRIP_BYTES` per 
 a view for which even one pixel row does not fit fails up front, naming its size and the
 budget.
 
-Scope: the fused kernels of ``rousiers`` (default cone and spread), ``specular`` and
-``prefiltered`` on the CPU, uniform roughness, no extra passes (``matte``, ``flow``):
-elsewhere a method's tensor code reads the back layer's mips or the frame's pixels outside
-the strip. Those views keep the up-front error. A frame in strips shades every pixel,
+Scope: the fused kernels of ``rousiers`` (default cone and spread), ``specular``,
+``prefiltered`` and ``sh`` on the CPU, uniform roughness (``sh``: a roughness map too, read
+at each pixel's front hit), no extra passes (``matte``, ``flow``): elsewhere a method's
+tensor code reads the back layer's mips or the frame's pixels outside the strip. Those views keep the up-front error. A frame in strips shades every pixel,
 whatever ``RenderSettings.adaptive`` says (the lattice's neighbours and levels would cross
 the strips' edges).
 """
@@ -50,7 +50,7 @@ from torchrefract.result import RenderResult, finish_pass, merge
 from torchrefract.scene import Camera, Scene
 from torchrefract.settings import current
 
-METHODS = ("rousiers", "specular", "prefiltered")
+METHODS = ("rousiers", "specular", "prefiltered", "sh")
 """The methods a frame too large for one G-buffer renders with (their fused kernels)."""
 MARCHED_BYTES = 4
 """Bytes per sub-pixel and marched layer held for the whole frame (an int32 id)."""
@@ -72,7 +72,7 @@ def why_not(scenes: list[Scene], entry, options) -> str | None:
         return "the fused kernels are off or unavailable (strips need them)"
     if s.torch_device().type != "cpu":
         return "strips run on the CPU"
-    if any(sc.material.roughness_map is not None for sc in scenes):
+    if entry.name != "sh" and any(sc.material.roughness_map is not None for sc in scenes):
         return "a roughness map (strips need uniform roughness)"
     if any(len(sc.lights) > 64 for sc in scenes):
         return "more than 64 lights"
@@ -85,6 +85,12 @@ def why_not(scenes: list[Scene], entry, options) -> str | None:
     if entry.name == "prefiltered" and options.bounces.enabled:
         return "prefiltered with internal bounces"
     return None
+
+
+def marches_front(entry, options) -> bool:
+    """Whether the strips' marches read the front layer's ids too: internal bounces (``sh``
+    marches nothing and has none)."""
+    return entry.name != "sh" and options.bounces.enabled
 
 
 def fixed_bytes(camera: Camera, both: bool, views: int = 1) -> int:
@@ -109,7 +115,6 @@ def check(scenes: list[Scene], entry, options, budget: int) -> int:
     """Sub-pixel rows per strip for these scenes' views; ConfigError, before any work,
     where they cannot be rendered in strips or one pixel row does not fit ``budget``."""
     c = scenes[0].camera
-    both = options.bounces.enabled
     per_view = c.width * c.height * c.samples_per_pixel ** 2
     head = (f"render: one {c.width}x{c.height} view at samples_per_pixel "
             f"{c.samples_per_pixel} ({per_view:,} sub-pixels)")
@@ -124,6 +129,7 @@ def check(scenes: list[Scene], entry, options, budget: int) -> int:
             f"renders in strips only with the fused kernels of {', '.join(METHODS)}, not "
             f"here: {reason}. Render it smaller, with fewer samples per pixel or with one "
             f"of those methods on the fused kernels")
+    both = marches_front(entry, options)
     views = len(scenes)
     rows = strip_rows(c, budget, both, views)
     if rows < c.samples_per_pixel:
@@ -206,7 +212,7 @@ def render(scenes: list[Scene], entry, options, budget: int, rows: int | None = 
 def _render_view(scene: Scene, entry, options, budget: int, rows: int):
     t0 = time.perf_counter()
     cam, n = scene.camera, scene.camera.samples_per_pixel
-    both = options.bounces.enabled
+    both = marches_front(entry, options)
     state = entry.prepare([scene], options)
     mesh = load_mesh(scene.mesh, scene.transform)
     lighting = Lighting.from_scenes([scene])
@@ -259,4 +265,4 @@ def _render_view(scene: Scene, entry, options, budget: int, rows: int):
 
 
 __all__ = ["MARCHED_BYTES", "METHODS", "OUT_BYTES", "STRIP_BYTES", "check", "fixed_bytes",
-           "marched_layers", "render", "strip_rows", "why_not"]
+           "marched_layers", "marches_front", "render", "strip_rows", "why_not"]
