@@ -18,6 +18,7 @@ from torchrefract.geometry.gbuffer import build_gbuffer, build_sparse
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
+from torchrefract.methods.rousiers.cone import level_coverage
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.result import front_roughness
@@ -140,6 +141,21 @@ def test_samples_are_the_supersampled_gbuffer(name):
     assert sum(int((a != b).sum()) for a, b in zip(marched, tri)) == ties
 
 
+def test_samples_read_the_roughness_coverage_of_the_one_sample_frame():
+    """With a roughness map, ``rousiers`` reads the roughness levels' coverage over the
+    frame its footprints are measured in: for scattered samples, as for the first pass,
+    the one-sample frame's back layer (``Marched.back_uv``), not the samples' own."""
+    s = _scene("globe_jump", 24)
+    g, ids, _ = _one_sample([s])
+    mat = MaterialBatch.from_scenes([s])
+    picked = torch.zeros(1, 24, 24, dtype=torch.bool)
+    picked[0, 6:18, 8:16] = True
+    got = subsamples.gather(g, ids, [s.camera], picked)
+    frame = level_coverage(g, mat, 4)
+    assert frame.shape == (1, 24, 24, 4) and float(frame.sum()) > 0
+    assert torch.equal(level_coverage(got.g, mat, 4), frame)
+
+
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
 def test_slots_kernel_lays_out_the_samples_as_the_tensor_code():
     """csrc/index.c's ``sample_slots`` and ``put_ids`` against the tensor code: random picks
@@ -219,7 +235,8 @@ def test_sparse_render_is_close_to_the_uniform_one(name, method):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
-@pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"), ("slab_light", "sh")])
+@pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"), ("slab_light", "sh"),
+                                         ("globe_jump", "rousiers")])
 def test_sparse_fused_matches_the_tensor_code(name, method):
     """The samples' G-buffer shaded by the fused kernel and by the tensor code: as
     tests/test_fused.py holds them on full frames."""
@@ -244,6 +261,8 @@ def test_which_passes_are_sparse():
     assert not sparse.applies([_scene("slab_a02", 16, 1)], entry, opts, mat)
     plane = entry.parse({"cone_rays": "plane"})
     assert not sparse.applies([s], entry, plane, mat)
+    globe = _scene("globe_jump", 16, method="rousiers")  # a roughness map: read through
+    assert sparse.applies([globe], entry, opts, MaterialBatch.from_scenes([globe]))  # back_uv
     lean = registry.get("lean")
     assert not sparse.applies([s], lean, lean.parse({}), mat)
     sh = registry.get("sh")  # reads its table at each sample's own front hit

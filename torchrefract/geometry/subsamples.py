@@ -234,11 +234,13 @@ def marched(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor]) -> Marched:
     The n x n render's marched layers, but for its edge repair where no sample is taken
     (rare: rays within ~1/256 pixel of an edge): a march through the one-sample frame's
     ids would find other exits where a method's result depends on the layers' resolution
-    (internal bounces' TIR regions), and the picked pixels' neighbours would not match."""
+    (internal bounces' TIR regions), and the picked pixels' neighbours would not match.
+    Both passes measure footprints in the one-sample frame's pixels (the samples keep
+    ``g``'s cameras): its back layer's UVs and mask go with them (``Marched.back_uv``)."""
     table, base = plane_table(g.meshes, g.eye, g.proj)
     _, h, w = ids[0].shape
     return Marched(back=ids[1].view(-1), front=ids[0].view(-1), table=table, base=base,
-                   h=h, w=w)
+                   h=h, w=w, back_uv=g.back.uv, back_mask=g.back.mask)
 
 
 __all__ = ["Samples", "edges", "gather", "marched", "refined"]

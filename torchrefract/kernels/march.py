@@ -73,6 +73,11 @@ class Marched:
         table: (R, 4) float32 planes of each view's triangles (camera coordinates).
         base: (B,) int64: view b's triangle t (a MeshBatch index) is row ``base[b] + t``.
         h, w: the frame's (sub-)pixels.
+        back_uv, back_mask: (B, h, w, 2) float32 and (B, h, w) bool: the back layer's UVs
+            and mask of the frame footprints are measured in, where the G-buffer marching
+            it is not that frame (sparse supersampling: the one-sample frame's, for its
+            scattered samples too; ``rousiers``' roughness-level coverage at the exits,
+            :func:`~torchrefract.methods.rousiers.cone.level_coverage`); else None.
     """
 
     back: torch.Tensor
@@ -81,6 +86,8 @@ class Marched:
     base: torch.Tensor
     h: int
     w: int
+    back_uv: torch.Tensor | None = None
+    back_mask: torch.Tensor | None = None
 
     def numel(self) -> int:
         """The frame's (sub-)pixels, B*H*W."""

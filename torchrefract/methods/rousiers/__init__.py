@@ -41,10 +41,9 @@ class Rousiers(Method):
     Options = RousiersOptions
 
     def shades_samples(self, options, materials) -> bool:
-        # the NDF mips (spread: paper), the back normals at the exits (cone_rays: plane)
-        # and the coverage mips (roughness maps) are read over the frame
-        return (options.spread == "rays" and options.cone_rays == "march"
-                and not materials.has_maps)
+        # the NDF mips (spread: paper) and the back normals at the exits (cone_rays: plane)
+        # are read over the frame (a roughness map's coverage too, from Marched.back_uv)
+        return options.spread == "rays" and options.cone_rays == "march"
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_rousiers(g, lighting, materials, options))

@@ -215,16 +215,21 @@ def level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
 
 
 def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor:
-    """(B, H, W, n) per back-layer pixel: its roughness as hat weights on the n levels
-    (linear between the two nearest), zero where the back layer is empty."""
+    """(B, H, W, n) per back-layer pixel of the marched frame: its roughness as hat
+    weights on the n levels (linear between the two nearest), zero where the back layer
+    is empty. The frame is ``g``'s own, or where its marched layers hold a back layer's
+    UVs (a sparse pass: ``g`` is the one-sample frame or scattered samples) theirs."""
+    m = g.marched
+    uv, mask = (m.back_uv, m.back_mask) if m is not None and m.back_uv is not None else \
+        (g.back.uv, g.back.mask)
     out = native.level_coverage(materials.roughness, materials.roughness_maps,
-                                materials.roughness_range, g.back.uv, g.back.mask, n)
+                                materials.roughness_range, uv, mask, n)
     if out is not None:  # the same values in one kernel call
         return out
-    b, h, w = g.shape
-    on = where_true(g.back.mask.reshape(-1))  # the back layer's pixels (the rest: zero)
+    b, h, w = mask.shape
+    on = where_true(mask.reshape(-1))  # the back layer's pixels (the rest: zero)
     bi = on // (h * w)
-    alpha = materials.roughness_at(bi, take(g.back.uv.reshape(-1, 2), on))
+    alpha = materials.roughness_at(bi, take(uv.reshape(-1, 2), on))
     lo, hi = take(materials.roughness_range, bi).unbind(-1)
     pos = ((alpha - lo) / (hi - lo).clamp(min=1e-12)).clamp(0.0, 1.0) * (n - 1)
     idx = torch.arange(n, dtype=pos.dtype)
