@@ -235,12 +235,13 @@ def test_sparse_render_is_close_to_the_uniform_one(name, method):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
-@pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"), ("slab_light", "sh"),
-                                         ("globe_jump", "rousiers")])
-def test_sparse_fused_matches_the_tensor_code(name, method):
+@pytest.mark.parametrize("name,method,options", [
+    ("bunny_a01", "rousiers", {}), ("slab_light", "sh", SH_SMALL),
+    ("globe_jump", "rousiers", {})])
+def test_sparse_fused_matches_the_tensor_code(name, method, options):
     """The samples' G-buffer shaded by the fused kernel and by the tensor code: as
     tests/test_fused.py holds them on full frames."""
-    s = _scene(name, 48, method=method, method_options=SH_SMALL if method == "sh" else {})
+    s = _scene(name, 48, method=method, method_options=options)
     a = tr.render(s, settings=RenderSettings(fused=False))
     b = tr.render(s, settings=RenderSettings(fused=True))
     obj = a.coverage[0] > 0

@@ -236,11 +236,11 @@ def marched(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor]) -> Marched:
     ids would find other exits where a method's result depends on the layers' resolution
     (internal bounces' TIR regions), and the picked pixels' neighbours would not match.
     Both passes measure footprints in the one-sample frame's pixels (the samples keep
-    ``g``'s cameras): its back layer's UVs and mask go with them (``Marched.back_uv``)."""
+    ``g``'s cameras): its back layer goes with them (``Marched.frame_back``)."""
     table, base = plane_table(g.meshes, g.eye, g.proj)
     _, h, w = ids[0].shape
     return Marched(back=ids[1].view(-1), front=ids[0].view(-1), table=table, base=base,
-                   h=h, w=w, back_uv=g.back.uv, back_mask=g.back.mask)
+                   h=h, w=w, frame_back=g.back)
 
 
 __all__ = ["Samples", "edges", "gather", "marched", "refined"]

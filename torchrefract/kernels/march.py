@@ -20,7 +20,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from torchrefract.geometry.gbuffer import GBuffer, interpolate, intersect_triangles
+from torchrefract.geometry.gbuffer import GBuffer, Layer, interpolate, intersect_triangles
 from torchrefract.kernels import native
 from torchrefract.kernels.compiled import compile_enabled, kernel
 from torchrefract.kernels.index import put_, take, where_true
@@ -73,11 +73,12 @@ class Marched:
         table: (R, 4) float32 planes of each view's triangles (camera coordinates).
         base: (B,) int64: view b's triangle t (a MeshBatch index) is row ``base[b] + t``.
         h, w: the frame's (sub-)pixels.
-        back_uv, back_mask: (B, h, w, 2) float32 and (B, h, w) bool: the back layer's UVs
-            and mask of the frame footprints are measured in, where the G-buffer marching
-            it is not that frame (sparse supersampling: the one-sample frame's, for its
-            scattered samples too; ``rousiers``' roughness-level coverage at the exits,
-            :func:`~torchrefract.methods.rousiers.cone.level_coverage`); else None.
+        frame_back: the back layer (B, h, w) of the frame footprints and exits' pixels are
+            measured in, where the G-buffer marching it is not that frame (sparse
+            supersampling: the one-sample frame's, for its scattered samples too), else
+            None: what ``rousiers`` reads around its exits (the roughness levels'
+            coverage, :func:`~torchrefract.methods.rousiers.cone.level_coverage`; the
+            normals at the bounding rays' exits, ``cone_rays: plane``).
     """
 
     back: torch.Tensor
@@ -86,12 +87,19 @@ class Marched:
     base: torch.Tensor
     h: int
     w: int
-    back_uv: torch.Tensor | None = None
-    back_mask: torch.Tensor | None = None
+    frame_back: Layer | None = None
 
     def numel(self) -> int:
         """The frame's (sub-)pixels, B*H*W."""
         return self.back.numel()
+
+
+def frame_back(g: GBuffer) -> Layer:
+    """The back layer of the frame ``g``'s footprints and exits' pixels are measured in:
+    its own, or in a sparse pass (``g`` the one-sample frame or its scattered samples) the
+    one-sample frame's (``Marched.frame_back``)."""
+    m = g.marched
+    return m.frame_back if m is not None and m.frame_back is not None else g.back
 
 
 def plane_table(meshes, eye: torch.Tensor, proj: torch.Tensor

@@ -41,8 +41,10 @@ class Rousiers(Method):
     Options = RousiersOptions
 
     def shades_samples(self, options, materials) -> bool:
-        # the NDF mips (spread: paper) and the back normals at the exits (cone_rays: plane)
-        # are read over the frame (a roughness map's coverage too, from Marched.back_uv)
+        # the NDF mips (spread: paper) are read over the frame, and the plane cone's exit
+        # normals at its resolution, which the one-sample frame's back layer coarsens
+        # (docs/decisions.md, "Sparse supersampling"); a roughness map's coverage is read
+        # from that layer (Marched.frame_back) at the footprint's own scale
         return options.spread == "rays" and options.cone_rays == "march"
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:

@@ -19,7 +19,13 @@ from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.kernels.cone import footprint as _footprint, ray_spread as _ray_spread
 from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
-from torchrefract.kernels.march import Exit, camera_coordinates, camera_planes, march_back
+from torchrefract.kernels.march import (
+    Exit,
+    camera_coordinates,
+    camera_planes,
+    frame_back,
+    march_back,
+)
 from torchrefract.methods.rousiers.options import RousiersOptions
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.ndf import (
@@ -195,13 +201,14 @@ def bounding_normals(g: GBuffer, cone: Cone, bi: torch.Tensor
     (``cone_rays: march``) or, for ``plane``, the back layer's at the exits' pixels."""
     n4, ok4 = cone.n4, cone.ok4
     if n4 is None:
-        _, h, w = g.shape
+        back = frame_back(g)
+        _, h, w = back.mask.shape
         n = bi.shape[0]
         xy = cone.xy
         flat = bi[:, None] * (h * w) + (xy[..., 1].floor().clamp(0, h - 1).long() * w
                                         + xy[..., 0].floor().clamp(0, w - 1).long())
-        n4 = take(g.back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
-        ok4 = ok4 & take(g.back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
+        n4 = take(back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
+        ok4 = ok4 & take(back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
     return n4, ok4
 
 
@@ -217,11 +224,9 @@ def level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
 def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor:
     """(B, H, W, n) per back-layer pixel of the marched frame: its roughness as hat
     weights on the n levels (linear between the two nearest), zero where the back layer
-    is empty. The frame is ``g``'s own, or where its marched layers hold a back layer's
-    UVs (a sparse pass: ``g`` is the one-sample frame or scattered samples) theirs."""
-    m = g.marched
-    uv, mask = (m.back_uv, m.back_mask) if m is not None and m.back_uv is not None else \
-        (g.back.uv, g.back.mask)
+    is empty. The frame is ``g``'s own, or its marched layers' (:func:`frame_back`)."""
+    back = frame_back(g)
+    uv, mask = back.uv, back.mask
     out = native.level_coverage(materials.roughness, materials.roughness_maps,
                                 materials.roughness_range, uv, mask, n)
     if out is not None:  # the same values in one kernel call
@@ -257,6 +262,6 @@ def footprint_coverage(g: GBuffer, materials: MaterialBatch, n_levels: int, bi: 
     return levels, c / c.sum(-1, keepdim=True).clamp(min=1e-12)
 
 
-__all__ = ["Cone", "back_ndf", "bounding_angle", "bounding_normals", "coverage_mips", "footprint_coverage",
-           "geometric_variance",
-           "level_coverage", "level_values", "trace_cone"]
+__all__ = ["Cone", "back_ndf", "bounding_angle", "bounding_normals", "coverage_mips",
+           "footprint_coverage", "geometric_variance", "level_coverage",
+           "level_values", "trace_cone"]
