@@ -25,9 +25,10 @@ budget.
 Scope: the fused kernels of ``rousiers`` (default cone and spread), ``specular``,
 ``prefiltered`` and ``sh`` on the CPU, uniform roughness (``sh``: a roughness map too, read
 at each pixel's front hit), no extra passes (``matte``, ``flow``): elsewhere a method's
-tensor code reads the back layer's mips or the frame's pixels outside the strip. Those views keep the up-front error. A frame in strips shades every pixel,
-whatever ``RenderSettings.adaptive`` says (the lattice's neighbours and levels would cross
-the strips' edges).
+tensor code reads the back layer's mips or the frame's pixels outside the strip. Those
+views keep the up-front error. A frame in strips shades every pixel, whatever
+``RenderSettings.adaptive`` says (the lattice's neighbours and levels would cross the
+strips' edges).
 """
 
 from __future__ import annotations

@@ -222,9 +222,10 @@ def level_values(materials: MaterialBatch, n: int) -> torch.Tensor:
 
 
 def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor:
-    """(B, H, W, n) per back-layer pixel of the marched frame: its roughness as hat
-    weights on the n levels (linear between the two nearest), zero where the back layer
-    is empty. The frame is ``g``'s own, or its marched layers' (:func:`frame_back`)."""
+    """(B, H, W, n) per back-layer pixel of the frame footprints are measured in (``g``'s
+    own, or in a sparse pass the one-sample frame: :func:`frame_back`): its roughness as
+    hat weights on the n levels (linear between the two nearest), zero where the back
+    layer is empty."""
     back = frame_back(g)
     uv, mask = back.uv, back.mask
     out = native.level_coverage(materials.roughness, materials.roughness_maps,
