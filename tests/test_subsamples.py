@@ -201,7 +201,7 @@ def _options(method: str) -> dict:
     return dict(SH_SMALL) if method == "sh" else {"internal_bounces": 2}
 
 
-@pytest.mark.parametrize("method", ["rousiers", "specular", "sh"])
+@pytest.mark.parametrize("method", ["rousiers", "specular", "sh", "lean"])
 def test_smooth_glass_is_the_uniform_render_on_the_object(method):
     """Below SMOOTH_ALPHA every object pixel is picked: there the image is the uniform
     n x n render's, bit for bit; a pixel where no sample sees the object is its center's
@@ -217,7 +217,8 @@ def test_smooth_glass_is_the_uniform_render_on_the_object(method):
 
 @pytest.mark.parametrize("name,method", [("bunny_a01", "rousiers"),
                                          ("vgroove_back_a01", "rousiers"),
-                                         ("slab_light", "rousiers"), ("teapot_a01", "sh")])
+                                         ("slab_light", "rousiers"), ("teapot_a01", "sh"),
+                                         ("wingnut_a01", "lean")])
 def test_sparse_render_is_close_to_the_uniform_one(name, method):
     """The default 2x2 render: the uniform one's coverage exactly, its image closer to the
     uniform one's than the one-sample image is, every pass present and finite."""
@@ -237,7 +238,7 @@ def test_sparse_render_is_close_to_the_uniform_one(name, method):
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
 @pytest.mark.parametrize("name,method,options", [
     ("bunny_a01", "rousiers", {}), ("slab_light", "sh", SH_SMALL),
-    ("globe_jump", "rousiers", {})])
+    ("globe_jump", "rousiers", {}), ("teapot_a01", "lean", {})])
 def test_sparse_fused_matches_the_tensor_code(name, method, options):
     """The samples' G-buffer shaded by the fused kernel and by the tensor code: as
     tests/test_fused.py holds them on full frames."""
@@ -264,8 +265,11 @@ def test_which_passes_are_sparse():
     assert not sparse.applies([s], entry, plane, mat)
     globe = _scene("globe_jump", 16, method="rousiers")  # a roughness map: read through
     assert sparse.applies([globe], entry, opts, MaterialBatch.from_scenes([globe]))  # back_uv
-    lean = registry.get("lean")
-    assert not sparse.applies([s], lean, lean.parse({}), mat)
+    lean = registry.get("lean")  # without a moments pyramid (moments.reads_no_moments)
+    assert sparse.applies([s], lean, lean.parse({}), mat)
+    assert not sparse.applies([s], lean, lean.parse({"spread": "paper"}), mat)
+    gsr = registry.get("gsr")
+    assert not sparse.applies([s], gsr, gsr.parse({}), mat)
     sh = registry.get("sh")  # reads its table at each sample's own front hit
     assert sparse.applies([s], sh, sh.parse({}), mat)
 

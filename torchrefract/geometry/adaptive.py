@@ -1,10 +1,10 @@
 """Adaptive sampling (issue #28, "model no more than a scene needs"), on by default
 (``RenderSettings(adaptive=False)``: every sub-pixel shaded). With n x n samples per pixel,
 a method that shades its samples alone (``Method.shades_samples``: ``specular``,
-``prefiltered``, ``rousiers``' defaults, ``sh``) is supersampled sparsely, from a
-one-sample G-buffer (:mod:`torchrefract.geometry.subsamples`); the plan here serves the
-others (the frame read around a sample: ``lean``, ``gsr``, ``rousiers``' other cones and
-spreads; matte passes; a GPU). With it, all n x n sub-pixels of a
+``prefiltered``, ``rousiers``' and ``lean``'s defaults, ``sh``) is supersampled sparsely,
+from a one-sample G-buffer (:mod:`torchrefract.geometry.subsamples`); the plan here serves
+the others (the frame read around a sample: ``gsr``, ``lean``'s moments pyramid,
+``rousiers``' other cones and spreads; matte passes; a GPU). With it, all n x n sub-pixels of a
 pixel are shaded only where they can differ; elsewhere one sample at the pixel's center
 stands for them. With one sample, a lattice of pixels is shaded and the pixels between are
 interpolated where the image is smooth (last paragraph).

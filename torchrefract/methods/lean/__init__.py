@@ -33,6 +33,7 @@ docs/decisions_lean.md.
 from __future__ import annotations
 
 from torchrefract.methods.base import Method, Shaded
+from torchrefract.methods.lean.moments import reads_no_moments
 from torchrefract.methods.lean.options import GsrOptions, LeanOptions
 from torchrefract.methods.lean.shade import render_lean
 
@@ -42,6 +43,12 @@ class Lean(Method):
 
     name = "lean"
     Options = LeanOptions
+
+    def shades_samples(self, options, materials) -> bool:
+        # without a moments pyramid each sample reads its own G-buffer and the marched
+        # layers only (the pyramid and the plane cone's exit normals are the frame's)
+        return (reads_no_moments(1, options.spread, materials.has_maps)
+                and options.cone_rays == "march")
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_lean(g, lighting, materials, options, 1, options.spread))
