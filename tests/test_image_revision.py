@@ -35,6 +35,10 @@ CASES = [
     ("slab_light_ib2", "slab_light.yaml", "rousiers", {"internal_bounces": 2}, 48, 1),
     ("globe_jump_lean", "globe_jump.yaml", "lean", {}, 48, 1),
     ("torus_ib_auto", "torus_a01.yaml", "rousiers", {"internal_bounces": "auto"}, 48, 1),
+    ("globe_jump_rousiers_2x2", "globe_jump.yaml", "rousiers", {}, 32, 2),
+    ("bunny_lean_2x2", "bunny_a01.yaml", "lean", {}, 32, 2),
+    ("teapot_sh_2x2", "teapot_a01.yaml", "sh", {"view_rings": 10, "surface_samples": 2048},
+     32, 2),
 ]
 
 
