@@ -18,7 +18,9 @@ from torchrefract.geometry.gbuffer import build_gbuffer, build_sparse
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.geometry.raster import visibility_layers
 from torchrefract.kernels import native
+from torchrefract.methods.rousiers import cone as cone_module, shade as rousiers_shade
 from torchrefract.methods.rousiers.cone import level_coverage
+from torchrefract.optics.ndf import build_box_mips
 from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.result import front_roughness
@@ -154,6 +156,25 @@ def test_samples_read_the_roughness_coverage_of_the_one_sample_frame():
     frame = level_coverage(g, mat, 4)
     assert frame.shape == (1, 24, 24, 4) and float(frame.sum()) > 0
     assert torch.equal(level_coverage(got.g, mat, 4), frame)
+
+
+def test_coverage_mips_are_made_once_for_both_passes(monkeypatch):
+    """A sparse render with a roughness map makes the coverage mips once (the one-sample
+    frame's) and its samples' pass reads them again: the same image as made twice."""
+    s = _scene("globe_jump", 32, method="rousiers")
+    made = []
+    real = cone_module.level_coverage
+
+    def counted(*a, **k):
+        made.append(1)
+        return real(*a, **k)
+
+    once = tr.render(s)
+    monkeypatch.setattr(cone_module, "level_coverage", counted)
+    assert torch.equal(tr.render(s).radiance, once.radiance) and len(made) == 1
+    monkeypatch.setattr(rousiers_shade, "coverage_mips", lambda g, m, n: (
+        cone_module.level_values(m, n), build_box_mips(real(g, m, n))))  # made per pass
+    assert torch.equal(tr.render(s).radiance, once.radiance)
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")

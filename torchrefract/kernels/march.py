@@ -16,7 +16,7 @@ triangle of whichever layer was crossed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import torch
 
@@ -79,6 +79,8 @@ class Marched:
             None: what ``rousiers`` reads around its exits (the roughness levels'
             coverage, :func:`~torchrefract.methods.rousiers.cone.level_coverage`; the
             normals at the bounding rays' exits, ``cone_rays: plane``).
+        derived: values computed from ``frame_back`` on first use, for every pass and
+            tile that marches this frame (``rousiers``' coverage mips).
     """
 
     back: torch.Tensor
@@ -88,6 +90,7 @@ class Marched:
     h: int
     w: int
     frame_back: Layer | None = None
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
 
     def numel(self) -> int:
         """The frame's (sub-)pixels, B*H*W."""

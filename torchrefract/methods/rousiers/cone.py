@@ -247,9 +247,19 @@ def level_coverage(g: GBuffer, materials: MaterialBatch, n: int) -> torch.Tensor
 def coverage_mips(g: GBuffer, materials: MaterialBatch, n_levels: int
                   ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
     """The roughness levels (B, L) and the box mips of their coverage over the back layer
-    (:func:`level_coverage`), for :func:`footprint_coverage` (and the fused kernel)."""
-    return level_values(materials, n_levels), build_box_mips(
+    (:func:`level_coverage`), for :func:`footprint_coverage` (and the fused kernel). In a
+    sparse pass, made once for the one-sample frame (kept in ``Marched.derived`` with the
+    materials they were made for) and read by its samples' pass too."""
+    m = g.marched
+    shared = m is not None and m.frame_back is not None
+    kept = m.derived.get("coverage_mips") if shared else None
+    if kept is not None and kept[0] is materials and kept[1] == n_levels:
+        return kept[2]
+    out = level_values(materials, n_levels), build_box_mips(
         level_coverage(g, materials, n_levels))
+    if shared:
+        m.derived["coverage_mips"] = (materials, n_levels, out)
+    return out
 
 
 def footprint_coverage(g: GBuffer, materials: MaterialBatch, n_levels: int, bi: torch.Tensor,
