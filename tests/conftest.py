@@ -13,6 +13,8 @@ import trimesh  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ASSETS = ROOT / "assets"
+SH_SMALL = {"view_rings": 10, "surface_samples": 2048}
+"""An ``sh`` table of ~1 s (200 directions per sample): the tests' ``sh`` scenes."""
 
 
 def small_scene_yaml(tmp_path: Path, name: str = "small", **changes) -> Path:

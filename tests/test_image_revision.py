@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SH_SMALL
 
 import torchrefract as tr
 
@@ -37,8 +38,7 @@ CASES = [
     ("torus_ib_auto", "torus_a01.yaml", "rousiers", {"internal_bounces": "auto"}, 48, 1),
     ("globe_jump_rousiers_2x2", "globe_jump.yaml", "rousiers", {}, 32, 2),
     ("bunny_lean_2x2", "bunny_a01.yaml", "lean", {}, 32, 2),
-    ("teapot_sh_2x2", "teapot_a01.yaml", "sh", {"view_rings": 10, "surface_samples": 2048},
-     32, 2),
+    ("teapot_sh_2x2", "teapot_a01.yaml", "sh", SH_SMALL, 32, 2),
 ]
 
 

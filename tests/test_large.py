@@ -10,7 +10,7 @@ import importlib
 
 import pytest
 import torch
-from conftest import ROOT
+from conftest import ROOT, SH_SMALL
 
 import torchrefract as tr
 from torchrefract import large, tiles
@@ -21,8 +21,6 @@ from torchrefract.settings import RenderSettings
 render_mod = importlib.import_module("torchrefract.render")  # the module, not tr.render
 SUITE = ROOT / "configs" / "suite"
 needs_native = pytest.mark.skipif(not native.available(), reason="native kernels unavailable")
-SH_SMALL = {"view_rings": 10, "surface_samples": 2048}
-"""An ``sh`` table of ~1 s (tests/test_sh.py's)."""
 
 
 def _scene(name: str, size: tuple[int, int], spp: int, method: str | None = None,

@@ -10,7 +10,7 @@ import torchrefract as tr
 from torchrefract.matte.matte import PLAIN, from_passes
 from torchrefract.matte.relight import relight
 
-from conftest import ROOT
+from conftest import ROOT, SH_SMALL
 
 TENSOR = tr.RenderSettings(fused=False, adaptive=False)  # the matte's own render
 
@@ -40,7 +40,7 @@ CASES = [
     ("sphere_a03.yaml", "lean", {}),
     ("sphere_a03.yaml", "gsr", {"internal_bounces": 1}),
     # sh at a table that takes about a second (200 directions per sample)
-    ("sphere_a03.yaml", "sh", {"view_rings": 10, "surface_samples": 2048}),
+    ("sphere_a03.yaml", "sh", SH_SMALL),
 ]
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import small_scene_yaml
+from conftest import SH_SMALL, small_scene_yaml
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
@@ -153,7 +153,7 @@ def _zero_off_object_cases():
     bounce = {"internal_bounces": 2}
     return [("specular", {}), ("specular", bounce), ("prefiltered", {}),
             ("rousiers", {}), ("rousiers", bounce), ("lean", bounce), ("gsr", {}),
-            ("sh", {"view_rings": 10, "surface_samples": 2048})]
+            ("sh", SH_SMALL)]
 
 
 @pytest.mark.parametrize("method,options", _zero_off_object_cases())

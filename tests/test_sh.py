@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import ASSETS, ROOT
+from conftest import ASSETS, ROOT, SH_SMALL
 
 import torchrefract as tr
 from torchrefract.checks import ConfigError
@@ -40,8 +40,7 @@ from torchrefract.optics.smooth import dot, fresnel_dielectric, normalize, refra
 from torchrefract.options import parse_options
 
 ENV = str(ASSETS / "envmaps" / "studio_small_03.exr")
-SMALL = {"view_rings": 10, "surface_samples": 2048}
-"""A table that takes ~1 s: 200 directions per sample."""
+SMALL = SH_SMALL
 
 
 def _tracer_or_skip():

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import SH_SMALL
 
 import torchrefract as tr
 from torchrefract import sparse, tiles
@@ -211,10 +212,6 @@ def test_no_pixel_picked_gives_no_samples():
     g, ids, _ = _one_sample([s])
     assert subsamples.gather(g, ids, [s.camera], torch.zeros(1, 16, 16, dtype=torch.bool)) \
         is None
-
-
-SH_SMALL = {"view_rings": 10, "surface_samples": 2048}
-"""An ``sh`` table of ~1 s (tests/test_sh.py's)."""
 
 
 def _options(method: str) -> dict:
