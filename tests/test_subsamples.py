@@ -38,13 +38,14 @@ def _scene(name: str, size: int = 48, n: int = 2, **changes) -> tr.Scene:
                                                 samples_per_pixel=n), **changes)
 
 
-def _one_sample(scenes: list[tr.Scene]):
+def _one_sample(scenes: list[tr.Scene], with_flags: bool = False):
     """The one-sample G-buffer (marching the n x n ids), the n x n ids and the front
-    roughness of ``scenes``."""
-    g, ids = build_sparse([load_mesh(s.mesh, s.transform) for s in scenes],
-                          [s.camera for s in scenes])
+    roughness of ``scenes`` (``with_flags``: and the rasterizer's sub-pixel flags)."""
+    g, ids, flags = sparse.gbuffer([load_mesh(s.mesh, s.transform) for s in scenes],
+                                   [s.camera for s in scenes])
     g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
-    return g, ids, front_roughness(g, MaterialBatch.from_scenes(scenes))
+    alpha = front_roughness(g, MaterialBatch.from_scenes(scenes))
+    return (g, ids, alpha, flags) if with_flags else (g, ids, alpha)
 
 
 def test_subpixel_rays_are_the_pixel_rays():
@@ -67,7 +68,8 @@ def test_sparse_gbuffer_is_the_one_sample_one():
     other = s.replace(camera=dataclasses.replace(s.camera, eye=(0.3, 0.4, 3.5)))
     meshes = [load_mesh(s.mesh, s.transform)] * 3
     cams = [s.camera, other.camera, s.camera]
-    g, ids = build_sparse(meshes, cams)
+    g, ids, flags = build_sparse(meshes, cams)
+    assert flags is None  # (no fold tolerances given)
     one = build_gbuffer(meshes, [dataclasses.replace(c, samples_per_pixel=1) for c in cams])
     for lay in ("front", "back"):
         for f in ("mask", "tri", "dist", "normal"):
@@ -97,11 +99,35 @@ def test_edges_kernel_makes_the_tensor_codes_decisions(name):
     for n in (2, 3):
         s = _scene(name, 40, n)
         views = [s, s.replace(camera=dataclasses.replace(s.camera, eye=(0.3, 0.4, 3.5)))]
-        g, ids, alpha = _one_sample(views)
-        got = subsamples.edges(g, ids, alpha)
+        g, ids, alpha, flags = _one_sample(views, with_flags=True)
+        assert flags is not None
         want = subsamples._edges_torch(g, ids, alpha, subsamples.NORMAL_TOL,
                                        subsamples.DEPTH_TOL, 0.02, subsamples.FACE_TOL)
-        assert torch.equal(got, want) and got.any() and not got.all(), (name, n)
+        assert want.any() and not want.all(), (name, n)
+        # the rasterizer's flags, and flags made from the ids
+        assert torch.equal(subsamples.edges(g, ids, alpha, flags=flags), want), (name, n)
+        assert torch.equal(subsamples.edges(g, ids, alpha), want), (name, n)
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+@pytest.mark.parametrize("n", [2, 3])
+def test_rasterizer_flags_are_those_of_its_ids(n):
+    """csrc/raster.c's sub-pixel flags, made as it writes the ids (one view: its rows drawn
+    in bands by two threads; three: a repeated view copied), equal the flags made from
+    the ids afterwards; a crease (the v-groove) and silhouettes set the differing bits."""
+    s = _scene("vgroove_back_a01", 40, n)
+    other = s.replace(camera=dataclasses.replace(s.camera, eye=(0.3, 0.4, 3.5)))
+    threads = torch.get_num_threads()
+    for views in ([s], [s, other, s]):
+        torch.set_num_threads(2)
+        try:
+            g, ids, _, flags = _one_sample(views, with_flags=True)
+        finally:
+            torch.set_num_threads(threads)
+        want = native.sub_flags(ids, native.SubTest(n, g.meshes, *subsamples.FOLDS))
+        assert flags.shape == g.shape and torch.equal(flags, want), (n, len(views))
+        for bit in (1, 2, 4, 8):  # each bit set somewhere, and clear somewhere
+            assert (flags & bit).any() and not (flags & bit).all(), (n, bit)
 
 
 def test_every_pixel_of_partial_coverage_is_picked():

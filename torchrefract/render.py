@@ -20,7 +20,7 @@ from torchrefract import large, sparse, tiles
 from torchrefract.checks import ConfigError
 from torchrefract.geometry import adaptive
 from torchrefract.geometry.camera import views_pixel_rays
-from torchrefract.geometry.gbuffer import build_gbuffer, build_sparse
+from torchrefract.geometry.gbuffer import build_gbuffer
 from torchrefract.geometry.mesh import load_mesh
 from torchrefract.lighting.lights import Lighting
 from torchrefract.matte import render_hook
@@ -187,14 +187,14 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     materials = MaterialBatch.from_scenes(scenes)
     sparse_pass = sparse.applies(scenes, entry, options, materials)
     if sparse_pass:  # the one-sample G-buffer and the ids at n x n
-        g, ids = build_sparse(meshes, [s.camera for s in scenes])
+        g, ids, flags = sparse.gbuffer(meshes, [s.camera for s in scenes])
     else:
         g = build_gbuffer(meshes, [s.camera for s in scenes])
     region = _subpixel_region(regions, g) if entry.shades_object_index else None
     plan = None
     pending = None
     if sparse_pass:  # the one-sample pass, then the pixels whose samples can differ
-        g, plan, pending = sparse.first_pass(g, ids, materials, region)
+        g, plan, pending = sparse.first_pass(g, ids, flags, materials, region)
     elif current().adaptive and entry.shades_object_index:
         if g.supersample > 1:
             alpha = front_roughness(g, materials)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrefract.geometry import adaptive, subsamples
-from torchrefract.geometry.gbuffer import GBuffer
+from torchrefract.geometry.gbuffer import GBuffer, build_sparse
 from torchrefract.kernels import native
 from torchrefract.matte import render_hook
 from torchrefract.result import RenderResult, finish_pass, front_roughness
@@ -43,15 +43,22 @@ class Pending:
     region: torch.Tensor | None
 
 
-def first_pass(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], materials,
-               region: torch.Tensor | None
+def gbuffer(meshes, cameras) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor],
+                                     torch.Tensor | None]:
+    """The one-sample G-buffer, the ids at n x n and their sub-pixel flags of a sparse
+    pass (``gbuffer.build_sparse`` with the sub-pixel test's tolerances)."""
+    return build_sparse(meshes, cameras, subsamples.FOLDS)
+
+
+def first_pass(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor],
+               flags: torch.Tensor | None, materials, region: torch.Tensor | None
                ) -> tuple[GBuffer, adaptive.Lattice | None, Pending]:
-    """For the one-sample G-buffer ``g`` and the ids at n x n ``ids``
-    (``gbuffer.build_sparse``): the G-buffer and lattice of the first pass
+    """For the one-sample G-buffer ``g``, the ids at n x n ``ids`` and their sub-pixel
+    ``flags`` (:func:`gbuffer`): the G-buffer and lattice of the first pass
     (adaptive.lattice over the pixels not picked: a picked pixel is its samples' box
     filter) and what :func:`supersample` needs."""
     alpha = front_roughness(g, materials)
-    picked = subsamples.edges(g, ids, alpha, region)
+    picked = subsamples.edges(g, ids, alpha, region, flags)
     g = dataclasses.replace(g, marched=subsamples.marched(g, ids))
     first, lattice = adaptive.lattice(g, alpha, region=~picked if region is None else
                                       region & ~picked)
@@ -115,4 +122,4 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
                                passes=dict(zip(names, put_all[2:])))
 
 
-__all__ = ["Pending", "applies", "first_pass", "supersample"]
+__all__ = ["Pending", "applies", "first_pass", "gbuffer", "supersample"]

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from torchrefract.geometry.camera import packed_camera, views_pixel_rays
 from torchrefract.geometry.mesh import MeshData
-from torchrefract.geometry.raster import visibility_layers
+from torchrefract.geometry.raster import sub_layers, visibility_layers
 from torchrefract.kernels import native
 from torchrefract.kernels.index import put_, take, where_true
 from torchrefract.optics.smooth import dot
@@ -403,20 +403,25 @@ def build_gbuffer(meshes: list[MeshData], cameras: list[Camera]) -> GBuffer:
     return _build(meshes, cameras, sparse=False)[0]
 
 
-def build_sparse(meshes: list[MeshData], cameras: list[Camera]
-                 ) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor]]:
+def build_sparse(meshes: list[MeshData], cameras: list[Camera],
+                 folds: tuple[float, float] | None = None
+                 ) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor], torch.Tensor | None]:
     """Sparse supersampling's G-buffers (:mod:`torchrefract.geometry.subsamples`): the
-    exact one-sample G-buffer of cameras taking n x n samples, and both layers' rasterized
+    exact one-sample G-buffer of cameras taking n x n samples, both layers' rasterized
     ids on their n x n sub-pixel grids (B, n H, n W) int32, -1 where no face is seen (not
-    repaired: the samples' layers are). Two rasterizations: finding the pixel centers'
+    repaired: the samples' layers are), and with ``folds`` (the fold test's normal and
+    face tolerances) the pixels' sub-pixel flags (B, H, W) uint8 (``raster.sub_layers``;
+    None without, or without the kernels). Two rasterizations: finding the pixel centers'
     triangles among the sub-pixels' instead cost more, and a dense mesh's center may see
     none of them (docs/benchmarks.md, sixteenth sitting)."""
-    return _build(meshes, cameras, sparse=True)
+    g, grid = _build(meshes, cameras, sparse=True, folds=folds)
+    return g, grid[:2], grid[2]
 
 
-def _build(meshes: list[MeshData], cameras: list[Camera], sparse: bool
-           ) -> tuple[GBuffer, tuple[torch.Tensor, torch.Tensor] | None]:
-    """:func:`build_gbuffer` (``sparse`` False; no ids) or :func:`build_sparse`."""
+def _build(meshes: list[MeshData], cameras: list[Camera], sparse: bool,
+           folds: tuple[float, float] | None = None) -> tuple[GBuffer, tuple | None]:
+    """:func:`build_gbuffer` (``sparse`` False; no ids) or :func:`build_sparse` (its ids
+    and flags as one tuple)."""
     if len(meshes) != len(cameras) or not meshes:
         raise ValueError("build_gbuffer needs one camera per mesh and at least one view")
     c0 = cameras[0]
@@ -433,7 +438,10 @@ def _build(meshes: list[MeshData], cameras: list[Camera], sparse: bool
     offsets = [int(batch.face_offset[b]) for b, _, _ in views]
     sub = None
     if sparse:
-        sub = visibility_layers(drawn, cams, n, offsets, dtype=torch.int32)
+        if folds is None:
+            sub = (*visibility_layers(drawn, cams, n, offsets, dtype=torch.int32), None)
+        else:
+            sub = sub_layers(drawn, cams, offsets, native.SubTest(n, batch, *folds))
         cams, n = [replace(c, samples_per_pixel=1) for c in cams], 1
     front_ids, back_ids = visibility_layers(drawn, cams, n, offsets)
     dirs_t = views_pixel_rays(cams, n)

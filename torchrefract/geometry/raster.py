@@ -419,11 +419,12 @@ def use_native() -> bool:
 
 def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,
                   id_offsets: list[int], rows: tuple[int, int] | None = None,
-                  dtype: torch.dtype = torch.int64) -> tuple[torch.Tensor, torch.Tensor] | None:
+                  dtype: torch.dtype = torch.int64, sub: native.SubTest | None = None
+                  ) -> tuple | None:
     """:func:`visibility_layers` by the native rasterizer (``native.raster_ids``; the same
-    arguments and result; ``rows``: only the rows [r0, r1) of the frame), or ``None``
-    where it is unavailable. Each distinct mesh object is passed once; the planes are
-    those of the OpenGL passes (:func:`view_projection`)."""
+    arguments and result; ``rows``: only the rows [r0, r1) of the frame; ``sub``: the
+    sub-pixel flags too), or ``None`` where it is unavailable. Each distinct mesh object
+    is passed once; the planes are those of the OpenGL passes (:func:`view_projection`)."""
     for m in meshes:
         if m.num_faces > _MAX_ID:  # the kernel's 24-bit face index, as the id buffer's
             raise ValueError(f"mesh has {m.num_faces} triangles; the id buffer holds {_MAX_ID}")
@@ -445,7 +446,22 @@ def native_layers(meshes: list[MeshData], cameras: list[Camera], supersample: in
     c0 = cameras[0]
     return native.raster_ids(verts[0] if len(verts) == 1 else torch.cat(verts),
                              faces[0] if len(faces) == 1 else torch.cat(faces), views, mvp,
-                             c0.height * supersample, c0.width * supersample, rows, dtype)
+                             c0.height * supersample, c0.width * supersample, rows, dtype,
+                             sub)
+
+
+def sub_layers(meshes: list[MeshData], cameras: list[Camera], id_offsets: list[int],
+               sub: native.SubTest) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Both layers' int32 ids on the ``sub.n`` x ``sub.n`` sub-pixel grid
+    (:func:`visibility_layers`) and their pixels' sub-pixel flags (csrc/subpixels.h):
+    made as the native rasterizer draws the ids, else from the ids drawn
+    (``native.sub_flags``); None where the kernels are unavailable."""
+    if use_native():
+        out = native_layers(meshes, cameras, sub.n, id_offsets, dtype=torch.int32, sub=sub)
+        if out is not None:
+            return out
+    ids = visibility_layers(meshes, cameras, sub.n, id_offsets, dtype=torch.int32)
+    return ids[0], ids[1], native.sub_flags(ids, sub)
 
 
 def visibility_layers(meshes: list[MeshData], cameras: list[Camera], supersample: int,

@@ -56,6 +56,11 @@ whose shading normals meet at a common corner are a smooth surface however their
 turn (a coarse mesh's neighbours)."""
 
 
+FOLDS = (NORMAL_TOL, FACE_TOL)
+"""The fold test's tolerances (:func:`_folds`), for the sub-pixel flags
+(``gbuffer.build_sparse``)."""
+
+
 @dataclass(frozen=True)
 class Samples:
     """The sub-pixel samples of the picked pixels.
@@ -131,14 +136,21 @@ def _edges_torch(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torc
 
 
 def edges(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tensor,
-          region: torch.Tensor | None = None) -> torch.Tensor:
+          region: torch.Tensor | None = None, flags: torch.Tensor | None = None
+          ) -> torch.Tensor:
     """The pixels whose samples can differ, by their G-buffer (module docstring): (B, H, W)
     bool for the one-sample G-buffer ``g`` (B, H, W), both layers' rasterized ids on the
     n x n sub-pixel grid ``ids`` (B, n H, n W) and the front roughness ``alpha`` (B, H, W)
-    or (B, 1, 1); within ``region`` (B, H, W) where given."""
+    or (B, 1, 1); within ``region`` (B, H, W) where given. ``flags``: the ids' sub-pixel
+    flags where the rasterizer made them (``gbuffer.build_sparse`` with :data:`FOLDS`),
+    else made here from the ids (``native.sub_flags``)."""
     tols = (NORMAL_TOL, DEPTH_TOL, adaptive.SMOOTH_ALPHA, FACE_TOL)
-    out = native.edges(g.front.mask, g.back.mask, g.front.normal, g.back.normal,
-                       g.back.depth, ids, g.meshes, alpha, *tols)
+    if flags is None:
+        n = ids[0].shape[1] // g.shape[1]
+        flags = native.sub_flags(ids, native.SubTest(n, g.meshes, *FOLDS))
+    out = None if flags is None else native.edges(
+        g.front.mask, g.back.mask, g.front.normal, g.back.normal, g.back.depth, flags, alpha,
+        *tols[:3])
     if out is None:
         out = _edges_torch(g, ids, alpha.detach(), *tols)
     return out if region is None else out & region

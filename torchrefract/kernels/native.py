@@ -39,7 +39,9 @@ import sys
 import tempfile
 import threading
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -56,7 +58,7 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / f for f in ("march.c", "gbuff
 HEADERS = tuple(Path(__file__).with_name("csrc") / f  # part of the cache key
                 for f in ("common.h", "march_core.h", "optics.h", "sgtable.h",
                           "lighting.h", "materials.h", "frame.h", "bounces.h",
-                          "rousiers_core.h"))
+                          "rousiers_core.h", "subpixels.h"))
 # No fast-math and no contraction: every float32 operation rounds as torch's elementwise
 # ops do (the one fused multiply-add, in torch.cross, is written out as fmaf in the source).
 # With -march=native where the compiler takes it: this CPU's instructions (fmaf inline,
@@ -216,13 +218,29 @@ class _BackgroundJob(ctypes.Structure):
                 ("front_mask", _p), ("front_dist", _p), ("lights", _Lights), ("out", _p)]
 
 
+class _Folds(ctypes.Structure):
+    """ctypes mirror of ``Folds`` in csrc/subpixels.h."""
+
+    _fields_ = [("face_normal", _p), ("tv", _p), ("tn", _p), ("normal_tol", ctypes.c_float),
+                ("face_tol", ctypes.c_float)]
+
+
 class _RasterJob(ctypes.Structure):
     """ctypes mirror of ``RasterJob`` in csrc/raster.c."""
 
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
                 ("vertices", _p), ("faces", _p), ("views", _p), ("mvp", _p),
                 ("front", _p), ("back", _p), ("row0", ctypes.c_int64),
-                ("rows", ctypes.c_int64), ("ids32", ctypes.c_int)]
+                ("rows", ctypes.c_int64), ("ids32", ctypes.c_int), ("sub_n", ctypes.c_int64),
+                ("flags", _p), ("folds", _Folds)]
+
+
+class _SubFlagsJob(ctypes.Structure):
+    """ctypes mirror of ``SubFlagsJob`` in csrc/raster.c."""
+
+    _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("n", ctypes.c_int64), ("front", _p), ("back", _p), ("folds", _Folds),
+                ("out", _p)]
 
 
 class _RoughnessJob(ctypes.Structure):
@@ -348,13 +366,12 @@ class _EdgesJob(ctypes.Structure):
     """ctypes mirror of ``EdgesJob`` in csrc/lattice.c."""
 
     _fields_ = [("b", ctypes.c_int64), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
-                ("n", ctypes.c_int64), ("front_mask", _p), ("back_mask", _p),
+                ("front_mask", _p), ("back_mask", _p),
                 ("front_normal", _p), ("back_normal", _p), ("back_depth", _p),
-                ("front_ids", _p), ("back_ids", _p), ("face_normal", _p), ("tv", _p),
-                ("tn", _p), ("alpha", _p),
+                ("sub", _p), ("alpha", _p),
                 ("per_pixel", ctypes.c_int), ("smooth_alpha", ctypes.c_float),
                 ("normal_tol", ctypes.c_float), ("depth_tol", ctypes.c_float),
-                ("face_tol", ctypes.c_float), ("pairs", _p), ("edge", _p)]
+                ("pairs", _p), ("edge", _p)]
 
 
 class _UniformJob(ctypes.Structure):
@@ -465,7 +482,7 @@ _KERNELS = {"march": _Job, "tri_planes": _TriPlanesJob, "layer": _LayerJob,
             "background": _BackgroundJob, "rousiers": _RousJob, "raster": _RasterJob,
             "lattice_plan": _LatticeJob, "lattice_fill": _LatticeJob,
             "lattice_shade": _LatticeShadeJob, "uniform": _UniformJob, "refine": _RefineJob,
-            "edges": _EdgesJob,
+            "edges": _EdgesJob, "sub_flags": _SubFlagsJob,
             "box": _BoxJob,
             "boxes": _BoxesJob, "one_sample": _OneSampleJob, "mips": _MipsJob,
             "center_samples": _CenterJob, "pixel_rays": _RaysJob, "rays_at": _RaysAtJob,
@@ -814,13 +831,39 @@ def layer(ids: torch.Tensor, eye: torch.Tensor, dirs: torch.Tensor, forward: tor
     return out
 
 
+@dataclass(frozen=True)
+class SubTest:
+    """What the sub-pixel flags read (csrc/subpixels.h): the n x n sub-pixel grid, the
+    batch's triangles by global id (``meshes``, a MeshBatch: face normals, corners and
+    their shading normals) and the fold test's tolerances (``subsamples``')."""
+
+    n: int
+    meshes: Any
+    normal_tol: float
+    face_tol: float
+
+
+def _folds(test: SubTest) -> tuple[_Folds, list[torch.Tensor]] | None:
+    """``Folds`` of ``test`` and the tensors it points into; None where one is not a
+    float32 CPU tensor."""
+    m = test.meshes
+    keep = _inputs((m.face_normals, m.tri_vertices, m.tri_normals), ())
+    if keep is None:
+        return None
+    return _Folds(face_normal=keep[0].data_ptr(), tv=keep[1].data_ptr(), tn=keep[2].data_ptr(),
+                  normal_tol=test.normal_tol, face_tol=test.face_tol), keep
+
+
 def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
                mvp: torch.Tensor, h: int, w: int, rows: tuple[int, int] | None = None,
-               dtype: torch.dtype = torch.int64) -> tuple[torch.Tensor, torch.Tensor] | None:
+               dtype: torch.dtype = torch.int64, sub: SubTest | None = None) -> tuple | None:
     """Both visibility layers of B views (csrc/raster.c): per pixel center, the nearest
     front-facing and the nearest back-facing triangle, as ``raster.visibility_pass`` draws
     them with OpenGL; ``None`` where the kernel is unavailable or an input is of another
-    dtype or device (the caller then runs the OpenGL passes).
+    dtype or device (the caller then runs the OpenGL passes). With ``sub`` (int32 ids of
+    a frame of whole pixels: h, w and the rows multiples of ``sub.n``) also the pixels'
+    sub-pixel flags (B, rows / n, w / n) uint8 (csrc/subpixels.h), made as the ids are
+    written: (front, back, flags).
 
     Args:
         vertices: (V, 3) float32 world positions of the views' meshes, concatenated.
@@ -857,9 +900,36 @@ def raster_ids(vertices: torch.Tensor, faces: torch.Tensor, views: torch.Tensor,
                      views=views.data_ptr(), mvp=mvp.data_ptr(), front=front.data_ptr(),
                      back=back.data_ptr(), row0=r0, rows=r1 - r0,
                      ids32=int(dtype == torch.int32))
+    if sub is not None:
+        n, folds = sub.n, _folds(sub)
+        if folds is None or dtype != torch.int32 or h % n or w % n or r0 % n or r1 % n:
+            return None
+        flags = torch.empty(b, (r1 - r0) // n, w // n, dtype=torch.uint8)
+        job.sub_n, job.flags, job.folds = n, flags.data_ptr(), folds[0]
     if b and not _call("raster", job):
         return None
-    return front, back
+    return (front, back) if sub is None else (front, back, flags)
+
+
+def sub_flags(ids: tuple[torch.Tensor, torch.Tensor], sub: SubTest) -> torch.Tensor | None:
+    """The (B, h, w) uint8 sub-pixel flags (csrc/subpixels.h) of both layers' int32 ids on
+    the (B, n h, n w) grid, drawn elsewhere than :func:`raster_ids` (which makes them as it
+    draws); ``None`` where the kernel is unavailable or an input is of another dtype or
+    device."""
+    if not available():
+        return None
+    folds = _folds(sub)
+    n = sub.n
+    if folds is None or any(x.dtype != torch.int32 or x.device.type != "cpu" for x in ids):
+        return None
+    b, fh, fw = ids[0].shape
+    if fh % n or fw % n:
+        return None
+    keep = [as_input(x) for x in ids]
+    out = torch.empty(b, fh // n, fw // n, dtype=torch.uint8)
+    job = _SubFlagsJob(b=b, h=fh // n, w=fw // n, n=n, front=keep[0].data_ptr(),
+                       back=keep[1].data_ptr(), folds=folds[0], out=out.data_ptr())
+    return out if _call("sub_flags", job) else None
 
 
 def footprint(q: torch.Tensor, ok: torch.Tensor, center: torch.Tensor, proj: torch.Tensor,
@@ -1173,32 +1243,26 @@ def uniform(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: tor
 
 
 def edges(front_mask: torch.Tensor, back_mask: torch.Tensor, front_normal: torch.Tensor,
-          back_normal: torch.Tensor, back_depth: torch.Tensor,
-          ids: tuple[torch.Tensor, torch.Tensor], meshes, alpha: torch.Tensor,
-          normal_tol: float, depth_tol: float, smooth_alpha: float, face_tol: float
+          back_normal: torch.Tensor, back_depth: torch.Tensor, flags: torch.Tensor,
+          alpha: torch.Tensor, normal_tol: float, depth_tol: float, smooth_alpha: float
           ) -> torch.Tensor | None:
-    """``subsamples.edges``' (B, H, W) bool pixels of the one-sample layers (B, H, W), both
-    layers' rasterized int32 ids on the n x n grid (B, n H, n W) and the batch's triangles
-    (``meshes``: a MeshBatch) (csrc/lattice.c, the same decisions as the tensor code), or
-    ``None`` where the kernel is unavailable or an input is not of its dtype on the CPU.
-    ``alpha``: (B, H, W) or (B, 1, 1)."""
+    """``subsamples.edges``' (B, H, W) bool pixels of the one-sample layers (B, H, W) and
+    their sub-pixel ``flags`` (B, H, W) uint8 (:func:`raster_ids`, :func:`sub_flags`)
+    (csrc/lattice.c, the same decisions as the tensor code), or ``None`` where the kernel
+    is unavailable or an input is not of its dtype on the CPU. ``alpha``: (B, H, W) or
+    (B, 1, 1)."""
     b, h, w = front_mask.shape
-    fh, fw = ids[0].shape[1:]
-    if alpha.numel() not in (b, b * h * w) or fh % h or fw % w or fh // h != fw // w:
+    if alpha.numel() not in (b, b * h * w) or flags.shape != front_mask.shape:
         return None
     made = _plan_layers(front_mask, back_mask, front_normal, back_normal, back_depth, alpha)
-    fn = _inputs((meshes.face_normals, meshes.tri_vertices, meshes.tri_normals), ())
-    if made is None or fn is None or any(x.dtype != torch.int32 or x.device.type != "cpu"
-                                         for x in ids):
+    if made is None or flags.dtype != torch.uint8 or flags.device.type != "cpu":
         return None
-    keep = [x.contiguous() for x in ids]
+    sub = as_input(flags)
     out = torch.empty(b, h, w, dtype=torch.bool)
     pairs = torch.empty(b, h, w, dtype=torch.uint8)
-    job = _EdgesJob(b=b, h=h, w=w, n=fh // h, front_ids=keep[0].data_ptr(), pairs=pairs.data_ptr(),
-                    back_ids=keep[1].data_ptr(), face_normal=fn[0].data_ptr(),
-                    tv=fn[1].data_ptr(), tn=fn[2].data_ptr(),
+    job = _EdgesJob(b=b, h=h, w=w, sub=sub.data_ptr(), pairs=pairs.data_ptr(),
                     smooth_alpha=smooth_alpha, normal_tol=normal_tol, depth_tol=depth_tol,
-                    face_tol=face_tol, edge=out.data_ptr(), **made[1])
+                    edge=out.data_ptr(), **made[1])
     return out if _call("edges", job) else None
 
 

@@ -21,6 +21,7 @@
 #include <string.h>
 
 #include "frame.h"
+#include "subpixels.h"
 
 typedef struct {
     int64_t b, h, w;
@@ -1051,57 +1052,23 @@ int64_t torchrefract_lattice_plan_job_size(void) { return (int64_t)sizeof(Lattic
 int64_t torchrefract_lattice_fill_job_size(void) { return (int64_t)sizeof(LatticeJob); }
 
 /* subsamples.edges: the pixels of a one-sample G-buffer (B, h, w) whose n x n samples can
- * differ: the rasterized coverage of their sub-pixels (ids on the (B, n h, n w) grid)
- * differs among them or from the center's, in either layer, or a sub-pixel's triangle
- * folds against the first's (subsamples._folds: no corner in common with the same shading
- * normal, and faces turning by more than face_tol); the front or back normal differs from
- * a covered neighbour's (3x3) by more than normal_tol in 1 - cos, or the back depth by
- * more than depth_tol relative; the front is smoother than smooth_alpha. The tensor code's
- * float32 operations (subsamples._edges_torch: optics.dot's order). */
+ * differ: the sub-pixels' flags (subpixels.h: their rasterized coverage not all alike, or
+ * a fold among their triangles; the first's coverage) say they are not all covered as the
+ * center is, in either layer, or fold; the front or back normal differs from a covered
+ * neighbour's (3x3) by more than normal_tol in 1 - cos, or the back depth by more than
+ * depth_tol relative; the front is smoother than smooth_alpha. The tensor code's float32
+ * operations (subsamples._edges_torch: optics.dot's order). */
 typedef struct {
-    int64_t b, h, w, n;
+    int64_t b, h, w;
     const uint8_t *front_mask, *back_mask;      /* (B, h, w) */
     const float *front_normal, *back_normal, *back_depth;
-    const int32_t *front_ids, *back_ids;        /* (B, n h, n w), -1: none */
-    const float *face_normal;                   /* (F, 3) per global id */
-    const float *tv, *tn;                       /* (F, 3, 3) corners, their shading normals */
+    const uint8_t *sub;                         /* (B, h, w) subpixels.h's flags */
     const float *alpha;                         /* (B, h, w), or (B,): per_pixel 0 */
     int per_pixel;
-    float smooth_alpha, normal_tol, depth_tol, face_tol;
+    float smooth_alpha, normal_tol, depth_tol;
     uint8_t *pairs;                             /* scratch (B, h, w): pairs_range's flags */
     uint8_t *edge;                              /* out (B, h, w) */
 } EdgesJob;
-
-/* Whether triangles a and b fold against each other: no corner of a lies where one of b's
- * does with a shading normal within normal_tol of it (the interpolated normals meet
- * there: a smooth mesh's neighbours), and their faces turn by more than face_tol. */
-static int folds(const EdgesJob *j, int64_t a, int64_t b) {
-    if (!(1.0f - dot3(j->face_normal + 3 * b, j->face_normal + 3 * a) > j->face_tol)) return 0;
-    for (int p = 0; p < 3; p++)
-        for (int q = 0; q < 3; q++) {
-            const float *va = j->tv + 9 * a + 3 * p, *vb = j->tv + 9 * b + 3 * q;
-            if (va[0] == vb[0] && va[1] == vb[1] && va[2] == vb[2] &&
-                1.0f - dot3(j->tn + 9 * a + 3 * p, j->tn + 9 * b + 3 * q) <= j->normal_tol)
-                return 0;
-        }
-    return 1;
-}
-
-/* Whether the sub-pixels from s0 (rows nw apart) are not all covered as ``center``, or
- * one's triangle folds against the first's. */
-static inline int sub_pixels_differ(const EdgesJob *j, const int32_t *ids, int64_t s0,
-                                    int64_t nw, int center) {
-    int32_t first = ids[s0];
-    if (j->n == 2 && ids[s0 + 1] == first && ids[s0 + nw] == first && ids[s0 + nw + 1] == first)
-        return (first >= 0) != center;  /* one triangle (or none): the common case */
-    for (int64_t i = 0; i < j->n; i++)
-        for (int64_t k = 0; k < j->n; k++) {
-            int32_t id = ids[s0 + i * nw + k];
-            if ((id >= 0) != center) return 1;
-            if (id != first && folds(j, first, id)) return 1;
-        }
-    return 0;
-}
 
 /* The pairs of neighbouring pixels are tested once (the tests are symmetric but for the
  * depth tolerance, relative to each end's own depth): a first sweep writes per pixel p
@@ -1127,10 +1094,9 @@ static int pair_flags(const EdgesJob *j, int64_t p, int64_t q) {
 
 /* A pixel's own tests: its sub-pixels (either layer) and its roughness. */
 static inline int own_flags(const EdgesJob *j, int64_t p, const Pos *at) {
-    int64_t n = j->n, nw = j->w * n, s0 = (at->bi * j->h * n + at->y * n) * nw + at->x * n;
-    int fm = j->front_mask[p], bm = j->back_mask[p];
-    return sub_pixels_differ(j, j->front_ids, s0, nw, fm) ||
-           sub_pixels_differ(j, j->back_ids, s0, nw, bm) ||
+    int s = j->sub[p], fm = j->front_mask[p], bm = j->back_mask[p];
+    return (s & SUB_FRONT_DIFFERS) || ((s & SUB_FRONT_FIRST) != 0) != fm ||
+           (s & SUB_BACK_DIFFERS) || ((s & SUB_BACK_FIRST) != 0) != bm ||
            (fm && (j->per_pixel ? j->alpha[p] : j->alpha[at->bi]) < j->smooth_alpha);
 }
 
@@ -1160,83 +1126,24 @@ static inline __m256 one_minus_dot8(const float *np, const float *nq) {
     return one_minus_dot_lanes(q, p);
 }
 
-/* The ids of sub-pixels (0, 0) and (0, 1) of 8 pixels from the row at r (n = 2: 16 ids),
- * as lanes: even and odd columns. */
-static inline void even_odd8(const int32_t *r, __m256i *even, __m256i *odd) {
-    __m256 a = _mm256_castsi256_ps(_mm256_loadu_si256((const __m256i *)r));
-    __m256 b = _mm256_castsi256_ps(_mm256_loadu_si256((const __m256i *)(r + 8)));
-    *even = _mm256_permute4x64_epi64(_mm256_castps_si256(_mm256_shuffle_ps(a, b, 0x88)), 0xd8);
-    *odd = _mm256_permute4x64_epi64(_mm256_castps_si256(_mm256_shuffle_ps(a, b, 0xdd)), 0xd8);
-}
-
-/* The face normals of ids a (x, y, z lanes; face 0 where ``want`` is clear). */
-static inline void face_normals8(const EdgesJob *j, __m256i a, __m256i want, __m256 *n) {
-    __m256i ia = _mm256_mullo_epi32(_mm256_and_si256(a, want), _mm256_set1_epi32(3));
-    for (int c = 0; c < 3; c++)
-        n[c] = _mm256_i32gather_ps(j->face_normal, _mm256_add_epi32(ia, _mm256_set1_epi32(c)), 4);
-}
-
-/* Lanes of ``want`` (ids >= 0 there) where the faces of b and of the first id (normals
- * na) turn by more than face_tol: folds' first test, its float operations. */
-static inline __m256i face_turns8(const EdgesJob *j, const __m256 *na, __m256i b,
-                                  __m256i want) {
-    if (_mm256_testz_si256(want, want)) return want;
-    __m256 nb[3];
-    face_normals8(j, b, want, nb);
-    return _mm256_and_si256(want, _mm256_castps_si256(_mm256_cmp_ps(
-        one_minus_dot_lanes(nb, na), _mm256_set1_ps(j->face_tol), _CMP_GT_OQ)));
-}
-
-/* sub_pixels_differ (n = 2) of one layer for 8 pixels from p in lanes: the flagged lanes,
- * and in *unsure those where two faces seen turn by more than face_tol (folds then also
- * compares their corners: own_flags decides those). */
-static inline __m256i sub_pixels_differ8(const EdgesJob *j, const int32_t *ids,
-                                         const uint8_t *mask, int64_t p, int64_t s0,
-                                         __m256i *unsure) {
-    int64_t nw = 2 * j->w;
-    __m256i a, b, c, d, none = _mm256_set1_epi32(-1);
-    even_odd8(ids + s0, &a, &b);
-    even_odd8(ids + s0 + nw, &c, &d);
-    __m256i center = mask8(mask + p);
-    __m256i ca = _mm256_cmpgt_epi32(a, none), cb = _mm256_cmpgt_epi32(b, none);
-    __m256i cc = _mm256_cmpgt_epi32(c, none), cd = _mm256_cmpgt_epi32(d, none);
-    __m256i flag = _mm256_or_si256(
-        _mm256_or_si256(_mm256_xor_si256(ca, center), _mm256_xor_si256(cb, center)),
-        _mm256_or_si256(_mm256_xor_si256(cc, center), _mm256_xor_si256(cd, center)));
-    /* folds only where all four are covered as the center is, covered */
-    __m256i all = _mm256_andnot_si256(flag, center);
-    __m256i wb = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, b), all);
-    __m256i wc = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, c), all);
-    __m256i wd = _mm256_andnot_si256(_mm256_cmpeq_epi32(a, d), all);
-    __m256i any = _mm256_or_si256(wb, _mm256_or_si256(wc, wd));
-    if (!_mm256_testz_si256(any, any)) {  /* two faces or more inside some pixel */
-        __m256 na[3];
-        face_normals8(j, a, any, na);
-        __m256i turns = _mm256_or_si256(face_turns8(j, na, b, wb),
-                                        _mm256_or_si256(face_turns8(j, na, c, wc),
-                                                        face_turns8(j, na, d, wd)));
-        *unsure = _mm256_or_si256(*unsure, turns);
-    }
-    return flag;
-}
-
-/* own_flags of the 8 pixels from p (n = 2, one row, inside the frame) into out: the
- * sub-pixels' coverage and the faces' turns in lanes; own_flags itself where a turn needs
- * folds' corner test. */
+/* own_flags of the 8 pixels from p (one row, inside the frame) in lanes. */
 static void own_flags8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
-    int64_t nw = 2 * j->w, s0 = (at.bi * j->h * 2 + at.y * 2) * nw + at.x * 2;
-    __m256i unsure = _mm256_setzero_si256();
-    __m256i flag = _mm256_or_si256(
-        sub_pixels_differ8(j, j->front_ids, j->front_mask, p, s0, &unsure),
-        sub_pixels_differ8(j, j->back_ids, j->back_mask, p, s0, &unsure));
+    __m256i s = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(j->sub + p)));
+    __m256i zero = _mm256_setzero_si256();
+    __m256i differs = _mm256_cmpgt_epi32(
+        _mm256_and_si256(s, _mm256_set1_epi32(SUB_FRONT_DIFFERS | SUB_BACK_DIFFERS)), zero);
+    __m256i ff = _mm256_cmpgt_epi32(_mm256_and_si256(s, _mm256_set1_epi32(SUB_FRONT_FIRST)),
+                                    zero);
+    __m256i bf = _mm256_cmpgt_epi32(_mm256_and_si256(s, _mm256_set1_epi32(SUB_BACK_FIRST)),
+                                    zero);
+    __m256i fm = mask8(j->front_mask + p);
+    __m256i flag = _mm256_or_si256(differs, _mm256_or_si256(
+        _mm256_xor_si256(ff, fm), _mm256_xor_si256(bf, mask8(j->back_mask + p))));
     __m256 alpha = j->per_pixel ? _mm256_loadu_ps(j->alpha + p) : _mm256_set1_ps(j->alpha[at.bi]);
-    __m256i smooth = _mm256_and_si256(mask8(j->front_mask + p), _mm256_castps_si256(
+    __m256i smooth = _mm256_and_si256(fm, _mm256_castps_si256(
         _mm256_cmp_ps(alpha, _mm256_set1_ps(j->smooth_alpha), _CMP_LT_OQ)));
-    flag = _mm256_or_si256(flag, smooth);
-    int f = _mm256_movemask_ps(_mm256_castsi256_ps(flag));
-    int u = _mm256_movemask_ps(_mm256_castsi256_ps(unsure)) & ~f;
-    for (int i = 0; i < 8; i++, pos_step(&at, j->h, j->w))
-        out[i] = (uint8_t)(u >> i & 1 ? own_flags(j, p + i, &at) : f >> i & 1);
+    int f = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_or_si256(flag, smooth)));
+    for (int i = 0; i < 8; i++) out[i] = (uint8_t)(f >> i & 1);
 }
 
 /* pixel_pairs of the 8 pixels from p (one row, none on the frame's border nor its last
@@ -1244,13 +1151,7 @@ static void own_flags8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
 static void pixel_pairs8(const EdgesJob *j, int64_t p, Pos at, uint8_t *out) {
     __m256i fm = mask8(j->front_mask + p), bm = mask8(j->back_mask + p);
     uint8_t own[8];
-    if (j->n == 2) {
-        own_flags8(j, p, at, own);
-    } else {
-        Pos q = at;
-        for (int i = 0; i < 8; i++, pos_step(&q, j->h, j->w))
-            own[i] = (uint8_t)own_flags(j, p + i, &q);
-    }
+    own_flags8(j, p, at, own);
     if (_mm256_testz_si256(_mm256_or_si256(fm, bm), _mm256_or_si256(fm, bm))) {
         /* 8 empty pixels: no pair flags either end (each test needs p covered) */
         memcpy(out, own, 8);

@@ -41,6 +41,7 @@
 #include <string.h>
 
 #include "common.h"
+#include "subpixels.h"
 
 typedef struct {
     int64_t b, h, w;
@@ -54,6 +55,11 @@ typedef struct {
                              * all H); a pixel's ids do not depend on the rows drawn with
                              * it, so a frame drawn in strips is the frame drawn whole */
     int ids32;              /* 1: the outputs are int32 (ids < 2^31), else int64 */
+    int64_t sub_n;          /* n > 0 (with ids32): the frame is an n x n sub-pixel grid, and
+                             * ``flags`` (B, rows / n, W / n) gets its pixels' sub-pixel
+                             * flags (subpixels.h), computed as the ids are written */
+    uint8_t *flags;
+    Folds folds;
 } RasterJob;
 
 #define SUB_BITS 8                     /* window positions in 1/256 pixel */
@@ -398,8 +404,9 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     int64_t h = j->h, w = j->w;
     int64_t row0 = j->rows > 0 ? j->row0 : 0, rows = j->rows > 0 ? j->rows : h;
     Band bd;
-    bd.r0 = row0 + band * rows / run->bands;
-    bd.r1 = row0 + (band + 1) * rows / run->bands;
+    int64_t unit = j->sub_n > 0 ? j->sub_n : 1;  /* bands of whole pixel rows */
+    bd.r0 = row0 + unit * (band * (rows / unit) / run->bands);
+    bd.r1 = row0 + unit * ((band + 1) * (rows / unit) / run->bands);
     bd.w = w;
     int64_t npix = (bd.r1 - bd.r0) * w;
     int64_t at = (view * rows + bd.r0 - row0) * w;  /* this band's first output pixel */
@@ -440,6 +447,17 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
             raster_tri(&bd, &sv[i0].p, &sv[i1].p, &sv[i2].p, (uint64_t)f);
         }
     }
+    if (j->sub_n > 0) {  /* a pixel row's n rows of ids, then its flags (in cache) */
+        int64_t n = j->sub_n, nw = n * w, pw = w / n;
+        int32_t *fr = (int32_t *)j->front + at, *bk = (int32_t *)j->back + at;
+        uint8_t *fl = j->flags + ((view * rows + bd.r0 - row0) / n) * pw;
+        for (int64_t r = 0; r < npix; r += nw, fl += pw) {
+            keys_to_ids32(bd.key[0] + r, nw, id_off, fr + r);
+            keys_to_ids32(bd.key[1] + r, nw, id_off, bk + r);
+            sub_flags_row(&j->folds, fr + r, bk + r, pw, n, fl);
+        }
+        return;
+    }
     for (int l = 0; l < 2; l++) {  /* keys to ids: the face + id offset, -1 where none */
         void *out = l ? j->back : j->front;
         if (j->ids32) keys_to_ids32(bd.key[l], npix, id_off, (int32_t *)out + at);
@@ -463,6 +481,10 @@ int torchrefract_raster(const RasterJob *job, int threads) {
     if (job->h > MAX_SIZE || job->w > MAX_SIZE) return -1;
     if (job->rows < 0 || job->row0 < 0 || (job->rows > 0 && job->row0 + job->rows > job->h))
         return -1;
+    int64_t n = job->sub_n;
+    if (n < 0 || (n > 0 && (!job->ids32 || job->w % n || job->h % n || job->row0 % n ||
+                            job->rows % n)))
+        return -1;  /* flags need whole pixels */
     int64_t rows = job->rows > 0 ? job->rows : job->h;
     int64_t bands = 1;
     if (threads > job->b) bands = (threads + job->b - 1) / job->b;
@@ -474,3 +496,28 @@ int torchrefract_raster(const RasterJob *job, int threads) {
 }
 
 int64_t torchrefract_raster_job_size(void) { return (int64_t)sizeof(RasterJob); }
+
+/* The sub-pixel flags (subpixels.h) of ids drawn elsewhere: (B, h, w) pixels from both
+ * layers' int32 ids on their (B, n h, n w) grid. */
+typedef struct {
+    int64_t b, h, w, n;
+    const int32_t *front, *back;
+    Folds folds;
+    uint8_t *out;               /* (B, h, w) */
+} SubFlagsJob;
+
+static void sub_flags_range(const void *job, int64_t begin, int64_t end) {
+    const SubFlagsJob *j = (const SubFlagsJob *)job;
+    int64_t nw = j->n * j->w;
+    for (int64_t r = begin; r < end; r++) {  /* pixel rows of all views */
+        int64_t at = r * j->n * nw;
+        sub_flags_row(&j->folds, j->front + at, j->back + at, j->w, j->n, j->out + r * j->w);
+    }
+}
+
+int torchrefract_sub_flags(const SubFlagsJob *job, int threads) {
+    if (job->n < 1) return -1;
+    return tr_parallel_for_grain(sub_flags_range, job, job->b * job->h, 8, threads, 1);
+}
+
+int64_t torchrefract_sub_flags_job_size(void) { return (int64_t)sizeof(SubFlagsJob); }
