@@ -178,7 +178,6 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     shading in tiles where it does not fit ``budget`` bytes at once (:mod:`torchrefract.tiles`);
     ``regions``: :func:`_render_method`'s."""
 
-    method = entry.name
     t0 = time.perf_counter()
     state = entry.prepare(scenes, options)
     meshes = [load_mesh(s.mesh, s.transform) for s in scenes]
