@@ -130,6 +130,21 @@ def test_rasterizer_flags_are_those_of_its_ids(n):
             assert (flags & bit).any() and not (flags & bit).all(), (n, bit)
 
 
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+@pytest.mark.parametrize("n,w,h", [(2, 37, 29), (2, 13, 11), (3, 37, 29)])
+def test_edges_at_an_odd_size_are_the_tensor_codes(n, w, h):
+    """Frames whose rows end in pixels past the kernels' groups of eight (at 13 pixels
+    wide, the object among them): the rasterizer's flags and ``edges`` make the tensor
+    code's decisions."""
+    s = _scene("wingnut_a01", w, n)
+    s = s.replace(camera=dataclasses.replace(s.camera, height=h))
+    g, ids, alpha, flags = _one_sample([s], with_flags=True)
+    want = subsamples._edges_torch(g, ids, alpha, subsamples.NORMAL_TOL, subsamples.DEPTH_TOL,
+                                   0.02, subsamples.FACE_TOL)
+    assert want.any() and not want.all()
+    assert torch.equal(subsamples.edges(g, ids, alpha, flags=flags), want)
+
+
 def test_every_pixel_of_partial_coverage_is_picked():
     """The n x n render's coverage is fractional exactly where a silhouette crosses a
     pixel's samples: each such pixel is picked."""
