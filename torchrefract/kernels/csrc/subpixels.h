@@ -5,9 +5,9 @@
  * sub-pixel is covered. lattice.c's ``edges`` then compares that coverage with the pixel
  * center's (the repaired one-sample layer's), which gives the rule's decision exactly.
  *
- * Why flags of their own: the ids are 16 bytes a pixel at 2x2 and cold by the time the
- * one-sample layers are made; raster.c computes the flags while a frame's ids are still
- * in cache (``sub_flags_rows``), and ``torchrefract_sub_flags`` (raster.c) for ids drawn
+ * Why flags of their own: ``edges`` reads one byte a pixel instead of both layers' n x n
+ * ids (16 bytes at 2x2), and raster.c computes the flags per pixel row as it writes that
+ * row's ids (``sub_flags_row``); ``torchrefract_sub_flags`` (raster.c) for ids drawn
  * elsewhere (the OpenGL passes). */
 
 #ifndef TR_SUBPIXELS_H
