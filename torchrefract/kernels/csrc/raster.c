@@ -449,12 +449,12 @@ static void raster_item(RasterRun *run, int64_t item, Scratch *sc) {
     }
     if (j->sub_n > 0) {  /* a pixel row's n rows of ids, then its flags (in cache) */
         int64_t n = j->sub_n, nw = n * w, pw = w / n;
-        int32_t *fr = (int32_t *)j->front + at, *bk = (int32_t *)j->back + at;
+        int32_t *front = (int32_t *)j->front + at, *back = (int32_t *)j->back + at;
         uint8_t *fl = j->flags + ((view * rows + bd.r0 - row0) / n) * pw;
         for (int64_t r = 0; r < npix; r += nw, fl += pw) {
-            keys_to_ids32(bd.key[0] + r, nw, id_off, fr + r);
-            keys_to_ids32(bd.key[1] + r, nw, id_off, bk + r);
-            sub_flags_row(&j->folds, fr + r, bk + r, pw, n, fl);
+            keys_to_ids32(bd.key[0] + r, nw, id_off, front + r);
+            keys_to_ids32(bd.key[1] + r, nw, id_off, back + r);
+            sub_flags_row(&j->folds, front + r, back + r, pw, n, fl);
         }
         return;
     }
