@@ -73,12 +73,11 @@ class Marched:
         table: (R, 4) float32 planes of each view's triangles (camera coordinates).
         base: (B,) int64: view b's triangle t (a MeshBatch index) is row ``base[b] + t``.
         h, w: the frame's (sub-)pixels.
-        frame_back: the back layer (B, h, w) of the frame footprints and exits' pixels are
-            measured in, where the G-buffer marching it is not that frame (sparse
-            supersampling: the one-sample frame's, for its scattered samples too), else
-            None: what ``rousiers`` reads around its exits (the roughness levels'
-            coverage, :func:`~torchrefract.methods.rousiers.cone.level_coverage`; the
-            normals at the bounding rays' exits, ``cone_rays: plane``).
+        frame_back: the back layer (B, h, w) of the frame footprints are measured in,
+            where the G-buffer marching it is not that frame (sparse supersampling: the
+            one-sample frame's, for its scattered samples too), else None: where
+            ``rousiers`` reads the roughness levels' coverage around its exits
+            (:func:`~torchrefract.methods.rousiers.cone.level_coverage`).
         derived: values computed from ``frame_back`` on first use, for every pass and
             tile that marches this frame (``rousiers``' coverage mips).
     """
@@ -98,9 +97,9 @@ class Marched:
 
 
 def frame_back(g: GBuffer) -> Layer:
-    """The back layer of the frame ``g``'s footprints and exits' pixels are measured in:
-    its own, or in a sparse pass (``g`` the one-sample frame or its scattered samples) the
-    one-sample frame's (``Marched.frame_back``)."""
+    """The back layer of the frame ``g``'s footprints are measured in: its own, or in a
+    sparse pass (``g`` the one-sample frame or its scattered samples) the one-sample
+    frame's (``Marched.frame_back``)."""
     m = g.marched
     return m.frame_back if m is not None and m.frame_back is not None else g.back
 

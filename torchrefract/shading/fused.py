@@ -26,7 +26,7 @@ from torchrefract import settings
 from torchrefract.geometry import adaptive
 from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels import native
-from torchrefract.kernels.march import camera_planes, frame_back
+from torchrefract.kernels.march import camera_planes
 from torchrefract.lighting.lights import _GL_W, _GL_X
 from torchrefract.lighting.sg_pyramid import _texel_angle
 from torchrefract.matte import record
@@ -336,15 +336,13 @@ def rous_job(g, options, frame, keep: _Keep, passes: dict, diffuse_var: float
     sigma, foot = torch.zeros(b * h * w), torch.zeros(b * h * w)
     passes.update(lobe_sigma=sigma.view(b, h, w, 1), footprint=foot.view(b, h, w, 1))
     plane = options.cone_rays == "plane"
-    back = frame_back(g)  # the frame the exits' pixels are in (cone_rays: plane)
-    _, fh, fw = back.mask.shape
     return native._RousJob(
         f=frame, cone_steps=options.cone_march_steps, cone_refine=options.cone_refine_steps,
         two_ln4=2.0 * math.log(4.0), lobe_sigma=sigma.data_ptr(), footprint=foot.data_ptr(),
         bo=_bounces(g, options.bounces, frame, keep, passes), diffuse_var=diffuse_var,
-        plane=int(plane), h=fh, w=fw,
-        back_normal=keep.ptr(back.normal) if plane else None,
-        back_mask=keep.ptr(back.mask, torch.uint8) if plane else None)
+        plane=int(plane), h=h, w=w,
+        back_normal=keep.ptr(g.back.normal) if plane else None,
+        back_mask=keep.ptr(g.back.mask, torch.uint8) if plane else None)
 
 
 def _bounces(g, bs, frame, keep: _Keep, passes: dict) -> native._Bounces:

@@ -201,14 +201,13 @@ def bounding_normals(g: GBuffer, cone: Cone, bi: torch.Tensor
     (``cone_rays: march``) or, for ``plane``, the back layer's at the exits' pixels."""
     n4, ok4 = cone.n4, cone.ok4
     if n4 is None:
-        back = frame_back(g)
-        _, h, w = back.mask.shape
+        _, h, w = g.shape
         n = bi.shape[0]
         xy = cone.xy
         flat = bi[:, None] * (h * w) + (xy[..., 1].floor().clamp(0, h - 1).long() * w
                                         + xy[..., 0].floor().clamp(0, w - 1).long())
-        n4 = take(back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
-        ok4 = ok4 & take(back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
+        n4 = take(g.back.normal.reshape(-1, 3), flat.reshape(-1)).view(n, 4, 3)
+        ok4 = ok4 & take(g.back.mask.reshape(-1), flat.reshape(-1)).view(n, 4)
     return n4, ok4
 
 
