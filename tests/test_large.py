@@ -122,6 +122,23 @@ def test_a_view_the_strips_do_not_cover_fails_up_front(monkeypatch):
         tr.render(globe, settings=RenderSettings(memory_budget_mb=3584))
 
 
+def test_each_method_says_when_it_renders_in_strips():
+    """The strips ask the method (``Method.strips``, ``Method.marches_front``) rather than
+    its name: the built-in ones that have strips are listed in the error, a method without
+    them is refused by name, and a method's own reason reaches the user."""
+    assert large.strip_methods() == ["specular", "prefiltered", "rousiers", "sh"]
+    scene = _scene("sphere_a03", (64, 64), 1)
+    lean = registry.get("lean")
+    assert large.why_not([scene], lean, lean.parse({}, "t")).startswith(
+        "method 'lean' (strips: specular, prefiltered, rousiers, sh only)")
+    rous = registry.get("rousiers")
+    assert large.why_not([scene], rous, rous.parse({}, "t")) is None
+    assert not rous.marches_front(rous.parse({}, "t"))
+    assert rous.marches_front(rous.parse({"internal_bounces": 2}, "t"))
+    assert "spread: rays" in large.why_not([scene], rous, rous.parse({"spread": "paper"}, "t"))
+    assert not registry.get("sh").marches_front(registry.get("sh").parse({}, "t"))
+
+
 @needs_native
 def test_a_view_that_does_not_fit_even_in_strips_fails_up_front(monkeypatch):
     """The issue's 4096x4096 view at 4x4 samples fits 3.5 GiB in strips; under 1 GiB its

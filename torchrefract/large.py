@@ -46,13 +46,27 @@ from torchrefract.geometry.raster import native_layers
 from torchrefract.kernels import native
 from torchrefract.kernels.march import Marched, plane_table
 from torchrefract.lighting.lights import Lighting
+from torchrefract.methods import registry
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.result import RenderResult, finish_pass, merge
 from torchrefract.scene import Camera, Scene
 from torchrefract.settings import current
 
-METHODS = ("rousiers", "specular", "prefiltered", "sh")
-"""The methods a frame too large for one G-buffer renders with (their fused kernels)."""
+
+def has_strips(entry) -> bool:
+    """Whether a method says when its fused kernel renders in strips (it has its own
+    :meth:`~torchrefract.methods.base.Method.strips`)."""
+    from torchrefract.methods.base import Method  # noqa: PLC0415 (the loader imports here)
+
+    return type(entry).strips is not Method.strips
+
+
+def strip_methods() -> list[str]:
+    """The methods a frame too large for one G-buffer renders with (every registered one
+    imported: for an error's text)."""
+    return [n for n in registry.method_names()
+            if n not in registry.POLICIES and has_strips(registry.get(n))]
+
 MARCHED_BYTES = 4
 """Bytes per sub-pixel and marched layer held for the whole frame (an int32 id)."""
 OUT_BYTES = 96
@@ -65,33 +79,21 @@ bounces' passes and a frame the object fills."""
 
 
 def why_not(scenes: list[Scene], entry, options) -> str | None:
-    """Why these scenes cannot be rendered in strips (None: they can; module docstring)."""
+    """Why these scenes cannot be rendered in strips (None: they can; module docstring):
+    the render's settings and the scenes' extras here, the method's own limits from
+    :meth:`~torchrefract.methods.base.Method.strips`."""
     s = current()
-    if entry.name not in METHODS:
-        return f"method {entry.name!r} (strips: {', '.join(METHODS)} only)"
+    if not has_strips(entry):
+        return f"method {entry.name!r} (strips: {', '.join(strip_methods())} only)"
     if not (s.fused and native.available()):
         return "the fused kernels are off or unavailable (strips need them)"
     if s.torch_device().type != "cpu":
         return "strips run on the CPU"
-    if entry.name != "sh" and any(sc.material.roughness_map is not None for sc in scenes):
-        return "a roughness map (strips need uniform roughness)"
     if any(len(sc.lights) > 64 for sc in scenes):
         return "more than 64 lights"
     if any(sc.passes for sc in scenes):
         return "extra passes (matte, flow)"
-    if entry.name == "rousiers" and options.spread != "rays":
-        return "rousiers options other than spread: rays"
-    if entry.name == "rousiers" and options.cone_rays != "march":
-        return "cone_rays: plane (it reads the back layer's normals, a strip holds its own only)"
-    if entry.name == "prefiltered" and options.bounces.enabled:
-        return "prefiltered with internal bounces"
-    return None
-
-
-def marches_front(entry, options) -> bool:
-    """Whether the strips' marches read the front layer's ids too: internal bounces (``sh``
-    marches nothing and has none)."""
-    return entry.name != "sh" and options.bounces.enabled
+    return entry.strips(scenes, options)
 
 
 def fixed_bytes(camera: Camera, both: bool, views: int = 1) -> int:
@@ -127,10 +129,10 @@ def check(scenes: list[Scene], entry, options, budget: int) -> int:
     if reason is not None:
         raise ConfigError(
             f"{head} needs about {whole} as one G-buffer, over {tail}; a frame this large "
-            f"renders in strips only with the fused kernels of {', '.join(METHODS)}, not "
+            f"renders in strips only with the fused kernels of {', '.join(strip_methods())}, not "
             f"here: {reason}. Render it smaller, with fewer samples per pixel or with one "
             f"of those methods on the fused kernels")
-    both = marches_front(entry, options)
+    both = entry.marches_front(options)
     views = len(scenes)
     rows = strip_rows(c, budget, both, views)
     if rows < c.samples_per_pixel:
@@ -213,7 +215,7 @@ def render(scenes: list[Scene], entry, options, budget: int, rows: int | None = 
 def _render_view(scene: Scene, entry, options, budget: int, rows: int):
     t0 = time.perf_counter()
     cam, n = scene.camera, scene.camera.samples_per_pixel
-    both = marches_front(entry, options)
+    both = entry.marches_front(options)
     state = entry.prepare([scene], options)
     mesh = load_mesh(scene.mesh, scene.transform)
     lighting = Lighting.from_scenes([scene])
@@ -265,5 +267,5 @@ def _render_view(scene: Scene, entry, options, budget: int, rows: int):
     return out
 
 
-__all__ = ["MARCHED_BYTES", "METHODS", "OUT_BYTES", "STRIP_BYTES", "check", "fixed_bytes",
-           "marched_layers", "marches_front", "render", "strip_rows", "why_not"]
+__all__ = ["MARCHED_BYTES", "OUT_BYTES", "STRIP_BYTES", "check", "fixed_bytes", "has_strips",
+           "marched_layers", "render", "strip_methods", "strip_rows", "why_not"]

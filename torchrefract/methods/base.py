@@ -73,6 +73,19 @@ class Method:
         (:mod:`torchrefract.geometry.subsamples`). Default False."""
         return False
 
+    def strips(self, scenes: Sequence[Any], options: Any) -> str | None:
+        """Why ``shade`` cannot render these scenes in strips of rows over the frame's
+        marched layers (:mod:`torchrefract.large`: frames too large for one G-buffer), or
+        None where it can: its fused kernel reads the frame only through the marched layers
+        and its own (sub-)pixels. Default: it cannot."""
+        return f"method {self.name!r} has no strips"
+
+    def marches_front(self, options: Any) -> bool:
+        """Whether ``shade`` marches the front layer's ids as well as the back layer's
+        (internal bounces meet the front faces from inside), so that strips keep both for
+        the whole frame. Default False."""
+        return False
+
     def parse(self, options: dict | None, source: str | None = None) -> Any:
         """``method_options`` checked and turned into ``Options`` (ConfigError otherwise)."""
         return parse_options(self.Options, options, source, self.name, self.excluded_options)
@@ -87,6 +100,14 @@ class Method:
 
     def __repr__(self) -> str:
         return f"<method {self.name!r}>"
+
+
+def uniform_roughness(scenes: Sequence[Any]) -> str | None:
+    """:meth:`Method.strips`' reason where a scene has a roughness map (the strips' fused
+    kernels read one roughness per view), else None."""
+    if any(s.material.roughness_map is not None for s in scenes):
+        return "a roughness map (strips need uniform roughness)"
+    return None
 
 
 class Planned(Method):
@@ -108,4 +129,4 @@ class Planned(Method):
         return self.prepare((), options)
 
 
-__all__ = ["Method", "NoOptions", "Planned", "Shaded"]
+__all__ = ["Method", "NoOptions", "Planned", "Shaded", "uniform_roughness"]

@@ -27,7 +27,7 @@ from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.shading import fused
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance_sg
-from torchrefract.methods.base import Method, Shaded
+from torchrefract.methods.base import Method, Shaded, uniform_roughness
 from torchrefract.methods.specular import SpecularOptions
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.options import option_keys
@@ -106,6 +106,11 @@ class Prefiltered(Method):
 
     def shades_samples(self, options, materials) -> bool:
         return True  # each sample's paths, marched through g.marched
+
+    def strips(self, scenes, options) -> str | None:
+        if options.bounces.enabled:  # (its options exclude them; a hand-made Options)
+            return "prefiltered with internal bounces"
+        return uniform_roughness(scenes)
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_prefiltered(g, lighting, materials, options))

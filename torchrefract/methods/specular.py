@@ -51,7 +51,7 @@ from torchrefract.geometry.gbuffer import GBuffer
 from torchrefract.shading import fused
 from torchrefract.kernels.index import put_, take
 from torchrefract.lighting.lights import Lighting, incident_radiance
-from torchrefract.methods.base import Method, Shaded
+from torchrefract.methods.base import Method, Shaded, uniform_roughness
 from torchrefract.optics.exit_rule import TIR_RULES, last_interface
 from torchrefract.optics.materials import MaterialBatch
 from torchrefract.optics.sgfit import (
@@ -208,6 +208,12 @@ class Specular(Method):
 
     def shades_samples(self, options, materials) -> bool:
         return True  # each sample's paths, marched through g.marched
+
+    def strips(self, scenes, options) -> str | None:
+        return uniform_roughness(scenes)
+
+    def marches_front(self, options) -> bool:
+        return options.bounces.enabled
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_specular(g, lighting, materials, options))

@@ -28,7 +28,7 @@ defaults and constants are in docs/decisions_rousiers.md.
 
 from __future__ import annotations
 
-from torchrefract.methods.base import Method, Shaded
+from torchrefract.methods.base import Method, Shaded, uniform_roughness
 from torchrefract.methods.rousiers.cone import bounding_angle
 from torchrefract.methods.rousiers.options import DIFFUSE_VAR, RousiersOptions
 from torchrefract.methods.rousiers.shade import render_rousiers
@@ -46,6 +46,17 @@ class Rousiers(Method):
         # (docs/decisions.md, "Sparse supersampling"); a roughness map's coverage is read
         # from that layer (Marched.frame_back) at the footprint's own scale
         return options.spread == "rays" and options.cone_rays == "march"
+
+    def strips(self, scenes, options) -> str | None:
+        if options.spread != "rays":
+            return "rousiers options other than spread: rays"
+        if options.cone_rays != "march":
+            return ("cone_rays: plane (it reads the back layer's normals, a strip holds its "
+                    "own only)")
+        return uniform_roughness(scenes)
+
+    def marches_front(self, options) -> bool:
+        return options.bounces.enabled
 
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_rousiers(g, lighting, materials, options))

@@ -71,6 +71,9 @@ class SH(Method):
         # is marched and no neighbour is read
         return True
 
+    def strips(self, scenes, options) -> str | None:
+        return None  # a roughness map too: read at each pixel's front hit
+
     def shade(self, g, lighting, materials, options, state) -> Shaded:
         return Shaded(*render_sh(g, lighting, materials, options, state))
 
