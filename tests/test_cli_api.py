@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -53,6 +54,35 @@ def test_cli_reports_bad_scene_and_renders_the_rest(tmp_path, capsys):
     assert "bad.yaml" in err and "material.ior" in err and "-1.0" in err
     assert (out / "good.exr").is_file() and not (out / "bad.exr").exists()
     assert not list(out.glob(".*tmp*"))  # no temporary files left behind
+
+
+def test_cli_survives_an_unexpected_failure_and_renders_the_rest(tmp_path, capsys,
+                                                                  monkeypatch):
+    """A render that fails other than by bad input (here one scene's render raises in a
+    batch) fails that scene alone: the batch is tried scene by scene, the others are
+    written, and the failure is named with its type. An output name that cannot be written
+    fails its own scene too."""
+    render_mod = importlib.import_module("torchrefract.render")  # the module, not tr.render
+    good = _small_scene_yaml(tmp_path, "good")
+    broken = _small_scene_yaml(tmp_path, "broken")
+    real = render_mod.render
+
+    def flaky(scenes, *a, **k):
+        if any(s.name == "broken" for s in scenes):
+            raise RuntimeError("kernel exploded")
+        return real(scenes, *a, **k)
+
+    monkeypatch.setattr(render_mod, "render", flaky)
+    out = tmp_path / "out"
+    assert main(["render", str(good), str(broken), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "FAILED broken: RuntimeError: kernel exploded" in err
+    assert (out / "good.exr").is_file() and not (out / "broken.exr").exists()
+    monkeypatch.setattr(render_mod, "render", real)
+    long = _small_scene_yaml(tmp_path, "x" * 240)  # its temporary names stay legal too
+    assert main(["render", str(long), "--out", str(out), "--quiet"]) == 0
+    assert (out / ("x" * 240 + ".exr")).is_file()
+    assert not list(out.glob(".*tmp*"))
 
 
 def test_cli_entry_point_runs_as_a_program(tmp_path):

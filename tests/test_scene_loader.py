@@ -450,6 +450,70 @@ def test_name_key_sets_the_output_stem_and_is_checked(tmp_path):
     expect_error(write(tmp_path, data, "t.yaml"), "transform", "[]")
 
 
+def test_a_key_given_twice_is_refused_with_its_line(tmp_path):
+    """YAML lets the last of two equal keys win without a word; a scene file refuses it."""
+    text = yaml.safe_dump(base(tmp_path)) + "camera: {width: 8}\n"
+    msg = expect_error(write(tmp_path, text), "'camera' given twice", "line")
+    assert "line" in msg
+
+
+def test_a_number_yaml_reads_as_text_gets_a_hint(tmp_path):
+    """PyYAML reads ``1e-3`` (no dot) as a string: the error says how to write it."""
+    text = yaml.safe_dump(base(tmp_path)).replace("roughness: 0.1", "roughness: 1e-3")
+    expect_error(write(tmp_path, text), "material.roughness", "'1e-3'", "write 1.0e-3")
+
+
+def test_names_that_cannot_be_file_names_are_refused(tmp_path):
+    """A ``name`` becomes the output files' stem: a NUL or more than 250 bytes (with
+    ``.json`` past a file name's 255) is refused up front, naming the key."""
+    data = base(tmp_path)
+    data["name"] = "a\0b"
+    expect_error(write(tmp_path, data), "name", "NUL")
+    data["name"] = "n" * 251
+    expect_error(write(tmp_path, data), "name", "250 bytes")
+    data["name"] = "n" * 250
+    assert load_scene(write(tmp_path, data)).name == "n" * 250
+
+
+def test_integers_that_are_nan_or_infinite_are_named(tmp_path):
+    """NaN and infinity in an integer field fail as in any number field (not as Python's
+    own conversion error)."""
+    for key, value in (("width", float("nan")), ("samples_per_pixel", float("inf"))):
+        data = base(tmp_path)
+        data["camera"][key] = value
+        expect_error(write(tmp_path, data), f"camera.{key}", "finite")
+    data = base(tmp_path)
+    data["method_options"] = {"march_steps": float("inf")}
+    expect_error(write(tmp_path, data), "method_options.march_steps", "finite")
+
+
+def test_radiance_beyond_the_limit_is_refused(tmp_path):
+    """Light radiance and ``envmap.scale`` are bounded (``checks.RADIANCE_LIMIT``) so that
+    no product of them overflows float32 on the way to the image."""
+    data = base(tmp_path)
+    data["envmap"]["scale"] = 3e38
+    expect_error(write(tmp_path, data), "envmap.scale", "1e+15")
+    data = base(tmp_path)
+    data["lights"] = [{"position": [1, 1, 1], "radius": 0.1, "radiance": [1.7e38, 1, 1]}]
+    expect_error(write(tmp_path, data), "lights[0].radiance[0]", "1e+15")
+
+
+def test_python_scenes_take_paths_and_name_wrong_parts(tmp_path):
+    """A scene built in Python may name its files with ``pathlib.Path``; a part of the
+    wrong type (one light instead of a list, ``camera=None``) is a ConfigError naming it,
+    whatever was validated before."""
+    s = Scene(mesh=MESH, envmap=EnvMap(path=ENV), camera=tr.Camera(width=8, height=8))
+    from torchrefract.scene.loader import validate
+
+    assert validate(s).mesh == str(MESH.resolve())
+    assert validate(s.replace(envmap=ENV)).envmap.path == str(ENV.resolve())  # shorthand
+    with pytest.raises(ConfigError, match=r"lights: expected a list of torchrefract\.Sphere"):
+        validate(s.replace(lights=tr.SphereLight()))
+    for _ in range(2):  # the second time the rest of the scene is remembered
+        with pytest.raises(ConfigError, match=r"camera: expected a torchrefract\.Camera"):
+            validate(s.replace(camera=None))
+
+
 def test_build_gbuffer_rejects_mismatched_cameras(tmp_path):
     from torchrefract.geometry.gbuffer import build_gbuffer
     from torchrefract.geometry.mesh import load_mesh

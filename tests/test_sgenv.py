@@ -226,6 +226,32 @@ def test_constant_map_stays_constant():
     assert torch.allclose(out, env[0, 0].expand_as(out), rtol=2e-6, atol=0)
 
 
+def test_a_map_of_a_few_texels_has_no_levels_and_renders(tmp_path):
+    """A map coarser than the widest level's kernel (2x4, 3x3: a constant environment
+    written small) gets no levels between itself and its mean: its lookups blend the two,
+    and the rough methods render it as they render the same constant map at full size."""
+    import torchrefract as tr  # noqa: PLC0415
+    from torchrefract.output.images import write_exr  # noqa: PLC0415
+
+    for h, w in ((2, 4), (3, 3)):
+        pyr = build_sg_pyramid(torch.full((h, w, 3), 0.5))
+        assert pyr.sharpness == (math.inf,)
+        d = torch.randn(64, 3, dtype=torch.float64)
+        out = sg_lookup_env(pyr, d, torch.full((64,), 3.0, dtype=torch.float64))
+        assert torch.allclose(out, torch.full_like(out, 0.5), rtol=1e-5)
+    images = []
+    for h, w in ((2, 4), (32, 64)):
+        path = tmp_path / f"const_{h}x{w}.exr"
+        write_exr(path, {c: np.full((h, w), 0.5, np.float32) for c in "RGB"})
+        root = Path(__file__).resolve().parent.parent
+        s = tr.Scene(mesh=str(root / "assets" / "meshes" / "sphere.ply"),
+                     envmap=tr.EnvMap(path=str(path)), method="rousiers",
+                     material=tr.Material(roughness=0.3),
+                     camera=tr.Camera(eye=(0.0, 0.3, 3.4), width=24, height=24))
+        images.append(tr.render(s).radiance)
+    assert torch.allclose(images[0], images[1], rtol=1e-4, atol=1e-5)
+
+
 def test_energy_is_preserved(small_map, small_pyramid):
     """Solid-angle mean radiance of every level (its bilinear interpolant) = the map's.
 

@@ -19,6 +19,12 @@ class ConfigError(ValueError):
     """A scene, config or asset that cannot be rendered as given."""
 
 
+RADIANCE_LIMIT = 1e15
+"""Largest environment texel, ``envmap.scale`` and light radiance accepted (a sun in an HDR
+map is ~1e5-1e6): their product stays within float32 with room for the shading's weights
+and the box filter's sums, so radiance stays finite."""
+
+
 def where(source: str | None, key: str) -> str:
     """Format a location as ``file: key`` (or just ``key``)."""
     return f"{source}: {key}" if source else key
@@ -31,31 +37,41 @@ def check_number(value: Any, key: str, source: str | None = None, *,
     loc = where(source, key)
     if isinstance(value, bool) or not isinstance(value, Real):
         kind = "an integer" if integer else "a number"
-        raise ConfigError(f"{loc}: expected {kind}, got {value!r} ({type(value).__name__})")
+        hint = ""
+        if isinstance(value, str):
+            try:
+                float(value)
+                hint = " (YAML reads 1e-3 as text: write 1.0e-3)"
+            except ValueError:
+                pass
+        raise ConfigError(f"{loc}: expected {kind}, got {value!r} ({type(value).__name__})"
+                          f"{hint}")
+    v = float(value)
+    if not math.isfinite(v):  # before int(): NaN and infinity have no integer
+        raise ConfigError(f"{loc}: expected a finite number, got {value!r}")
     if integer and int(value) != value:
         raise ConfigError(f"{loc}: expected an integer, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(f"{loc}: expected a finite number, got {value!r}")
     if minimum is not None:
         if min_inclusive and v < minimum:
             raise ConfigError(f"{loc}: must be >= {minimum}, got {value!r}")
         if not min_inclusive and v <= minimum:
             raise ConfigError(f"{loc}: must be > {minimum}, got {value!r}")
     if maximum is not None and v > maximum:
-        raise ConfigError(f"{loc}: must be <= {maximum}, got {value!r}")
+        limit = f"{maximum:g}" if abs(maximum) >= 1e6 else f"{maximum}"
+        raise ConfigError(f"{loc}: must be <= {limit}, got {value!r}")
     return int(value) if integer else v
 
 
 def check_vector(value: Any, key: str, source: str | None = None, *, length: int = 3,
-                 minimum: float | None = None) -> tuple[float, ...]:
+                 minimum: float | None = None,
+                 maximum: float | None = None) -> tuple[float, ...]:
     """Return a tuple of ``length`` finite floats."""
     loc = where(source, key)
     if not isinstance(value, Sequence) or isinstance(value, (str, bytes)):
         raise ConfigError(f"{loc}: expected a list of {length} numbers, got {value!r}")
     if len(value) != length:
         raise ConfigError(f"{loc}: expected {length} numbers, got {len(value)}: {value!r}")
-    return tuple(check_number(v, f"{key}[{i}]", source, minimum=minimum)
+    return tuple(check_number(v, f"{key}[{i}]", source, minimum=minimum, maximum=maximum)
                  for i, v in enumerate(value))
 
 
@@ -96,7 +112,10 @@ def check_tensor_shape(t, shape: Sequence[int | None], name: str) -> None:
 
 
 def check_file(value: Any, key: str, base_dir: Path, source: str | None = None) -> str:
-    """Resolve a file path (relative to ``base_dir``) and check that the file exists."""
+    """Resolve a file path (a string or ``os.PathLike``, relative to ``base_dir``) and check
+    that the file exists."""
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
     if not isinstance(value, str) or not value:
         raise ConfigError(f"{where(source, key)}: expected a file path, got {value!r}")
     p = Path(value).expanduser()
@@ -124,12 +143,37 @@ def load_yaml_file(path: str | Path, what: str) -> Any:
     if not p.is_file():
         raise ConfigError(f"{what} file not found: {str(path)!r}")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.load(p.read_text(), Loader=_loader())  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+    except _DuplicateKey as exc:
+        raise ConfigError(f"{p}: {exc}") from None
     if data is None:
         raise ConfigError(f"{p}: the file is empty")
     return data
+
+
+class _DuplicateKey(Exception):
+    """A mapping names one key twice (YAML itself lets the last win, silently)."""
+
+
+@functools.lru_cache(maxsize=1)
+def _loader():
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping."""
+    import yaml  # noqa: PLC0415
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if isinstance(key, str) and key in seen:
+                    raise _DuplicateKey(f"key {key!r} given twice (line "
+                                        f"{key_node.start_mark.line + 1})")
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
+
+    return Loader
 
 
 def file_version(path: str | Path, what: str) -> tuple[str, int, int]:

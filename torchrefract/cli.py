@@ -151,8 +151,6 @@ def _render_cmd(args: argparse.Namespace) -> int:
     import torch  # noqa: PLC0415
     from tqdm import tqdm  # noqa: PLC0415
 
-    from torchrefract.output.export import save_render  # noqa: PLC0415
-    from torchrefract.render import render  # noqa: PLC0415
     from torchrefract.scene import load_scene  # noqa: PLC0415
 
     if args.batch_size < 1:
@@ -175,8 +173,8 @@ def _render_cmd(args: argparse.Namespace) -> int:
             s = load_scene(path)
             s = s if args.method is None else s.replace(method=args.method)
             scenes.append(s if extra is None else s.replace(passes=extra))
-        except ConfigError as exc:
-            failed.append((path, str(exc)))
+        except Exception as exc:  # noqa: BLE001 (recorded as failed; the others still load)
+            failed.append((path, _reason(exc)))
     names = [s.name for s in scenes]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
@@ -196,15 +194,8 @@ def _render_cmd(args: argparse.Namespace) -> int:
     for group in groups.values():
         for k in range(0, len(group), args.batch_size):
             batch = group[k:k + args.batch_size]
-            try:
-                result = render(batch, settings=args.settings)
-            except (ConfigError, NotImplementedError) as exc:
-                failed.extend((s.name, str(exc)) for s in batch)
-                bar.update(len(batch))
-                continue
-            for i in range(len(batch)):
-                save_render(result, i, out)
-            done += len(batch)
+            ok = _render_and_save(batch, args.settings, out, failed)
+            done += ok
             bar.update(len(batch))
     bar.close()
     for name, reason in failed:
@@ -215,6 +206,36 @@ def _render_cmd(args: argparse.Namespace) -> int:
               f"({args.settings.threads or torch.get_num_threads()} threads)" + (f", {len(failed)} failed" if failed
                                                          else ""))
     return 1 if failed else 0
+
+
+def _reason(exc: BaseException) -> str:
+    """A failure's line: the message of an input error, the type too for anything else."""
+    if isinstance(exc, (ConfigError, NotImplementedError)):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, str]]) -> int:
+    """Render one batch and write its frames; a batch that fails is tried scene by scene,
+    so one broken scene fails alone (recorded in ``failed``). Returns the frames written."""
+    from torchrefract.output.export import save_render  # noqa: PLC0415
+    from torchrefract.render import render  # noqa: PLC0415
+
+    try:
+        result = render(batch, settings=settings)
+    except Exception as exc:  # noqa: BLE001 (recorded; the other batches go on)
+        if len(batch) > 1:
+            return sum(_render_and_save([s], settings, out, failed) for s in batch)
+        failed.append((batch[0].name, _reason(exc)))
+        return 0
+    done = 0
+    for i, s in enumerate(batch):
+        try:
+            save_render(result, i, out)
+            done += 1
+        except Exception as exc:  # noqa: BLE001 (an unwritable output: this frame alone)
+            failed.append((s.name, _reason(exc)))
+    return done
 
 
 def _compare_cmd(args: argparse.Namespace) -> int:

@@ -182,7 +182,9 @@ def _view_matrices(cam: Camera, sphere) -> tuple[np.ndarray, np.ndarray, float, 
     eye, r, u, f = camera_frame_floats(cam)
     dist = math.dist(eye, tuple(float(c) for c in center))
     znear = max(dist - radius, 0.0) * 0.5
-    znear = max(znear, radius * 1e-4, 1e-6)
+    # relative to the mesh's size (an absolute floor clipped a mesh of size 1e-7 whole);
+    # 1e-30 only for a mesh of one point
+    znear = max(znear, radius * 1e-4, 1e-30)
     zfar = dist + radius * 2.0 + znear
     a, t = cam.width / cam.height, math.tan(math.radians(cam.yfov_deg) / 2.0)
     proj = np.zeros((4, 4))

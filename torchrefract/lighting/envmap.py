@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchrefract.checks import ConfigError, file_version
+from torchrefract.checks import RADIANCE_LIMIT, ConfigError, file_version
 from torchrefract.kept import KeptByIdentity
 from torchrefract.output.images import read_exr, read_hdr
 
@@ -43,7 +43,8 @@ def _read_envmap(path: str) -> torch.Tensor:
 
 
 def validate_texels(img: np.ndarray, name: str) -> None:
-    """Raise ConfigError for an empty image or any NaN, Inf or negative texel."""
+    """Raise ConfigError for an empty image or any NaN, Inf, negative or too bright
+    (``RADIANCE_LIMIT``) texel."""
     if img.ndim != 3 or img.shape[0] < 2 or img.shape[1] < 1 or img.shape[2] != 3:
         raise ConfigError(f"envmap {name!r}: expected an (H >= 2, W >= 1, 3) image, "
                           f"got shape {img.shape}")
@@ -57,6 +58,11 @@ def validate_texels(img: np.ndarray, name: str) -> None:
         r, c, _ = np.argwhere(neg)[0]
         raise ConfigError(f"envmap {name!r}: {int(neg.sum())} negative values, first at "
                           f"row {r}, column {c}: {img[r, c].tolist()}")
+    big = img > RADIANCE_LIMIT
+    if big.any():
+        r, c, _ = np.argwhere(big)[0]
+        raise ConfigError(f"envmap {name!r}: {int(big.sum())} values above {RADIANCE_LIMIT:g}, "
+                          f"first at row {r}, column {c}: {img[r, c].tolist()}")
 
 
 def load_envmap(path: str | Path) -> torch.Tensor:

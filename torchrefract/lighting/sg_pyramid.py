@@ -199,6 +199,8 @@ def default_sharpness_levels(h: int, w: int, *, levels_per_octave: int = 2,
     """
     if max_sharpness is None:
         max_sharpness = 1.0 / (finest_sigma_texels * _texel_angle(h, w)) ** 2
+        if max_sharpness <= min_sharpness and min_sharpness > 0:
+            return ()  # a map of a few texels: its lookups blend the map and its mean
     if not (max_sharpness > min_sharpness > 0):
         raise ValueError(f"sharpness levels: need max_sharpness > min_sharpness > 0, got "
                          f"{max_sharpness} and {min_sharpness}")

@@ -2,7 +2,8 @@
 shards' index, the SG pyramids' and table's caches, the native library).
 
 The data goes to a temporary file in the target's folder (``.<name>.<random>.tmp[.ext]``,
-the pattern a resumed sweep clears) and is renamed over the target, so an interrupted
+the name cut to its first 64 characters so that any target's temporary name is a legal
+file name; the pattern a resumed sweep clears) and is renamed over the target, so an interrupted
 process never leaves a half-written file under the real name. The temporary file is made
 with mode 0o666 less the process's umask, as ``open()`` makes files (the umask is never
 read or changed).
@@ -40,7 +41,7 @@ def atomic_path(path: str | Path, suffix: str = "", fsync: bool = False) -> Iter
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{suffix}")
+        tmp = path.with_name(f".{path.name[:64]}.{secrets.token_hex(4)}.tmp{suffix}")
         try:
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
             break

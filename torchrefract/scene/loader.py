@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
 from torchrefract.checks import (
+    RADIANCE_LIMIT,
     ConfigError,
     check_choice,
     check_file,
@@ -31,6 +33,8 @@ from torchrefract.scene.model import Camera, EnvMap, Material, Scene, SphereLigh
 
 _TOP_KEYS = ("mesh", "transform", "material", "envmap", "lights", "camera", "method",
              "method_options", "exposure", "passes", "name")
+NAME_BYTES = 250
+"""Longest output stem: its files (``<name>.json``) stay within a file name's 255 bytes."""
 
 
 def _section(data: dict, key: str) -> dict:
@@ -72,8 +76,10 @@ def scene_from_dict(data: Any, base_dir: str | Path = ".", source: str | None = 
     exposure = check_number(_get(data, "exposure", Scene), "exposure", source)
     passes = parse_passes(data.get("passes"), source)
     nm = data.get("name", name if name is not None else "scene")
-    if not isinstance(nm, str) or not nm or "/" in nm or nm.startswith("."):
-        raise ConfigError(f"{where(source, 'name')}: expected a file stem, got {nm!r}")
+    if (not isinstance(nm, str) or not nm or "/" in nm or "\0" in nm or nm.startswith(".")
+            or len(nm.encode("utf-8", "surrogateescape")) > NAME_BYTES):
+        raise ConfigError(f"{where(source, 'name')}: expected a file stem (no '/', no NUL, "
+                          f"not starting with '.', at most {NAME_BYTES} bytes), got {nm!r}")
     return Scene(mesh=mesh, envmap=envmap, transform=transform, material=material,
                  lights=lights, camera=camera, method=method,
                  method_options=dict(opts), exposure=exposure, passes=passes, name=nm)
@@ -115,12 +121,13 @@ def _material(m: dict, base: Path, source: str | None) -> Material:
 
 
 def _envmap(e: Any, base: Path, source: str | None) -> EnvMap:
-    if isinstance(e, str):  # shorthand: envmap: path.exr
+    if isinstance(e, (str, os.PathLike)):  # shorthand: envmap: path.exr
         e = {"path": e}
     check_keys(e, "envmap", ("path", "scale", "rotate_deg"), source, required=("path",))
     return EnvMap(
         path=check_file(e["path"], "envmap.path", base, source),
-        scale=check_number(_get(e, "scale", EnvMap), "envmap.scale", source, minimum=0.0),
+        scale=check_number(_get(e, "scale", EnvMap), "envmap.scale", source, minimum=0.0,
+                           maximum=RADIANCE_LIMIT),
         rotate_deg=check_number(_get(e, "rotate_deg", EnvMap), "envmap.rotate_deg", source),
     )
 
@@ -137,7 +144,8 @@ def _lights(lights_data: Any, source: str | None) -> tuple[SphereLight, ...]:
             position=check_vector(ld["position"], f"{k}.position", source),
             radius=check_number(ld["radius"], f"{k}.radius", source, minimum=0.0,
                                 min_inclusive=False),
-            radiance=check_vector(ld["radiance"], f"{k}.radiance", source, minimum=0.0),
+            radiance=check_vector(ld["radiance"], f"{k}.radiance", source, minimum=0.0,
+                                  maximum=RADIANCE_LIMIT),
         ))
     return tuple(lights)
 
@@ -215,6 +223,7 @@ def _check(scene: Scene) -> Scene:
     that differ from the last ones by their cameras: everything but the camera is checked
     once per value (its repr: every field exact) and only the camera again."""
     source = f"scene {scene.name!r}"
+    _check_parts(scene, source)
     rest = repr([(f.name, getattr(scene, f.name)) for f in dataclasses.fields(scene)
                  if f.name != "camera"])
     checked = _checked_rest.get(rest)
@@ -228,6 +237,23 @@ def _check(scene: Scene) -> Scene:
     cam = scene.camera  # its fields by name (no deep copy: _camera only reads them)
     fields = {f.name: getattr(cam, f.name) for f in dataclasses.fields(cam)}
     return dataclasses.replace(checked, camera=_camera(fields, source))
+
+
+def _check_parts(scene: Scene, source: str) -> None:
+    """A Python-built scene's parts are the model's types (a loaded file's always are)."""
+    for key, kind in (("camera", Camera), ("material", Material), ("transform", Transform)):
+        value = getattr(scene, key)
+        if not isinstance(value, kind):
+            raise ConfigError(f"{where(source, key)}: expected a torchrefract.{kind.__name__}, "
+                              f"got {value!r}")
+    if not isinstance(scene.envmap, (EnvMap, str, os.PathLike, type(None))):
+        raise ConfigError(f"{where(source, 'envmap')}: expected a torchrefract.EnvMap or a "
+                          f"file path, got {scene.envmap!r}")
+    lights = scene.lights
+    if not isinstance(lights, (list, tuple)) or not all(isinstance(x, SphereLight)
+                                                        for x in lights):
+        raise ConfigError(f"{where(source, 'lights')}: expected a list of "
+                          f"torchrefract.SphereLight, got {lights!r}")
 
 
 _validated = KeptByIdentity(256)
