@@ -33,7 +33,7 @@ from torchrefract.settings import RenderSettings
 
 __version__ = "0.1.0"
 
-IMAGE_REVISION = 8
+IMAGE_REVISION = 9
 """Raised by one whenever a default render's image changes (a method's result, adaptive
 sampling, a default option): datasets record it per sample and in ``sweep.json``, and a
 resume whose folder was begun at another revision says so (its images would mix both)."""

@@ -131,6 +131,11 @@ def _render_method(scenes: list[Scene], entry, options,
         return large.render(scenes, entry, options, budget)
     if regions is not None and all(r is None for r in regions):
         regions = None
+    split = _sparse_split(scenes, entry, options)
+    if split is not None:  # each view as it renders alone
+        return merge_parts(len(scenes), [(idx, _render_method(
+            [scenes[i] for i in idx], entry, options,
+            None if regions is None else [regions[i] for i in idx]), None) for idx in split])
     parts = _chunks(scenes, budget)
     if len(parts) == 1:
         return _render_pass(scenes, entry, options, budget, regions)
@@ -142,6 +147,22 @@ def _render_method(scenes: list[Scene], entry, options,
                        _render_pass(p, entry, options, budget, sub), None))
         start += len(p)
     return merge_parts(len(scenes), placed)
+
+
+def _sparse_split(scenes: list[Scene], entry, options) -> list[list[int]] | None:
+    """Where some views of a supersampled batch would take sparse supersampling alone and
+    the batch as a whole does not (``lean`` beside a view with a roughness map): the
+    views' indices in groups that each render as their views do alone; else None."""
+    if (len(scenes) < 2 or scenes[0].camera.samples_per_pixel < 2 or not current().adaptive
+            or sparse.applies(scenes, entry, options, MaterialBatch.from_scenes(scenes))):
+        return None
+    alone = [sparse.applies([s], entry, options, MaterialBatch.from_scenes([s]))
+             for s in scenes]
+    if not any(alone):
+        return None
+    if all(alone):  # (a batch-wide condition none of them has alone: each by itself)
+        return [[i] for i in range(len(scenes))]
+    return [[i for i, a in enumerate(alone) if a], [i for i, a in enumerate(alone) if not a]]
 
 
 MAX_PASS_SUBPIXELS = 1 << 21

@@ -6,6 +6,7 @@ their box-filtered pixels written over the one-sample image and passes."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 
@@ -74,6 +75,9 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
     t0 = time.perf_counter()
     g = pending.g
     picked = subsamples.refined(g, pending.picked, result.radiance, pending.region)
+    fine = fine_environment(scenes, lighting)
+    if any(fine):  # every background pixel of those views (the object's keep their rule)
+        picked = picked | (~g.front.mask & torch.tensor(fine)[:, None, None])
     samples = subsamples.gather(g, pending.ids, [s.camera for s in scenes], picked)
     if samples is None:
         return result
@@ -86,6 +90,23 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
         timings[k] = timings.get(k, 0.0) + v
     timings["gbuffer"] = timings.get("gbuffer", 0.0) + (t1 - t0)
     return dataclasses.replace(result, timings=timings)
+
+
+def fine_environment(scenes, lighting) -> list[bool]:
+    """Per view, whether its environment map has detail finer than a pixel: more than one
+    texel (at the equator) across the angle a pixel subtends at the image's center. Its
+    background pixels then average their n x n samples as the uniform render does; where
+    a texel spans a pixel or more the map is bilinear across the samples, whose mean is
+    then the center sample (exactly within one texel cell), and a background pixel keeps
+    its center sample unless its neighbours' radiances spread (``subsamples.refined``)."""
+    out = []
+    for s, tex in zip(scenes, lighting.texels):
+        c = s.camera
+        pixel = math.radians(c.yfov_deg) / c.height
+        h, w = tex.shape[0], tex.shape[1]
+        texel = min(2.0 * math.pi / w, math.pi / max(h - 1, 1))
+        out.append(texel < pixel)
+    return out
 
 
 def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> RenderResult:
@@ -122,4 +143,4 @@ def _put(result: RenderResult, part: RenderResult, pixels: torch.Tensor) -> Rend
                                passes=dict(zip(names, put_all[2:])))
 
 
-__all__ = ["Pending", "applies", "first_pass", "gbuffer", "supersample"]
+__all__ = ["Pending", "applies", "fine_environment", "first_pass", "gbuffer", "supersample"]
