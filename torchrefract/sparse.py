@@ -74,7 +74,10 @@ def supersample(result: RenderResult, pending: Pending, scenes, entry, lighting,
     flows)."""
     t0 = time.perf_counter()
     g = pending.g
-    picked = subsamples.refined(g, pending.picked, result.radiance, pending.region)
+    lit = (lighting.light_radius > 0).any(1)  # (B,): views with sphere lights
+    picked = subsamples.refined(g, pending.picked, result.radiance, pending.region,
+                                background=lit[:, None, None].expand(g.shape)
+                                if bool(lit.any()) else None)
     fine = fine_environment(scenes, lighting)
     if any(fine):  # every background pixel of those views (the object's keep their rule)
         picked = picked | (~g.front.mask & torch.tensor(fine)[:, None, None])
@@ -98,7 +101,8 @@ def fine_environment(scenes, lighting) -> list[bool]:
     background pixels then average their n x n samples as the uniform render does; where
     a texel spans a pixel or more the map is bilinear across the samples, whose mean is
     then the center sample (exactly within one texel cell), and a background pixel keeps
-    its center sample unless its neighbours' radiances spread (``subsamples.refined``)."""
+    its center sample, unless a sphere light's edge in view makes its neighbours' radiances
+    spread (``subsamples.refined``)."""
     out = []
     for s, tex in zip(scenes, lighting.texels):
         c = s.camera

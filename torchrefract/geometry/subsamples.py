@@ -157,18 +157,20 @@ def edges(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], alpha: torch.Tenso
 
 
 def refined(g: GBuffer, picked: torch.Tensor, radiance: torch.Tensor,
-            region: torch.Tensor | None = None, rtol: float | None = None) -> torch.Tensor:
-    """``picked`` and the pixels not picked whose 3x3 neighbourhood's one-sample radiances
-    (B, H, W, 3) spread (:func:`adaptive.spread`: the n x n plan's refinement test): the
-    object pixels (within ``region``) among object pixels, the background's among the
-    background's (an environment's detail aliases as the object's does; the object's
-    edge there is the G-buffer's to pick)."""
+            region: torch.Tensor | None = None, rtol: float | None = None,
+            background: torch.Tensor | None = None) -> torch.Tensor:
+    """``picked`` and the object pixels not picked (within ``region``) whose 3x3
+    neighbourhood of such pixels' one-sample radiances (B, H, W, 3) spreads
+    (:func:`adaptive.spread`: the n x n plan's refinement test); with ``background``
+    (B, H, W) bool, also those of its pixels (not the object's, not picked) whose
+    neighbourhood among them spreads (a sphere light's edge in view)."""
     rest = g.front.mask & ~picked
     if region is not None:
         rest &= region
-    background = ~g.front.mask & ~picked
-    return picked | adaptive.spread(rest, radiance, rtol) | adaptive.spread(background,
-                                                                           radiance, rtol)
+    out = picked | adaptive.spread(rest, radiance, rtol)
+    if background is not None:
+        out |= adaptive.spread(background & ~g.front.mask & ~picked, radiance, rtol)
+    return out
 
 
 def gather(g: GBuffer, ids: tuple[torch.Tensor, torch.Tensor], cameras: list[Camera],
