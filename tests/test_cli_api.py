@@ -78,6 +78,12 @@ def test_cli_survives_an_unexpected_failure_and_renders_the_rest(tmp_path, capsy
     err = capsys.readouterr().err
     assert "FAILED broken: RuntimeError: kernel exploded" in err
     assert (out / "good.exr").is_file() and not (out / "broken.exr").exists()
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(render_mod, "render", interrupted)
+    assert main(["render", str(good), "--out", str(out), "--quiet"]) == 130  # no traceback
+    assert "render interrupted" in capsys.readouterr().err
     monkeypatch.setattr(render_mod, "render", real)
     long = _small_scene_yaml(tmp_path, "x" * 240)  # its temporary names stay legal too
     assert main(["render", str(long), "--out", str(out), "--quiet"]) == 0
@@ -168,6 +174,66 @@ def test_cli_compare_prints_metrics_and_writes_error_map(tmp_path, capsys):
     assert m["flip_object"] > 0 and m["relmse_object"] > 0 and m["flip"] <= m["flip_object"]
     assert np.asarray(Image.open(err)).shape == (32, 40, 3)
     assert main(["compare", str(tmp_path / "missing.exr"), str(a / "small.exr")]) == 2
+
+
+def test_cli_compare_refuses_what_it_cannot_score(tmp_path, capsys):
+    """``compare``: an alpha covering nothing falls back to the test's, then to every
+    pixel (not a perfect object score); NaN pixels and a non-finite exposure are refused;
+    outputs go into folders it makes; its JSON is strict (an infinite PSNR is null)."""
+    import json as _json
+
+    from torchrefract.output.images import write_exr
+
+    scene = _small_scene_yaml(tmp_path)
+    a = tmp_path / "a"
+    assert main(["render", str(scene), "--out", str(a), "--quiet"]) == 0
+    ch = read_exr(a / "small.exr")
+    rgb = {c: ch[c] for c in "RGB"}
+    ref, test = tmp_path / "ref.exr", tmp_path / "test.exr"
+    write_exr(ref, {**rgb, "A": np.zeros_like(ch["A"])})
+    write_exr(test, {**rgb, "R": rgb["R"] * 1.5, "A": ch["A"]})
+    js = tmp_path / "new" / "m.json"
+    assert main(["compare", str(test), str(ref), "--json", str(js),
+                 "--error-map", str(tmp_path / "new" / "e.png")]) == 0
+    m = _json.loads(js.read_text())
+    assert m["flip_object"] > 0 and np.isfinite(m["relmse_object"])
+    js2 = tmp_path / "same.json"
+    assert main(["compare", str(ref), str(ref), "--json", str(js2)]) == 0
+    assert _json.loads(js2.read_text())["psnr"] is None
+    write_exr(test, {**rgb, "R": np.where(ch["A"] > 0, np.nan, rgb["R"]).astype(np.float32)})
+    capsys.readouterr()
+    assert main(["compare", str(test), str(ref)]) == 2
+    assert "NaN or infinite" in capsys.readouterr().err
+    assert main(["compare", str(ref), str(ref), "--exposure", "nan"]) == 2
+
+
+def test_cli_refuses_bad_flags_and_folders_up_front(tmp_path, capsys):
+    """Bad flags, an --out that is a file or another tool's folder, and a config that is
+    not text end with a message and exit 2, not a traceback."""
+    from sweep_fixtures import small_sweep, write_config
+
+    cfg = write_config(tmp_path / "s.yaml", small_sweep())
+    (tmp_path / "afile").write_text("x")
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "000000.exr").write_text("precious")
+    (tmp_path / "bin.yaml").write_bytes(b"\xff\xfe garbage")
+    cases = [(["sweep", str(cfg), "--out", str(tmp_path / "afile")], "--out"),
+             (["sweep", str(cfg), "--out", str(foreign)], "holds no sweep"),
+             (["sweep", str(tmp_path / "bin.yaml"), "--out", str(tmp_path / "o")],
+              "not UTF-8"),
+             (["sweep", str(cfg), "--out", str(tmp_path / "o"), "--threads", "-1"],
+              "threads"),
+             (["render", str(cfg), "--out", str(tmp_path / "o"), "--device", "bogus"],
+              "device")]
+    if not torch.cuda.is_available():
+        cases.append((["sweep", str(cfg), "--out", str(tmp_path / "o"), "--device", "cuda"],
+                      "CUDA device"))
+    for argv, said in cases:
+        capsys.readouterr()
+        assert main(argv + ["--quiet"]) == 2, argv
+        assert said in capsys.readouterr().err, argv
+    assert (foreign / "000000.exr").read_text() == "precious"
 
 
 def test_memory_budget_chunks_a_batch_and_refuses_a_view_up_front(tmp_path):

@@ -79,6 +79,8 @@ def test_refract_dataset_over_a_folder(folder):
         ds[8]
     with pytest.raises(ConfigError, match="layout"):
         RefractDataset(folder, layout="nchw")
+    with pytest.raises(ConfigError, match=r"no pass 'nope' \(it has \[.*'depth_front'"):
+        RefractDataset(folder, passes=["depth_front", "nope"])  # at once, not in a worker
     with pytest.raises(ConfigError, match="no manifest.jsonl"):
         RefractDataset(ROOT / "configs")
 

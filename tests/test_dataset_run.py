@@ -427,6 +427,56 @@ def test_a_batch_is_encoded_in_threads_in_order_and_a_failure_stays_its_own():
     assert total == pytest.approx(sum(r["timings"]["encode_s"] for r in results))
 
 
+_ORPHAN = """
+import multiprocessing as mp, os, sys, time
+from torchrefract.dataset.executors import exit_with_parent
+
+def child(parent):
+    exit_with_parent(parent)
+    time.sleep(120)
+
+if __name__ == "__main__":
+    p = mp.get_context("spawn").Process(target=child, args=(os.getpid(),))
+    p.start()
+    print(p.pid, flush=True)
+    time.sleep(120)
+"""
+
+
+def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
+    """The sweep's worker processes watch their driver: killed with SIGKILL (the OOM
+    killer, a scheduler), it leaves no worker behind, where they used to wait on their
+    queue forever. The pool's workers get the watch as their initializer."""
+    from torchrefract.dataset.executors import _ProcessExecutor, exit_with_parent
+    from torchrefract.settings import RenderSettings
+
+    script = tmp_path / "driver.py"
+    script.write_text(_ORPHAN)
+    drv = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    child = int(drv.stdout.readline())
+    os.kill(drv.pid, signal.SIGKILL)
+    drv.wait()
+    deadline = time.time() + 10
+    while time.time() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        try:  # reap it if it is ours (it is init's once reparented)
+            os.waitpid(child, os.WNOHANG)
+        except ChildProcessError:
+            pass
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the worker outlived its driver by 10 s")
+    ex = _ProcessExecutor(2, RenderSettings())
+    try:
+        assert ex.pool._initializer is exit_with_parent
+    finally:
+        ex.pool.shutdown()
+
+
 def test_local_worker_processes_give_the_serial_files(reference, cfg_path, tmp_path):
     s = run_sweep(cfg_path, tmp_path, workers=2, batch_size=2, quiet=True)
     assert s.ok == 8

@@ -103,6 +103,13 @@ def test_texels_and_batches(one_thread):
     assert torch.allclose(img, expect, rtol=1e-4, atol=1e-5)
     with pytest.raises(tr.ConfigError, match="rotate_deg"):
         tr.relight(out, tex, rotate_deg=[1.0, 2.0, 3.0])
+    # texels are checked and taken as a loaded map is: float64 as float32, no NaN, no
+    # negative scale (a scene's envmap.scale may not be either)
+    assert torch.equal(tr.relight(out, tex.double(), scale=2.0), tr.relight(out, tex, scale=2.0))
+    with pytest.raises(tr.ConfigError, match="NaN"):
+        tr.relight(out, torch.full((16, 32, 3), float("nan")))
+    with pytest.raises(tr.ConfigError, match="scale must be >= 0"):
+        tr.relight(out, tex, scale=-1.0)
 
 
 def test_prepared_equals_lookups(one_thread):

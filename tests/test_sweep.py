@@ -219,6 +219,13 @@ def test_camera_metadata_projects_pixel_centers_to_their_indices():
     (lambda d: d["base"]["material"].update(ior="glass"),
      r"base: material.ior: expected a number"),
     (lambda d: d.pop("base"), r"missing required key 'base'"),
+    (lambda d: d["sweep"]["material"].update(roughness={"linspace": [0, 0.3, 10 ** 12]}),
+     r"sweep.material.roughness.linspace\[2\]: must be <= 1e\+06"),
+    (lambda d: d.update(sampling={"mode": "random", "seed": 1, "num_samples": 10 ** 15}),
+     r"sampling.num_samples: must be <= 1e\+06"),
+    (lambda d: d["sweep"]["material"].update(roughness={"linspace": [0, 0.3, 1000]},
+                                             ior={"linspace": [1.1, 2.0, 1001]}),
+     r"test.yaml: sweep: grid sampling gives [0-9,]+ samples, more than one sweep takes"),
 ])
 def test_bad_configs_name_the_file_and_key(change, message):
     d = small_sweep()

@@ -143,7 +143,11 @@ def load_yaml_file(path: str | Path, what: str) -> Any:
     if not p.is_file():
         raise ConfigError(f"{what} file not found: {str(path)!r}")
     try:
-        data = yaml.load(p.read_text(), Loader=_loader())  # noqa: S506 (a SafeLoader)
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    try:
+        data = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML: {exc}") from None
     except _DuplicateKey as exc:

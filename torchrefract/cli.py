@@ -10,6 +10,7 @@ then 1. Invalid command-line use exits with 2.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -136,6 +137,9 @@ def _sweep_cmd(args: argparse.Namespace) -> int:
     except DiskFullError as exc:
         print(f"torchrefract: {exc}", file=sys.stderr)
         return 3
+    except OSError as exc:  # the output folder cannot be made or written (a file, read-only)
+        print(f"torchrefract: --out {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     if s.failed:
         print(f"torchrefract: {s.failed} sample(s) FAILED (reasons in {args.out}/manifest.jsonl)"
               f": {', '.join(s.failed_ids[:10])}" + (" ..." if s.failed > 10 else ""),
@@ -263,15 +267,32 @@ def _compare_cmd(args: argparse.Namespace) -> int:
         print(f"torchrefract: image sizes differ: {x.shape[:2]} vs {r.shape[:2]}",
               file=sys.stderr)
         return 2
-    cov = ref.get("A", test.get("A", np.ones(r.shape[:2], np.float32)))
+    for name, img in ((args.test, x), (args.reference, r)):
+        bad = int((~np.isfinite(img)).any(-1).sum())
+        if bad:
+            print(f"torchrefract: {name}: {bad} pixels with NaN or infinite values",
+                  file=sys.stderr)
+            return 2
+    if not math.isfinite(args.exposure):
+        print(f"torchrefract: --exposure: expected a finite number, got {args.exposure}",
+              file=sys.stderr)
+        return 2
+    # the object's pixels: the reference's alpha, else the test's, else all (an alpha
+    # that covers nothing says nothing about where the object is)
+    cov = next((a for a in (ref.get("A"), test.get("A")) if a is not None and (a > 0.5).any()),
+               np.ones(r.shape[:2], np.float32))
     metrics = compare(x, r, cov, args.exposure)
     for k, v in metrics.items():
         print(f"{k:<14} {v:.6g}")
+    for path in (args.error_map, args.json):
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
     if args.error_map:
         Image.fromarray(flip_magma(x, r, args.exposure)).save(args.error_map)
         print(f"error map: {args.error_map}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(metrics, indent=2) + "\n")
+    if args.json:  # strict JSON: an infinite PSNR (identical images) as null
+        clean = {k: (v if math.isfinite(v) else None) for k, v in metrics.items()}
+        Path(args.json).write_text(json.dumps(clean, indent=2, allow_nan=False) + "\n")
     return 0
 
 
@@ -301,18 +322,23 @@ def _settings(args: argparse.Namespace):
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    args.settings = _settings(args)
+    try:  # bad flags (--threads -1, --device bogus, a device torch cannot see) up front
+        args.settings = _settings(args)
+        if args.command in ("render", "sweep") and getattr(args, "executor", None) != "ray":
+            args.settings.torch_device()  # (Ray's workers may see devices this host lacks)
+    except ConfigError as exc:
+        print(f"torchrefract: {exc}", file=sys.stderr)
+        return 2
     if args.settings.heap_reuse:  # now, before any thread has made its own malloc arena
         from torchrefract.heap import set_heap_reuse  # noqa: PLC0415
 
         set_heap_reuse(True)
-    if args.command == "render":
-        return _render_cmd(args)
-    if args.command == "compare":
-        return _compare_cmd(args)
-    if args.command == "sweep":
-        return _sweep_cmd(args)
-    return 2  # pragma: no cover
+    commands = {"render": _render_cmd, "compare": _compare_cmd, "sweep": _sweep_cmd}
+    try:
+        return commands[args.command](args)
+    except KeyboardInterrupt:  # (a sweep's finished samples are kept: run it again to resume)
+        print(f"torchrefract: {args.command} interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

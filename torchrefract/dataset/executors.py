@@ -122,6 +122,26 @@ class _SerialExecutor:
         pass
 
 
+PARENT_POLL_S = 1.0
+"""How often a worker process checks that its driver is still there."""
+
+
+def exit_with_parent(parent: int) -> None:
+    """A worker's initializer: a daemon thread ends the worker once its driver is gone (a
+    driver killed by the OOM killer, a scheduler or ``kill -9`` cannot stop its workers,
+    which would otherwise wait on their queue forever, reparented). Python's own exit of
+    the driver shuts the pool down as before."""
+    import threading  # noqa: PLC0415
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_POLL_S)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="torchrefract-parent-watch", daemon=True).start()
+
+
 class _ProcessExecutor:
     """``workers`` spawned processes; each creates its own EGL context on first use."""
 
@@ -135,7 +155,8 @@ class _ProcessExecutor:
             settings = settings.replace(threads=max(1, (os.cpu_count() or 1) // workers))
         self.settings = settings
         self._new = lambda: ProcessPoolExecutor(
-            max_workers=workers, mp_context=mp.get_context("spawn"))
+            max_workers=workers, mp_context=mp.get_context("spawn"),
+            initializer=exit_with_parent, initargs=(os.getpid(),))
         self.pool = self._new()
         self.window = 2 * workers
 

@@ -189,6 +189,20 @@ class RefractDataset(Dataset):
         if not self.records:
             raise ConfigError(f"{self.root}: the manifest lists no complete sample")
         self._offsets: dict[str, dict[str, tuple[int, int]]] = {}
+        if self.pass_names is not None:  # a typo fails here, not in a DataLoader's worker
+            self._passes(self.records[0], self._decode(self.records[0]))
+
+    def _decode(self, rec: dict) -> dict[str, Any]:
+        return decode_exr(self._read(rec, "exr"), rec.get("channels"), self.layout)
+
+    def _passes(self, rec: dict, out: dict[str, Any]) -> dict[str, Any]:
+        """The asked-for passes of a decoded sample (ConfigError naming a missing one)."""
+        missing = [n for n in self.pass_names if n not in out["passes"]]
+        if missing:
+            raise ConfigError(f"{self.root}: sample {rec['sample_id']} has no pass "
+                              f"{', '.join(map(repr, missing))} (it has "
+                              f"{sorted(out['passes'])})")
+        return {n: out["passes"][n] for n in self.pass_names}
 
     def __len__(self) -> int:
         return len(self.records)
@@ -229,9 +243,9 @@ class RefractDataset(Dataset):
         if not -len(self) <= i < len(self):
             raise IndexError(f"index {i} out of range for {len(self)} samples")
         rec = self.records[i]
-        out = decode_exr(self._read(rec, "exr"), rec.get("channels"), self.layout)
+        out = self._decode(rec)
         if self.pass_names is not None:
-            out["passes"] = {n: out["passes"][n] for n in self.pass_names}
+            out["passes"] = self._passes(rec, out)
         out.update(_camera_tensors(rec["camera"]))
         out["sample_id"] = rec["sample_id"]
         out["meta"] = rec

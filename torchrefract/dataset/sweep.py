@@ -93,6 +93,12 @@ ROTATIONS = ("none", "yaw", "so3")
 # Config dataclasses
 # --------------------------------------------------------------------------------------
 
+
+MAX_SAMPLES = 1_000_000
+"""Most samples one sweep expands into: its plan (about 3 KB a sample) is made whole before
+the first render and again on every resume (100,000 samples: ~44 s, 300 MB)."""
+
+
 @dataclass(frozen=True)
 class Axis:
     """One swept parameter: discrete values, or a distribution drawn per sample.
@@ -373,7 +379,8 @@ def _parse_sampling(d: Any, source: str | None) -> Sampling:
     seed = check_number(d.get("seed", 0), "sampling.seed", source, minimum=0, integer=True)
     n = d.get("num_samples")
     if n is not None:
-        n = check_number(n, "sampling.num_samples", source, minimum=1, integer=True)
+        n = check_number(n, "sampling.num_samples", source, minimum=1, maximum=MAX_SAMPLES,
+                         integer=True)
     elif mode == "random":
         raise ConfigError(f"{where(source, 'sampling.num_samples')}: required when "
                           f"sampling.mode is 'random'")
@@ -512,7 +519,8 @@ def _axis(value: Any, key: str, source: str | None, *, kind: str = "number",
         if dist == "log_uniform" and lo <= 0:
             raise ConfigError(f"{where(source, k)}: log_uniform needs lo > 0, got {lo}")
         if dist == "linspace":
-            n = check_number(args[2], f"{k}[2]", source, minimum=1, integer=True)
+            n = check_number(args[2], f"{k}[2]", source, minimum=1, maximum=MAX_SAMPLES,
+                             integer=True)
             return Axis(values=tuple(float(x) for x in np.linspace(lo, hi, n)))
         return Axis(dist=dist, low=float(lo), high=float(hi))
     # A list is always a list of values: for resolutions, ``[64, 128]`` is two square
@@ -533,6 +541,10 @@ def _num_points(cfg: SweepConfig) -> int:
 
 def _check_counts(cfg: SweepConfig) -> None:
     s, src = cfg.sampling, cfg.source
+    if cfg.num_samples > MAX_SAMPLES:
+        raise ConfigError(f"{where(src, 'sweep')}: {s.mode} sampling gives "
+                          f"{cfg.num_samples:,} samples, more than one sweep takes "
+                          f"({MAX_SAMPLES:,}); split it into several sweeps")
     if s.mode == "list":
         lengths = {name: len(a.values) for name, a in cfg.axes() if a.discrete
                    and len(a.values) > 1}

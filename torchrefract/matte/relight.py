@@ -86,18 +86,24 @@ def _env(envmap) -> tuple[torch.Tensor, SGPyramid | None, str | None]:
     if isinstance(envmap, SGPyramid):
         return envmap.levels[0], envmap, None
     if torch.is_tensor(envmap) and envmap.dim() == 3 and envmap.shape[-1] == 3:
-        return envmap, None, None
+        # the checks of a map file (finite, >= 0, bounded), in float32 as a loaded map
+        # (a differentiable cast: a gradient still reaches the caller's tensor)
+        envmap_mod.validate_texels(envmap.detach().cpu().float().numpy(), "relight: envmap")
+        return envmap.float(), None, None
     raise ConfigError(f"relight: envmap must be a map file path, an EnvMap, an SGPyramid or "
                       f"an (H, W, 3) tensor, got {type(envmap).__name__}")
 
 
-def _per_view(v, b: int, name: str) -> torch.Tensor:
+def _per_view(v, b: int, name: str, minimum: float | None = None) -> torch.Tensor:
     t = torch.as_tensor(v, dtype=torch.float32)
     if t.dim() == 0:
         t = t.expand(b)
     if t.shape != (b,) or not bool(torch.isfinite(t).all()):
         raise ConfigError(f"relight: {name} must be a finite number or one per view ({b}), "
                           f"got {v!r}")
+    if minimum is not None and bool((t < minimum).any()):
+        raise ConfigError(f"relight: {name} must be >= {minimum:g} (as envmap.{name} in a "
+                          f"scene), got {v!r}")
     return t
 
 
@@ -142,7 +148,7 @@ def relight(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     p = matte if isinstance(matte, Prepared) else prepare(matte)
     dev = p.device
     rot = _per_view(rotate_deg, p.b, "rotate_deg").to(dev)
-    sc = _per_view(scale, p.b, "scale").to(dev)
+    sc = _per_view(scale, p.b, "scale", minimum=0.0).to(dev)
     img = p.lights.clone()
     if p.size == 0:
         return img.view(p.b, p.h, p.w, 3)
@@ -595,7 +601,7 @@ def relight_reference(matte, envmap, rotate_deg: float | torch.Tensor = 0.0,
     b, h, w, n_lobes = m.sharpness.shape
     dev = m.weight.device  # the matte's (a GPU render's stays there)
     rot = _per_view(rotate_deg, b, "rotate_deg").to(dev)
-    sc = _per_view(scale, b, "scale").to(dev)
+    sc = _per_view(scale, b, "scale", minimum=0.0).to(dev)
     texels, pyr, path = _env(envmap)
     texels = texels.to(dev)
     pyr = None if pyr is None else pyr.to(dev)
