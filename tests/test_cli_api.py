@@ -91,6 +91,22 @@ def test_cli_survives_an_unexpected_failure_and_renders_the_rest(tmp_path, capsy
     assert not list(out.glob(".*tmp*"))
 
 
+def test_a_camera_inside_the_object_is_warned_of(tmp_path):
+    """From inside the glass the two layers see nothing: such a view says so instead of
+    returning the environment silently; a camera outside does not."""
+    s = tr.load_scene(ROOT / "configs" / "suite" / "sphere_a03.yaml")
+    s = s.replace(camera=tr.Camera(eye=(0.0, 0.3, 3.4), width=12, height=10))
+    inside = s.replace(camera=tr.Camera(eye=(0.0, 0.0, 0.1), width=12, height=10))
+    with pytest.warns(UserWarning, match="inside the mesh's bounds and sees none of it"):
+        out = tr.render(inside)
+    assert float(out.coverage.max()) == 0.0
+    import warnings as _w
+
+    with _w.catch_warnings():
+        _w.simplefilter("error")
+        tr.render(s)
+
+
 def test_cli_entry_point_runs_as_a_program(tmp_path):
     scene = _small_scene_yaml(tmp_path)
     r = subprocess.run([sys.executable, "-m", "torchrefract.cli", "render", str(scene),

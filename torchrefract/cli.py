@@ -206,9 +206,9 @@ def _render_cmd(args: argparse.Namespace) -> int:
         print(f"torchrefract: FAILED {name}: {reason}", file=sys.stderr)
     if not args.quiet:
         dt = time.perf_counter() - start
-        print(f"rendered {done} frame(s) into {out}/ in {dt:.2f} s "
-              f"({args.settings.threads or torch.get_num_threads()} threads)" + (f", {len(failed)} failed" if failed
-                                                         else ""))
+        threads = args.settings.threads or torch.get_num_threads()
+        print(f"rendered {done} frame(s) into {out}/ in {dt:.2f} s ({threads} threads)"
+              + (f", {len(failed)} failed" if failed else ""))
     return 1 if failed else 0
 
 

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
+import warnings
 
 import torch
 
@@ -210,6 +212,7 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
         g, ids, flags = sparse.gbuffer(meshes, [s.camera for s in scenes])
     else:
         g = build_gbuffer(meshes, [s.camera for s in scenes])
+    _warn_inside(scenes, meshes, g)
     region = _subpixel_region(regions, g) if entry.shades_object_index else None
     plan = None
     pending = None
@@ -241,6 +244,18 @@ def _render_pass(scenes: list[Scene], entry, options, budget: int,
     result.timings.update({"load": t1 - t0, "gbuffer": t2 - t1 + result.timings.get(
         "gbuffer", 0.0), "total": time.perf_counter() - t0})
     return result if want == device else to_device(result, want)
+
+
+def _warn_inside(scenes: list[Scene], meshes, g) -> None:
+    """Warn of a view whose camera sits inside its mesh's bounding sphere and sees none of
+    the mesh: from inside the glass the two layers show nothing, the image is the
+    environment alone (a sweep's orbit too close, a scale too large)."""
+    for i, (s, m) in enumerate(zip(scenes, meshes)):
+        c, r = m.bounding_sphere()
+        if math.dist(s.camera.eye, c) < r and not bool(g.front.mask[i].any()):
+            warnings.warn(f"render: scene {s.name!r}: the camera at {tuple(s.camera.eye)} is "
+                          f"inside the mesh's bounds and sees none of it (from inside the "
+                          f"glass the image is the environment alone)", stacklevel=4)
 
 
 def _subpixel_region(regions: list[torch.Tensor | None] | None, g) -> torch.Tensor | None:
