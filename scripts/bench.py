@@ -81,6 +81,7 @@ import numpy as np
 import torch
 
 import torchrefract as tr
+from torchrefract.checks import ConfigError  # noqa: E402
 from torchrefract import heap
 from torchrefract.kernels import native
 
@@ -485,13 +486,20 @@ def compare_rows(rows: list[dict], mitsuba: list[dict]) -> list[dict]:
     return out
 
 
+def _positive(value: str, flag: str) -> int:
+    """argparse type: a whole number >= 1."""
+    if not value.isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(f"{flag}: expected a whole number >= 1, got {value!r}")
+    return int(value)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default=str(ROOT / "configs" / "demo.yaml"))
     ap.add_argument("--methods", nargs="+", default=["specular"])
     ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512])
     ap.add_argument("--batches", nargs="+", type=int, default=[1, 8])
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=lambda v: _positive(v, "--repeats"), default=5)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--compile", action="store_true",
                     help="torch.compile the march (RenderSettings.compile); the first "
@@ -585,4 +593,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except ConfigError as exc:  # bad arguments or scenes: one line, exit 2
+        print(f"bench: {exc}", file=sys.stderr)
+        sys.exit(2)

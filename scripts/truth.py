@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import torchrefract as tr
+from torchrefract.checks import ConfigError  # noqa: E402
 from torchrefract.truth.metrics import compare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -133,10 +134,17 @@ def ensure_suite(paths: list[Path] | None = None, spp: int = SPP, size: int | No
     return out
 
 
+def _positive(value: str) -> int:
+    """argparse type of --spp: a whole number >= 1."""
+    if not value.isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value!r}")
+    return int(value)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", nargs="*", help="scene files (default: configs/suite/*.yaml)")
-    ap.add_argument("--spp", type=int, default=SPP)
+    ap.add_argument("--spp", type=_positive, default=SPP)
     ap.add_argument("--size", type=int, default=SIZE, help="0: each scene's own size")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     ap.add_argument("--cache", default=str(CACHE), help="truth cache directory")
@@ -151,4 +159,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except ConfigError as exc:  # bad arguments or scenes: one line, exit 2
+        print(f"truth: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -152,3 +152,40 @@ def test_gradients_flow_where_exits_need_a_second_try():
     gi, gr = torch.autograd.grad(img.double().mean(), (ior, rough))
     assert torch.isfinite(gi).all() and torch.isfinite(gr).all()
     assert gi.abs().item() > 0 and gr.abs().item() > 0
+
+
+@pytest.mark.parametrize("method", ["prefiltered", "rousiers"])
+def test_environment_gradients_reach_the_object(method, setup):
+    """The SG methods read the map's pyramid: built from the lighting's own texels where
+    they are not the file's (an edited map, or one a gradient is asked for), so the
+    object's pixels follow the texels and differentiate in them (they read the file's
+    pyramid before: a zero gradient, and an edited map ignored inside the object)."""
+    import dataclasses
+
+    g, lighting = setup
+    mat = MaterialBatch(ior=torch.tensor([1.5]), roughness=torch.tensor([0.2]),
+                        absorption=torch.zeros(1, 3), distribution=("beckmann",))
+    gen = torch.Generator().manual_seed(0)
+    tex = (0.5 + torch.rand(16, 32, 3, generator=gen)).requires_grad_(True)
+    shade = _shade(method)
+    obj = g.front.mask[0]
+    img = shade(g, dataclasses.replace(lighting, texels=(tex,)), mat)[0]
+    img[0][obj].mean().backward()
+    assert tex.grad is not None and float(tex.grad.abs().sum()) > 0.1
+    with torch.no_grad():
+        twice = shade(g, dataclasses.replace(lighting, texels=(tex.detach() * 2,)), mat)[0]
+    ratio = twice[0][obj].mean() / img.detach()[0][obj].mean()
+    assert float(ratio) == pytest.approx(2.0, rel=1e-3)
+
+
+def test_ior_gradient_is_finite_at_ior_one(setup):
+    """At IOR 1 (index-matched) the critical angle's cosine is 0: its gradient is 0 there,
+    not sqrt's infinite slope times the clamp's 0 (a NaN for every method with an exit
+    rule)."""
+    g, lighting = setup
+    for method in ("rousiers", "specular"):
+        ior = torch.tensor([1.0], requires_grad=True)
+        mat = MaterialBatch(ior=ior, roughness=torch.tensor([0.3]),
+                            absorption=torch.zeros(1, 3), distribution=("beckmann",))
+        _shade(method)(g, lighting, mat)[0].mean().backward()
+        assert torch.isfinite(ior.grad).all(), method

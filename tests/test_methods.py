@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from conftest import SH_SMALL, small_scene_yaml
 
 import torchrefract as tr
@@ -92,6 +93,47 @@ def test_registered_method_renders_through_the_cli(tmp_path):
         registry._registered.pop("flat", None)
         registry._loaded.pop("flat", None)
         sys.path.remove(str(TESTS))
+
+
+def test_registration_and_a_methods_output_are_checked(tmp_path):
+    """``register_method`` refuses what cannot be a method, warns where a built-in name is
+    taken, names the method when its module cannot be loaded; a method whose ``shade``
+    returns the wrong shapes fails naming it (not deep in the box filter)."""
+    import warnings
+
+    from plugin_method import Flat
+    from torchrefract.methods.base import Shaded
+
+    scene = tr.load_scene(_scene_yaml(tmp_path))
+    for bad in (42, "no_colon", "module:"):
+        with pytest.raises(ConfigError, match="register_method"):
+            tr.register_method("broken", bad)
+
+    class Wide(Flat):
+        name = "wide"
+
+        def shade(self, g, lighting, materials, options, state):
+            out = super().shade(g, lighting, materials, options, state)
+            return Shaded(torch.cat([out.radiance, out.radiance[..., :1]], -1), {})
+
+    try:
+        tr.register_method("missing", "no_such_module_here:METHOD")
+        with pytest.raises(ConfigError, match=r"method 'missing': cannot load.*ModuleNotFound"):
+            tr.render(scene, method="missing")
+        tr.register_method("wide", Wide())
+        for spp in (1, 2):
+            cam = dataclasses.replace(scene.camera, samples_per_pixel=spp)
+            with pytest.raises(ConfigError, match=r"method 'wide': shade\(\) returned "
+                                                  r"radiance of shape .*, 4\), expected"):
+                tr.render(scene.replace(camera=cam), method="wide")
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            tr.register_method("specular", Flat())
+        assert any("replaces the built-in method" in str(w.message) for w in seen)
+    finally:
+        for name in ("missing", "wide", "specular"):
+            registry._registered.pop(name, None)
+            registry._loaded.pop(name, None)
 
 
 def test_entry_point_method_renders_through_the_cli(tmp_path):

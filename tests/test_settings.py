@@ -108,9 +108,22 @@ def test_settings_made_in_code_keep_the_environments_cache_folder(monkeypatch, t
     assert cache_folder(RenderSettings()) == tmp_path / "xdg" / "torchrefract"
 
 
-def test_bad_settings_are_named():
+def test_bad_settings_are_named(monkeypatch):
     with pytest.raises(ConfigError, match="RenderSettings.threads"):
         RenderSettings(threads=0)
+    with pytest.raises(ConfigError, match="RenderSettings.threads"):
+        RenderSettings(threads=10 ** 30)  # (a C int in torch)
+    for field in ("native", "fused", "adaptive", "heap_reuse"):  # "no" used to mean True
+        with pytest.raises(ConfigError, match=f"RenderSettings.{field}: expected True or"):
+            RenderSettings(**{field: "no"})
+    with pytest.raises(ConfigError, match="RenderSettings.cache_dir"):
+        RenderSettings(cache_dir=123)
+    for var, value in (("TORCHREFRACT_THREADS", "abc"), ("TORCHREFRACT_MEMORY_MB", "64MB"),
+                       ("TORCHREFRACT_NATIVE", "maybe")):
+        monkeypatch.setenv(var, value)
+        with pytest.raises(ConfigError, match=f"{var}='{value}'"):
+            RenderSettings.from_env()
+        monkeypatch.delenv(var)
     with pytest.raises(ConfigError, match="RenderSettings"):
         with using({"threads": 1}):  # type: ignore[arg-type]
             pass

@@ -55,9 +55,14 @@ RASTERIZERS = ("auto", "native", "opengl")
 
 
 def _env_count(name: str) -> int | None:
-    """A positive integer from the environment, else None."""
+    """A positive integer from the environment, else None (unset or empty); anything else
+    is a ConfigError naming the variable (a typo used to fall back in silence)."""
     v = os.environ.get(name, "").strip()
-    return int(v) if v.isdigit() and int(v) > 0 else None
+    if not v:
+        return None
+    if not v.isdigit() or int(v) < 1:
+        raise ConfigError(f"{name}={v!r}: expected a whole number >= 1 (or unset)")
+    return int(v)
 
 
 def _env_flag(name: str, default: bool) -> bool:
@@ -66,7 +71,13 @@ def _env_flag(name: str, default: bool) -> bool:
         return True
     if v in _FALSE:
         return False
+    if v:
+        raise ConfigError(f"{name}={v!r}: expected one of {sorted(_TRUE + _FALSE)} (or unset)")
     return default
+
+
+MAX_THREADS = 4096
+"""Most threads a render may ask for (torch takes a C int)."""
 
 
 @dataclass(frozen=True)
@@ -125,11 +136,19 @@ class RenderSettings:
     pixel of an edge."""
 
     def __post_init__(self):
-        for name in ("threads", "memory_budget_mb"):
+        for name, most in (("threads", MAX_THREADS), ("memory_budget_mb", 1 << 40)):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise ConfigError(f"RenderSettings.{name}: expected an integer >= 1 or None, "
-                                  f"got {v!r}")
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1
+                                  or v > most):
+                raise ConfigError(f"RenderSettings.{name}: expected an integer >= 1 and <= "
+                                  f"{most}, or None, got {v!r}")
+        for f in dataclasses.fields(self):
+            if f.type in ("bool", bool) and not isinstance(getattr(self, f.name), bool):
+                raise ConfigError(f"RenderSettings.{f.name}: expected True or False, got "
+                                  f"{getattr(self, f.name)!r}")
+        if self.cache_dir is not None and not isinstance(self.cache_dir, (str, os.PathLike)):
+            raise ConfigError(f"RenderSettings.cache_dir: expected a folder path or None, "
+                              f"got {self.cache_dir!r}")
         if not isinstance(self.device, str) or not re.fullmatch(r"cpu|auto|cuda(:\d+)?",
                                                                  self.device):
             raise ConfigError(f"RenderSettings.device: expected 'cpu', 'cuda', 'cuda:N' or "

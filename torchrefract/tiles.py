@@ -157,6 +157,27 @@ def split(idx: torch.Tensor, size: int) -> list[torch.Tensor]:
     return list(torch.tensor_split(idx, n)) if n > 1 else [idx]
 
 
+def checked(entry, out, shape: tuple[int, int, int]):
+    """A method's ``shade`` result as the render needs it: a ``Shaded`` whose radiance is
+    (B, H, W, 3) and whose passes are (B, H, W, C) tensors over the G-buffer's ``shape``
+    (a plug-in method's mistake named here, not deep in the box filter)."""
+    from torchrefract.methods.base import Shaded  # noqa: PLC0415 (a scene loads no method)
+
+    name = f"method {getattr(entry, 'name', entry)!r}: shade()"
+    if not isinstance(out, Shaded):
+        raise ConfigError(f"{name} returned {type(out).__name__}, expected a Shaded")
+    want = (*shape, 3)
+    if not torch.is_tensor(out.radiance) or tuple(out.radiance.shape) != want:
+        got = tuple(out.radiance.shape) if torch.is_tensor(out.radiance) else out.radiance
+        raise ConfigError(f"{name} returned radiance of shape {got}, expected {want}")
+    for k, v in out.passes.items():
+        if not torch.is_tensor(v) or v.dim() != 4 or tuple(v.shape[:3]) != tuple(shape):
+            got = tuple(v.shape) if torch.is_tensor(v) else type(v).__name__
+            raise ConfigError(f"{name} returned pass {k!r} of shape {got}, expected "
+                              f"{(*shape, 'C')}")
+    return out
+
+
 def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -> Shaded:
     """``entry.shade`` over ``g``, in tiles of at most :func:`tile_size` object sub-pixels
     where all of them do not fit ``budget`` at once: each tile a ``shade`` mask over the
@@ -174,7 +195,7 @@ def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -
     idx = g.object_index()
     size = tile_size(b * h * w, budget)
     if not entry.shades_object_index or idx.numel() <= size:
-        return entry.shade(g, lighting, materials, options, state)
+        return checked(entry, entry.shade(g, lighting, materials, options, state), g.shape)
     pieces = split(idx, size)
     alpha = materials.roughness_at(g.object_views(), take(g.front.uv.reshape(-1, 2), idx))
     rough = alpha > 0
@@ -186,8 +207,9 @@ def shade(entry, g: GBuffer, lighting, materials, options, state, budget: int) -
         if witness is not None:
             mask.index_fill_(0, witness, True)
         # a tile is not the whole first pass: the levels after it wait for the caller
-        out = entry.shade(dataclasses.replace(g, shade=mask.view(b, h, w), lattice=None),
-                          lighting, materials, options, state)
+        out = checked(entry, entry.shade(dataclasses.replace(
+            g, shade=mask.view(b, h, w), lattice=None), lighting, materials, options, state),
+            g.shape)
         if radiance is None:  # the first tile: the frame every other one is copied into
             # (copies: a method may hand out views of buffers it reads, the G-buffer's)
             radiance = out.radiance.clone(memory_format=torch.contiguous_format)

@@ -63,13 +63,25 @@ class Lighting:
         return hit if hit is not None else _KEPT.put(texels[0], key, _lighting(scenes, texels))
 
     def pyramid(self, b: int):
-        """The SG-pre-convolved pyramid of scene ``b``'s map (built once per file, cached)."""
-        from torchrefract.lighting.sg_pyramid import sg_pyramid_for  # noqa: PLC0415
+        """The SG-pre-convolved pyramid of scene ``b``'s map: the file's (built once per
+        file, cached) where ``texels[b]`` is the file's loaded map, else built from the
+        texels themselves (an edited map, or one a gradient is asked for: the pyramid is
+        differentiable), once per texel tensor and version while no gradient flows."""
+        from torchrefract.lighting import sg_pyramid as sgp  # noqa: PLC0415
 
-        return sg_pyramid_for(self.paths[b], device=self.scale.device)
+        tex = self.texels[b]
+        if tex is envmap.load_envmap(self.paths[b]):
+            return sgp.sg_pyramid_for(self.paths[b], device=self.scale.device)
+        if tex.requires_grad and torch.is_grad_enabled():
+            return sgp.build_sg_pyramid(tex)  # (a graph per call: nothing kept)
+        hit = _TEXEL_PYRAMIDS.get(tex, tex._version)
+        return hit if hit is not None else _TEXEL_PYRAMIDS.put(
+            tex, tex._version, sgp.build_sg_pyramid(tex.detach()))
 
 
 _KEPT = KeptByIdentity(4)
+_TEXEL_PYRAMIDS = KeptByIdentity(4)
+"""The pyramids of maps given as texels (:meth:`Lighting.pyramid`), per tensor and version."""
 """The last few batches' Lighting (:meth:`Lighting.from_scenes`), per first map tensor."""
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import warnings
 from importlib import metadata
 from typing import Any
 
@@ -42,6 +43,17 @@ def register_method(name: str, method: Any) -> None:
                           f"got {name!r}")
     if name in POLICIES:
         raise ConfigError(f"register_method: {name!r} is a policy, not a method name")
+    if isinstance(method, str):
+        module, colon, attr = method.partition(":")
+        if not (colon and module and attr.isidentifier()):
+            raise ConfigError(f"register_method({name!r}): expected 'package.module:OBJECT', "
+                              f"got {method!r}")
+    elif not (isinstance(method, type) or callable(getattr(method, "shade", None))):
+        raise ConfigError(f"register_method({name!r}): expected a Method, its class or a "
+                          f"'module:OBJECT' path, got {method!r}")
+    if name in _BUILTIN:
+        warnings.warn(f"register_method: {name!r} replaces the built-in method of that name "
+                      "for every scene that names it", stacklevel=2)
     _registered[name] = method
     _loaded.pop(name, None)
 
@@ -78,15 +90,19 @@ def method_names() -> tuple[str, ...]:
 
 
 def _resolve(name: str, source: Any) -> Any:
-    if isinstance(source, metadata.EntryPoint):
-        obj = source.load()
-    elif isinstance(source, str):
-        module, _, attr = source.partition(":")
-        obj = getattr(importlib.import_module(module), attr)
-    else:
-        obj = source
-    if isinstance(obj, type):
-        obj = obj()
+    try:  # a plug-in that cannot be loaded or made fails naming the method
+        if isinstance(source, metadata.EntryPoint):
+            obj = source.load()
+        elif isinstance(source, str):
+            module, _, attr = source.partition(":")
+            obj = getattr(importlib.import_module(module), attr)
+        else:
+            obj = source
+        if isinstance(obj, type):
+            obj = obj()
+    except (ImportError, AttributeError, TypeError) as exc:
+        raise ConfigError(f"method {name!r}: cannot load {source!r}: "
+                          f"{type(exc).__name__}: {exc}") from None
     for attr in ("parse", "prepare", "shade") if name not in POLICIES else ("parse", "resolve"):
         if not callable(getattr(obj, attr, None)):
             raise ConfigError(f"method {name!r}: {obj!r} has no {attr}() (see "

@@ -23,8 +23,12 @@ outside TIR, where the table's transmitted lobe still exists."""
 
 
 def critical_cosine(ior: torch.Tensor) -> torch.Tensor:
-    """cos theta_c = sqrt(1 - 1 / ior^2) of light leaving the glass (0 for ior <= 1)."""
-    return torch.sqrt((1.0 - 1.0 / (ior * ior)).clamp(min=0.0))
+    """cos theta_c = sqrt(1 - 1 / ior^2) of light leaving the glass (0 for ior <= 1; its
+    gradient there 0, not sqrt's infinite slope at 0 times the clamp's: NaN at ior 1)."""
+    x = 1.0 - 1.0 / (ior * ior)
+    inside = x > 0.0
+    return torch.where(inside, torch.sqrt(torch.where(inside, x, torch.ones_like(x))),
+                       torch.zeros_like(x))
 
 
 def clamp_to_critical(cos: torch.Tensor, tir: torch.Tensor, cos_crit: torch.Tensor
