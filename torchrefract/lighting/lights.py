@@ -63,17 +63,17 @@ class Lighting:
         return hit if hit is not None else _KEPT.put(texels[0], key, _lighting(scenes, texels))
 
     def pyramid(self, b: int):
-        """The SG-pre-convolved pyramid of scene ``b``'s map: the file's (built once per
-        file, cached) where ``texels[b]`` is the file's loaded map, else built from the
-        texels themselves (an edited map, or one a gradient is asked for: the pyramid is
-        differentiable), once per texel tensor and version while no gradient flows."""
+        """The SG-pre-convolved pyramid of scene ``b``'s map: built from the texels where
+        a gradient is asked for (differentiable, a graph per call), or where they are an
+        edited map on the CPU (kept per texel tensor and version); else the file's (built
+        once per file, cached; texels moved to a GPU are taken for the file's)."""
         from torchrefract.lighting import sg_pyramid as sgp  # noqa: PLC0415
 
         tex = self.texels[b]
-        if tex is envmap.load_envmap(self.paths[b]):
-            return sgp.sg_pyramid_for(self.paths[b], device=self.scale.device)
         if tex.requires_grad and torch.is_grad_enabled():
             return sgp.build_sg_pyramid(tex)  # (a graph per call: nothing kept)
+        if tex.device.type != "cpu" or tex is envmap.load_envmap(self.paths[b]):
+            return sgp.sg_pyramid_for(self.paths[b], device=self.scale.device)
         hit = _TEXEL_PYRAMIDS.get(tex, tex._version)
         return hit if hit is not None else _TEXEL_PYRAMIDS.put(
             tex, tex._version, sgp.build_sg_pyramid(tex.detach()))

@@ -175,10 +175,10 @@ def _build_sg_env(lighting, keep: _Keep) -> native._SgEnv:
     bases, atlases, metas, base_hw, atlas_hw = [], [], [], [], []
     pyramids: dict = {}
     for b in range(len(lighting.texels)):
-        path = lighting.paths[b]
-        if path not in pyramids:
-            pyramids[path] = lighting.pyramid(b)
-        pyr = pyramids[path]
+        key = (lighting.paths[b], id(lighting.texels[b]))  # (an edited map: its own)
+        if key not in pyramids:
+            pyramids[key] = lighting.pyramid(b)
+        pyr = pyramids[key]
         metas.append(_sg_meta(pyr))
         bases.append(pyr.base)
         atlases.append(pyr.atlas)
