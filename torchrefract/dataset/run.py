@@ -400,7 +400,7 @@ def _plan(cfg: SweepConfig, out: Path, fmt: str, verify: bool, limit: int | None
     planned_failures: list[dict] = []
     from tqdm import tqdm  # noqa: PLC0415
 
-    # a large sweep's plan takes a while (~0.4 ms a sample): shown as it is made
+    # a large sweep's plan takes a while: shown as it is made
     for i in tqdm(range(cfg.num_samples), desc="planning", unit="sample", leave=False,
                   disable=quiet or cfg.num_samples < PLAN_BAR_FROM, dynamic_ncols=True):
         sid = cfg.sample_id(i)

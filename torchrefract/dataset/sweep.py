@@ -95,8 +95,8 @@ ROTATIONS = ("none", "yaw", "so3")
 
 
 MAX_SAMPLES = 1_000_000
-"""Most samples one sweep expands into: its plan (about 3 KB a sample) is made whole before
-the first render and again on every resume (100,000 samples: ~44 s, 300 MB)."""
+"""Most samples one sweep expands into: its plan is made whole before the first render and
+again on every resume, in time and memory that grow with the count (docs/datasets.md)."""
 
 
 @dataclass(frozen=True)
