@@ -106,6 +106,10 @@ def test_texels_and_batches(one_thread):
     # texels are checked and taken as a loaded map is: float64 as float32, no NaN, no
     # negative scale (a scene's envmap.scale may not be either)
     assert torch.equal(tr.relight(out, tex.double(), scale=2.0), tr.relight(out, tex, scale=2.0))
+    from torchrefract.matte.relight import _checked_texels
+
+    wide = tex.double()  # checked and cast once per tensor and version, not per relight
+    assert _checked_texels(wide) is _checked_texels(wide)
     with pytest.raises(tr.ConfigError, match="NaN"):
         tr.relight(out, torch.full((16, 32, 3), float("nan")))
     with pytest.raises(tr.ConfigError, match="scale must be >= 0"):

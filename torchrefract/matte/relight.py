@@ -57,6 +57,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrefract.checks import ConfigError
+from torchrefract.kept import KeptByIdentity
 from torchrefract.kernels import native
 from torchrefract.lighting import envmap as envmap_mod
 from torchrefract.lighting.sg_pyramid import (SGPyramid, _blend_weights, _pad_level,
@@ -86,12 +87,29 @@ def _env(envmap) -> tuple[torch.Tensor, SGPyramid | None, str | None]:
     if isinstance(envmap, SGPyramid):
         return envmap.levels[0], envmap, None
     if torch.is_tensor(envmap) and envmap.dim() == 3 and envmap.shape[-1] == 3:
-        # the checks of a map file (finite, >= 0, bounded), in float32 as a loaded map
-        # (a differentiable cast: a gradient still reaches the caller's tensor)
-        envmap_mod.validate_texels(envmap.detach().cpu().float().numpy(), "relight: envmap")
-        return envmap.float(), None, None
+        return _checked_texels(envmap), None, None
     raise ConfigError(f"relight: envmap must be a map file path, an EnvMap, an SGPyramid or "
                       f"an (H, W, 3) tensor, got {type(envmap).__name__}")
+
+
+def _checked_texels(texels: torch.Tensor) -> torch.Tensor:
+    """In-memory texels with the checks of a map file (finite, >= 0, bounded), in float32
+    as a loaded map (a differentiable cast: a gradient still reaches the caller's tensor).
+    Kept per tensor and version where no gradient flows, so that relighting with one map
+    again checks and copies nothing, and its pyramid (:func:`_pyramid_of`, keyed by the
+    float32 tensor) is found."""
+    grad = texels.requires_grad
+    hit = None if grad else _CHECKED.get(texels, texels._version)
+    if hit is None:
+        envmap_mod.validate_texels(texels.detach().cpu().float().numpy(), "relight: envmap")
+        hit = texels.float()
+        if not grad:
+            _CHECKED.put(texels, texels._version, hit)
+    return hit
+
+
+_CHECKED = KeptByIdentity(4)
+""":func:`_checked_texels`' memory: per texel tensor and version, its checked float32."""
 
 
 def _per_view(v, b: int, name: str, minimum: float | None = None) -> torch.Tensor:
