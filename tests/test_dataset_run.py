@@ -393,7 +393,7 @@ def test_shards_are_deterministic(reference, cfg_path, tmp_path):
 
 
 def test_a_batch_is_encoded_in_threads_in_order_and_a_failure_stays_its_own():
-    """The writer encodes a batch's samples in threads: each sample's bytes are the ones it
+    """A batch's samples are encoded in threads: each sample's bytes are the ones it
     encodes alone, in the batch's order, and a sample that cannot be encoded is recorded
     as failed without its neighbours."""
     import dataclasses
@@ -425,6 +425,41 @@ def test_a_batch_is_encoded_in_threads_in_order_and_a_failure_stays_its_own():
         assert results[i]["exr"] == alone["exr"] and results[i]["png"] == alone["png"]
         assert results[i]["sha256"] == alone["sha256"]
     assert total == pytest.approx(sum(r["timings"]["encode_s"] for r in results))
+
+
+def test_a_serial_run_encodes_between_renders_and_writes_beside_them(cfg_path, reference,
+                                                                   tmp_path, monkeypatch):
+    """Serially, no sample is encoded while a batch renders (their threads would take each
+    other's cores: docs/datasets.md, section 4) nor in the writer thread, which only
+    writes; the files are the reference run's."""
+    import threading
+
+    import torchrefract.dataset.executors as executors
+    import torchrefract.dataset.run as run
+
+    events: list[tuple[str, float, float, str]] = []
+    render_batch, encode = executors.render_batch, run._encode
+
+    def timed(kind, fn):
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            events.append((kind, t0, time.perf_counter(), threading.current_thread().name))
+            return out
+        return call
+
+    monkeypatch.setattr(executors, "render_batch", timed("render", render_batch))
+    monkeypatch.setattr(run, "_encode", timed("encode", encode))
+    s = run_sweep(cfg_path, tmp_path, batch_size=3, quiet=True)
+    assert (s.ok, s.failed) == (8, 0)
+    renders = [e for e in events if e[0] == "render"]
+    encodes = [e for e in events if e[0] == "encode"]
+    assert len(renders) == 3 and len(encodes) == 8
+    assert not [e for e in encodes if e[3] == "torchrefract-writer"]
+    for _, a0, a1, _ in encodes:
+        assert not [r for r in renders if r[1] < a1 and a0 < r[2]], "encoded during a render"
+    for p in reference.glob("*.exr"):
+        assert (tmp_path / p.name).read_bytes() == p.read_bytes()
 
 
 _ORPHAN = """

@@ -115,7 +115,7 @@ class _SerialExecutor:
         self.settings = settings
 
     def submit(self, items):
-        # Encoding happens in the writer thread, overlapping the next render.
+        # Encoded by the driver between renders (dataset.run._encode_batch).
         return _Lazy(lambda: render_items(items, self.settings, encode=False))
 
     def close(self) -> None:

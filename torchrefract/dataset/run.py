@@ -168,8 +168,8 @@ class RunSummary:
 
     @property
     def own_work_fraction(self) -> float:
-        """(planning + encoding here + writing + manifest) / wall time: the run's own work,
-        most of it done by the writer thread while the next batch renders."""
+        """(planning + encoding here + writing + manifest) / wall time: the run's own work
+        (the writing by the writer thread while the next batch renders)."""
         own = self.plan_s + self.write_s + self.manifest_s + self.encode_s
         return own / self.wall_s if self.wall_s > 0 else 0.0
 
@@ -542,9 +542,10 @@ def _run_info() -> dict:
 
 
 class _WriterThread:
-    """Writes finished batches in order in a background thread, so that this process can
-    render the next batch meanwhile (serial runs) or collect the next result. Rendering
-    stays in the calling thread: the EGL context belongs to it."""
+    """Writes finished, encoded batches in order in a background thread: their files'
+    writes and fsyncs wait on the disk while this process renders the next batch (serial
+    runs) or collects the next result. Rendering stays in the calling thread: the EGL
+    context belongs to it."""
 
     def __init__(self, write: Callable[..., None], depth: int = 2):
         import queue  # noqa: PLC0415
@@ -608,8 +609,8 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
                          for it in items for src in (sources[it[1]],)]
             pending.append((b, ex.submit(items)))
 
-    def write(batch: list[Sample], results: list[dict]) -> None:
-        _write_batch(cfg, out, fmt, batch, results, manifest, shards, summary)
+    def write(batch: list[Sample], results: list[dict], encode_s: float) -> None:
+        _write_batch(cfg, out, fmt, batch, results, manifest, shards, summary, encode_s)
         bar.update(len(batch))
         if summary.failed:
             bar.set_postfix(failed=summary.failed, refresh=False)
@@ -635,7 +636,7 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
                 render = max((r.get("timings", {}).get("batch", {}).get("total", 0.0)
                               for r in results), default=0.0)
                 summary.startup_s = max(0.0, now - t_executor - render)
-            writer.put(batch, results)
+            writer.put(batch, results, _encode_batch(batch, results))  # between renders
     finally:
         try:
             writer.close()
@@ -645,10 +646,11 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
 
 def _encode_batch(batch: list[Sample], results: list[dict]) -> float:
     """Encode, in place, the samples of a batch rendered in this process (not yet encoded:
-    the EXR and PNG bytes and their hashes), as many at once as the run has torch threads:
-    zlib, OpenEXR and hashlib let go of the GIL, and one thread alone encoded slower than
-    the renders came (docs/datasets.md, section 4). A sample whose encoding fails is
-    recorded as failed. Returns the samples' encoding times, summed."""
+    the EXR and PNG bytes and their hashes), as many at once as the run has torch threads
+    (zlib, OpenEXR and hashlib let go of the GIL), between two renders: encoded beside the
+    next render, its threads and these took each other's cores (docs/datasets.md, section
+    4). A sample whose encoding fails is recorded as failed. Returns the samples' encoding
+    times, summed."""
     todo = [(s, r) for s, r in zip(batch, results) if r["ok"] and "result" in r]
 
     def one(item: tuple[Sample, dict]) -> float:
@@ -672,11 +674,10 @@ def _encode_batch(batch: list[Sample], results: list[dict]) -> float:
 
 def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
                  results: list[dict], manifest: _Manifest, shards: _TarShards | None,
-                 summary: RunSummary) -> None:
+                 summary: RunSummary, batch_encode: float) -> None:
     """Write one batch's files (or shard members), then append its manifest lines."""
     records = []
     batch_render = 0.0
-    batch_encode = _encode_batch(batch, results)
     t_encoded = time.perf_counter()
     for sample, res in zip(batch, results):
         meta = _sample_meta(cfg, sample, out)
