@@ -91,6 +91,38 @@ def test_cli_survives_an_unexpected_failure_and_renders_the_rest(tmp_path, capsy
     assert not list(out.glob(".*tmp*"))
 
 
+def test_cli_saves_a_batchs_frames_in_threads_and_a_failure_stays_its_own(
+        tmp_path, capsys, monkeypatch):
+    """A batch's frames are written in threads (their encoding took longer than the
+    render); a frame whose files cannot be written fails alone, in the batch's order."""
+    import threading
+
+    import torch
+
+    export = importlib.import_module("torchrefract.output.export")
+    real, seen = export.save_render, []
+
+    def save(result, i, out):
+        seen.append(threading.current_thread().name)
+        if result.scenes[i].name == "bad":
+            raise OSError("disk said no")
+        return real(result, i, out)
+
+    monkeypatch.setattr(export, "save_render", save)
+    paths = [str(_small_scene_yaml(tmp_path, n)) for n in ("a", "bad", "c")]
+    out = tmp_path / "out"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        assert main(["render", *paths, "--out", str(out), "--quiet"]) == 1
+    finally:
+        torch.set_num_threads(threads)
+    assert "FAILED bad: OSError: disk said no" in capsys.readouterr().err
+    assert (out / "a.exr").is_file() and (out / "c.exr").is_file()
+    assert not (out / "bad.exr").exists()
+    assert len(seen) == 3 and all(n.startswith("torchrefract-save") for n in seen)
+
+
 def test_a_camera_inside_the_object_is_warned_of(tmp_path):
     """From inside the glass the two layers see nothing: such a view says so instead of
     returning the environment silently; a camera outside does not."""

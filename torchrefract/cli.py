@@ -15,6 +15,7 @@ import os
 import sys
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from torchrefract.checks import ConfigError
@@ -232,14 +233,26 @@ def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, s
             return sum(_render_and_save([s], settings, out, failed) for s in batch)
         failed.append((batch[0].name, _reason(exc)))
         return 0
-    done = 0
-    for i, s in enumerate(batch):
+
+    def save(i: int) -> str | None:  # the reason it failed, or None
         try:
             save_render(result, i, out)
-            done += 1
+            return None
         except Exception as exc:  # noqa: BLE001 (an unwritable output: this frame alone)
-            failed.append((s.name, _reason(exc)))
-    return done
+            return _reason(exc)
+
+    # The frames' files in as many threads as torch has: their encoding (zlib, OpenEXR)
+    # lets go of the GIL, and it took more of a batch's time than its render.
+    import torch  # noqa: PLC0415
+
+    threads = min(len(batch), torch.get_num_threads())
+    if threads > 1:
+        with ThreadPoolExecutor(threads, thread_name_prefix="torchrefract-save") as pool:
+            reasons = list(pool.map(save, range(len(batch))))
+    else:
+        reasons = [save(i) for i in range(len(batch))]
+    failed += [(s.name, r) for s, r in zip(batch, reasons) if r is not None]
+    return reasons.count(None)
 
 
 def _compare_cmd(args: argparse.Namespace) -> int:
