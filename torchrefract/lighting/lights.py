@@ -80,9 +80,9 @@ class Lighting:
 
 
 _KEPT = KeptByIdentity(4)
+"""The last few batches' Lighting (:meth:`Lighting.from_scenes`), per first map tensor."""
 _TEXEL_PYRAMIDS = KeptByIdentity(4)
 """The pyramids of maps given as texels (:meth:`Lighting.pyramid`), per tensor and version."""
-"""The last few batches' Lighting (:meth:`Lighting.from_scenes`), per first map tensor."""
 
 
 def _lighting(scenes: list[Scene], texels: tuple[torch.Tensor, ...]) -> Lighting:
