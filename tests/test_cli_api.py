@@ -102,11 +102,11 @@ def test_cli_saves_a_batchs_frames_in_threads_and_a_failure_stays_its_own(
     export = importlib.import_module("torchrefract.output.export")
     real, seen = export.save_render, []
 
-    def save(result, i, out):
+    def save(result, i, *rest):
         seen.append(threading.current_thread().name)
         if result.scenes[i].name == "bad":
             raise OSError("disk said no")
-        return real(result, i, out)
+        return real(result, i, *rest)
 
     monkeypatch.setattr(export, "save_render", save)
     paths = [str(_small_scene_yaml(tmp_path, n)) for n in ("a", "bad", "c")]
@@ -121,6 +121,23 @@ def test_cli_saves_a_batchs_frames_in_threads_and_a_failure_stays_its_own(
     assert (out / "a.exr").is_file() and (out / "c.exr").is_file()
     assert not (out / "bad.exr").exists()
     assert len(seen) == 3 and all(n.startswith("torchrefract-save") for n in seen)
+
+
+def test_cli_render_writes_the_exr_compression_asked_for(tmp_path, capsys):
+    """``--exr-compression`` sets the EXR's compression and its JSON records it; a name it
+    does not offer is a usage error (exit 2) naming the option."""
+    import OpenEXR
+
+    path = _small_scene_yaml(tmp_path, "z")
+    out = tmp_path / "out"
+    assert main(["render", str(path), "--out", str(out), "--quiet",
+                 "--exr-compression", "zstd"]) == 0
+    with OpenEXR.File(str(out / "z.exr")) as f:
+        assert str(f.header()["compression"]).endswith("ZSTD_COMPRESSION")
+    assert json.loads((out / "z.json").read_text())["exr_compression"] == "zstd"
+    with pytest.raises(SystemExit) as exc:
+        main(["render", str(path), "--out", str(out), "--exr-compression", "b44"])
+    assert exc.value.code == 2 and "--exr-compression" in capsys.readouterr().err
 
 
 def test_a_camera_inside_the_object_is_warned_of(tmp_path):

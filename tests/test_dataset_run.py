@@ -520,6 +520,28 @@ def test_local_worker_processes_give_the_serial_files(reference, cfg_path, tmp_p
     assert _files(tmp_path) == _files(reference)
 
 
+def test_an_exr_compression_reaches_the_workers_and_keeps_the_pixels(reference, cfg_path,
+                                                                     tmp_path):
+    """``exr_compression`` is each file's (the workers' too), recorded per sample and in
+    the run's line; the pixels are the default's bit for bit; an unknown one is refused."""
+    import OpenEXR
+
+    s = run_sweep(cfg_path, tmp_path, workers=1, batch_size=4, quiet=True,
+                  exr_compression="rle")
+    assert s.ok == 8 and s.exr_compression == "rle"
+    recs = _manifest(tmp_path)
+    assert {r["exr_compression"] for r in recs} == {"rle"}
+    for p in sorted(reference.glob("0*.exr")):
+        with OpenEXR.File(str(tmp_path / p.name)) as f:
+            assert str(f.header()["compression"]).endswith("RLE_COMPRESSION")
+        mine, ref = read_exr(tmp_path / p.name), read_exr(p)
+        assert all(mine[k].tobytes() == ref[k].tobytes() for k in ref)
+    run_line = json.loads((tmp_path / "runs.jsonl").read_text().splitlines()[-1])
+    assert run_line["exr_compression"] == "rle"
+    with pytest.raises(ConfigError, match="exr_compression: 'lzw'"):
+        run_sweep(cfg_path, tmp_path / "x", exr_compression="lzw")
+
+
 @pytest.mark.slow
 def test_ray_local_cluster_gives_the_serial_files(reference, cfg_path, tmp_path):
     pytest.importorskip("ray", reason="ray is not installed (pip install 'torchrefract[data]')")

@@ -15,7 +15,8 @@ import torch
 
 from torchrefract.checks import ConfigError
 from torchrefract.lighting.envmap import direction_to_uv, load_envmap, lookup, validate_texels
-from torchrefract.output.images import read_exr, read_hdr, write_exr, write_hdr
+from torchrefract.output.images import (EXR_COMPRESSIONS, check_exr_compression, read_exr,
+                                        read_hdr, write_exr, write_hdr)
 
 
 def uv_to_dir(u, v):
@@ -55,6 +56,27 @@ def test_exr_round_trip_is_exact(tmp_path):
     write_exr(path, {"R": alpha, "G": alpha, "B": alpha})
     assert set(read_exr(path)) == {"R", "G", "B"}
     assert sorted(p.name for p in path.parent.iterdir()) == ["img.exr"]
+
+
+@pytest.mark.parametrize("compression", list(EXR_COMPRESSIONS))
+def test_every_exr_compression_offered_is_lossless_and_written(tmp_path, compression):
+    """Each ``exr_compression`` gives back the float32 bits written, NaN, -0 and denormals
+    included, and the file's header names it."""
+    import OpenEXR
+
+    rng = np.random.default_rng(1)
+    x = (rng.normal(size=(19, 23)) * 10.0 ** rng.uniform(-8, 8, (19, 23))).astype(np.float32)
+    x[0, :3] = [np.nan, -0.0, 1e-42]
+    chans = {"R": x, "G": x[::-1].copy(), "B": np.zeros_like(x), "depth_front": -x}
+    path = tmp_path / f"{compression}.exr"
+    write_exr(path, chans, compression)
+    back = read_exr(path)
+    assert all(back[k].tobytes() == v.tobytes() for k, v in chans.items())
+    with OpenEXR.File(str(path)) as f:
+        assert str(f.header()["compression"]).endswith(
+            EXR_COMPRESSIONS[compression] + "_COMPRESSION")
+    with pytest.raises(ConfigError, match=r"exr_compression: 'pxr24' is not one of zip"):
+        check_exr_compression("pxr24")  # lossy for float32: not offered
 
 
 def test_read_exr_rejects_non_exr(tmp_path):

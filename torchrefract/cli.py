@@ -114,6 +114,16 @@ def _add_sweep(sub) -> None:
     w.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
+def _add_exr_compression(p) -> None:
+    """The ``--exr-compression`` option of ``render`` and ``sweep``."""
+    from torchrefract.output.images import EXR_COMPRESSIONS  # noqa: PLC0415
+
+    p.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS), default="zip",
+                   help="the EXR files' lossless compression: zip (default; every EXR reader "
+                        "takes it), rle (faster to write, larger), zstd (smaller, faster to "
+                        "read; OpenEXR 3.4 and later only), zips, piz, none")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchrefract",
                                 description="Render rough glass objects with PyTorch.")
@@ -121,6 +131,8 @@ def _parser() -> argparse.ArgumentParser:
     _add_render(sub)
     _add_compare(sub)
     _add_sweep(sub)
+    for name in ("render", "sweep"):
+        _add_exr_compression(sub.choices[name])
     return p
 
 
@@ -131,7 +143,8 @@ def _sweep_cmd(args: argparse.Namespace) -> int:
         s = run_sweep(args.config, args.out, fmt=args.format, shard_size=args.shard_size,
                       workers=args.workers, executor=args.executor,
                       ray_address=args.ray_address, batch_size=args.batch_size,
-                      quiet=args.quiet, verify=args.verify, settings=args.settings)
+                      quiet=args.quiet, verify=args.verify, settings=args.settings,
+                      exr_compression=args.exr_compression)
     except ConfigError as exc:
         print(f"torchrefract: {exc}", file=sys.stderr)
         return 2
@@ -199,7 +212,7 @@ def _render_cmd(args: argparse.Namespace) -> int:
     for group in groups.values():
         for k in range(0, len(group), args.batch_size):
             batch = group[k:k + args.batch_size]
-            ok = _render_and_save(batch, args.settings, out, failed)
+            ok = _render_and_save(batch, args.settings, out, failed, args.exr_compression)
             done += ok
             bar.update(len(batch))
     bar.close()
@@ -220,7 +233,8 @@ def _reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
-def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, str]]) -> int:
+def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, str]],
+                     exr_compression: str = "zip") -> int:
     """Render one batch and write its frames; a batch that fails is tried scene by scene,
     so one broken scene fails alone (recorded in ``failed``). Returns the frames written."""
     from torchrefract.output.export import save_render  # noqa: PLC0415
@@ -230,13 +244,14 @@ def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, s
         result = render(batch, settings=settings)
     except Exception as exc:  # noqa: BLE001 (recorded; the other batches go on)
         if len(batch) > 1:
-            return sum(_render_and_save([s], settings, out, failed) for s in batch)
+            return sum(_render_and_save([s], settings, out, failed, exr_compression)
+                       for s in batch)
         failed.append((batch[0].name, _reason(exc)))
         return 0
 
     def save(i: int) -> str | None:  # the reason it failed, or None
         try:
-            save_render(result, i, out)
+            save_render(result, i, out, exr_compression)
             return None
         except Exception as exc:  # noqa: BLE001 (an unwritable output: this frame alone)
             return _reason(exc)

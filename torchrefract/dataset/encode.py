@@ -12,14 +12,12 @@ import numpy as np
 from torchrefract.scene.model import Scene
 
 
-def encode_exr(channels: dict[str, np.ndarray]) -> bytes:
+def encode_exr(channels: dict[str, np.ndarray], compression: str = "zip") -> bytes:
     """The bytes :func:`torchrefract.output.images.write_exr` writes for these channels."""
-    import OpenEXR  # noqa: PLC0415
+    from torchrefract.output.images import exr_file  # noqa: PLC0415
 
-    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     buf = io.BytesIO()
-    with OpenEXR.File(header, data) as f:
+    with exr_file(channels, compression) as f:
         f.write(buf)
     return buf.getvalue()
 
@@ -41,11 +39,11 @@ def channel_layout(result, i: int = 0) -> dict:
     return {"radiance": ["R", "G", "B"], "coverage": ["A"], "passes": passes}
 
 
-def _encode(res, j: int, scene: Scene) -> dict:
+def _encode(res, j: int, scene: Scene, exr_compression: str = "zip") -> dict:
     """The EXR and PNG bytes of scene ``j`` of a result, and their sha256."""
     from torchrefract.output.export import exr_channels  # noqa: PLC0415
 
-    exr = encode_exr(exr_channels(res, j))
+    exr = encode_exr(exr_channels(res, j), exr_compression)
     png = encode_png(res.radiance[j].detach().cpu().numpy(), scene.exposure)
     return {"exr": exr, "png": png,
             "sha256": {"exr": hashlib.sha256(exr).hexdigest(),

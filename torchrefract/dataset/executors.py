@@ -16,7 +16,7 @@ from torchrefract.scene.model import Scene
 
 
 def render_items(items: list[tuple[int, str, Scene]], settings=None,
-                 encode: bool = True) -> list[dict]:
+                 encode: bool = True, exr_compression: str = "zip") -> list[dict]:
     """Render one batch (the worker's task). Never raises for a bad sample.
 
     Args:
@@ -28,6 +28,7 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
         settings: the :class:`~torchrefract.settings.RenderSettings` of the renders (None:
             those in force; ``threads`` sets torch's thread count for each render).
         encode: encode the EXR and PNG bytes (else return the tensors in ``result``).
+        exr_compression: the EXR's (:data:`torchrefract.output.images.EXR_COMPRESSIONS`).
 
     Returns:
         One dict per item: ``index``, ``sample_id``, ``ok``, ``reason``, ``exr``, ``png``
@@ -86,7 +87,7 @@ def render_items(items: list[tuple[int, str, Scene]], settings=None,
                 if encode:
                     t0 = time.perf_counter()
                     try:
-                        rec.update(_encode(res, j, scene))
+                        rec.update(_encode(res, j, scene, exr_compression))
                     except Exception as exc:  # noqa: BLE001
                         rec.update(ok=False, reason=failure_reason(exc))
                     rec["timings"]["encode_s"] = time.perf_counter() - t0
@@ -145,7 +146,7 @@ def exit_with_parent(parent: int) -> None:
 class _ProcessExecutor:
     """``workers`` spawned processes; each creates its own EGL context on first use."""
 
-    def __init__(self, workers: int, settings):
+    def __init__(self, workers: int, settings, exr_compression: str = "zip"):
         import multiprocessing as mp  # noqa: PLC0415
         from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
 
@@ -153,7 +154,7 @@ class _ProcessExecutor:
         # a process that holds one hangs. (The parent never renders in this mode.)
         if settings.threads is None:
             settings = settings.replace(threads=max(1, (os.cpu_count() or 1) // workers))
-        self.settings = settings
+        self.settings, self.exr_compression = settings, exr_compression
         self._new = lambda: ProcessPoolExecutor(
             max_workers=workers, mp_context=mp.get_context("spawn"),
             initializer=exit_with_parent, initargs=(os.getpid(),))
@@ -164,13 +165,15 @@ class _ProcessExecutor:
         from concurrent.futures.process import BrokenProcessPool  # noqa: PLC0415
 
         try:
-            return self.pool.submit(render_items, items, self.settings)
+            return self.pool.submit(render_items, items, self.settings, True,
+                                    self.exr_compression)
         except BrokenProcessPool:
             # A worker died (its batches in flight are reported failed and are retried by
             # the next run); carry on with fresh processes.
             self.pool.shutdown(wait=False, cancel_futures=True)
             self.pool = self._new()
-            return self.pool.submit(render_items, items, self.settings)
+            return self.pool.submit(render_items, items, self.settings, True,
+                                    self.exr_compression)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -191,7 +194,8 @@ class _RayRef:
 class _RayExecutor:
     """Ray tasks (one CPU each) on the cluster at ``address``, or on a local cluster."""
 
-    def __init__(self, address: str | None, workers: int, settings, quiet: bool):
+    def __init__(self, address: str | None, workers: int, settings, quiet: bool,
+                 exr_compression: str = "zip"):
         try:
             import ray  # noqa: PLC0415
         except ImportError as exc:
@@ -211,9 +215,10 @@ class _RayExecutor:
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.window = 2 * max(1, cpus)
         self.settings = settings if settings.threads else settings.replace(threads=1)
+        self.exr_compression = exr_compression
 
     def submit(self, items):
-        return _RayRef(self.task.remote(items, self.settings))
+        return _RayRef(self.task.remote(items, self.settings, True, self.exr_compression))
 
     def close(self) -> None:
         import ray  # noqa: PLC0415
@@ -223,11 +228,12 @@ class _RayExecutor:
 
 
 def _make_executor(executor: str, workers: int, settings, ray_address: str | None,
-                   quiet: bool):
-    """The executor a run asked for (``local`` with 0 workers: this process)."""
+                   quiet: bool, exr_compression: str = "zip"):
+    """The executor a run asked for (``local`` with 0 workers: this process, which encodes
+    the files itself: ``exr_compression`` is the others')."""
     if executor == "ray":
-        return _RayExecutor(ray_address, workers, settings, quiet)
+        return _RayExecutor(ray_address, workers, settings, quiet, exr_compression)
     if workers == 0:
         return _SerialExecutor(settings)
-    return _ProcessExecutor(workers, settings)
+    return _ProcessExecutor(workers, settings, exr_compression)
 

@@ -255,10 +255,10 @@ class RefractDataset(Dataset):
 class RenderStream(IterableDataset):
     """Render a sweep on the fly, in batches, as an IterableDataset.
 
-    Sample ``i`` of the sweep depends only on the seed and ``i`` (:mod:`torchrefract.dataset.sweep`),
-    so the stream is reproducible, and DataLoader workers split the indices among themselves
-    (worker ``w`` of ``n`` takes ``i = w, w + n, ...``): every sample comes exactly once per
-    epoch, each from one worker. The native rasterizer (the default) holds no EGL context,
+    Sample ``i`` of the sweep depends only on the seed and ``i``
+    (:mod:`torchrefract.dataset.sweep`), so the stream is reproducible, and DataLoader
+    workers split the indices among themselves (worker ``w`` of ``n`` takes ``i = w, w + n,
+    ...``): every sample comes exactly once per epoch, each from one worker. The native rasterizer (the default) holds no EGL context,
     so fork-started workers render too; after the OpenGL passes
     (``RenderSettings.rasterizer``) the main process holds one, which hangs in a forked
     child: then use ``multiprocessing_context="spawn"`` in the DataLoader (this class

@@ -71,6 +71,7 @@ from torchrefract.dataset.relight import sources as relight_sources
 from torchrefract.dataset.shards import _completed_shards, _TarShards
 from torchrefract.dataset.sweep import Sample, SweepConfig, load_sweep
 from torchrefract.output.atomic import write_bytes
+from torchrefract.output.images import check_exr_compression
 
 # Names other modules imported from here before the split (kept importable).
 __all__ = ["EXECUTORS", "FORMATS", "MANIFEST", "DiskFullError", "RunSummary", "camera_metadata",
@@ -131,6 +132,8 @@ class RunSummary:
     executor: str
     workers: int
     num_samples: int
+    exr_compression: str = "zip"
+    """The EXR files' compression (:data:`torchrefract.output.images.EXR_COMPRESSIONS`)."""
     skipped: int = 0
     """Samples already complete from an earlier run."""
     ok: int = 0
@@ -421,7 +424,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
               shard_size: int = 1000, workers: int = 0, executor: str = "local",
               ray_address: str | None = None, batch_size: int = 8, threads: int | None = None,
               quiet: bool = False, verify: bool = False,
-              limit: int | None = None, settings=None) -> RunSummary:
+              limit: int | None = None, settings=None,
+              exr_compression: str = "zip") -> RunSummary:
     """Render a sweep into ``out`` (resuming whatever an earlier run left).
 
     Args:
@@ -442,6 +446,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
         limit: render at most this many of the remaining samples (then stop cleanly).
         settings: how every render runs (:class:`~torchrefract.settings.RenderSettings`,
             default: the settings in force); ``threads`` above overrides its own.
+        exr_compression: the EXR files' (lossless: ``images.EXR_COMPRESSIONS``); each
+            sample's record names its own.
 
     Returns:
         A :class:`RunSummary`; failed samples are listed in it and in the manifest.
@@ -451,6 +457,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     """
     t_start = time.perf_counter()
     _check_args(fmt, executor, batch_size, shard_size, workers)
+    check_exr_compression(exr_compression)
     from torchrefract.settings import current  # noqa: PLC0415
 
     settings = settings if settings is not None else current()
@@ -463,7 +470,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     out.mkdir(parents=True, exist_ok=True)
     lock = _Lock(out)
     summary = RunSummary(out=str(out), format=fmt, executor=executor, workers=workers,
-                         num_samples=cfg.num_samples)
+                         num_samples=cfg.num_samples, exr_compression=exr_compression)
     ex = None
     shards: _TarShards | None = None
     manifest: _Manifest | None = None
@@ -485,7 +492,8 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
 
         t_ex = time.perf_counter()
         if batches:
-            ex = _make_executor(executor, workers, settings, ray_address, quiet)
+            ex = _make_executor(executor, workers, settings, ray_address, quiet,
+                                exr_compression)
         _drive(cfg, out, fmt, ex, batches, manifest, shards, summary, quiet, t_ex, sources)
         _finish(manifest, shards, summary)
     except OSError as exc:
@@ -636,7 +644,8 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
                 render = max((r.get("timings", {}).get("batch", {}).get("total", 0.0)
                               for r in results), default=0.0)
                 summary.startup_s = max(0.0, now - t_executor - render)
-            writer.put(batch, results, _encode_batch(batch, results))  # between renders
+            writer.put(batch, results,  # encoded between renders
+                       _encode_batch(batch, results, summary.exr_compression))
     finally:
         try:
             writer.close()
@@ -644,7 +653,8 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
             bar.close()
 
 
-def _encode_batch(batch: list[Sample], results: list[dict]) -> float:
+def _encode_batch(batch: list[Sample], results: list[dict], exr_compression: str = "zip"
+                  ) -> float:
     """Encode, in place, the samples of a batch rendered in this process (not yet encoded:
     the EXR and PNG bytes and their hashes), as many at once as the run has torch threads
     (zlib, OpenEXR and hashlib let go of the GIL), between two renders: encoded beside the
@@ -657,7 +667,8 @@ def _encode_batch(batch: list[Sample], results: list[dict]) -> float:
         sample, res = item
         te = time.perf_counter()
         try:
-            res.update(_encode(res.pop("result"), res.pop("result_index"), sample.scene))
+            res.update(_encode(res.pop("result"), res.pop("result_index"), sample.scene,
+                               exr_compression))
         except Exception as exc:  # noqa: BLE001
             res.update(ok=False, reason=failure_reason(exc))
         res["timings"]["encode_s"] = time.perf_counter() - te
@@ -697,7 +708,8 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
                 meta[key] = res[key]
         if res.get("relit_from"):  # relight mode: relit from that sample's matte
             meta["relit_from"] = res["relit_from"]
-        rec = dict(meta, channels=res["channels"], status="ok", reason=None,
+        rec = dict(meta, channels=res["channels"], exr_compression=summary.exr_compression,
+                   status="ok", reason=None,
                    sha256=res["sha256"],
                    bytes={"exr": len(res["exr"]), "png": len(res["png"])},
                    timings=timings, worker=run)
@@ -711,8 +723,9 @@ def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],
             timings["write_s"] = time.perf_counter() - tw
             records.append(rec)
         else:
-            sample_json = json.dumps(dict(meta, channels=res["channels"]), indent=1,
-                                     allow_nan=False).encode()
+            sample_json = json.dumps(dict(meta, channels=res["channels"],
+                                          exr_compression=summary.exr_compression),
+                                     indent=1, allow_nan=False).encode()
             records.extend(shards.add(sample.sample_id, [("exr", res["exr"]),
                                                           ("png", res["png"]),
                                                           ("json", sample_json)], rec))

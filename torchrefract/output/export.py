@@ -63,14 +63,17 @@ def blend_records(result: RenderResult, i: int) -> list[dict]:
     return [{"method": m, "options": o, "weight": w} for m, o, w in result.blends[i]]
 
 
-def save_render(result: RenderResult, i: int, out_dir: str | Path) -> dict[str, Path]:
-    """Write scene ``i`` of a result into ``out_dir``; returns the paths written."""
+def save_render(result: RenderResult, i: int, out_dir: str | Path,
+                exr_compression: str = "zip") -> dict[str, Path]:
+    """Write scene ``i`` of a result into ``out_dir`` (its EXR with ``exr_compression``:
+    :data:`~torchrefract.output.images.EXR_COMPRESSIONS`); returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = result.scenes[i]
     paths = {"exr": out / f"{scene.name}.exr", "png": out / f"{scene.name}.png",
              "json": out / f"{scene.name}.json"}
-    write_exr(paths["exr"], exr_channels(result, i))
+    write_exr(paths["exr"], exr_channels(result, i), exr_compression)
     write_png(paths["png"], result.radiance[i].detach().cpu().numpy(), scene.exposure)
-    write_text(paths["json"], json.dumps(metadata(result, i), indent=2) + "\n")
+    meta = dict(metadata(result, i), exr_compression=exr_compression)
+    write_text(paths["json"], json.dumps(meta, indent=2) + "\n")
     return paths

@@ -16,19 +16,44 @@ from torchrefract.checks import ConfigError
 from torchrefract.output.atomic import atomic_path, write_bytes
 
 
-def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
-    """Write float32 channels (each (H, W)) to an OpenEXR file (ZIP compression), atomically.
+EXR_COMPRESSIONS = {"zip": "ZIP", "zips": "ZIPS", "rle": "RLE", "piz": "PIZ", "zstd": "ZSTD",
+                    "none": "NO"}
+"""The lossless OpenEXR compressions a file can be written with (``exr_compression``, the
+same pixels whichever): ``zip``, the default, read by every EXR reader; ``rle`` faster to
+write, larger; ``zstd`` smaller and faster to read, but read only by OpenEXR 3.4 and
+later; ``none`` the fastest and largest (docs/datasets.md, section 4)."""
+
+
+def check_exr_compression(value, key: str = "exr_compression") -> str:
+    """``value`` if it names one of :data:`EXR_COMPRESSIONS`, else a ConfigError naming
+    ``key``."""
+    if not isinstance(value, str) or value not in EXR_COMPRESSIONS:
+        raise ConfigError(f"{key}: {value!r} is not one of {', '.join(EXR_COMPRESSIONS)}")
+    return value
+
+
+def exr_file(channels: dict[str, np.ndarray], compression: str = "zip"):
+    """The ``OpenEXR.File`` torchrefract writes for float32 channels (each (H, W)): one
+    scanline part, ``compression`` (:data:`EXR_COMPRESSIONS`)."""
+    import OpenEXR  # noqa: PLC0415
+
+    code = getattr(OpenEXR, EXR_COMPRESSIONS[check_exr_compression(compression)]
+                   + "_COMPRESSION")
+    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    return OpenEXR.File({"compression": code, "type": OpenEXR.scanlineimage}, data)
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray],
+              compression: str = "zip") -> None:
+    """Write float32 channels (each (H, W)) to an OpenEXR file, atomically
+    (:func:`exr_file`).
 
     Example:
         >>> write_exr("x.exr", {"R": r, "G": g, "B": b, "A": a})  # doctest: +SKIP
     """
-    import OpenEXR  # noqa: PLC0415
-
     path = Path(path)
-    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path, suffix=path.suffix) as tmp:
-        with OpenEXR.File(header, data) as f:
+        with exr_file(channels, compression) as f:
             f.write(str(tmp))
 
 
