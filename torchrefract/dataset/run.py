@@ -484,12 +484,7 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
             shards = _TarShards(out, shard_size, last_shard + 1)
         summary.plan_s = time.perf_counter() - t_start
 
-        t = time.perf_counter()
-        manifest.append([dict(r, run=_run_info()) for r in planned_failures])
-        summary.manifest_s += time.perf_counter() - t
-        summary.failed += len(planned_failures)
-        summary.failed_ids += [r["sample_id"] for r in planned_failures]
-
+        _record_failures(manifest, planned_failures, summary)
         t_ex = time.perf_counter()
         if batches:
             ex = _make_executor(executor, workers, settings, ray_address, quiet,
@@ -503,6 +498,15 @@ def run_sweep(config: SweepConfig | str | Path, out: str | Path, *, fmt: str = "
     finally:
         _close_run(out, lock, ex, manifest, shards, summary, t_start)
     return summary
+
+
+def _record_failures(manifest: _Manifest, records: list[dict], summary: RunSummary) -> None:
+    """Append the records of samples that failed at planning, and count them."""
+    t = time.perf_counter()
+    manifest.append([dict(r, run=_run_info()) for r in records])
+    summary.manifest_s += time.perf_counter() - t
+    summary.failed += len(records)
+    summary.failed_ids += [r["sample_id"] for r in records]
 
 
 def _close_run(out: Path, lock: "_Lock", ex, manifest: _Manifest | None,
