@@ -614,8 +614,6 @@ def _euler_after(rotate_deg: tuple[float, float, float], extra) -> tuple[float, 
 
 
 def _build_sample(cfg: SweepConfig, index: int) -> Sample:
-    from scipy.spatial.transform import Rotation  # noqa: PLC0415
-
     sid = cfg.sample_id(index)
     s, spec, base = cfg.sampling, cfg.sweep, cfg.base
     picked = _pick(cfg, index)
@@ -630,6 +628,8 @@ def _build_sample(cfg: SweepConfig, index: int) -> Sample:
     if "transform.scale" in picked:
         t["scale"] = picked["transform.scale"]
     if spec.mesh.random_rotation != "none":
+        from scipy.spatial.transform import Rotation  # noqa: PLC0415 (~0.3 s: when needed)
+
         rng = _rng(s.seed, index, "transform.rotate_deg")
         if spec.mesh.random_rotation == "yaw":
             extra = Rotation.from_euler("y", rng.uniform(0.0, 360.0), degrees=True)
