@@ -258,11 +258,11 @@ class RenderStream(IterableDataset):
     Sample ``i`` of the sweep depends only on the seed and ``i``
     (:mod:`torchrefract.dataset.sweep`), so the stream is reproducible, and DataLoader
     workers split the indices among themselves (worker ``w`` of ``n`` takes ``i = w, w + n,
-    ...``): every sample comes exactly once per epoch, each from one worker. The native rasterizer (the default) holds no EGL context,
-    so fork-started workers render too; after the OpenGL passes
-    (``RenderSettings.rasterizer``) the main process holds one, which hangs in a forked
-    child: then use ``multiprocessing_context="spawn"`` in the DataLoader (this class
-    raises a clear error instead of hanging).
+    ...``): every sample comes exactly once per epoch, each from one worker. The native
+    rasterizer (the default) holds no EGL context, so fork-started workers render too; after
+    the OpenGL passes (``RenderSettings.rasterizer``) the main process holds one, which
+    hangs in a forked child: then use ``multiprocessing_context="spawn"`` in the DataLoader
+    (this class raises a clear error instead of hanging).
 
     Args:
         config: a sweep YAML path or a :class:`SweepConfig`.
