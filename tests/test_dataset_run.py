@@ -458,6 +458,10 @@ def test_a_serial_run_encodes_between_renders_and_writes_beside_them(cfg_path, r
     assert not [e for e in encodes if e[3] == "torchrefract-writer"]
     for _, a0, a1, _ in encodes:
         assert not [r for r in renders if r[1] < a1 and a0 < r[2]], "encoded during a render"
+    # the encoding is the run's work, not its overhead
+    assert s.encode_wall_s >= max(a1 - a0 for _, a0, a1, _ in encodes)
+    assert s.overhead_fraction == pytest.approx((s.wall_s - s.wait_s - s.encode_wall_s)
+                                                / s.wall_s)
     for p in reference.glob("*.exr"):
         assert (tmp_path / p.name).read_bytes() == p.read_bytes()
 

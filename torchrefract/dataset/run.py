@@ -147,7 +147,10 @@ class RunSummary:
     manifest_s: float = 0.0
     """Appending, fsyncing and compacting the manifest."""
     encode_s: float = 0.0
-    """EXR/PNG encoding done in this process (serial runs; workers encode their own)."""
+    """EXR/PNG encoding done in this process (serial runs; workers encode their own),
+    summed over the samples (encoded several at a time)."""
+    encode_wall_s: float = 0.0
+    """The wall time this process spent encoding, between renders (serial runs)."""
     render_s: float = 0.0
     """Sum of the render time of all batches (in whichever process rendered them)."""
     wait_s: float = 0.0
@@ -178,9 +181,11 @@ class RunSummary:
 
     @property
     def overhead_fraction(self) -> float:
-        """Share of the wall time the main thread was not waiting for rendered results:
-        planning, start-up of workers and the writes that did not overlap rendering."""
-        return max(0.0, self.wall_s - self.wait_s) / self.wall_s if self.wall_s > 0 else 0.0
+        """Share of the wall time the main thread was neither waiting for rendered results
+        nor encoding them: planning, start-up of workers and the writes that did not
+        overlap rendering."""
+        busy = self.wait_s + self.encode_wall_s
+        return max(0.0, self.wall_s - busy) / self.wall_s if self.wall_s > 0 else 0.0
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -648,8 +653,10 @@ def _drive(cfg: SweepConfig, out: Path, fmt: str, ex, batches: list[list[Sample]
                 render = max((r.get("timings", {}).get("batch", {}).get("total", 0.0)
                               for r in results), default=0.0)
                 summary.startup_s = max(0.0, now - t_executor - render)
-            writer.put(batch, results,  # encoded between renders
-                       _encode_batch(batch, results, summary.exr_compression))
+            t = time.perf_counter()  # encoded between renders
+            encode_s = _encode_batch(batch, results, summary.exr_compression)
+            summary.encode_wall_s += time.perf_counter() - t
+            writer.put(batch, results, encode_s)
     finally:
         try:
             writer.close()
