@@ -15,7 +15,6 @@ import os
 import sys
 import time
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from torchrefract.checks import ConfigError
@@ -237,7 +236,7 @@ def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, s
                      exr_compression: str = "zip") -> int:
     """Render one batch and write its frames; a batch that fails is tried scene by scene,
     so one broken scene fails alone (recorded in ``failed``). Returns the frames written."""
-    from torchrefract.output.export import save_render  # noqa: PLC0415
+    from torchrefract.output.export import in_threads, save_render  # noqa: PLC0415
     from torchrefract.render import render  # noqa: PLC0415
 
     try:
@@ -256,16 +255,8 @@ def _render_and_save(batch: list, settings, out: Path, failed: list[tuple[str, s
         except Exception as exc:  # noqa: BLE001 (an unwritable output: this frame alone)
             return _reason(exc)
 
-    # The frames' files in as many threads as torch has: their encoding (zlib, OpenEXR)
-    # lets go of the GIL, and it took more of a batch's time than its render.
-    import torch  # noqa: PLC0415
-
-    threads = min(len(batch), torch.get_num_threads())
-    if threads > 1:
-        with ThreadPoolExecutor(threads, thread_name_prefix="torchrefract-save") as pool:
-            reasons = list(pool.map(save, range(len(batch))))
-    else:
-        reasons = [save(i) for i in range(len(batch))]
+    # side by side: a batch's encoding took longer than its render, one frame at a time
+    reasons = in_threads(save, range(len(batch)), "torchrefract-save")
     failed += [(s.name, r) for s, r in zip(batch, reasons) if r is not None]
     return reasons.count(None)
 

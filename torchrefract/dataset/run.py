@@ -54,7 +54,6 @@ import sys
 import time
 import warnings
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -685,13 +684,9 @@ def _encode_batch(batch: list[Sample], results: list[dict], exr_compression: str
         res["timings"]["encode_s"] = time.perf_counter() - te
         return res["timings"]["encode_s"]
 
-    import torch  # noqa: PLC0415
+    from torchrefract.output.export import in_threads  # noqa: PLC0415
 
-    threads = min(len(todo), torch.get_num_threads())
-    if threads <= 1:
-        return sum(one(item) for item in todo)
-    with ThreadPoolExecutor(threads, thread_name_prefix="torchrefract-encode") as pool:
-        return sum(pool.map(one, todo))
+    return sum(in_threads(one, todo, "torchrefract-encode"))
 
 
 def _write_batch(cfg: SweepConfig, out: Path, fmt: str, batch: list[Sample],

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import platform
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Callable, Sequence, TypeVar
 
 import numpy as np
 import torch
@@ -20,6 +22,18 @@ from torchrefract.output.images import write_exr, write_png
 from torchrefract.result import RenderResult
 
 _AXES = ("X", "Y", "Z", "W")
+_T, _R = TypeVar("_T"), TypeVar("_R")
+
+
+def in_threads(fn: Callable[[_T], _R], items: Sequence[_T], name: str) -> list[_R]:
+    """``fn`` of each item, in order, in as many threads (named ``name``) as torch has:
+    encoding files (zlib, OpenEXR, hashlib) lets go of the GIL, so a batch's frames encode
+    side by side; one at a time in this thread where one thread would do."""
+    threads = min(len(items), torch.get_num_threads())
+    if threads <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(threads, thread_name_prefix=name) as pool:
+        return list(pool.map(fn, items))
 
 
 def exr_channels(result: RenderResult, i: int) -> dict[str, np.ndarray]:
