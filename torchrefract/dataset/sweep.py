@@ -628,7 +628,7 @@ def _build_sample(cfg: SweepConfig, index: int) -> Sample:
     if "transform.scale" in picked:
         t["scale"] = picked["transform.scale"]
     if spec.mesh.random_rotation != "none":
-        from scipy.spatial.transform import Rotation  # noqa: PLC0415 (~0.3 s: when needed)
+        from scipy.spatial.transform import Rotation  # noqa: PLC0415 (slow: only here)
 
         rng = _rng(s.seed, index, "transform.rotate_deg")
         if spec.mesh.random_rotation == "yaw":
